@@ -1,0 +1,215 @@
+"""The dataset contract: writer/reader round trips, .flo, atomic frames, resume checks."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from omniflow.rig import Rig
+from omnisim import dataset as ds
+from omnisim.dataset import (
+    CHANNELS,
+    FLO_UNKNOWN,
+    DatasetError,
+    DatasetMismatchError,
+    DatasetWriter,
+    open_dataset,
+    read_flo,
+)
+
+CONTRACT = [
+    "R", "G", "B", "gt.valid", "gt.r", "gt.theta", "gt.h", "gt.X", "gt.Y", "gt.Z", "gt.object",
+    "gt.flow.dx", "gt.flow.dy", "gt.flow.dh", "gt.flow.hdtheta", "gt.flow.valid",
+    "gt.stereo.h_other", "gt.stereo.valid",
+]
+
+
+def make_meta(frames: int = 3, size: int = 24, seed: int = 1) -> dict:
+    rig = Rig.symmetric(d=0.1, R=0.05, s=0.3, size=size)
+    return {
+        "format": ds.FORMAT_NAME,
+        "format_version": ds.FORMAT_VERSION,
+        "scene": {"name": "t", "path": "/x/t.toml", "source": "# scene\n", "overrides": {}},
+        **rig.to_dict(),
+        "frames": frames,
+        "frame_interval": 0.1,
+        "render": {"width": size, "height": size, "spp": 2, "seed": seed},
+        "seed": seed,
+        "objects": [{"id": 1, "name": "wall", "poses": [np.eye(4).tolist()] * frames}],
+        "robot": {"poses": [np.eye(4).tolist()] * frames},
+        "versions": {"omnisim": "0"},
+    }
+
+
+def make_frame(k: int, size: int = 24, cams=("cam1", "cam2")) -> dict:
+    out = {}
+    for ci, cam in enumerate(cams):
+        rng = np.random.default_rng(100 * k + ci)
+        ch = {name: rng.normal(size=(size, size)).astype(np.float32) for name in CHANNELS}
+        for name in ("gt.valid", "gt.flow.valid", "gt.stereo.valid"):
+            ch[name] = (rng.random((size, size)) > 0.3).astype(np.float32)
+        ch["gt.object"] = rng.integers(0, 3, (size, size)).astype(np.float32)
+        out[cam] = ch
+    return out
+
+
+def test_channel_names_are_the_contract():
+    assert list(CHANNELS) == CONTRACT
+
+
+def test_round_trip(tmp_path):
+    meta = make_meta()
+    w = DatasetWriter(tmp_path / "d", meta)
+    frames = {k: make_frame(k) for k in range(3)}
+    for k, fr in frames.items():
+        w.write_frame(k, fr)
+    d = open_dataset(tmp_path / "d")
+    assert d.meta == json.loads(json.dumps(meta))
+    assert d.frame_count == 3 and d.complete and d.frames_done() == [0, 1, 2]
+    assert d.rig == Rig.symmetric(d=0.1, R=0.05, s=0.3, size=24)
+    assert d.objects == {1: "wall"}
+    assert sorted(p.name for p in (tmp_path / "d" / "frames").iterdir()) == [
+        "000000", "000001", "000002"]
+    assert sorted(p.name for p in (tmp_path / "d" / "frames" / "000001").iterdir()) == [
+        "cam1.exr", "cam1.flo", "cam2.exr", "cam2.flo"]
+    for k, fr in frames.items():
+        for cam in ("cam1", "cam2"):
+            got = d.read_frame(k, cam)
+            assert list(sorted(got)) == sorted(CONTRACT)
+            for name in CONTRACT:
+                assert got[name].dtype == np.float32
+                np.testing.assert_array_equal(got[name], fr[cam][name])
+            rgb = d.read_rgb(k, cam)
+            assert rgb.shape == (24, 24, 3)
+
+
+def test_exr_is_zip_float32(tmp_path):
+    import OpenEXR
+
+    w = DatasetWriter(tmp_path / "d", make_meta(frames=1))
+    w.write_frame(0, make_frame(0))
+    with OpenEXR.File(str(tmp_path / "d/frames/000000/cam1.exr"), separate_channels=True) as f:
+        hdr = f.header()
+        assert hdr["compression"] == OpenEXR.ZIP_COMPRESSION
+        assert sorted(f.channels()) == sorted(CONTRACT)
+        assert all(c.pixels.dtype == np.float32 for c in f.channels().values())
+
+
+def test_flo_round_trip_and_opencv(tmp_path):
+    rng = np.random.default_rng(3)
+    dx = rng.normal(size=(7, 11)).astype(np.float32)
+    dy = rng.normal(size=(7, 11)).astype(np.float32)
+    valid = rng.random((7, 11)) > 0.2
+    p = tmp_path / "a.flo"
+    ds.write_flo(p, dx, dy, valid)
+    raw = p.read_bytes()
+    assert raw[:4] == b"PIEH" and len(raw) == 12 + 8 * 7 * 11
+    flow, ok = read_flo(p)
+    np.testing.assert_array_equal(ok, valid)
+    np.testing.assert_array_equal(flow[..., 0][valid], dx[valid])
+    np.testing.assert_array_equal(flow[..., 1][valid], dy[valid])
+    assert np.all(flow[~valid] == np.float32(FLO_UNKNOWN))
+    cvflow = cv2.readOpticalFlow(str(p))
+    assert cvflow.shape == (7, 11, 2)
+    np.testing.assert_array_equal(cvflow, flow)
+
+
+def test_flo_reader_accepts_1e9_as_unknown(tmp_path):
+    p = tmp_path / "b.flo"
+    dx = np.array([[1.0, 1e9]], np.float32)
+    ds.write_flo(p, dx, np.zeros_like(dx))
+    _, ok = read_flo(p)
+    assert ok.tolist() == [[True, False]]
+
+
+def test_bad_flo(tmp_path):
+    p = tmp_path / "c.flo"
+    p.write_bytes(b"XXXX" + b"\0" * 20)
+    with pytest.raises(DatasetError, match="magic"):
+        read_flo(p)
+
+
+def test_channel_contract_enforced(tmp_path):
+    w = DatasetWriter(tmp_path / "d", make_meta(frames=1))
+    fr = make_frame(0)
+    del fr["cam1"]["gt.flow.dh"]
+    with pytest.raises(DatasetError, match=r"gt\.flow\.dh"):
+        w.write_frame(0, fr)
+    fr = make_frame(0)
+    fr["cam2"]["gt.extra"] = fr["cam2"]["R"]
+    with pytest.raises(DatasetError, match=r"gt\.extra"):
+        w.write_frame(0, fr)
+    assert not any((tmp_path / "d" / "frames").iterdir())
+
+
+def test_exception_mid_frame_leaves_no_final_name(tmp_path, monkeypatch):
+    w = DatasetWriter(tmp_path / "d", make_meta(frames=2))
+    files = ds.encode_frame(make_frame(0), w.cameras, k=0)
+    calls = []
+    real = ds._write_synced
+
+    def failing(path, data):
+        calls.append(path)
+        if len(calls) == 3:
+            raise KeyboardInterrupt("simulated kill mid-frame")
+        real(path, data)
+
+    monkeypatch.setattr(ds, "_write_synced", failing)
+    with pytest.raises(KeyboardInterrupt):
+        w.write_frame_files(0, files)
+    monkeypatch.setattr(ds, "_write_synced", real)
+    assert not (tmp_path / "d/frames/000000").exists()
+    assert not w.is_done(0) and w.todo_frames() == [0, 1]
+    # A partial temporary directory left by a hard kill is removed on resume.
+    (tmp_path / "d/frames/.000001.tmp.123.abcd").mkdir()
+    (tmp_path / "d/frames/.000001.tmp.123.abcd/cam1.exr").write_bytes(b"partial")
+    w2 = DatasetWriter(tmp_path / "d", make_meta(frames=2))
+    assert not (tmp_path / "d/frames/.000001.tmp.123.abcd").exists()
+    w2.write_frame_files(0, files)
+    assert w2.is_done(0)
+    assert (tmp_path / "d/frames/000000/cam1.exr").read_bytes() == files["cam1.exr"]
+
+
+def test_resume_refuses_mismatch(tmp_path):
+    DatasetWriter(tmp_path / "d", make_meta(seed=1))
+    DatasetWriter(tmp_path / "d", make_meta(seed=1))  # same settings: fine
+    moved = make_meta(seed=1)
+    moved["scene"]["path"] = "/elsewhere/t.toml"  # same content at another path: fine
+    DatasetWriter(tmp_path / "d", moved)
+    with pytest.raises(DatasetMismatchError, match=r"refusing to resume.*seed"):
+        DatasetWriter(tmp_path / "d", make_meta(seed=2))
+    with pytest.raises(DatasetMismatchError, match="frames: 3 in the directory vs 4 now"):
+        DatasetWriter(tmp_path / "d", make_meta(frames=4))
+    other = make_meta()
+    other["scene"]["source"] = "# another scene\n"
+    with pytest.raises(DatasetMismatchError, match=r"scene\.source"):
+        DatasetWriter(tmp_path / "d", other)
+
+
+def test_refuses_non_dataset_dir(tmp_path):
+    (tmp_path / "d").mkdir()
+    (tmp_path / "d" / "notes.txt").write_text("mine")
+    with pytest.raises(DatasetError, match="not empty"):
+        DatasetWriter(tmp_path / "d", make_meta())
+    with pytest.raises(DatasetError, match="not an omnisim dataset"):
+        open_dataset(tmp_path / "d")
+
+
+def test_read_missing_frame(tmp_path):
+    w = DatasetWriter(tmp_path / "d", make_meta(frames=2))
+    w.write_frame(0, make_frame(0))
+    d = open_dataset(tmp_path / "d")
+    assert not d.complete and d.frames_done() == [0]
+    with pytest.raises(DatasetError, match="not rendered"):
+        d.read_frame(1, "cam1")
+    with pytest.raises(DatasetError, match="unknown camera"):
+        d.read_frame(0, "cam3")
+
+
+def test_same_frame_same_bytes(tmp_path):
+    a = ds.encode_frame(make_frame(1), ["cam1", "cam2"], k=1)
+    b = ds.encode_frame(make_frame(1), ["cam1", "cam2"], k=1)
+    assert a == b
