@@ -190,8 +190,12 @@ def _check_channels(channels: Mapping[str, NDArray], where: str) -> tuple[int, i
     return shape
 
 
-def write_exr(path: str | Path, channels: Mapping[str, NDArray], *,
-              attributes: Mapping[str, str] | None = None) -> None:
+def write_exr(
+    path: str | Path,
+    channels: Mapping[str, NDArray],
+    *,
+    attributes: Mapping[str, str] | None = None,
+) -> None:
     """Write a single-part scanline EXR, ZIP compression, every channel float32 (H, W).
 
     Not atomic by itself (the frame directory is what is renamed); the file is fsynced.
@@ -201,8 +205,7 @@ def write_exr(path: str | Path, channels: Mapping[str, NDArray], *,
 
     # OpenEXR.File replaces the dict's values by Channel objects: give it a fresh dict.
     chans = {name: np.ascontiguousarray(channels[name], dtype=np.float32) for name in channels}
-    header: dict[str, Any] = {"compression": OpenEXR.ZIP_COMPRESSION,
-                              "type": OpenEXR.scanlineimage}
+    header: dict[str, Any] = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     for key, value in (attributes or {}).items():
         header[key] = str(value)
     path = Path(path)
@@ -221,14 +224,20 @@ def read_exr(path: str | Path) -> dict[str, NDArray[np.float32]]:
         raise DatasetError(f"{path}: EXR file not found")
     try:
         with OpenEXR.File(str(path), separate_channels=True) as exr:
-            return {name: np.asarray(ch.pixels, dtype=np.float32).copy()
-                    for name, ch in exr.channels().items()}
+            return {
+                name: np.asarray(ch.pixels, dtype=np.float32).copy()
+                for name, ch in exr.channels().items()
+            }
     except Exception as exc:  # OpenEXR raises RuntimeError/OSError on corrupt files
         raise DatasetError(f"{path}: cannot read EXR: {exc}") from exc
 
 
-def exr_bytes(channels: Mapping[str, NDArray], *, attributes: Mapping[str, str] | None = None,
-              scratch_dir: str | Path | None = None) -> bytes:
+def exr_bytes(
+    channels: Mapping[str, NDArray],
+    *,
+    attributes: Mapping[str, str] | None = None,
+    scratch_dir: str | Path | None = None,
+) -> bytes:
     """The bytes :func:`write_exr` would write (via a scratch file; OpenEXR writes to paths)."""
     import tempfile
 
@@ -292,9 +301,13 @@ def read_flo(path: str | Path) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
 # -- frames ------------------------------------------------------------------------
 
 
-def encode_frame(frame: Mapping[str, Mapping[str, NDArray]], cameras: Iterable[str], *,
-                 k: int | None = None, scratch_dir: str | Path | None = None
-                 ) -> dict[str, bytes]:
+def encode_frame(
+    frame: Mapping[str, Mapping[str, NDArray]],
+    cameras: Iterable[str],
+    *,
+    k: int | None = None,
+    scratch_dir: str | Path | None = None,
+) -> dict[str, bytes]:
     """Encode one rendered frame into file bytes ``{"cam1.exr": ..., "cam1.flo": ..., ...}``.
 
     ``frame`` maps camera name to its channels (exactly :data:`CHANNELS`). The bytes are
@@ -310,8 +323,9 @@ def encode_frame(frame: Mapping[str, Mapping[str, NDArray]], cameras: Iterable[s
         if k is not None:
             attrs["omnisim.frame"] = str(int(k))
         files[f"{cam}.exr"] = exr_bytes(chans, attributes=attrs, scratch_dir=scratch_dir)
-        files[f"{cam}.flo"] = flo_bytes(chans["gt.flow.dx"], chans["gt.flow.dy"],
-                                        chans["gt.flow.valid"])
+        files[f"{cam}.flo"] = flo_bytes(
+            chans["gt.flow.dx"], chans["gt.flow.dy"], chans["gt.flow.valid"]
+        )
     return files
 
 
@@ -392,18 +406,21 @@ class DatasetWriter:
             if diffs:
                 shown = "; ".join(
                     f"{k}: {_describe(old, k)} in the directory vs {_describe(self.meta, k)} now"
-                    for k in diffs[:4])
+                    for k in diffs[:4]
+                )
                 more = f" (and {len(diffs) - 4} more)" if len(diffs) > 4 else ""
                 raise DatasetMismatchError(
                     f"{self.dir}: refusing to resume: it holds a dataset made from a different "
                     f"scene or settings ({shown}{more}); use another --out directory or delete it"
                 )
         else:
-            if self.dir.exists() and any(p.name != FRAMES_DIR for p in self.dir.iterdir()
-                                         if not p.name.startswith(".")):
+            if self.dir.exists() and any(
+                p.name != FRAMES_DIR for p in self.dir.iterdir() if not p.name.startswith(".")
+            ):
                 raise DatasetError(
                     f"{self.dir}: not empty and has no {META_NAME}: refusing to write a "
-                    "dataset into it; use an empty or new --out directory")
+                    "dataset into it; use an empty or new --out directory"
+                )
             self.dir.mkdir(parents=True, exist_ok=True)
             atomic_write_json(meta_path, self.meta)
         self.frames_dir.mkdir(exist_ok=True)
@@ -447,8 +464,9 @@ class DatasetWriter:
 
     def write_frame(self, k: int, frame: Mapping[str, Mapping[str, NDArray]]) -> Path:
         """Encode and write frame ``k`` (camera -> channels) atomically; returns its directory."""
-        return self.write_frame_files(k, encode_frame(frame, self.cameras, k=k,
-                                                      scratch_dir=self.frames_dir))
+        return self.write_frame_files(
+            k, encode_frame(frame, self.cameras, k=k, scratch_dir=self.frames_dir)
+        )
 
     def write_frame_files(self, k: int, files: Mapping[str, bytes]) -> Path:
         """Write pre-encoded frame files (:func:`encode_frame`) atomically.
@@ -502,7 +520,8 @@ def _load_meta(path: Path) -> dict[str, Any]:
     ver = meta.get("format_version")
     if not isinstance(ver, int) or ver > FORMAT_VERSION:
         raise DatasetError(
-            f"{path}: format_version {ver!r}: this omnisim reads versions <= {FORMAT_VERSION}")
+            f"{path}: format_version {ver!r}: this omnisim reads versions <= {FORMAT_VERSION}"
+        )
     for key in ("rig", "cameras", "frames"):
         if key not in meta:
             raise DatasetError(f"{path}: key {key!r} missing")
@@ -537,7 +556,8 @@ class Dataset:
         """The :class:`omniflow.rig.Unit` of camera ``cam``."""
         if cam not in ("cam1", "cam2"):
             raise DatasetError(
-                f"{self.dir}: unknown camera {cam!r}; expected one of {self.cameras}")
+                f"{self.dir}: unknown camera {cam!r}; expected one of {self.cameras}"
+            )
         return getattr(self.rig, cam)
 
     def frame_dir(self, k: int) -> Path:
@@ -562,7 +582,8 @@ class Dataset:
     def _check(self, k: int, cam: str) -> None:
         if cam not in self.cameras:
             raise DatasetError(
-                f"{self.dir}: unknown camera {cam!r}; expected one of {self.cameras}")
+                f"{self.dir}: unknown camera {cam!r}; expected one of {self.cameras}"
+            )
         if isinstance(k, bool) or int(k) != k or not 0 <= k < self.frame_count:
             raise DatasetError(f"{self.dir}: frame {k!r} outside 0..{self.frame_count - 1}")
         if not self.is_done(k):
@@ -579,8 +600,10 @@ class Dataset:
         unit = self.unit(cam)
         shape = chans["R"].shape
         if shape != (unit.height, unit.width):
-            raise DatasetError(f"{path}: image is {shape[1]}x{shape[0]}, dataset.json says "
-                               f"{unit.width}x{unit.height}")
+            raise DatasetError(
+                f"{path}: image is {shape[1]}x{shape[0]}, dataset.json says "
+                f"{unit.width}x{unit.height}"
+            )
         return chans
 
     def read_rgb(self, k: int, cam: str) -> NDArray[np.float32]:

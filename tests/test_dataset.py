@@ -21,9 +21,24 @@ from omnisim.dataset import (
 )
 
 CONTRACT = [
-    "R", "G", "B", "gt.valid", "gt.r", "gt.theta", "gt.h", "gt.X", "gt.Y", "gt.Z", "gt.object",
-    "gt.flow.dx", "gt.flow.dy", "gt.flow.dh", "gt.flow.hdtheta", "gt.flow.valid",
-    "gt.stereo.h_other", "gt.stereo.valid",
+    "R",
+    "G",
+    "B",
+    "gt.valid",
+    "gt.r",
+    "gt.theta",
+    "gt.h",
+    "gt.X",
+    "gt.Y",
+    "gt.Z",
+    "gt.object",
+    "gt.flow.dx",
+    "gt.flow.dy",
+    "gt.flow.dh",
+    "gt.flow.hdtheta",
+    "gt.flow.valid",
+    "gt.stereo.h_other",
+    "gt.stereo.valid",
 ]
 
 
@@ -72,9 +87,16 @@ def test_round_trip(tmp_path):
     assert d.rig == Rig.symmetric(d=0.1, R=0.05, s=0.3, size=24)
     assert d.objects == {1: "wall"}
     assert sorted(p.name for p in (tmp_path / "d" / "frames").iterdir()) == [
-        "000000", "000001", "000002"]
+        "000000",
+        "000001",
+        "000002",
+    ]
     assert sorted(p.name for p in (tmp_path / "d" / "frames" / "000001").iterdir()) == [
-        "cam1.exr", "cam1.flo", "cam2.exr", "cam2.flo"]
+        "cam1.exr",
+        "cam1.flo",
+        "cam2.exr",
+        "cam2.flo",
+    ]
     for k, fr in frames.items():
         for cam in ("cam1", "cam2"):
             got = d.read_frame(k, cam)
