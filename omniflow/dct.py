@@ -1,0 +1,314 @@
+"""Truncated DCT fit of an image and its analytic derivatives (paper section 5, eq. 17-18).
+
+The forward transform keeps the lowest P x Q cosine coefficients,
+
+    c(q, p) = a(q, p) / (X Y) sum_x sum_y cos(pi q y / Y) f(x, y) cos(pi p x / X)   # eq. (17)
+    f(x, y) ~ sum_{p<P} sum_{q<Q} cos(pi q y / Y) c(q, p) cos(pi p x / X)           # eq. (18)
+
+with a = 1 for p = q = 0, 2 when exactly one of p, q is 0 and 4 otherwise, and
+x, y continuous pixel coordinates (pixel centre j + 0.5, i + 0.5; see
+:mod:`omniflow.conventions`), so the paper's ``x + 0.5`` is our ``x``. The
+truncation is the smoothing. Eq. (17) is scipy's unnormalised DCT-II of each
+axis rescaled: ``c = a * dctn(f) / (4 X Y)``.
+
+Two evaluation paths:
+
+* at arbitrary points (``evaluate``, ``gradient``): cosine/sine tables of the
+  points times the coefficient matrix (two matrix products, no Python loop);
+* on every pixel centre (``grid``, ``grid_gradient``): the zero-padded
+  coefficients through scipy's DCT-III, and for the derivatives the DST-III of
+  the frequency-weighted coefficients, since
+  d/dx cos(pi p x / X) = -(pi p / X) sin(pi p x / X).
+
+``fit_dct3`` extends this to a stack of T >= 3 frames with a third (time)
+axis, so f_t is analytic. Time convention: frame k sits at t = k, and the
+time basis is cos(pi k' (t + 1/2) / T), the same half-sample convention as the
+pixels (frame k's "centre" is at k + 1/2 in the DCT's own coordinate).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import lru_cache
+
+import numpy as np
+import scipy.fft
+from numpy.typing import ArrayLike, NDArray
+
+__all__ = ["DCT3Fit", "DCTFit", "fit_dct", "fit_dct3"]
+
+
+def _check_image(image: ArrayLike, name: str = "image", ndim: int = 2) -> NDArray:
+    arr = np.asarray(image)
+    if arr.ndim != ndim:
+        raise ValueError(
+            f"{name}: expected a grey image array of {ndim} dimensions, got shape {arr.shape}"
+        )
+    if not np.issubdtype(arr.dtype, np.floating):
+        arr = arr.astype(np.float64)
+    if arr.dtype not in (np.float32, np.float64):
+        arr = arr.astype(np.float64)
+    if min(arr.shape) < 2:
+        raise ValueError(f"{name}: every axis needs at least 2 samples, got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name}: contains NaN or inf values; expected finite grey levels")
+    return arr
+
+
+def _band_size(n: int, band: float, given: int | None, what: str) -> int:
+    if given is None:
+        if not (0 < band <= 1):
+            raise ValueError(f"band = {band!r}: expected a fraction in (0, 1]")
+        given = round(band * n)
+    if int(given) != given or not (1 <= given <= n):
+        raise ValueError(f"{what} = {given!r}: expected an integer in [1, {n}]")
+    return int(given)
+
+
+@lru_cache(maxsize=64)
+def _weights(n_coef: int, n: int) -> tuple[NDArray, NDArray]:
+    """Per-axis factors: a-factor split (1 for index 0, 2 otherwise) and pi k / N."""
+    a = np.full(n_coef, 2.0)
+    a[0] = 1.0
+    a.setflags(write=False)
+    w = np.pi * np.arange(n_coef) / n
+    w.setflags(write=False)
+    return a, w
+
+
+def _bases(coord: NDArray, n_coef: int, n: int) -> tuple[NDArray, NDArray]:
+    """cos(pi k c / N) and -(pi k / N) sin(pi k c / N) for k < n_coef, shape (M, n_coef)."""
+    _, w = _weights(n_coef, n)
+    arg = coord.reshape(-1, 1) * w
+    return np.cos(arg), -w * np.sin(arg)
+
+
+def _cos3(c: NDArray, n: int, axis: int) -> NDArray:
+    """sum_k c_k cos(pi k (j + 1/2) / N) for j < N along ``axis`` (c zero-padded to N)."""
+    pad = [(0, 0)] * c.ndim
+    pad[axis] = (0, n - c.shape[axis])
+    cp = np.pad(c, pad)
+    # Unnormalised DCT-III: y_j = x_0 + 2 sum_{k>=1} x_k cos(pi k (2j + 1) / 2N).
+    idx = [slice(None)] * c.ndim
+    idx[axis] = slice(1, None)
+    cp[tuple(idx)] *= 0.5
+    return scipy.fft.dct(cp, type=3, axis=axis)
+
+
+def _sin3(b: NDArray, n: int, axis: int) -> NDArray:
+    """sum_{k>=1} b_k sin(pi k (j + 1/2) / N) for j < N along ``axis`` (b_0 ignored)."""
+    # Unnormalised DST-III: y_j = (-1)^j x_{N-1} + 2 sum_{m<N-1} x_m sin(pi (2j + 1)(m + 1) / 2N),
+    # so x_m = b_{m+1} / 2 for m + 1 < N; b_N never exists because the band is < N + 1.
+    idx = [slice(None)] * b.ndim
+    idx[axis] = slice(1, None)
+    shifted = 0.5 * b[tuple(idx)]
+    pad = [(0, 0)] * b.ndim
+    pad[axis] = (0, n - shifted.shape[axis])
+    return scipy.fft.dst(np.pad(shifted, pad), type=3, axis=axis)
+
+
+@dataclass(frozen=True)
+class DCTFit:
+    """The truncated cosine series of one image, eq. (18).
+
+    Attributes
+    ----------
+    coeffs : ndarray, shape (Q, P), float64
+        c(q, p) of eq. (17); row index q (image y), column index p (image x).
+    width, height : int
+        X and Y, the image size the series is defined on, pixels.
+    dtype : numpy dtype
+        Working precision of the grid paths (that of the fitted image).
+    """
+
+    coeffs: NDArray
+    width: int
+    height: int
+    dtype: np.dtype = field(default=np.dtype(np.float64))
+
+    @property
+    def P(self) -> int:
+        return self.coeffs.shape[1]
+
+    @property
+    def Q(self) -> int:
+        return self.coeffs.shape[0]
+
+    def _points(self, x: ArrayLike, y: ArrayLike) -> tuple[NDArray, NDArray, tuple]:
+        x = np.asarray(x, dtype=float)
+        y = np.asarray(y, dtype=float)
+        if x.shape != y.shape:
+            raise ValueError(f"x and y must have equal shapes, got {x.shape} and {y.shape}")
+        return x.ravel(), y.ravel(), x.shape
+
+    def evaluate(self, x: ArrayLike, y: ArrayLike) -> NDArray:
+        """Eq. (18) at continuous pixel coordinates.
+
+        Parameters
+        ----------
+        x, y : array_like, any equal shapes
+            Column and row coordinates, pixel centres at j + 0.5, i + 0.5.
+
+        Returns
+        -------
+        ndarray, the shape of x, float64
+        """
+        xs, ys, shape = self._points(x, y)
+        cx, _ = _bases(xs, self.P, self.width)
+        cy, _ = _bases(ys, self.Q, self.height)
+        return np.einsum("np,np->n", cy @ self.coeffs, cx).reshape(shape)
+
+    def gradient(self, x: ArrayLike, y: ArrayLike) -> tuple[NDArray, NDArray]:
+        """Analytic (f_x, f_y) of eq. (18) at continuous pixel coordinates.
+
+        Returns
+        -------
+        f_x, f_y : ndarray, the shape of x, float64, grey levels per pixel
+        """
+        xs, ys, shape = self._points(x, y)
+        cx, dcx = _bases(xs, self.P, self.width)
+        cy, dcy = _bases(ys, self.Q, self.height)
+        f_x = np.einsum("np,np->n", cy @ self.coeffs, dcx)
+        f_y = np.einsum("np,np->n", dcy @ self.coeffs, cx)
+        return f_x.reshape(shape), f_y.reshape(shape)
+
+    def grid(self) -> NDArray:
+        """Eq. (18) on every pixel centre, shape (H, W), by a DCT-III (fast path)."""
+        c = self.coeffs.astype(self.dtype, copy=False)
+        along_x = _cos3(c, self.width, axis=1)
+        return _cos3(along_x, self.height, axis=0)
+
+    def grid_gradient(self) -> tuple[NDArray, NDArray]:
+        """(f_x, f_y) on every pixel centre, each shape (H, W), by DCT-III / DST-III."""
+        c = self.coeffs.astype(self.dtype, copy=False)
+        _, wx = _weights(self.P, self.width)
+        _, wy = _weights(self.Q, self.height)
+        cos_x = _cos3(c, self.width, axis=1)  # (Q, W)
+        sin_x = _sin3(-wx.astype(self.dtype) * c, self.width, axis=1)  # (Q, W): d/dx
+        f_x = _cos3(sin_x, self.height, axis=0)
+        f_y = _sin3(-wy.astype(self.dtype)[:, None] * cos_x, self.height, axis=0)
+        return f_x, f_y
+
+
+def fit_dct(
+    image: ArrayLike, *, band: float = 0.25, P: int | None = None, Q: int | None = None
+) -> DCTFit:
+    """Fit the truncated DCT of eq. (17) to a grey image.
+
+    Parameters
+    ----------
+    image : array_like, shape (H, W), float32 or float64
+        Grey image; other real dtypes are converted to float64.
+    band : float
+        Fraction of each axis's frequencies kept when P or Q is not given:
+        P = round(band * W), Q = round(band * H). The paper uses 1/4.
+    P, Q : int, optional
+        Number of coefficients kept along x (columns) and y (rows).
+
+    Returns
+    -------
+    DCTFit
+        ``coeffs`` of shape (Q, P), float64.
+    """
+    f = _check_image(image)
+    height, width = f.shape
+    P = _band_size(width, band, P, "P")
+    Q = _band_size(height, band, Q, "Q")
+    spec = scipy.fft.dctn(f, type=2)[:Q, :P]
+    ay, _ = _weights(Q, height)
+    ax, _ = _weights(P, width)
+    coeffs = (ay[:, None] * ax[None, :]) * spec.astype(np.float64) / (4.0 * width * height)
+    return DCTFit(coeffs=coeffs, width=width, height=height, dtype=f.dtype)
+
+
+@dataclass(frozen=True)
+class DCT3Fit:
+    """The truncated cosine series of a stack of frames (x, y and time).
+
+    f(x, y, t) ~ sum_k sum_q sum_p c(k, q, p) cos(pi k (t + 1/2) / T)
+    cos(pi q y / Y) cos(pi p x / X): eq. (18) with a time axis; frame k at t = k.
+
+    Attributes
+    ----------
+    coeffs : ndarray, shape (K, Q, P), float64
+    width, height, frames : int
+        X, Y and T.
+    """
+
+    coeffs: NDArray
+    width: int
+    height: int
+    frames: int
+
+    def at_time(self, t: float) -> DCTFit:
+        """The 2-D series f(., ., t) at one (continuous) time t."""
+        ct, _ = _bases(np.array([t + 0.5]), self.coeffs.shape[0], self.frames)
+        return DCTFit(np.tensordot(ct[0], self.coeffs, axes=1), self.width, self.height)
+
+    def time_derivative_at(self, t: float) -> DCTFit:
+        """The 2-D series of f_t(., ., t), per frame interval."""
+        _, dct_ = _bases(np.array([t + 0.5]), self.coeffs.shape[0], self.frames)
+        return DCTFit(np.tensordot(dct_[0], self.coeffs, axes=1), self.width, self.height)
+
+    def _points(self, x, y, t):
+        x, y, t = (np.asarray(a, dtype=float) for a in (x, y, t))
+        x, y, t = np.broadcast_arrays(x, y, t)
+        return x.ravel(), y.ravel(), t.ravel(), x.shape
+
+    def evaluate(self, x: ArrayLike, y: ArrayLike, t: ArrayLike) -> NDArray:
+        """f at continuous (x, y, t); arrays broadcast together. Returns float64."""
+        xs, ys, ts, shape = self._points(x, y, t)
+        K, Q, P = self.coeffs.shape
+        cx, _ = _bases(xs, P, self.width)
+        cy, _ = _bases(ys, Q, self.height)
+        ct, _ = _bases(ts + 0.5, K, self.frames)
+        return np.einsum("nk,kqp,nq,np->n", ct, self.coeffs, cy, cx, optimize=True).reshape(shape)
+
+    def gradient(
+        self, x: ArrayLike, y: ArrayLike, t: ArrayLike
+    ) -> tuple[NDArray, NDArray, NDArray]:
+        """Analytic (f_x, f_y, f_t) at continuous (x, y, t); f_t per frame interval."""
+        xs, ys, ts, shape = self._points(x, y, t)
+        K, Q, P = self.coeffs.shape
+        cx, dcx = _bases(xs, P, self.width)
+        cy, dcy = _bases(ys, Q, self.height)
+        ct, dct_ = _bases(ts + 0.5, K, self.frames)
+        ein = "nk,kqp,nq,np->n"
+        f_x = np.einsum(ein, ct, self.coeffs, cy, dcx, optimize=True)
+        f_y = np.einsum(ein, ct, self.coeffs, dcy, cx, optimize=True)
+        f_t = np.einsum(ein, dct_, self.coeffs, cy, cx, optimize=True)
+        return f_x.reshape(shape), f_y.reshape(shape), f_t.reshape(shape)
+
+
+def fit_dct3(frames: ArrayLike, *, band: float = 0.25, K: int | None = None) -> DCT3Fit:
+    """Fit a 3-D truncated DCT to T >= 3 frames (the paper's suggested refinement).
+
+    Parameters
+    ----------
+    frames : array_like, shape (T, H, W)
+        Grey frames; frame k is at time t = k.
+    band : float
+        Spatial band as in :func:`fit_dct` (P = round(band W), Q = round(band H)).
+    K : int, optional
+        Time coefficients kept; default T (no temporal smoothing).
+
+    Returns
+    -------
+    DCT3Fit
+        ``coeffs`` of shape (K, Q, P), float64.
+    """
+    f = _check_image(frames, "frames", ndim=3)
+    T, height, width = f.shape
+    if T < 3:
+        raise ValueError(f"frames: expected T >= 3 frames for a 3-D fit, got T = {T}")
+    K = _band_size(T, 1.0, K, "K")
+    P = _band_size(width, band, None, "P")
+    Q = _band_size(height, band, None, "Q")
+    spec = scipy.fft.dctn(f, type=2)[:K, :Q, :P].astype(np.float64)
+    at, _ = _weights(K, T)
+    ay, _ = _weights(Q, height)
+    ax, _ = _weights(P, width)
+    a = at[:, None, None] * ay[None, :, None] * ax[None, None, :]
+    return DCT3Fit(
+        coeffs=a * spec / (8.0 * T * width * height), width=width, height=height, frames=T
+    )
