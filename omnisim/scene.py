@@ -1,0 +1,1041 @@
+"""Scene files: read, check and build the scene model (no renderer here).
+
+A scene is a TOML file (``scenes/*.toml``, documented key by key in
+``docs/scene_format.md``). :func:`load_scene` parses it, applies command-line
+overrides, checks every key and value, builds the rig
+(:class:`omniflow.rig.Rig`), the robot's motion, the objects' meshes
+(trimesh, with UVs) and textures, and the lights, and checks that the rig is
+possible in that scene at every frame. Any problem raises :class:`SceneError`
+naming the file, the key and what was expected, before anything is rendered.
+
+For the renderer (a backend; this module imports no renderer):
+
+* ``Scene.robot.pose(frame)`` is world-from-rig, (4, 4). The rig frame is
+  :mod:`omniflow.conventions`'s: origin at cam2's cone tip, Z up the axis.
+* ``SceneObject.mesh`` is in the object's own frame with per-vertex UVs
+  (``mesh.visual.uv``, in texture tiles, wrap-around: use a repeating bitmap);
+  ``SceneObject.pose(frame)`` is world-from-object, (4, 4). Poses exist for
+  any real frame number (frame + 1 after the last rendered frame too).
+* ``SceneObject.texture``: float32 (H, W, 3) linear RGB, texel convention in
+  :mod:`omnisim.textures` (row 0 at v = 0).
+* Orientation: closed meshes face outward; the room's floor, ceiling and
+  walls face INTO the room. ``Material.two_sided`` (default True) asks the
+  renderer to shade both sides as well, so either choice renders.
+* ``SceneObject.material``: ``diffuse`` (texture = albedo), ``plastic``
+  (texture = diffuse albedo under a dielectric coat of ``int_ior``; rough when
+  ``roughness`` > 0), ``conductor`` (perfect specular, texture = specular
+  reflectance), ``roughconductor`` (GGX ``roughness`` alpha, texture =
+  specular reflectance).
+* Lights: :class:`PointLight`, :class:`AreaLight` (a rectangle, its
+  ``to_world()`` maps the square [-1, 1]^2 in z = 0 with normal +Z onto it),
+  :class:`EnvironmentLight`, :class:`DirectionalLight`. Area lights are
+  shapes a camera ray can hit; they are not objects and have no object id.
+* Object ids are integers >= 1, unique; id 0 is left for "nothing hit".
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import tomllib
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import trimesh
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
+
+from omniflow.rig import Rig, RigError, rig_from_dict
+from omnisim import geometry, textures
+from omnisim.motion import (
+    ConstantMotion,
+    KeyframeMotion,
+    Motion,
+    StaticMotion,
+    euler_deg,
+)
+
+__all__ = [
+    "AreaLight",
+    "DirectionalLight",
+    "EnvironmentLight",
+    "Light",
+    "Material",
+    "PointLight",
+    "RenderSettings",
+    "Robot",
+    "RoomInfo",
+    "Scene",
+    "SceneError",
+    "SceneObject",
+    "apply_overrides",
+    "load_scene",
+    "parse_override",
+]
+
+
+class SceneError(ValueError):
+    """A scene file is wrong: the message names the file, the key and what was expected."""
+
+
+# ---------------------------------------------------------------------------
+# The scene model
+# ---------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    """How to render: image size (pixels), samples per pixel, path depth, seed, integrator."""
+
+    width: int = 512
+    height: int = 512
+    spp: int = 16
+    max_depth: int = 4
+    seed: int = 0
+    integrator: str = "path"
+    variant: str = "llvm_ad_rgb"
+
+
+@dataclass(frozen=True)
+class Material:
+    """Surface scattering; the object's texture feeds its main reflectance (see module doc)."""
+
+    type: str = "diffuse"
+    roughness: float = 0.0
+    int_ior: float = 1.5
+    two_sided: bool = True
+
+
+@dataclass(frozen=True)
+class PointLight:
+    """An isotropic point light: ``intensity`` (W/sr, linear RGB) at ``position`` (world, m)."""
+
+    position: NDArray[np.float64]
+    intensity: NDArray[np.float64]
+    type: str = "point"
+
+
+@dataclass(frozen=True)
+class AreaLight:
+    """A one-sided emitting rectangle: centre ``position``, ``size`` (m), facing ``normal``.
+
+    ``radiance`` is the emitted radiance (W/(m^2 sr), linear RGB).
+    """
+
+    position: NDArray[np.float64]
+    size: NDArray[np.float64]
+    normal: NDArray[np.float64]
+    radiance: NDArray[np.float64]
+    type: str = "area"
+
+    def to_world(self) -> NDArray[np.float64]:
+        """(4, 4) map of the square [-1, 1]^2 in z = 0 (normal +Z) onto the light.
+
+        The rectangle's local X axis is kept as horizontal as possible.
+        """
+        n = self.normal / np.linalg.norm(self.normal)
+        ref = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+        ex = ref - n * (ref @ n)
+        ex /= np.linalg.norm(ex)
+        ey = np.cross(n, ex)
+        m = np.eye(4)
+        m[:3, 0] = ex * self.size[0] / 2
+        m[:3, 1] = ey * self.size[1] / 2
+        m[:3, 2] = n
+        m[:3, 3] = self.position
+        return m
+
+
+@dataclass(frozen=True)
+class EnvironmentLight:
+    """Light from every direction: constant ``radiance`` or an environment map image (linear)."""
+
+    radiance: NDArray[np.float64]
+    image: NDArray[np.float32] | None = None
+    path: str | None = None
+    scale: float = 1.0
+    type: str = "environment"
+
+
+@dataclass(frozen=True)
+class DirectionalLight:
+    """A distant light travelling along ``direction`` with ``irradiance`` (W/m^2)."""
+
+    direction: NDArray[np.float64]
+    irradiance: NDArray[np.float64]
+    type: str = "directional"
+
+
+Light = PointLight | AreaLight | EnvironmentLight | DirectionalLight
+
+
+@dataclass(frozen=True)
+class Robot:
+    """The rig as a rigid body: ``pose(frame)`` is world from rig, (4, 4)."""
+
+    motion: Motion
+    frame_interval: float
+
+    def pose(self, frame: float) -> NDArray[np.float64]:
+        return self.motion.pose_at(float(frame) * self.frame_interval)
+
+
+@dataclass(frozen=True)
+class SceneObject:
+    """One textured rigid object; ``pose(frame)`` is world from object, (4, 4)."""
+
+    id: int
+    name: str
+    kind: str
+    mesh: trimesh.Trimesh = field(repr=False)
+    texture: NDArray[np.float32] = field(repr=False)
+    material: Material
+    motion: Motion
+    frame_interval: float
+    index: int = -1  # position in the file's objects list (for messages)
+
+    def pose(self, frame: float) -> NDArray[np.float64]:
+        return self.motion.pose_at(float(frame) * self.frame_interval)
+
+    @property
+    def moving(self) -> bool:
+        return not isinstance(self.motion, StaticMotion)
+
+
+@dataclass(frozen=True)
+class RoomInfo:
+    """A room of the scene file (``objects[index]``), built as six objects from ``first_id``."""
+
+    index: int
+    name: str
+    size: NDArray[np.float64]
+    first_id: int
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A loaded, checked scene. ``data`` is the parsed file with overrides applied."""
+
+    name: str
+    description: str
+    path: Path
+    data: dict[str, Any] = field(repr=False)
+    source: str = field(repr=False)
+    rig: Rig = field(repr=False)
+    frames: int
+    frame_interval: float
+    render: RenderSettings
+    robot: Robot
+    objects: tuple[SceneObject, ...] = field(repr=False)
+    lights: tuple[Light, ...] = field(repr=False)
+    rooms: tuple[RoomInfo, ...] = ()
+    overrides: dict[str, Any] = field(default_factory=dict)
+
+    def object_by_id(self, object_id: int) -> SceneObject:
+        for obj in self.objects:
+            if obj.id == object_id:
+                return obj
+        raise KeyError(object_id)
+
+    @property
+    def object_names(self) -> dict[int, str]:
+        """Object id -> name (the meaning of the ``gt.object`` channel)."""
+        return {obj.id: obj.name for obj in self.objects}
+
+    def poses(self, frame: float) -> dict[str, Any]:
+        """Robot and object poses at a frame as nested lists (for dataset.json)."""
+        return {
+            "robot": self.robot.pose(frame).tolist(),
+            "objects": {str(o.id): o.pose(frame).tolist() for o in self.objects},
+        }
+
+
+# ---------------------------------------------------------------------------
+# Overrides
+# ---------------------------------------------------------------------------
+
+
+def parse_override(text: str) -> tuple[str, Any]:
+    """Split a command-line ``key=value`` into (dotted key, value).
+
+    The value is read as a TOML value (``4``, ``0.5``, ``true``, ``[1, 2, 3]``,
+    ``"text"``); anything TOML cannot read is kept as a string.
+    """
+    if "=" not in text:
+        raise SceneError(f"override {text!r}: expected KEY=VALUE, e.g. render.spp=4")
+    key, raw = text.split("=", 1)
+    key, raw = key.strip(), raw.strip()
+    try:
+        value = tomllib.loads(f"v = {raw}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = raw
+    return key, value
+
+
+def apply_overrides(data: dict, overrides: Mapping[str, Any] | None, where: str) -> dict:
+    """Return a deep copy of ``data`` with dotted-key overrides set.
+
+    ``{"render.width": 128, "frames": 3}``; a numeric part indexes a list
+    (``"objects.1.motion.velocity"``). Missing tables are created; values are
+    type-checked later with the rest of the file.
+    """
+    out = copy.deepcopy(data)
+    for key, value in (overrides or {}).items():
+        parts = str(key).split(".")
+        if not all(parts):
+            raise SceneError(f"{where}: override {key!r}: expected a dotted key like render.spp")
+        node: Any = out
+        for depth, part in enumerate(parts[:-1]):
+            here = ".".join(parts[: depth + 1])
+            if isinstance(node, list):
+                if not part.isdigit() or int(part) >= len(node):
+                    raise SceneError(
+                        f"{where}: override {key!r}: {here}: expected an index below {len(node)}"
+                    )
+                node = node[int(part)]
+            elif isinstance(node, dict):
+                node = node.setdefault(part, {})
+            else:
+                raise SceneError(f"{where}: override {key!r}: {here} is not a table")
+        last = parts[-1]
+        if isinstance(node, list) and last.isdigit() and int(last) < len(node):
+            node[int(last)] = value
+        elif isinstance(node, dict):
+            node[last] = value
+        else:
+            raise SceneError(f"{where}: override {key!r}: cannot set {last!r} there")
+    return out
+
+
+# ---------------------------------------------------------------------------
+# Checking values
+# ---------------------------------------------------------------------------
+
+_REQUIRED = object()
+
+
+class _Checker:
+    """Reads typed values out of tables, raising SceneError naming file and key."""
+
+    def __init__(self, file: Path, overridden: set[str]):
+        self.file = file
+        self.overridden = overridden
+
+    def error(self, key: str, msg: str) -> SceneError:
+        note = " (set by an override)" if key in self.overridden else ""
+        return SceneError(f"{self.file}: {key}{note}: {msg}")
+
+    def bad(self, key: str, value: Any, expected: str) -> SceneError:
+        return self.error(key, f"got {value!r}, expected {expected}")
+
+    def table(self, value: Any, key: str, allowed: set[str] | frozenset[str]) -> dict:
+        if not isinstance(value, dict):
+            raise self.bad(key, value, "a table")
+        unknown = sorted(set(value) - set(allowed))
+        if unknown:
+            name = f"{key}.{unknown[0]}" if key else unknown[0]
+            raise self.error(name, f"unknown key; expected one of: {', '.join(sorted(allowed))}")
+        return value
+
+    def _get(self, tbl: dict, key: str, where: str, default: Any) -> tuple[str, Any]:
+        full = f"{where}.{key}" if where else key
+        if key not in tbl:
+            if default is _REQUIRED:
+                raise self.error(full, "missing; this key is required")
+            return full, default
+        return full, tbl[key]
+
+    def number(
+        self,
+        tbl: dict,
+        key: str,
+        where: str,
+        default: Any = _REQUIRED,
+        *,
+        lo: float | None = None,
+        hi: float | None = None,
+        lo_open: bool = False,
+    ) -> float:
+        full, v = self._get(tbl, key, where, default)
+        if v is default and key not in tbl:
+            return v
+        expected = _range_text("a number", lo, hi, lo_open)
+        if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+            raise self.bad(full, v, expected)
+        if (lo is not None and (v < lo or (lo_open and v == lo))) or (hi is not None and v > hi):
+            raise self.bad(full, v, expected)
+        return float(v)
+
+    def integer(
+        self,
+        tbl: dict,
+        key: str,
+        where: str,
+        default: Any = _REQUIRED,
+        *,
+        lo: int | None = None,
+        hi: int | None = None,
+    ) -> int:
+        full, v = self._get(tbl, key, where, default)
+        if v is default and key not in tbl:
+            return v
+        expected = _range_text("an integer", lo, hi, False)
+        if isinstance(v, bool) or not isinstance(v, int):
+            raise self.bad(full, v, expected)
+        if (lo is not None and v < lo) or (hi is not None and v > hi):
+            raise self.bad(full, v, expected)
+        return int(v)
+
+    def boolean(self, tbl: dict, key: str, where: str, default: Any = _REQUIRED) -> bool:
+        full, v = self._get(tbl, key, where, default)
+        if not isinstance(v, bool):
+            raise self.bad(full, v, "true or false")
+        return v
+
+    def string(
+        self, tbl: dict, key: str, where: str, default: Any = _REQUIRED, *, choices=None
+    ) -> str:
+        full, v = self._get(tbl, key, where, default)
+        if not isinstance(v, str):
+            expected = "one of " + ", ".join(repr(c) for c in choices) if choices else "a string"
+            raise self.bad(full, v, expected)
+        if choices is not None and v not in choices:
+            raise self.bad(full, v, "one of " + ", ".join(repr(c) for c in choices))
+        return v
+
+    def vector(
+        self,
+        tbl: dict,
+        key: str,
+        where: str,
+        default: Any = _REQUIRED,
+        *,
+        n: int = 3,
+        lo: float | None = None,
+        hi: float | None = None,
+        lo_open: bool = False,
+        scalar_ok: bool = False,
+    ) -> NDArray[np.float64]:
+        full, v = self._get(tbl, key, where, default)
+        unit = _range_text("numbers", lo, hi, lo_open)
+        expected = f"a list of {n} {unit}" + (" (or one number)" if scalar_ok else "")
+        if scalar_ok and isinstance(v, int | float) and not isinstance(v, bool):
+            v = [v] * n
+        if not isinstance(v, list | tuple) or len(v) != n:
+            raise self.bad(full, v, expected)
+        for x in v:
+            if isinstance(x, bool) or not isinstance(x, int | float) or not math.isfinite(x):
+                raise self.bad(full, v, expected)
+            if (lo is not None and (x < lo or (lo_open and x == lo))) or (
+                hi is not None and x > hi
+            ):
+                raise self.bad(full, v, expected)
+        return np.asarray(v, dtype=np.float64)
+
+    def file(self, tbl: dict, key: str, where: str, base: Path, suffixes=None) -> Path:
+        full, v = self._get(tbl, key, where, _REQUIRED)
+        if not isinstance(v, str) or not v:
+            raise self.bad(full, v, "a file path (relative to the scene file)")
+        p = Path(v)
+        p = p if p.is_absolute() else base / p
+        if suffixes is not None and p.suffix.lower() not in suffixes:
+            raise self.bad(full, v, "a file ending in " + ", ".join(suffixes))
+        if not p.is_file():
+            raise self.error(full, f"file not found: {p} (expected an existing file)")
+        return p
+
+
+def _range_text(what: str, lo, hi, lo_open) -> str:
+    if lo is not None and hi is not None:
+        return f"{what} in {'(' if lo_open else '['}{lo:g}, {hi:g}]"
+    if lo is not None:
+        return f"{what} {'>' if lo_open else '>='} {lo:g}"
+    if hi is not None:
+        return f"{what} <= {hi:g}"
+    return what
+
+
+# ---------------------------------------------------------------------------
+# Schema (the allowed keys of each table)
+# ---------------------------------------------------------------------------
+
+TOP_KEYS = frozenset(
+    "name description frames frame_interval render rig robot objects lights".split()
+)
+RENDER_KEYS = frozenset({"width", "height", "spp", "max_depth", "seed", "integrator", "variant"})
+RIG_KEYS = frozenset({"d", "R", "s", "x_c", "y_c", "r_m", "margin"})
+ROBOT_KEYS = frozenset({"position", "rotation", "motion"})
+MOTION_KEYS = frozenset({"type", "velocity", "angular_velocity", "interpolation", "keys"})
+KEY_KEYS = frozenset({"time", "frame", "position", "rotation"})
+OBJECT_TYPES = ("room", "box", "cylinder", "sphere", "plane", "mesh")
+_OBJ_COMMON = {"name", "type", "id", "position", "rotation", "motion", "texture", "material"}
+OBJECT_KEYS = {
+    "room": frozenset(_OBJ_COMMON | {"size", "floor_texture", "ceiling_texture", "wall_texture"}),
+    "box": frozenset(_OBJ_COMMON | {"size"}),
+    "cylinder": frozenset(_OBJ_COMMON | {"radius", "height", "sections", "caps"}),
+    "sphere": frozenset(_OBJ_COMMON | {"radius", "sections"}),
+    "plane": frozenset(_OBJ_COMMON | {"size"}),
+    "mesh": frozenset(_OBJ_COMMON | {"path", "scale", "uv", "center"}),
+}
+TEXTURE_TYPES = ("noise", "grating", "checker", "solid", "image")
+_TEX_COMMON = {"type", "tile", "resolution", "seed"}
+TEXTURE_KEYS = {
+    "noise": frozenset(_TEX_COMMON | {"wavelength", "colors", "contrast", "exponent"}),
+    "grating": frozenset(_TEX_COMMON | {"wavelength", "angle", "phase", "colors", "contrast"}),
+    "checker": frozenset(_TEX_COMMON | {"size", "colors"}),
+    "solid": frozenset(_TEX_COMMON | {"color"}),
+    "image": frozenset(_TEX_COMMON | {"path", "srgb"}),
+}
+MATERIAL_TYPES = ("diffuse", "plastic", "conductor", "roughconductor")
+MATERIAL_KEYS = frozenset({"type", "roughness", "int_ior", "two_sided"})
+LIGHT_TYPES = ("point", "area", "environment", "directional")
+LIGHT_KEYS = {
+    "point": frozenset({"type", "position", "intensity"}),
+    "area": frozenset({"type", "position", "size", "normal", "radiance"}),
+    "environment": frozenset({"type", "radiance", "path", "scale"}),
+    "directional": frozenset({"type", "direction", "irradiance"}),
+}
+INTEGRATORS = ("path", "direct")
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr", ".hdr", ".tif", ".tiff", ".bmp")
+
+
+# ---------------------------------------------------------------------------
+# Loading
+# ---------------------------------------------------------------------------
+
+
+def load_scene(path: str | Path, overrides: Mapping[str, Any] | None = None) -> Scene:
+    """Read, check and build a scene file.
+
+    Parameters
+    ----------
+    path : str or Path
+        The TOML scene file; mesh and texture paths in it are relative to it.
+    overrides : mapping, optional
+        Dotted keys set before checking, e.g. ``{"render.width": 128,
+        "render.spp": 4, "frames": 3, "render.seed": 7}``.
+
+    Raises
+    ------
+    SceneError
+        On any unknown key, wrong type, impossible value or rig, or missing
+        mesh/texture file; the message names the file and the key.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise SceneError(f"{path}: scene file not found")
+    source = path.read_text(encoding="utf-8")
+    try:
+        raw = tomllib.loads(source)
+    except tomllib.TOMLDecodeError as exc:
+        raise SceneError(f"{path}: not valid TOML: {exc}") from exc
+    overrides = dict(overrides or {})
+    data = apply_overrides(raw, overrides, str(path))
+    chk = _Checker(path, {str(k).replace(".0.", "[0].") for k in overrides} | set(overrides))
+    return _build(chk, path, source, data, overrides)
+
+
+def _build(chk: _Checker, path: Path, source: str, data: dict, overrides: dict) -> Scene:
+    chk.table(data, "", TOP_KEYS)
+    name = chk.string(data, "name", "", path.stem)
+    description = chk.string(data, "description", "", "")
+    frames = chk.integer(data, "frames", "", 8, lo=1)
+    dt = chk.number(data, "frame_interval", "", 0.1, lo=0.0, lo_open=True)
+
+    render = _render_settings(chk, data.get("render", {}))
+    rig = _rig(chk, data.get("rig", _REQUIRED), render, path)
+    robot = _robot(chk, data.get("robot", {}), dt)
+    objects, rooms = _objects(chk, data.get("objects", []), dt, path.parent)
+    lights = _lights(chk, data.get("lights", _REQUIRED), path.parent)
+
+    scene = Scene(
+        name=name,
+        description=description,
+        path=path,
+        data=data,
+        source=source,
+        rig=rig,
+        frames=frames,
+        frame_interval=dt,
+        render=render,
+        robot=robot,
+        objects=tuple(objects),
+        lights=tuple(lights),
+        rooms=tuple(rooms),
+        overrides=overrides,
+    )
+    _check_rig_in_scene(chk, scene)
+    return scene
+
+
+def _render_settings(chk: _Checker, tbl: Any) -> RenderSettings:
+    chk.table(tbl, "render", RENDER_KEYS)
+    w = "render"
+    d = RenderSettings()
+    variant = chk.string(tbl, "variant", w, d.variant)
+    if not variant.endswith("_rgb") or variant.split("_")[0] not in ("scalar", "llvm", "cuda"):
+        raise chk.bad(f"{w}.variant", variant, "an RGB variant such as 'llvm_ad_rgb'")
+    return RenderSettings(
+        width=chk.integer(tbl, "width", w, d.width, lo=8, hi=16384),
+        height=chk.integer(tbl, "height", w, d.height, lo=8, hi=16384),
+        spp=chk.integer(tbl, "spp", w, d.spp, lo=1),
+        max_depth=chk.integer(tbl, "max_depth", w, d.max_depth, lo=1),
+        seed=chk.integer(tbl, "seed", w, d.seed, lo=0, hi=2**31 - 1),
+        integrator=chk.string(tbl, "integrator", w, d.integrator, choices=INTEGRATORS),
+        variant=variant,
+    )
+
+
+def _rig(chk: _Checker, tbl: Any, render: RenderSettings, path: Path) -> Rig:
+    if tbl is _REQUIRED:
+        raise chk.error("rig", "missing; expected a table with d, R, s (metres)")
+    chk.table(tbl, "rig", RIG_KEYS)
+    d = chk.number(tbl, "d", "rig", lo=0, lo_open=True)
+    big_r = chk.number(tbl, "R", "rig", lo=0, lo_open=True)
+    s = chk.number(tbl, "s", "rig", lo=0, lo_open=True)
+    w, h = render.width, render.height
+    margin = chk.number(tbl, "margin", "rig", 2.0, lo=0.0)
+    x_c = chk.number(tbl, "x_c", "rig", w / 2.0)
+    y_c = chk.number(tbl, "y_c", "rig", h / 2.0)
+    r_m = chk.number(tbl, "r_m", "rig", min(w, h) / 2.0 - margin, lo=0, lo_open=True)
+    if x_c - r_m < 0 or y_c - r_m < 0 or x_c + r_m > w or y_c + r_m > h:
+        key = "rig.r_m" if "r_m" in tbl else "rig.margin"
+        raise chk.error(
+            key,
+            f"the rim circle (centre ({x_c:g}, {y_c:g}), radius {r_m:g} px) leaves the "
+            f"{w}x{h} image; expected it inside the image",
+        )
+    cam = {"x_c": x_c, "y_c": y_c, "r_m": r_m, "width": w, "height": h}
+    try:
+        cams = [dict(cam, name="cam1"), dict(cam, name="cam2")]
+        return rig_from_dict({"rig": {"d": d, "R": big_r, "s": s}, "cameras": cams}, str(path))
+    except RigError as exc:
+        raise SceneError(str(exc)) from exc
+
+
+def _motion(
+    chk: _Checker, tbl: Any, where: str, position: NDArray, rotation: Rotation, dt: float
+) -> Motion:
+    if tbl is None:
+        return StaticMotion(position, rotation)
+    chk.table(tbl, where, MOTION_KEYS)
+    kind = chk.string(tbl, "type", where, "static", choices=("static", "constant", "keyframes"))
+    allowed = {
+        "static": {"type"},
+        "constant": {"type", "velocity", "angular_velocity"},
+        "keyframes": {"type", "interpolation", "keys"},
+    }[kind]
+    extra = sorted(set(tbl) - allowed)
+    if extra:
+        raise chk.error(
+            f"{where}.{extra[0]}",
+            f"not used by motion type {kind!r}; expected one of: {', '.join(sorted(allowed))}",
+        )
+    if kind == "static":
+        return StaticMotion(position, rotation)
+    if kind == "constant":
+        v = chk.vector(tbl, "velocity", where, [0.0, 0.0, 0.0])
+        w = chk.vector(tbl, "angular_velocity", where, [0.0, 0.0, 0.0])
+        return ConstantMotion(position, rotation, v, np.radians(w))
+    interp = chk.string(tbl, "interpolation", where, "linear", choices=("linear", "cubic"))
+    keys = tbl.get("keys", _REQUIRED)
+    if keys is _REQUIRED or not isinstance(keys, list) or not keys:
+        raise chk.bad(
+            f"{where}.keys",
+            keys if keys is not _REQUIRED else None,
+            "a non-empty list of tables with time (s) or frame, position, rotation",
+        )
+    times, positions, rotations = [], [], []
+    for i, key in enumerate(keys):
+        kw = f"{where}.keys[{i}]"
+        chk.table(key, kw, KEY_KEYS)
+        if ("time" in key) == ("frame" in key):
+            raise chk.error(kw, "expected exactly one of 'time' (seconds) or 'frame'")
+        if "time" in key:
+            t = chk.number(key, "time", kw)
+        else:
+            t = chk.number(key, "frame", kw) * dt
+        if times and t <= times[-1]:
+            tkey = "time" if "time" in key else "frame"
+            raise chk.bad(f"{kw}.{tkey}", key[tkey], "keys in strictly increasing time")
+        times.append(t)
+        positions.append(chk.vector(key, "position", kw, position))
+        rotations.append(chk.vector(key, "rotation", kw, rotation.as_euler("xyz", degrees=True)))
+    return KeyframeMotion(
+        np.asarray(times), np.asarray(positions), euler_deg(np.asarray(rotations)), interp
+    )
+
+
+def _pose_and_motion(chk: _Checker, tbl: dict, where: str, default_pos, dt: float) -> Motion:
+    pos = chk.vector(tbl, "position", where, default_pos)
+    rot = euler_deg(chk.vector(tbl, "rotation", where, [0.0, 0.0, 0.0]))
+    return _motion(chk, tbl.get("motion"), f"{where}.motion", pos, rot, dt)
+
+
+def _robot(chk: _Checker, tbl: Any, dt: float) -> Robot:
+    chk.table(tbl, "robot", ROBOT_KEYS)
+    return Robot(_pose_and_motion(chk, tbl, "robot", [0.0, 0.0, 0.5], dt), dt)
+
+
+def _texture(chk: _Checker, tbl: Any, where: str, seed: int, base: Path) -> NDArray[np.float32]:
+    tbl = {} if tbl is None else tbl
+    if not isinstance(tbl, dict):
+        raise chk.bad(where, tbl, "a table")
+    kind = chk.string(tbl, "type", where, "noise", choices=TEXTURE_TYPES)
+    chk.table(tbl, where, TEXTURE_KEYS[kind])
+    tile = chk.number(tbl, "tile", where, 1.0, lo=0, lo_open=True)
+    res = chk.integer(tbl, "resolution", where, 512, lo=8, hi=8192)
+    seed = chk.integer(tbl, "seed", where, seed, lo=0)
+    colors = None
+    if kind in ("noise", "grating", "checker"):
+        colors = tbl.get("colors", textures.DEFAULT_COLORS)
+        if not isinstance(colors, list | tuple) or len(colors) != 2:
+            raise chk.bad(f"{where}.colors", colors, "two [r, g, b] colours with values in [0, 1]")
+        colors = [chk.vector({"c": c}, "c", "", n=3, lo=0.0, hi=1.0) for c in colors]
+    if kind == "noise":
+        wl = chk.vector(tbl, "wavelength", where, [0.05, 0.5], n=2, lo=0.0, lo_open=True)
+        if wl[0] > wl[1]:
+            raise chk.bad(f"{where}.wavelength", wl.tolist(), "[shortest, longest] in metres")
+        if tile / wl[0] > res / 2:
+            raise chk.bad(
+                f"{where}.wavelength",
+                wl.tolist(),
+                f"a shortest wavelength of at least 2 texels = {2 * tile / res:.4g} m "
+                f"(tile {tile:g} m over {res} texels); 4 or more texels is better",
+            )
+        if tile / wl[1] < 1:
+            raise chk.bad(
+                f"{where}.wavelength", wl.tolist(), f"a longest wavelength <= tile ({tile:g} m)"
+            )
+        return textures.noise_texture(
+            tile=tile,
+            wavelength=(wl[0], wl[1]),
+            resolution=res,
+            colors=colors,
+            contrast=chk.number(tbl, "contrast", where, 1.0, lo=0.0, hi=1.0),
+            exponent=chk.number(tbl, "exponent", where, 1.0),
+            seed=seed,
+        )
+    if kind == "grating":
+        wl = chk.number(tbl, "wavelength", where, 0.1, lo=0.0, lo_open=True)
+        try:
+            return textures.grating_texture(
+                tile=tile,
+                wavelength=wl,
+                angle=chk.number(tbl, "angle", where, 0.0),
+                phase=chk.number(tbl, "phase", where, 0.0),
+                resolution=res,
+                colors=colors,
+                contrast=chk.number(tbl, "contrast", where, 1.0, lo=0.0, hi=1.0),
+            )
+        except ValueError as exc:
+            raise chk.bad(f"{where}.wavelength", wl, f"a usable wavelength ({exc})") from exc
+    if kind == "checker":
+        size = chk.number(tbl, "size", where, 0.25, lo=0.0, lo_open=True)
+        if tile / size > res / 2:
+            raise chk.bad(f"{where}.size", size, f"at least 2 texels ({2 * tile / res:.4g} m)")
+        return textures.checker_texture(tile=tile, size=size, resolution=res, colors=colors)
+    if kind == "solid":
+        return textures.solid_texture(chk.vector(tbl, "color", where, [0.5, 0.5, 0.5], lo=0, hi=1))
+    img_path = chk.file(tbl, "path", where, base, IMAGE_SUFFIXES)
+    try:
+        return textures.load_image_texture(img_path, srgb=chk.boolean(tbl, "srgb", where, True))
+    except ValueError as exc:
+        raise chk.error(f"{where}.path", f"{exc}; expected a readable image") from exc
+
+
+def _material(chk: _Checker, tbl: Any, where: str) -> Material:
+    tbl = {} if tbl is None else tbl
+    chk.table(tbl, where, MATERIAL_KEYS)
+    kind = chk.string(tbl, "type", where, "diffuse", choices=MATERIAL_TYPES)
+    default_rough = 0.1 if kind == "roughconductor" else 0.0
+    rough = chk.number(tbl, "roughness", where, default_rough, lo=0.0, hi=1.0)
+    if kind == "roughconductor" and rough <= 0:
+        raise chk.bad(f"{where}.roughness", rough, "> 0 for a roughconductor")
+    return Material(
+        type=kind,
+        roughness=rough,
+        int_ior=chk.number(tbl, "int_ior", where, 1.5, lo=1.0, hi=4.0),
+        two_sided=chk.boolean(tbl, "two_sided", where, True),
+    )
+
+
+def _objects(
+    chk: _Checker, items: Any, dt: float, base: Path
+) -> tuple[list[SceneObject], list[RoomInfo]]:
+    if not isinstance(items, list):
+        raise chk.bad("objects", items, "a list of tables ([[objects]])")
+    # First pass: types and explicit ids, so automatic ids avoid explicit ones.
+    kinds, explicit = [], {}
+    for i, tbl in enumerate(items):
+        where = f"objects[{i}]"
+        if not isinstance(tbl, dict):
+            raise chk.bad(where, tbl, "a table")
+        kinds.append(chk.string(tbl, "type", where, choices=OBJECT_TYPES))
+        chk.table(tbl, where, OBJECT_KEYS[kinds[-1]])
+        if "id" in tbl:
+            first = chk.integer(tbl, "id", where, lo=1)
+            span = len(geometry.ROOM_PARTS) if kinds[-1] == "room" else 1
+            for k in range(first, first + span):
+                if k in explicit.values() or k in explicit:
+                    raise chk.bad(f"{where}.id", tbl["id"], "an id not used by another object")
+            explicit[i] = first
+    used = set()
+    for i, first in explicit.items():
+        span = len(geometry.ROOM_PARTS) if kinds[i] == "room" else 1
+        used.update(range(first, first + span))
+    next_id = 1
+    objects: list[SceneObject] = []
+    rooms: list[RoomInfo] = []
+    names: set[str] = set()
+    for i, tbl in enumerate(items):
+        where, kind = f"objects[{i}]", kinds[i]
+        span = len(geometry.ROOM_PARTS) if kind == "room" else 1
+        if i in explicit:
+            first = explicit[i]
+        else:
+            while any(k in used for k in range(next_id, next_id + span)):
+                next_id += 1
+            first = next_id
+            used.update(range(first, first + span))
+        name = chk.string(tbl, "name", where, f"{kind}{i}")
+        if name in names:
+            raise chk.bad(f"{where}.name", name, "a name not used by another object")
+        names.add(name)
+        motion = _pose_and_motion(chk, tbl, where, [0.0, 0.0, 0.0], dt)
+        material = _material(chk, tbl.get("material"), f"{where}.material")
+        if kind == "room":
+            size = chk.vector(tbl, "size", where, lo=0, lo_open=True)
+            rooms.append(RoomInfo(i, name, size, first))
+            objects.extend(_room(chk, tbl, i, name, first, size, motion, material, dt, base))
+            continue
+        tex_tbl = tbl.get("texture")
+        texture = _texture(chk, tex_tbl, f"{where}.texture", first, base)
+        tile = _tile_of(tex_tbl)
+        mesh = _mesh(chk, tbl, kind, where, tile, base)
+        objects.append(SceneObject(first, name, kind, mesh, texture, material, motion, dt, i))
+    return objects, rooms
+
+
+def _tile_of(tex_tbl: Any) -> float:
+    if isinstance(tex_tbl, dict) and isinstance(tex_tbl.get("tile"), int | float):
+        return float(tex_tbl["tile"])
+    return 1.0
+
+
+def _mesh(chk: _Checker, tbl: dict, kind: str, where: str, tile: float, base: Path):
+    if kind == "box":
+        return geometry.box(chk.vector(tbl, "size", where, lo=0, lo_open=True), tile=tile)
+    if kind == "plane":
+        size = chk.vector(tbl, "size", where, n=2, lo=0, lo_open=True)
+        return geometry.plane(size, tile=tile)
+    if kind in ("cylinder", "sphere"):
+        radius = chk.number(tbl, "radius", where, lo=0, lo_open=True)
+        sections = chk.integer(tbl, "sections", where, 96, lo=8, hi=4096)
+        if kind == "sphere":
+            return geometry.sphere(radius, tile=tile, sections=sections)
+        height = chk.number(tbl, "height", where, lo=0, lo_open=True)
+        caps = chk.boolean(tbl, "caps", where, True)
+        return geometry.cylinder(radius, height, tile=tile, sections=sections, caps=caps)
+    # kind == "mesh"
+    mesh_path = chk.file(tbl, "path", where, base, geometry.MESH_SUFFIXES)
+    scale = tbl.get("scale", 1.0)
+    if isinstance(scale, list):
+        scale = chk.vector(tbl, "scale", where, lo=0, lo_open=True)
+    else:
+        scale = chk.number(tbl, "scale", where, 1.0, lo=0, lo_open=True)
+    uv = chk.string(tbl, "uv", where, "auto", choices=("auto", "file", "box"))
+    center = chk.boolean(tbl, "center", where, False)
+    try:
+        return geometry.load_mesh_file(mesh_path, scale=scale, uv=uv, tile=tile, center=center)
+    except ValueError as exc:
+        raise chk.error(f"{where}.path", f"{exc}; expected a mesh with triangles") from exc
+
+
+def _room(chk, tbl, index, name, first, size, motion, material, dt, base) -> list[SceneObject]:
+    where = f"objects[{index}]"
+    out = []
+    for k, part in enumerate(geometry.ROOM_PARTS):
+        specific = {"floor": "floor_texture", "ceiling": "ceiling_texture"}.get(
+            part, "wall_texture"
+        )
+        key = specific if specific in tbl else "texture"
+        tex_tbl = tbl.get(key)
+        tex_where = f"{where}.{key}"
+        # Each part gets its own pattern: the seed (given or the id) plus the part number.
+        if isinstance(tex_tbl, dict) and "seed" in tex_tbl:
+            seed = chk.integer(tex_tbl, "seed", tex_where, lo=0)
+            tex_tbl = dict(tex_tbl, seed=seed + k)
+        texture = _texture(chk, tex_tbl, tex_where, first + k, base)
+        mesh = geometry.room(size, tile=_tile_of(tex_tbl))[part]
+        out.append(
+            SceneObject(
+                first + k, f"{name}.{part}", "room", mesh, texture, material, motion, dt, index
+            )
+        )
+    return out
+
+
+def _lights(chk: _Checker, items: Any, base: Path) -> list[Light]:
+    if items is _REQUIRED or not isinstance(items, list) or not items:
+        raise chk.bad(
+            "lights", None if items is _REQUIRED else items, "at least one [[lights]] table"
+        )
+    out: list[Light] = []
+    for i, tbl in enumerate(items):
+        where = f"lights[{i}]"
+        if not isinstance(tbl, dict):
+            raise chk.bad(where, tbl, "a table")
+        kind = chk.string(tbl, "type", where, choices=LIGHT_TYPES)
+        chk.table(tbl, where, LIGHT_KEYS[kind])
+        col = dict(lo=0.0, scalar_ok=True)
+        if kind == "point":
+            out.append(
+                PointLight(
+                    chk.vector(tbl, "position", where), chk.vector(tbl, "intensity", where, **col)
+                )
+            )
+        elif kind == "area":
+            normal = chk.vector(tbl, "normal", where, [0.0, 0.0, -1.0])
+            if np.linalg.norm(normal) < 1e-9:
+                raise chk.bad(f"{where}.normal", normal.tolist(), "a non-zero direction")
+            out.append(
+                AreaLight(
+                    chk.vector(tbl, "position", where),
+                    chk.vector(tbl, "size", where, n=2, lo=0.0, lo_open=True),
+                    normal / np.linalg.norm(normal),
+                    chk.vector(tbl, "radiance", where, **col),
+                )
+            )
+        elif kind == "environment":
+            image, img_path = None, None
+            if "path" in tbl:
+                p = chk.file(tbl, "path", where, base, IMAGE_SUFFIXES)
+                try:
+                    image = textures.load_image_texture(p, srgb=False)
+                except ValueError as exc:
+                    raise chk.error(f"{where}.path", f"{exc}; expected an image") from exc
+                img_path = str(p)
+            out.append(
+                EnvironmentLight(
+                    chk.vector(tbl, "radiance", where, [1.0, 1.0, 1.0], **col),
+                    image,
+                    img_path,
+                    chk.number(tbl, "scale", where, 1.0, lo=0.0),
+                )
+            )
+        else:
+            direction = chk.vector(tbl, "direction", where, [0.0, 0.0, -1.0])
+            if np.linalg.norm(direction) < 1e-9:
+                raise chk.bad(f"{where}.direction", direction.tolist(), "a non-zero direction")
+            out.append(
+                DirectionalLight(
+                    direction / np.linalg.norm(direction),
+                    chk.vector(tbl, "irradiance", where, **col),
+                )
+            )
+    return out
+
+
+# ---------------------------------------------------------------------------
+# Is the rig possible in this scene?
+# ---------------------------------------------------------------------------
+
+#: At most this many frames are checked (evenly spaced, always including the ends).
+MAX_CHECKED_FRAMES = 513
+#: Surface samples per object for the rig-collision and common-region checks.
+SURFACE_SAMPLES = 4000
+
+
+def _checked_frames(frames: int) -> NDArray[np.float64]:
+    # Frames 0 .. frames: the last frame's flow needs the poses of frame + 1.
+    if frames + 1 <= MAX_CHECKED_FRAMES:
+        return np.arange(frames + 1, dtype=float)
+    return np.unique(np.round(np.linspace(0, frames, MAX_CHECKED_FRAMES)))
+
+
+def _surface_points(mesh: trimesh.Trimesh) -> NDArray[np.float64]:
+    samples = trimesh.sample.sample_surface(mesh, SURFACE_SAMPLES, seed=0)[0]
+    return np.concatenate([np.asarray(mesh.vertices), samples])
+
+
+def _to_rig(world_from_rig: NDArray, world_from_obj: NDArray, pts: NDArray) -> NDArray:
+    m = np.linalg.solve(world_from_rig, world_from_obj)
+    return pts @ m[:3, :3].T + m[:3, 3]
+
+
+def _check_rig_in_scene(chk: _Checker, scene: Scene) -> None:
+    """Raise SceneError if the rig collides with the scene or cannot see a common region.
+
+    At every checked frame: the rig's body (the cylinder of radius R about the
+    axis from cam2's camera centre, h = -d, to the top of cam1's mirror,
+    h = s + R) must be clear of every object; a room must contain the rig with
+    its walls farther from the axis than ``Rig.min_common_range`` (else the two
+    cameras share no view of them); and some surface must lie in the two
+    cameras' common region (occlusion not considered).
+    """
+    rig = scene.rig
+    d, big_r, s = rig.d, rig.R, rig.s
+    h_lo, h_hi = -d, s + big_r
+    moving_robot = not isinstance(scene.robot.motion, StaticMotion)
+    robot_key = "robot.motion" if moving_robot else "robot.position"
+    frames = _checked_frames(scene.frames)
+    surface = [(obj, _surface_points(obj.mesh)) for obj in scene.objects]
+    others = [(obj, pts) for obj, pts in surface if obj.kind != "room"]
+
+    axis = np.zeros((9, 4))
+    axis[:, 2] = np.linspace(h_lo, h_hi, 9)
+    axis[:, 3] = 1.0
+    for k in frames:
+        w_rig = scene.robot.pose(k)
+        where_k = f"frame {k:g}"
+        # Rooms: the axis inside, walls beyond the common range, floor and ceiling clear.
+        for room in scene.rooms:
+            idx, rname, size = room.index, room.name, room.size
+            m = np.linalg.solve(scene.object_by_id(room.first_id).pose(k), w_rig)  # room from rig
+            a = axis @ m.T
+            wall = np.minimum(size[0] / 2 - np.abs(a[:, 0]), size[1] / 2 - np.abs(a[:, 1]))
+            if wall.min() <= rig.min_common_range:
+                raise chk.error(
+                    robot_key,
+                    f"at {where_k} the rig's axis is {max(wall.min(), 0):.3g} m from a wall of "
+                    f"room {rname!r} (objects[{idx}]); expected more than the rig's "
+                    f"min_common_range = {rig.min_common_range:.3g} m (s (d + R) / R - d), or the "
+                    "two cameras share no view of the walls",
+                )
+            if a[0, 2] <= 0 or a[-1, 2] >= size[2]:
+                raise chk.error(
+                    robot_key,
+                    f"at {where_k} the rig (h = -d .. s + R, z = {a[0, 2]:.3g} .. {a[-1, 2]:.3g} m "
+                    f"in the room) does not fit between the floor and the ceiling (0 .. "
+                    f"{size[2]:g} m) of room {rname!r}; expected it inside",
+                )
+        # Other objects: clear of the rig's body.
+        for obj, pts in others:
+            i = obj.index
+            p = _to_rig(w_rig, obj.pose(k), pts)
+            inside = (np.hypot(p[:, 0], p[:, 1]) < big_r) & (p[:, 2] >= h_lo) & (p[:, 2] <= h_hi)
+            if inside.any():
+                key = f"objects[{i}].motion" if obj.moving else f"objects[{i}].position"
+                raise chk.error(
+                    key if not moving_robot else f"{key} / {robot_key}",
+                    f"object {obj.name!r} enters the rig at {where_k} (within R = {big_r:g} m of "
+                    f"the axis between h = {h_lo:g} and {h_hi:g} m); expected it to stay clear",
+                )
+        # Something to see in stereo.
+        seen = False
+        for obj, pts in surface:
+            p = _to_rig(w_rig, obj.pose(k), pts)
+            if rig.common_region(np.hypot(p[:, 0], p[:, 1]), p[:, 2]).any():
+                seen = True
+                break
+        if not seen:
+            raise chk.error(
+                "objects",
+                f"at {where_k} no surface lies in the region both cameras see (r > "
+                f"{rig.min_common_range:.3g} m, above cam1's tip, below cam2's upper limit); "
+                "expected a room or objects there",
+            )
