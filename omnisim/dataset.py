@@ -346,12 +346,8 @@ def _canonical(meta: Mapping[str, Any]) -> Any:
 _IGNORED_FOR_RESUME = {("scene", "path")}
 
 
-def compare_meta(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[str]:
-    """Dotted keys where two dataset.json contents differ (ignoring ``scene.path``).
-
-    Empty when a render with ``new`` may resume into a directory holding ``old``.
-    """
-    diffs: list[str] = []
+def _diff_paths(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[tuple[str, ...]]:
+    diffs: list[tuple[str, ...]] = []
 
     def walk(a: Any, b: Any, key: tuple[str, ...]) -> None:
         if key in _IGNORED_FOR_RESUME:
@@ -359,19 +355,28 @@ def compare_meta(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[str]:
         if isinstance(a, dict) and isinstance(b, dict):
             for name in list(a) + [n for n in b if n not in a]:
                 if name not in a or name not in b:
-                    diffs.append(".".join((*key, name)))
+                    diffs.append((*key, name))
                 else:
                     walk(a[name], b[name], (*key, name))
         elif a != b:
-            diffs.append(".".join(key) or "<root>")
+            diffs.append(key)
 
     walk(_canonical(old), _canonical(new), ())
-    return diffs
+    # Settings first, then the scene text and its parsed copy (they repeat the settings).
+    return sorted(diffs, key=lambda k: (k[:1] == ("scene",), k[:2] == ("scene", "data")))
 
 
-def _describe(meta: Mapping[str, Any], key: str) -> str:
+def compare_meta(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[str]:
+    """Dotted keys where two dataset.json contents differ (ignoring ``scene.path``).
+
+    Empty when a render with ``new`` may resume into a directory holding ``old``.
+    """
+    return [".".join(k) or "<root>" for k in _diff_paths(old, new)]
+
+
+def _describe(meta: Mapping[str, Any], key: tuple[str, ...]) -> str:
     cur: Any = meta
-    for part in key.split("."):
+    for part in key:
         if not isinstance(cur, dict) or part not in cur:
             return "<absent>"
         cur = cur[part]
@@ -402,13 +407,14 @@ class DatasetWriter:
         meta_path = self.dir / META_NAME
         if meta_path.exists():
             old = _load_meta(meta_path)
-            diffs = compare_meta(old, self.meta)
+            diffs = _diff_paths(old, self.meta)
             if diffs:
                 shown = "; ".join(
-                    f"{k}: {_describe(old, k)} in the directory vs {_describe(self.meta, k)} now"
-                    for k in diffs[:4]
+                    f"{'.'.join(k)}: {_describe(old, k)} in the directory vs "
+                    f"{_describe(self.meta, k)} now"
+                    for k in diffs[:3]
                 )
-                more = f" (and {len(diffs) - 4} more)" if len(diffs) > 4 else ""
+                more = f" and {len(diffs) - 3} more" if len(diffs) > 3 else ""
                 raise DatasetMismatchError(
                     f"{self.dir}: refusing to resume: it holds a dataset made from a different "
                     f"scene or settings ({shown}{more}); use another --out directory or delete it"

@@ -1,0 +1,489 @@
+"""Self-checks of a rendered dataset (``omnisim check DIR``).
+
+Every check prints its figure, its pass/fail threshold and the number of pixels it
+used; ``omnisim check`` exits 1 if any fails. Pixel coordinates follow
+:mod:`omniflow.conventions` (pixel centre of column j at x = j + 0.5); images are
+sampled at continuous positions with ``cv2.remap`` (bilinear; index = coordinate - 0.5).
+
+Checks (names as printed):
+
+``eq1``
+    every valid pixel's gt.r, gt.h satisfy eq. (1) for its own camera: the image
+    radius v (h - tip_h) / (d + r) equals the pixel centre's radius h_i. Figure: max
+    |difference| in pixels over all frames and cameras.
+``theta``
+    gt.theta equals the pixel centre's polar angle (max |wrapped difference| x h_i, px).
+``world``
+    gt.X, gt.Y, gt.Z are the point (gt.r, gt.theta, gt.h) moved by the robot's pose of
+    the frame (dataset.json robot.poses): max distance in metres.
+``stereo``
+    where gt.stereo.valid, gt.stereo.h_other equals eq. (3)/(4) of the other camera
+    at (gt.r, gt.h): max |difference|, px.
+``flow_polar``
+    gt.flow.dh, gt.flow.hdtheta agree with gt.flow.dx, dy (conventions.py): max px.
+``flo_file``
+    the .flo files hold gt.flow.dx, dy where gt.flow.valid and the unknown value
+    elsewhere: max |difference|, px, and no validity disagreement.
+``static_world``
+    on static objects (same pose in frames t and t+1), away from object boundaries
+    (object-id mask eroded by one pixel in both frames), the world point at pixel p in
+    frame t equals frame t+1's world point interpolated at p + gt.flow. Figure: 95th
+    percentile of the distance divided by the local pixel footprint (the distance
+    between neighbouring pixels' world points), i.e. in pixels of flow error.
+``photometric``
+    on Lambertian (diffuse) surfaces with valid flow, away from object boundaries,
+    frame t+1's luminance sampled at p + gt.flow reproduces frame t: the RMS residual
+    divided by the render noise expected in a difference of two frames,
+    sqrt(2) x sigma, where sigma is estimated from the frames themselves
+    (Immerkaer's Laplacian estimator on the same surfaces; it also counts fine texture,
+    so it errs high). Also printed: the same ratio without warping, for scale.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from omnisim.dataset import Dataset, DatasetError
+
+__all__ = ["CheckResult", "Tolerances", "format_results", "run_checks"]
+
+
+@dataclass(frozen=True)
+class Tolerances:
+    """Pass/fail thresholds of the checks (defaults are what ``omnisim check`` uses)."""
+
+    #: eq. (1) / (3)-(4) / theta / polar flow consistency, pixels. The ground truth is
+    #: exact in float64 and stored in float32; 0.02 px is the renderer's geometric target.
+    geometry_px: float = 0.02
+    #: world point vs rig cylindrical coordinates and robot pose, metres.
+    world_m: float = 1e-4
+    #: .flo vs EXR flow channels, pixels.
+    flo_px: float = 1e-6
+    #: static world point consistency, 95th percentile, in pixels of flow error.
+    static_p95_px: float = 0.1
+    #: photometric residual RMS / (sqrt(2) sigma_noise).
+    photometric_ratio: float = 1.5
+    #: fewest pixels a statistical check needs; below it the check is skipped.
+    min_pixels: int = 50
+
+
+@dataclass
+class CheckResult:
+    """One check's outcome."""
+
+    name: str
+    description: str
+    figure: float
+    threshold: float
+    unit: str
+    n: int
+    passed: bool | None  # None: skipped
+    detail: str = ""
+
+    @property
+    def status(self) -> str:
+        return "SKIP" if self.passed is None else ("PASS" if self.passed else "FAIL")
+
+
+@dataclass
+class _Acc:
+    """Accumulates a residual over frames: max, and a bounded sample for percentiles."""
+
+    max: float = 0.0
+    n: int = 0
+    sums: dict[str, float] = field(default_factory=dict)
+    samples: list[NDArray] = field(default_factory=list)
+    bad: int = 0
+
+    def add(self, values: NDArray, keep: int = 0) -> None:
+        values = np.asarray(values, dtype=np.float64).ravel()
+        if values.size == 0:
+            return
+        finite = np.isfinite(values)
+        self.bad += int((~finite).sum())
+        self.max = max(self.max, float(np.max(np.where(finite, values, np.inf))))
+        self.n += values.size
+        if keep:
+            step = max(1, values.size // keep)
+            self.samples.append(values[::step].astype(np.float32))
+
+    def add_sum(self, key: str, value: float) -> None:
+        self.sums[key] = self.sums.get(key, 0.0) + float(value)
+
+    def percentile(self, q: float) -> float:
+        if not self.samples:
+            return math.nan
+        v = np.concatenate(self.samples)
+        v = np.where(np.isfinite(v), v, np.inf)
+        return float(np.percentile(v, q))
+
+
+def _wrap(a: NDArray) -> NDArray:
+    return (a + np.pi) % (2 * np.pi) - np.pi
+
+
+def _remap(img: NDArray, mx: NDArray, my: NDArray) -> NDArray:
+    import cv2
+
+    return cv2.remap(
+        np.ascontiguousarray(img, dtype=np.float32),
+        mx.astype(np.float32),
+        my.astype(np.float32),
+        interpolation=cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_REPLICATE,
+    )
+
+
+def _interior(ch: dict[str, NDArray]) -> NDArray:
+    """Valid pixels whose 3x3 neighbourhood is valid and shows the same object."""
+    from scipy import ndimage
+
+    valid = ch["gt.valid"] > 0.5
+    obj = np.where(valid, ch["gt.object"], -1.0)
+    same = ndimage.minimum_filter(obj, 3, mode="nearest") == ndimage.maximum_filter(
+        obj, 3, mode="nearest"
+    )
+    return valid & ndimage.binary_erosion(valid, np.ones((3, 3)), border_value=0) & same
+
+
+def _noise_sigma(img: NDArray, mask: NDArray) -> tuple[float, int]:
+    """Immerkaer (1996) noise estimate on ``mask`` (needs the 3x3 support inside it)."""
+    from scipy import ndimage
+
+    k = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], dtype=np.float64)
+    lap = ndimage.convolve(img.astype(np.float64), k, mode="nearest")
+    m = ndimage.binary_erosion(mask, np.ones((3, 3)), border_value=0)
+    n = int(m.sum())
+    if n == 0:
+        return math.nan, 0
+    return math.sqrt(math.pi / 2.0) / 6.0 * float(np.mean(np.abs(lap[m]))), n
+
+
+def _luma(ch: dict[str, NDArray]) -> NDArray:
+    from omniflow.conventions import LUMA_WEIGHTS
+
+    wr, wg, wb = LUMA_WEIGHTS
+    return (wr * ch["R"] + wg * ch["G"] + wb * ch["B"]).astype(np.float64)
+
+
+def _is_lambertian(material) -> bool:
+    if material is None:
+        return True
+    if isinstance(material, str):
+        return material.lower() in ("diffuse", "lambertian")
+    if isinstance(material, dict):
+        kind = material.get("type", material.get("kind", "diffuse"))
+        return str(kind).lower() in ("diffuse", "lambertian")
+    return "diffuse" in str(material).lower()
+
+
+def run_checks(
+    ds: Dataset,
+    *,
+    frames: Iterable[int] | None = None,
+    tol: Tolerances = Tolerances(),
+    progress: bool = False,
+) -> list[CheckResult]:
+    """Run every check on the (rendered) frames ``frames`` (default: all done frames)."""
+    done = ds.frames_done()
+    if not done:
+        raise DatasetError(f"{ds.dir}: no rendered frame to check")
+    frames = sorted(set(done if frames is None else frames) & set(done))
+    poses_robot = np.asarray(ds.meta["robot"]["poses"], dtype=np.float64)
+    obj_meta = {int(o["id"]): o for o in ds.meta.get("objects", [])}
+    known_ids = set(obj_meta) | {0}
+    lambertian_ids = [i for i, o in obj_meta.items() if _is_lambertian(o.get("material"))]
+
+    acc = {
+        name: _Acc()
+        for name in ("eq1", "theta", "world", "stereo", "flow_polar", "flo_file", "static_world")
+    }
+    photo = _Acc()
+    unknown_ids: set[int] = set()
+    flo_mismatch = 0
+    n_valid = 0
+
+    cache: dict[tuple[int, str], dict[str, NDArray]] = {}
+
+    def load(k: int, cam: str) -> dict[str, NDArray]:
+        key = (k, cam)
+        if key not in cache:
+            for old in [x for x in cache if x[0] < k - 1]:
+                del cache[old]
+            cache[key] = ds.read_frame(k, cam)
+        return cache[key]
+
+    it: Iterable[int] = frames
+    if progress:
+        from tqdm import tqdm
+
+        it = tqdm(frames, unit="frame", desc="omnisim check")
+
+    for k in it:
+        T = poses_robot[k]
+        for cam in ds.cameras:
+            unit = ds.unit(cam)
+            other = ds.unit("cam2" if cam == "cam1" else "cam1")
+            ch = load(k, cam)
+            valid = ch["gt.valid"] > 0.5
+            n_valid += int(valid.sum())
+            x, y = unit.pixel_centres()
+            h_i, th_i = unit.polar_of_pixel(x, y)
+            r = ch["gt.r"].astype(np.float64)
+            h = ch["gt.h"].astype(np.float64)
+            th = ch["gt.theta"].astype(np.float64)
+            ids = np.unique(ch["gt.object"][valid]).astype(int)
+            unknown_ids |= set(ids.tolist()) - known_ids
+
+            # eq. (1) and theta
+            acc["eq1"].add(np.abs(unit.image_radius(r, h) - h_i)[valid], keep=20000)
+            acc["theta"].add((np.abs(_wrap(th - th_i)) * h_i)[valid])
+
+            # world point vs rig cylindrical coordinates and the robot's pose
+            p_rig = np.stack([r * np.cos(th), r * np.sin(th), h, np.ones_like(r)], axis=-1)
+            p_w = p_rig @ T.T
+            world = np.stack([ch["gt.X"], ch["gt.Y"], ch["gt.Z"]], axis=-1).astype(np.float64)
+            acc["world"].add(np.linalg.norm(p_w[..., :3] - world, axis=-1)[valid])
+
+            # stereo, eq. (3)/(4)
+            sv = (ch["gt.stereo.valid"] > 0.5) & valid
+            acc["stereo"].add(np.abs(other.image_radius(r, h) - ch["gt.stereo.h_other"])[sv])
+
+            # polar flow vs Cartesian flow
+            fv = (ch["gt.flow.valid"] > 0.5) & valid
+            dx = ch["gt.flow.dx"].astype(np.float64)
+            dy = ch["gt.flow.dy"].astype(np.float64)
+            h2, th2 = unit.polar_of_pixel(x + dx, y + dy)
+            e_dh = np.abs((h2 - h_i) - ch["gt.flow.dh"])
+            e_ht = np.abs(h_i * _wrap(th2 - th_i) - ch["gt.flow.hdtheta"])
+            acc["flow_polar"].add(np.maximum(e_dh, e_ht)[fv])
+
+            # the .flo file
+            flow, flo_ok = ds.read_flo(k, cam)
+            flo_mismatch += int((flo_ok != (ch["gt.flow.valid"] > 0.5)).sum())
+            both = flo_ok & (ch["gt.flow.valid"] > 0.5)
+            e = np.maximum(np.abs(flow[..., 0] - ch["gt.flow.dx"]), np.abs(flow[..., 1] - dy))
+            acc["flo_file"].add(e[both])
+
+            # temporal checks need frame k + 1
+            if k + 1 not in frames:
+                continue
+            nxt = load(k + 1, cam)
+            int_t = _interior(ch)
+            int_n = _interior(nxt)
+            # cv2 index coordinates of the target: continuous (x + dx) - 0.5
+            mx = x + np.where(fv, dx, 0.0) - 0.5
+            my = y + np.where(fv, dy, 0.0) - 0.5
+            jn = np.rint(mx).astype(np.int64)
+            in_n = np.rint(my).astype(np.int64)
+            inside = (jn >= 0) & (jn < unit.width) & (in_n >= 0) & (in_n < unit.height)
+            jn_c = np.clip(jn, 0, unit.width - 1)
+            in_c = np.clip(in_n, 0, unit.height - 1)
+            same = nxt["gt.object"][in_c, jn_c] == ch["gt.object"]
+            usable = fv & int_t & inside & int_n[in_c, jn_c] & same
+
+            # static world point
+            static_ids = [
+                i
+                for i, o in obj_meta.items()
+                if np.allclose(o["poses"][k], o["poses"][k + 1], rtol=0, atol=1e-12)
+            ]
+            st = usable & np.isin(ch["gt.object"], static_ids)
+            if st.any():
+                wn = np.stack([_remap(nxt[c], mx, my) for c in ("gt.X", "gt.Y", "gt.Z")], -1)
+                dist = np.linalg.norm(wn.astype(np.float64) - world, axis=-1)
+                # local pixel footprint: distance between horizontally/vertically adjacent
+                # pixels' world points in frame t (the larger of the two, inside the object)
+                fx = np.zeros_like(dist)
+                fy = np.zeros_like(dist)
+                fx[:, :-1] = np.linalg.norm(world[:, 1:] - world[:, :-1], axis=-1)
+                fy[:-1, :] = np.linalg.norm(world[1:, :] - world[:-1, :], axis=-1)
+                foot = np.maximum(fx, fy)
+                ok = st & (foot > 0)
+                acc["static_world"].add((dist / np.where(foot > 0, foot, 1.0))[ok], keep=20000)
+
+            # photometric
+            lam = usable & np.isin(ch["gt.object"], lambertian_ids)
+            if lam.sum() >= tol.min_pixels:
+                i_t = _luma(ch)
+                i_n = _luma(nxt)
+                warped = _remap(i_n.astype(np.float32), mx, my).astype(np.float64)
+                res = (i_t - warped)[lam]
+                res0 = (i_t - i_n)[lam & int_n]
+                s_t, n_t = _noise_sigma(i_t, lam)
+                s_n, n_n = _noise_sigma(i_n, int_n & np.isin(nxt["gt.object"], lambertian_ids))
+                if n_t and n_n:
+                    photo.add_sum("abs", float(np.sum(np.abs(res))))
+                    photo.add_sum("sq", float(np.sum(res**2)))
+                    photo.add_sum("n", res.size)
+                    photo.add_sum("abs0", float(np.sum(np.abs(res0))))
+                    photo.add_sum("n0", res0.size)
+                    photo.add_sum("sig2", (s_t**2 + s_n**2) / 2.0)
+                    photo.add_sum("pairs", 1)
+                    photo.add_sum("mean", float(np.sum(i_t[lam])))
+
+    results: list[CheckResult] = []
+
+    def geom(name: str, desc: str, a: _Acc, thr: float, unit: str) -> None:
+        passed = a.n > 0 and a.bad == 0 and a.max <= thr
+        detail = f"{a.bad} non-finite" if a.bad else ""
+        if name == "eq1" and a.n:
+            detail = f"p99 {a.percentile(99):.3g} {unit}"
+        results.append(
+            CheckResult(
+                name,
+                desc,
+                a.max if a.n else math.nan,
+                thr,
+                unit,
+                a.n,
+                passed if a.n or name == "eq1" else None,
+                detail,
+            )
+        )
+
+    geom(
+        "eq1", "gt.r, gt.h vs eq. (1) at the pixel centre (max)", acc["eq1"], tol.geometry_px, "px"
+    )
+    geom(
+        "theta",
+        "gt.theta vs the pixel centre's angle, x h_i (max)",
+        acc["theta"],
+        tol.geometry_px,
+        "px",
+    )
+    geom(
+        "world",
+        "gt.X, Y, Z vs (gt.r, theta, h) and the robot pose (max)",
+        acc["world"],
+        tol.world_m,
+        "m",
+    )
+    geom("stereo", "gt.stereo.h_other vs eq. (3)/(4) (max)", acc["stereo"], tol.geometry_px, "px")
+    geom(
+        "flow_polar",
+        "gt.flow.dh, hdtheta vs gt.flow.dx, dy (max)",
+        acc["flow_polar"],
+        tol.geometry_px,
+        "px",
+    )
+    r_flo = acc["flo_file"]
+    results.append(
+        CheckResult(
+            "flo_file",
+            ".flo vs gt.flow.dx, dy (max; validity must agree)",
+            r_flo.max if r_flo.n else math.nan,
+            tol.flo_px,
+            "px",
+            r_flo.n,
+            (flo_mismatch == 0 and r_flo.max <= tol.flo_px) if (r_flo.n or flo_mismatch) else None,
+            f"{flo_mismatch} validity disagreements",
+        )
+    )
+    if unknown_ids:
+        results.append(
+            CheckResult(
+                "object_ids",
+                "gt.object ids listed in dataset.json objects",
+                len(unknown_ids),
+                0,
+                "unknown ids",
+                n_valid,
+                False,
+                f"unknown: {sorted(unknown_ids)}",
+            )
+        )
+
+    sw = acc["static_world"]
+    if sw.n >= tol.min_pixels:
+        p95 = sw.percentile(95)
+        results.append(
+            CheckResult(
+                "static_world",
+                "world point at p (t) vs at p + flow (t+1), static objects (p95)",
+                p95,
+                tol.static_p95_px,
+                "px",
+                sw.n,
+                bool(p95 <= tol.static_p95_px),
+                f"median {sw.percentile(50):.3g} px, max {sw.max:.3g} px",
+            )
+        )
+    else:
+        results.append(
+            CheckResult(
+                "static_world",
+                "world point at p (t) vs at p + flow (t+1), static objects (p95)",
+                math.nan,
+                tol.static_p95_px,
+                "px",
+                sw.n,
+                None,
+                "needs two consecutive frames with static, flow-valid interior pixels",
+            )
+        )
+
+    s = photo.sums
+    if s.get("n", 0) >= tol.min_pixels and s.get("pairs"):
+        # Scales from mean absolute values (sigma = sqrt(pi/2) E|e| for Gaussian e), like
+        # the Immerkaer noise estimate, so heavy-tailed Monte Carlo noise is not held against
+        # the warp; the RMS is printed too.
+        c = math.sqrt(math.pi / 2.0)
+        scale = c * s["abs"] / s["n"]
+        rms = math.sqrt(s["sq"] / s["n"])
+        sigma = math.sqrt(s["sig2"] / s["pairs"])
+        expected = math.sqrt(2.0) * sigma
+        ratio = scale / expected if expected > 0 else (0.0 if scale == 0 else math.inf)
+        scale0 = c * s["abs0"] / s["n0"] if s.get("n0") else math.nan
+        mean = s["mean"] / s["n"]
+        results.append(
+            CheckResult(
+                "photometric",
+                "warp(frame t+1, gt.flow) vs frame t on Lambertian surfaces "
+                "(residual / sqrt(2) sigma_noise)",
+                ratio,
+                tol.photometric_ratio,
+                "",
+                int(s["n"]),
+                bool(ratio <= tol.photometric_ratio),
+                f"residual sigma {scale:.4g} (RMS {rms:.4g} = {rms / mean:.2%} of mean "
+                f"{mean:.4g}), sigma_noise {sigma:.4g}; unwarped: {scale0 / expected:.3g}",
+            )
+        )
+    else:
+        results.append(
+            CheckResult(
+                "photometric",
+                "warp(frame t+1, gt.flow) vs frame t on Lambertian surfaces",
+                math.nan,
+                tol.photometric_ratio,
+                "",
+                int(s.get("n", 0)),
+                None,
+                "needs two consecutive frames with Lambertian, flow-valid interior pixels",
+            )
+        )
+    return results
+
+
+def format_results(results: list[CheckResult]) -> str:
+    """One line per check: name, status, figure vs threshold, pixels used, detail."""
+    lines = []
+    for r in results:
+        fig = "n/a" if isinstance(r.figure, float) and math.isnan(r.figure) else f"{r.figure:.4g}"
+        unit = f" {r.unit}" if r.unit else ""
+        line = (
+            f"{r.status}  {r.name:<12} {fig}{unit} (threshold <= {r.threshold:g}{unit}; "
+            f"n = {r.n})  {r.description}"
+        )
+        if r.detail:
+            line += f"  [{r.detail}]"
+        lines.append(line)
+    failed = [r.name for r in results if r.passed is False]
+    lines.append("all checks passed" if not failed else f"FAILED: {', '.join(failed)}")
+    return "\n".join(lines)
