@@ -1,0 +1,239 @@
+"""Accuracy metrics for stereo matches, image flow and derived quantities.
+
+All functions are pure and work on 1-D arrays of per-point values. Error
+statistics are summarised by :func:`stats` as the point count, median, mean
+and 90th percentile; a set with no points gives ``n = 0`` and NaN statistics
+(never a warning).
+
+Flow metrics follow the optical-flow benchmarks (Middlebury, KITTI, Sintel):
+
+* EPE: endpoint error, ``hypot(dx - dx_gt, dy - dy_gt)`` in pixels;
+* polar components: errors of the radial displacement ``dh`` and of the
+  tangential displacement ``h dtheta`` (pixels), reported separately because
+  the coaxial direct solution is ill-conditioned radially;
+* AE: angular error (Barron et al. 1994) between the space-time vectors
+  ``(dx, dy, 1)`` and ``(dx_gt, dy_gt, 1)``, degrees;
+* 1 px and 3 px outlier rates: the fraction of points with EPE above 1 and 3 px;
+* each split into non-occluded (``gt.flow.valid`` = 1), occluded, and by the
+  true speed ``hypot(dx_gt, dy_gt)`` in bins.
+
+Stereo metrics: matched ``h_2`` more than 1 px from ``gt.stereo.h_other`` is an
+outlier; relative error of ``r`` (``|r - r_gt| / r_gt``) and absolute error of
+``h`` (metres), split by true range.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+__all__ = [
+    "RANGE_BINS",
+    "SPEED_BINS",
+    "bin_label",
+    "flow_errors",
+    "flow_summary",
+    "polar_components",
+    "rate",
+    "stats",
+    "stereo_errors",
+    "stereo_summary",
+]
+
+#: Speed bins in pixels per frame (true displacement magnitude).
+SPEED_BINS: tuple[float, ...] = (0.0, 0.5, 1.0, 3.0, math.inf)
+#: Range bins in metres (true distance from the axis).
+RANGE_BINS: tuple[float, ...] = (0.0, 1.0, 2.0, 4.0, math.inf)
+
+
+def stats(values: ArrayLike) -> dict[str, float]:
+    """Count, median, mean and 90th percentile of the finite values."""
+    v = np.asarray(values, dtype=np.float64).ravel()
+    v = v[np.isfinite(v)]
+    if v.size == 0:
+        return {"n": 0, "median": math.nan, "mean": math.nan, "p90": math.nan}
+    return {
+        "n": int(v.size),
+        "median": float(np.median(v)),
+        "mean": float(np.mean(v)),
+        "p90": float(np.percentile(v, 90)),
+    }
+
+
+def rate(flags: ArrayLike) -> float:
+    """Fraction of True among the given flags (NaN for none)."""
+    f = np.asarray(flags, dtype=bool).ravel()
+    return float(f.mean()) if f.size else math.nan
+
+
+def bin_label(lo: float, hi: float, unit: str = "") -> str:
+    """Label of the bin [lo, hi), e.g. ``"0.5-1px"`` or ``">=3px"``."""
+
+    def fmt(v: float) -> str:
+        return f"{v:g}"
+
+    if math.isinf(hi):
+        return f">={fmt(lo)}{unit}"
+    return f"{fmt(lo)}-{fmt(hi)}{unit}"
+
+
+def polar_components(
+    x: ArrayLike, y: ArrayLike, dx: ArrayLike, dy: ArrayLike, x_c: float, y_c: float
+) -> tuple[NDArray, NDArray]:
+    """Polar displacement (dh, h dtheta) of the move (x, y) -> (x + dx, y + dy).
+
+    Same definition as the dataset's ``gt.flow.dh`` and ``gt.flow.hdtheta``
+    (``omniflow.conventions``): dh is the change of image radius, h dtheta the
+    change of angle (wrapped to [-pi, pi)) times the radius at the start.
+    """
+    x = np.asarray(x, dtype=np.float64)
+    y = np.asarray(y, dtype=np.float64)
+    u0, w0 = x - x_c, y - y_c
+    u1, w1 = u0 + np.asarray(dx, dtype=np.float64), w0 + np.asarray(dy, dtype=np.float64)
+    h0 = np.hypot(u0, w0)
+    dh = np.hypot(u1, w1) - h0
+    dth = np.arctan2(w1, u1) - np.arctan2(w0, u0)
+    dth = (dth + np.pi) % (2 * np.pi) - np.pi
+    return dh, h0 * dth
+
+
+def flow_errors(est: Mapping[str, ArrayLike], gt: Mapping[str, ArrayLike]) -> dict[str, NDArray]:
+    """Per-point flow errors.
+
+    Parameters
+    ----------
+    est : mapping with ``dx, dy, dh, hdtheta``, each shape (N,)
+        The method's displacement per frame, pixels.
+    gt : mapping with ``dx, dy, dh, hdtheta``, each shape (N,)
+        The true displacement of the same points, pixels.
+
+    Returns
+    -------
+    dict with ``epe``, ``err_dh``, ``err_hdtheta`` (absolute errors, px),
+    ``ae`` (degrees) and ``speed`` (true displacement magnitude, px).
+    """
+    edx, edy = (np.asarray(est[k], dtype=np.float64) for k in ("dx", "dy"))
+    gdx, gdy = (np.asarray(gt[k], dtype=np.float64) for k in ("dx", "dy"))
+    num = edx * gdx + edy * gdy + 1.0
+    den = np.sqrt((edx**2 + edy**2 + 1.0) * (gdx**2 + gdy**2 + 1.0))
+    with np.errstate(invalid="ignore"):
+        ae = np.degrees(np.arccos(np.clip(num / den, -1.0, 1.0)))
+    return {
+        "epe": np.hypot(edx - gdx, edy - gdy),
+        "err_dh": np.abs(np.asarray(est["dh"], dtype=np.float64) - np.asarray(gt["dh"])),
+        "err_hdtheta": np.abs(
+            np.asarray(est["hdtheta"], dtype=np.float64) - np.asarray(gt["hdtheta"])
+        ),
+        "ae": ae,
+        "speed": np.hypot(gdx, gdy),
+    }
+
+
+def _flow_block(err: Mapping[str, NDArray], sel: NDArray) -> dict:
+    epe = err["epe"][sel]
+    return {
+        "n": int(np.count_nonzero(sel)),
+        "epe": stats(epe),
+        "dh": stats(err["err_dh"][sel]),
+        "hdtheta": stats(err["err_hdtheta"][sel]),
+        "ae": stats(err["ae"][sel]),
+        "out1": rate(epe > 1.0),
+        "out3": rate(epe > 3.0),
+    }
+
+
+def flow_summary(
+    err: Mapping[str, NDArray],
+    noc: ArrayLike,
+    *,
+    speed_bins: Sequence[float] = SPEED_BINS,
+) -> dict:
+    """Flow error statistics: all points, non-occluded, occluded, by speed.
+
+    ``err`` is :func:`flow_errors`' output restricted to points with truth;
+    ``noc`` (bool, same length) marks the points whose ``gt.flow.valid`` is 1.
+    Speed bins are split on non-occluded points, as the benchmarks do.
+    """
+    noc = np.asarray(noc, dtype=bool)
+    finite = np.isfinite(err["epe"])
+    out = {
+        "all": _flow_block(err, finite),
+        "noc": _flow_block(err, finite & noc),
+        "occ": _flow_block(err, finite & ~noc),
+        "speed": {},
+    }
+    speed = err["speed"]
+    for lo, hi in itertools.pairwise(speed_bins):
+        sel = finite & noc & (speed >= lo) & (speed < hi)
+        out["speed"][bin_label(lo, hi, "px")] = _flow_block(err, sel)
+    return out
+
+
+def stereo_errors(est: Mapping[str, ArrayLike], gt: Mapping[str, ArrayLike]) -> dict[str, NDArray]:
+    """Per-match stereo errors.
+
+    ``est`` holds the method's ``h2`` (px), ``r`` and ``h`` (m); ``gt`` the
+    true ``h_other`` (px), ``r`` and ``h`` (m) at the same cam1 points. Gives
+    ``err_h2`` (|h2 - h_other|, px), ``rel_r`` (|r - r_gt| / r_gt), ``err_h``
+    (|h - h_gt|, m) and ``range`` (r_gt).
+    """
+    r_gt = np.asarray(gt["r"], dtype=np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rel_r = np.abs(np.asarray(est["r"], dtype=np.float64) - r_gt) / r_gt
+    return {
+        "err_h2": np.abs(np.asarray(est["h2"], dtype=np.float64) - np.asarray(gt["h_other"])),
+        "rel_r": rel_r,
+        "err_h": np.abs(np.asarray(est["h"], dtype=np.float64) - np.asarray(gt["h"])),
+        "range": r_gt,
+    }
+
+
+def _stereo_block(err: Mapping[str, NDArray], sel: NDArray) -> dict:
+    return {
+        "n": int(np.count_nonzero(sel)),
+        "outliers": rate(err["err_h2"][sel] > 1.0),
+        "err_h2": stats(err["err_h2"][sel]),
+        "rel_r": stats(err["rel_r"][sel]),
+        "err_h": stats(err["err_h"][sel]),
+    }
+
+
+def stereo_summary(
+    err: Mapping[str, NDArray],
+    *,
+    n_matched: int,
+    n_significant_valid: int | None,
+    n_valid_pixels: int,
+    range_bins: Sequence[float] = RANGE_BINS,
+) -> dict:
+    """Stereo statistics: match rate, density, outliers and r, h errors by range.
+
+    Parameters
+    ----------
+    err : :func:`stereo_errors` output for the matches that have truth.
+    n_matched : number of matches the method reported.
+    n_significant_valid : significant points (the method's own selection) that
+        the other camera really sees (``gt.stereo.valid``); None if unknown.
+    n_valid_pixels : pixels of cam1 that see the scene (``gt.valid``).
+
+    ``match_rate`` = matched / valid significant points; ``density`` =
+    matched / valid pixels (matches per scene pixel).
+    """
+    has = np.isfinite(err["err_h2"]) & np.isfinite(err["rel_r"])
+    out = {
+        "n_matched": int(n_matched),
+        "n_with_truth": int(np.count_nonzero(has)),
+        "n_significant_valid": None if n_significant_valid is None else int(n_significant_valid),
+        "match_rate": (n_matched / n_significant_valid if n_significant_valid else math.nan),
+        "density": n_matched / n_valid_pixels if n_valid_pixels else math.nan,
+        "all": _stereo_block(err, has),
+        "range": {},
+    }
+    for lo, hi in itertools.pairwise(range_bins):
+        sel = has & (err["range"] >= lo) & (err["range"] < hi)
+        out["range"][bin_label(lo, hi, "m")] = _stereo_block(err, sel)
+    return out
