@@ -1,0 +1,615 @@
+"""The ``omniflow`` command: coaxial omni flow of a stereo frame pair, to CSV and pictures.
+
+See ``docs/omniflow_cli.md`` and ``omniflow --help``. Exit status: 0 on
+success, 2 on bad input (a missing or unreadable file, images of different
+sizes, a rig file with a missing or impossible field, NaN pixels, a bad
+option), with a one-line message naming the problem on standard error.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import re
+import sys
+import textwrap
+import time
+import types
+import typing
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from omniflow.imageio import ImageError, atomic_write_text, read_image, to_grey, write_png
+from omniflow.rig import Rig, RigError, Unit, load_rig, unwarp
+
+PROG = "omniflow"
+
+
+class CLIError(ValueError):
+    """Bad command-line input; the message is printed as is."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """ArgumentParser whose usage errors are one line, with exit status 2."""
+
+    def error(self, message: str) -> typing.NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+class _Formatter(argparse.RawDescriptionHelpFormatter):
+    def __init__(self, prog: str) -> None:
+        super().__init__(prog, max_help_position=34, width=100)
+
+
+# -- options from OmniFlowConfig ---------------------------------------------------
+
+
+def _config_class():
+    from omniflow.pipeline import OmniFlowConfig
+
+    return OmniFlowConfig
+
+
+def _field_docs(cls: type) -> dict[str, tuple[str, str]]:
+    """Per-field (type text, description) from a numpydoc ``Attributes`` section.
+
+    Handles ``a, b : float`` (shared entries) and ``a, b : description`` one-liners.
+    """
+    docs: dict[str, tuple[str, str]] = {}
+    doc = textwrap.dedent((cls.__doc__ or "").split("\n", 1)[-1])
+    current: list[str] = []
+    for line in doc.splitlines():
+        m = re.match(r"^(\w+(?:\s*,\s*\w+)*)\s+:\s*(.*)$", line)
+        if m:
+            current = [n.strip() for n in m.group(1).split(",")]
+            for name in current:
+                docs[name] = (m.group(2).strip(), "")
+        elif current and line.startswith((" ", "\t")) and line.strip():
+            for name in current:
+                kind, desc = docs[name]
+                docs[name] = (kind, (desc + " " + line.strip()).strip())
+        elif line.strip():
+            current = []
+    return docs
+
+
+_TYPE_WORDS = {
+    "float",
+    "int",
+    "str",
+    "bool",
+    "tuple",
+    "list",
+    "dict",
+    "none",
+    "or",
+    "of",
+    "optional",
+    "ndarray",
+    "path",
+    "sequence",
+    "callable",
+    "any",
+}
+
+
+def _is_type(kind: str) -> bool:
+    """True if a numpydoc type line holds a type (``float or None``), not prose."""
+    if kind.startswith("{"):
+        return True
+    return all(w.lower() in _TYPE_WORDS for w in re.findall(r"[A-Za-z_]+", kind))
+
+
+def _doc_choices(kind: str) -> list[str] | None:
+    """``{"a", "b"}`` in a numpydoc type line -> ["a", "b"]."""
+    m = re.match(r"^\{(.*)\}", kind.strip())
+    return re.findall(r"[\"']([^\"']+)[\"']", m.group(1)) if m else None
+
+
+def _unwrap_optional(tp: Any) -> tuple[Any, bool]:
+    origin = typing.get_origin(tp)
+    if origin in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(tp) if a is not type(None)]
+        if len(args) == 1:
+            return args[0], True
+    return tp, False
+
+
+def _none_or(conv):
+    def parse(text: str):
+        if text.lower() in ("none", "null", ""):
+            return None
+        return conv(text)
+
+    parse.__name__ = getattr(conv, "__name__", "value")
+    return parse
+
+
+def _add_config_options(parser: argparse.ArgumentParser) -> list[str]:
+    """One option per OmniFlowConfig field, its default shown; returns the field names."""
+    cls = _config_class()
+    group = parser.add_argument_group(
+        "algorithm options (omniflow.pipeline.OmniFlowConfig; each default shown)"
+    )
+    try:
+        hints = typing.get_type_hints(cls)
+    except Exception:  # unresolvable annotations: fall back to the defaults' types
+        hints = {}
+    docs = _field_docs(cls)
+    names = []
+    for f in dataclasses.fields(cls):
+        if not f.init or f.name.startswith("_"):
+            continue
+        if f.default is not dataclasses.MISSING:
+            default = f.default
+        elif f.default_factory is not dataclasses.MISSING:
+            default = f.default_factory()
+        else:
+            continue
+        tp, optional = _unwrap_optional(hints.get(f.name, type(default)))
+        flag = "--" + f.name.replace("_", "-")
+        kind, desc = docs.get(f.name, ("", ""))
+        if kind and not _is_type(kind):
+            desc = f"{kind} {desc}".strip()  # a one-line entry: "a, b : what they are"
+        desc = re.sub(r":\w+:`~?([^`]+)`", r"\1", desc).replace("``", "").rstrip(".")
+        kwargs: dict[str, Any] = {"dest": f"cfg_{f.name}", "default": argparse.SUPPRESS}
+        choices = _doc_choices(kind)
+        if choices and default not in choices:
+            choices = None
+        if typing.get_origin(tp) is typing.Literal:
+            choices = list(typing.get_args(tp))
+            conv = type(choices[0]) if choices else str
+        elif tp is bool or isinstance(default, bool):
+            kwargs["action"] = argparse.BooleanOptionalAction
+            conv = None
+        elif tp in (int, float, str):
+            conv = tp
+        elif isinstance(default, int | float | str) and default is not None:
+            conv = type(default)
+        elif typing.get_origin(tp) is tuple or isinstance(default, tuple):
+            args = typing.get_args(tp)
+            elem = args[0] if args else (type(default[0]) if default else float)
+            conv = elem if elem in (int, float, str) else float
+            kwargs["nargs"] = len(default) if isinstance(default, tuple) and default else "+"
+            kwargs["type"] = conv
+            kwargs["metavar"] = conv.__name__.upper()
+            conv = None
+        else:
+            conv = json.loads
+        if choices and conv is None:
+            choices = None  # flags and tuples take no choices
+        elif choices:
+            conv = type(default)
+        if conv is not None:
+            kwargs["type"] = _none_or(conv) if optional else conv
+            kwargs["metavar"] = (
+                "{" + ",".join(map(str, choices)) + "}"
+                if choices
+                else (getattr(conv, "__name__", "VALUE").upper() + ("|none" if optional else ""))
+            )
+        if choices:
+            kwargs["choices"] = choices + ([None] if optional else [])
+        shown = "none" if default is None else default
+        if isinstance(default, tuple):
+            shown = " ".join(map(str, default))
+        help_text = f"{desc} (default: {shown})" if desc else f"(default: {shown})"
+        group.add_argument(flag, help=help_text.replace("%", "%%"), **kwargs)
+        names.append(f.name)
+    return names
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``omniflow`` argument parser (options for every OmniFlowConfig knob included)."""
+    parser = _Parser(
+        prog=PROG,
+        allow_abbrev=False,
+        formatter_class=_Formatter,
+        description=textwrap.dedent(
+            """\
+            Omni flow (Spacek) of a coaxial conical-mirror stereo rig: match the two
+            cameras along radial lines, solve the direct 2x2 flow equations at every
+            match, and write per-point results (CSV + JSON sidecar) and pictures.
+
+            Frames are given as image files in time order, cam1 then cam2 for each
+            time step: CAM1_T0 CAM2_T0 CAM1_T1 CAM2_T1 [CAM1_T2 CAM2_T2 ...]
+            (PNG 8/16-bit, JPEG, TIFF or OpenEXR; colour is reduced to Rec. 709
+            luminance). The flow is from time step --t (default 0) to the next;
+            more time steps are used by --temporal dct3d. Or read the frames from an
+            omnisim dataset: --dataset DIR --frame K (flow from frame K to K + 1).
+            """
+        ),
+        epilog=textwrap.dedent(
+            """\
+            outputs (in --out DIR, each written atomically):
+              flow.csv         one row per matched point, after a '#' line of units; columns
+                               x, y (cam1 px), theta (rad),
+                               h1, h2 (px), r, h (m), dh1_dt (px/frame), dtheta_dt (rad/frame),
+                               dr_dt (m/frame), dx, dy (cam1 px/frame), cam2 columns x2, y2,
+                               dh2_dt, dx2, dy2, confidence, D, time_to_contact (frames)
+              flow.json        units of every column, the config, the rig, the inputs and timings
+              flow_arrows.png  cam1 frame t with the flow drawn as arrows (magnified; see legend)
+              flow_color.png   cam1 frame t with each point in the Middlebury flow colour
+              unwarp_cam1.png  cam1 as a panorama (eq. 6-7) with the flow drawn on it
+            Velocities are per frame interval: divide by the frame interval for per-second units.
+
+            rig file (TOML or JSON, or an omnisim dataset.json):
+              [rig]           d = 0.10  R = 0.05  s = 0.30        (metres)
+              [[cameras]]     name = "cam1"  x_c = 256.0  y_c = 256.0  r_m = 250.0
+                              width = 512  height = 512           (pixels; pixel centres j + 0.5)
+              [[cameras]]     name = "cam2"  ...
+
+            examples:
+              omniflow c1_0.png c2_0.png c1_1.png c2_1.png --rig rig.toml --out result
+              omniflow --dataset renders/room --frame 3 --out result --solver pooled
+              omniflow c1_0.exr c2_0.exr c1_1.exr c2_1.exr --calibrate --d 0.1 --R 0.05 --s 0.3 \\
+                  --out result
+
+            exit status: 0 success; 2 bad input (one line on stderr names the problem).
+            """
+        ),
+    )
+    inputs = parser.add_argument_group("input")
+    inputs.add_argument(
+        "images",
+        nargs="*",
+        metavar="IMAGE",
+        help="frames in time order, cam1 then cam2 per time step (at least 4 files)",
+    )
+    inputs.add_argument(
+        "--rig", metavar="FILE", help="rig description (.toml or .json, incl. dataset.json)"
+    )
+    inputs.add_argument(
+        "--dataset",
+        metavar="DIR",
+        help="read frames and rig from an omnisim dataset directory instead of IMAGE files",
+    )
+    inputs.add_argument(
+        "--frame",
+        type=int,
+        default=0,
+        metavar="K",
+        help="--dataset only: flow from frame K to K + 1 (default: 0)",
+    )
+    inputs.add_argument(
+        "--t",
+        type=int,
+        metavar="T",
+        help="IMAGE files only: flow from time step T to T + 1 (default: 0)",
+    )
+    calib = parser.add_argument_group(
+        "calibration (find each mirror's rim in the first frames, replacing x_c, y_c, r_m)"
+    )
+    calib.add_argument(
+        "--calibrate",
+        action="store_true",
+        help="locate the rim circles with omniflow.calibration (d, R, s from --rig or below)",
+    )
+    calib.add_argument("--d", type=float, metavar="M", help="camera centre to cone tip, metres")
+    calib.add_argument("--R", type=float, metavar="M", help="mirror base radius, metres")
+    calib.add_argument(
+        "--s", type=float, metavar="M", help="baseline between the cone tips, metres"
+    )
+    output = parser.add_argument_group("output")
+    output.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
+    output.add_argument(
+        "--no-pictures", action="store_true", help="write only flow.csv and flow.json"
+    )
+    output.add_argument(
+        "--arrow-scale",
+        type=float,
+        metavar="K",
+        help="draw arrows K times their length (default: automatic, shown in the picture)",
+    )
+    output.add_argument(
+        "--odometry",
+        action="store_true",
+        help="also fit the robot's yaw rate and velocity to the flow (omniflow.applications)",
+    )
+    algo = parser.add_argument_group("algorithm preset")
+    algo.add_argument(
+        "--paper",
+        action="store_true",
+        help="start from the paper's choices (OmniFlowConfig.paper(): gradient-similarity "
+        "matching, first-frame gradients, frame differences, the direct 2x2 solution); "
+        "options below still override",
+    )
+    parser._config_fields = _add_config_options(parser)  # type: ignore[attr-defined]
+    return parser
+
+
+# -- inputs ------------------------------------------------------------------------------
+
+
+def _read_files(paths: list[str]) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Grey frames of cam1 and cam2 from files given as CAM1_T0 CAM2_T0 CAM1_T1 CAM2_T1 ..."""
+    if len(paths) < 4 or len(paths) % 2:
+        raise CLIError(
+            f"got {len(paths)} image file(s); expected an even number >= 4: "
+            "CAM1_T0 CAM2_T0 CAM1_T1 CAM2_T1 [...]"
+        )
+    images = [to_grey(read_image(p)) for p in paths]
+    for p, img in zip(paths, images, strict=True):
+        if img.shape != images[0].shape:
+            raise CLIError(
+                f"images differ in size: {paths[0]} is {_size(images[0].shape)} "
+                f"but {p} is {_size(img.shape)}"
+            )
+    return images[0::2], images[1::2]
+
+
+def _size(shape) -> str:
+    return f"{shape[1]}x{shape[0]}"
+
+
+def _read_dataset(directory: str, k: int, window: int):
+    """Frames around K of an omnisim dataset: (frames1, frames2, t, rig, info).
+
+    ``window`` time steps are read, placed so that K .. K + 1 sits in the middle
+    where the dataset allows; ``t`` is K's index in the returned lists.
+    """
+    from omnisim.dataset import DatasetError, open_dataset
+
+    try:
+        ds = open_dataset(directory)
+        n = ds.frame_count
+        if not 0 <= k < n - 1:
+            raise CLIError(
+                f"--frame {k}: the flow needs frames {k} and {k + 1}, but {directory} has "
+                f"frames 0..{n - 1}"
+            )
+        if window > n:
+            raise CLIError(f"{directory}: {window} frames needed but the dataset has {n}")
+        start = min(max(0, k - (window - 2) // 2), n - window)
+        frames = range(start, start + window)
+        f1 = [ds.read_grey(j, "cam1") for j in frames]
+        f2 = [ds.read_grey(j, "cam2") for j in frames]
+    except DatasetError as exc:
+        raise CLIError(str(exc)) from exc
+    for j, a, b in zip(frames, f1, f2, strict=True):
+        for cam, img in (("cam1", a), ("cam2", b)):
+            bad = ~np.isfinite(img)
+            if bad.any():
+                raise CLIError(f"{ds.path(j, cam)}: {int(bad.sum())} pixel(s) are NaN or infinite")
+    info = {"dataset": str(directory), "frames_read": list(frames), "frame": k,
+            "frame_interval_s": ds.frame_interval}  # fmt: skip
+    return f1, f2, k - start, ds.rig, info
+
+
+def _calibrated_rig(args, base: Rig | None, f1: np.ndarray, f2: np.ndarray) -> Rig:
+    """The rig with each unit's x_c, y_c, r_m found in its image (omniflow.calibration)."""
+    d = args.d if args.d is not None else (base.d if base else None)
+    R = args.R if args.R is not None else (base.R if base else None)
+    s = args.s if args.s is not None else (base.s if base else None)
+    missing = [n for n, v in (("--d", d), ("--R", R), ("--s", s)) if v is None]
+    if missing:
+        raise CLIError(f"--calibrate needs {', '.join(missing)} (or a --rig file giving them)")
+    from omniflow.calibration import calibrate_unit
+
+    try:
+        u1 = calibrate_unit(f1, d=d, R=R, tip_h=s, name="cam1")
+        u2 = calibrate_unit(f2, d=d, R=R, tip_h=0.0, name="cam2")
+    except (ValueError, RuntimeError) as exc:
+        raise CLIError(f"--calibrate: {_one_line(exc)}") from exc
+    rig = Rig(cam1=u1, cam2=u2, s=s)
+    rig.validate("--calibrate")
+    return rig
+
+
+def _check_rig_size(rig: Rig, shape: tuple[int, ...], where: str) -> None:
+    for unit in (rig.cam1, rig.cam2):
+        if (unit.height, unit.width) != tuple(shape):
+            raise CLIError(
+                f"the images are {_size(shape)} but {where} says {unit.name} is "
+                f"{unit.width}x{unit.height}"
+            )
+
+
+def _make_config(args, config_fields: list[str]):
+    cls = _config_class()
+    overrides = {
+        name: getattr(args, f"cfg_{name}") for name in config_fields if hasattr(args, f"cfg_{name}")
+    }
+    overrides = {k: tuple(v) if isinstance(v, list) else v for k, v in overrides.items()}
+    try:
+        if args.paper:
+            return cls.paper(**overrides)
+        return cls(**overrides)
+    except (TypeError, ValueError) as exc:
+        raise CLIError(f"bad algorithm option: {_one_line(exc)}") from exc
+
+
+def _load_inputs(args, config):
+    """(frames1, frames2, t, rig, rig_source, info) from the command line."""
+    dct3d = getattr(config, "temporal", "difference") == "dct3d"
+    window = max(2, int(getattr(config, "temporal_frames", 3))) if dct3d else 2
+    if args.dataset:
+        if args.images:
+            raise CLIError("give either IMAGE files or --dataset, not both")
+        if args.t is not None:
+            raise CLIError("--t applies to IMAGE files; with --dataset use --frame K")
+        f1, f2, t, rig, info = _read_dataset(args.dataset, args.frame, window)
+        rig_source = str(Path(args.dataset) / "dataset.json")
+        if args.rig:
+            rig, rig_source = load_rig(args.rig), args.rig
+    else:
+        if not args.images:
+            raise CLIError("no input: give IMAGE files (CAM1_T0 CAM2_T0 CAM1_T1 ...) or --dataset")
+        if args.frame != 0:
+            raise CLIError("--frame applies to --dataset; with IMAGE files use --t")
+        if args.rig is None and not args.calibrate:
+            raise CLIError("--rig FILE is required (or --calibrate with --d, --R, --s)")
+        rig = load_rig(args.rig) if args.rig else None
+        rig_source = args.rig
+        f1, f2 = _read_files(args.images)
+        t = args.t or 0
+        if not 0 <= t < len(f1) - 1:
+            raise CLIError(
+                f"--t {t}: the flow needs time steps {t} and {t + 1} of 0..{len(f1) - 1}"
+            )
+        if dct3d and len(f1) < window:
+            raise CLIError(
+                f"--temporal dct3d needs {window} time steps (--temporal-frames); got {len(f1)}"
+            )
+        info = {"images": [str(Path(p)) for p in args.images], "t": t}
+    if args.calibrate:
+        rig = _calibrated_rig(args, rig, f1[t], f2[t])
+        rig_source = f"--calibrate (rims found; d, R, s from {args.rig or 'options'})"
+    elif any(v is not None for v in (args.d, args.R, args.s)):
+        raise CLIError("--d, --R and --s apply with --calibrate only; edit the rig file instead")
+    _check_rig_size(rig, f1[0].shape, rig_source)
+    return f1, f2, t, rig, rig_source, info
+
+
+# -- outputs -----------------------------------------------------------------------------
+
+
+def _column_units() -> dict[str, str]:
+    from omniflow.pipeline import COLUMNS
+
+    return {**COLUMNS, "time_to_contact": "frames, -r / (dr/dt) where approaching, else inf"}
+
+
+def _jsonable(obj: Any) -> Any:
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return {f.name: _jsonable(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.generic):
+        obj = obj.item()
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None if math.isnan(obj) else ("inf" if obj > 0 else "-inf")
+    if isinstance(obj, int | float | str | bool) or obj is None:
+        return obj
+    return str(obj)
+
+
+def _pictures(out: Path, image: np.ndarray, unit: Unit, cols, arrow_scale) -> list[Path]:
+    from omniflow.draw import draw_flow_arrows, draw_flow_points
+
+    x, y, dx, dy = (np.asarray(cols[c], float) for c in ("x", "y", "dx", "dy"))
+    arrows = draw_flow_arrows(image, x, y, dx, dy, scale=arrow_scale)
+    written = [
+        write_png(out / "flow_arrows.png", arrows, bits=8),
+        write_png(out / "flow_color.png", draw_flow_points(image, x, y, dx, dy), bits=8),
+    ]
+    # Panorama as omniflow.rig.unwarp (eq. 6-7): column <- theta, row <- h_1, rim at the top.
+    width = int(min(2048, max(256, round(2 * math.pi * unit.r_m))))
+    height = max(8, round(unit.r_m))
+    pano = unwarp(image, unit, width=width, height=height)
+    th = np.mod(np.asarray(cols["theta"], float), 2 * math.pi)
+    px = th * width / (2 * math.pi)
+    py = height * (1.0 - np.asarray(cols["h1"], float) / unit.r_m)
+    pdx = np.asarray(cols["dtheta_dt"], float) * width / (2 * math.pi)
+    pdy = -np.asarray(cols["dh1_dt"], float) * height / unit.r_m
+    pano_arrows = draw_flow_arrows(pano, px, py, pdx, pdy, scale=arrow_scale)
+    written.append(write_png(out / "unwarp_cam1.png", pano_arrows, bits=8))
+    return written
+
+
+def _odometry_summary(cols) -> dict:
+    from omniflow.applications import odometry
+
+    try:  # bearing rates only: omni flow's radial component is the ill-conditioned one
+        fit = odometry(cols["theta"], cols["r"], cols["dtheta_dt"])
+    except ValueError as exc:
+        return {"error": _one_line(exc)}
+    return {
+        "fitted_on": "dtheta/dt and r of every point (omniflow.applications.odometry, robust)",
+        "yaw_rate_rad_per_frame": fit.w,
+        "V_x_m_per_frame": fit.V_x,
+        "V_y_m_per_frame": fit.V_y,
+        "inlier_fraction": fit.inlier_fraction,
+        "residual_scale_m_per_frame": fit.scale,
+    }
+
+
+# -- main ---------------------------------------------------------------------------------
+
+
+def run(args: argparse.Namespace, config_fields: list[str], argv: list[str]) -> dict:
+    """Do the work of one ``omniflow`` invocation; return the summary written to flow.json."""
+    from omniflow.applications import time_to_contact
+    from omniflow.pipeline import estimate
+
+    config = _make_config(args, config_fields)
+    t0 = time.perf_counter()
+    f1, f2, t, rig, rig_source, info = _load_inputs(args, config)
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise CLIError(f"--out {out}: exists and is not a folder")
+    t_read = time.perf_counter() - t0
+
+    t1 = time.perf_counter()
+    result = estimate(f1, f2, rig, config, t=t)  # inputs checked above: errors here are bugs
+    t_estimate = time.perf_counter() - t1
+
+    t2 = time.perf_counter()
+    out.mkdir(parents=True, exist_ok=True)
+    cols = result.columns
+    cols["time_to_contact"] = time_to_contact(cols["r"], cols["dr_dt"])
+    result.to_csv(out / "flow.csv")
+    pictures = [] if args.no_pictures else _pictures(out, f1[t], rig.cam1, cols, args.arrow_scale)
+    t_write = time.perf_counter() - t2
+
+    n = len(cols["x"])
+    units = _column_units()
+    summary: dict[str, Any] = {
+        "command": [PROG, *argv],
+        "inputs": info,
+        "rig_source": rig_source,
+        "rig": rig.to_dict(),
+        "config": _jsonable(config),
+        "points": n,
+        "columns": {c: units.get(c, "") for c in cols},
+        "timings_s": {
+            "read": t_read,
+            "estimate": t_estimate,
+            "write": t_write,
+            "pipeline_stages": _jsonable(result.timings),
+        },
+        "outputs": ["flow.csv", "flow.json", *(p.name for p in pictures)],
+        "median_flow_px": float(np.median(np.hypot(cols["dx"], cols["dy"]))) if n else None,
+    }
+    if args.odometry:
+        summary["odometry"] = _odometry_summary(cols)
+    atomic_write_text(out / "flow.json", json.dumps(_jsonable(summary), indent=2) + "\n")
+    return summary
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split()) or type(exc).__name__
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``omniflow`` command; returns the exit status."""
+    from omnisim.dataset import DatasetError
+
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        summary = run(args, parser._config_fields, argv)  # type: ignore[attr-defined]
+    except (CLIError, ImageError, RigError, DatasetError) as exc:
+        print(f"{PROG}: error: {_one_line(exc)}", file=sys.stderr)
+        return 2
+    stages = summary["timings_s"]["pipeline_stages"]
+    stage_text = ", ".join(
+        f"{k} {1e3 * v:.1f} ms" for k, v in stages.items() if isinstance(v, int | float)
+    )
+    est_ms = 1e3 * summary["timings_s"]["estimate"]
+    print(
+        f"{PROG}: {summary['points']} points; estimate {est_ms:.1f} ms"
+        + (f" ({stage_text})" if stage_text else "")
+    )
+    print(f"{PROG}: wrote " + ", ".join(str(Path(args.out) / o) for o in summary["outputs"]))
+    return 0
+
+
+if __name__ == "__main__":  # python -m omniflow.cli
+    sys.exit(main())
