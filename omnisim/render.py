@@ -1,0 +1,504 @@
+"""Render an omnisim Scene with Mitsuba 3 through the analytic cone-mirror sensor.
+
+Public functions (docs/INTERFACES.md):
+
+``render_camera(scene, frame, cam) -> float32 (H, W, 3)``
+    Linear RGB radiance of one unit (``"cam1"`` or ``"cam2"``).
+``render_frame(scene, frame) -> {cam: {channel: (H, W) float32}}``
+    ``R``, ``G``, ``B`` and the ``gt.*`` channels of both cameras
+    (:func:`omnisim.groundtruth.ground_truth`).
+
+Scene content -> Mitsuba: each object's trimesh mesh becomes an ``mi.Mesh``
+built from arrays (vertices, faces, per-vertex UVs, in the object's original
+face order so a hit's ``prim_index`` is the trimesh face index), placed in
+the world by ``object.pose(frame)``; its texture becomes a ``bitmap``
+texture (linear float32, bilinear, repeat; trimesh's UV convention, v = 0 at
+the image's bottom row); its material a two-sided BSDF (``diffuse``,
+``plastic``, ``conductor``, ``roughconductor``). Lights: ``area`` (a
+rectangle or disk with an area emitter), ``point``, ``environment``
+(constant or a bitmap envmap).
+
+Moving objects: the Mitsuba scene of each frame is rebuilt from cached
+parts (BSDFs, textures, static meshes and the lights are made once per Scene;
+only the meshes of moving objects are re-made with their vertices posed for
+the frame). ``benchmarks/bench_render.py`` compares this with updating one
+scene in place through ``mi.traverse``. A small cache keeps the last few
+frames' Mitsuba scenes, so the ground truth of frame t (which also traces
+frame t + 1) and the render of frame t + 1 share them.
+
+Determinism: the sampler seed of (frame, camera) is derived from the scene
+seed (:func:`frame_seed`); with the same scene, seed and versions the images
+are bit-identical (the box-filtered film adds a pixel's samples in a fixed
+order; ``tests/test_render.py`` checks it).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import time
+import weakref
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from omnisim.sensor import ensure_mitsuba, make_sensor
+
+__all__ = [
+    "CAMERAS",
+    "MitsubaFrame",
+    "MitsubaScene",
+    "frame_seed",
+    "get_mitsuba_scene",
+    "render_camera",
+    "render_frame",
+]
+
+CAMERAS = ("cam1", "cam2")
+#: Mitsuba scenes kept per Scene, each re-posed in place for the frame asked for.
+FRAME_SLOTS = 2
+
+
+def frame_seed(seed: int, frame: int, cam: str) -> int:
+    """Sampler seed (uint32) of one camera and frame, derived from the scene seed."""
+    key = f"omnisim:{int(seed)}:{int(frame)}:{cam}".encode()
+    return int.from_bytes(hashlib.sha256(key).digest()[:4], "little")
+
+
+def _unit(scene, cam: str):
+    if cam not in CAMERAS:
+        raise ValueError(f"camera {cam!r}: expected 'cam1' or 'cam2'")
+    return getattr(scene.rig, cam)
+
+
+def _get(obj: Any, key: str, default: Any = None) -> Any:
+    """Attribute or mapping item ``key`` of ``obj``."""
+    if isinstance(obj, dict):
+        return obj.get(key, default)
+    return getattr(obj, key, default)
+
+
+# ----------------------------------------------------------------------------
+# Scene conversion
+# ----------------------------------------------------------------------------
+@dataclass
+class MitsubaFrame:
+    """The Mitsuba scene of one frame and what the ground truth needs of it."""
+
+    frame: int
+    scene: Any  # mi.Scene
+    robot_pose: NDArray  # (4, 4) world from rig
+    object_poses: dict[int, NDArray]  # id -> (4, 4) world from object
+    shape_ids: NDArray  # Mitsuba shape registry id -> object id (0: not an object)
+    params: Any = None  # mi.SceneParameters of the moving meshes' vertex positions
+
+
+@dataclass
+class _ObjectParts:
+    id: int
+    name: str
+    vertices: NDArray  # (V, 3) float64, object frame
+    faces: NDArray  # (F, 3) int64
+    uv: NDArray  # (V, 2) float32
+    bsdf: Any
+    static: bool
+    static_mesh: Any = None
+    static_pose: NDArray | None = None
+
+
+@dataclass
+class MitsubaScene:
+    """Per-Scene Mitsuba state: cached BSDFs, meshes, lights, sensors and frames."""
+
+    scene: Any
+    objects: list[_ObjectParts] = field(default_factory=list)
+    lights: dict[str, Any] = field(default_factory=dict)
+    slots: list[MitsubaFrame] = field(default_factory=list)
+    sensors: dict[str, Any] = field(default_factory=dict)
+    integrator: Any = None
+
+    def __post_init__(self) -> None:
+        mi = ensure_mitsuba(_get(self.scene.render, "variant", None))
+        scene = self.scene
+        r = scene.render
+        self.integrator = mi.load_dict(
+            _integrator_dict(_get(r, "integrator", "path"), _get(r, "max_depth", 3))
+        )
+        for obj in scene.objects:
+            self.objects.append(_object_parts(mi, obj, scene.frames))
+        self.lights = _light_dicts(mi, scene.lights)
+
+    # -- frames -------------------------------------------------------------
+    def frame(self, frame: int) -> MitsubaFrame:
+        """The Mitsuba scene posed for ``frame`` (one of ``FRAME_SLOTS`` kept in place)."""
+        frame = int(frame)
+        for slot in self.slots:
+            if slot.frame == frame:
+                self.slots.remove(slot)
+                self.slots.append(slot)  # most recently used last
+                return slot
+        if len(self.slots) < FRAME_SLOTS:
+            slot = self._build(frame)
+        else:
+            slot = self.slots.pop(0)
+            self._update(slot, frame)
+        self.slots.append(slot)
+        return slot
+
+    def _poses(self, frame: int) -> dict[int, NDArray]:
+        return {
+            part.id: (
+                part.static_pose if part.static else _pose(self.scene_object(part.id).pose(frame))
+            )
+            for part in self.objects
+        }
+
+    def _build(self, frame: int) -> MitsubaFrame:
+        mi = ensure_mitsuba()
+        import drjit as dr
+
+        desc: dict[str, Any] = {"type": "scene"}
+        poses = self._poses(frame)
+        shape_of: list[tuple[Any, int]] = []
+        for part in self.objects:
+            mesh = part.static_mesh if part.static else _make_mesh(mi, part, poses[part.id])
+            desc[f"obj{part.id}"] = mesh
+            shape_of.append((mesh, part.id))
+        desc.update(self.lights)
+        mscene = mi.load_dict(desc)
+        reg = [int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(m))[0]) for m, _ in shape_of]
+        ids = np.zeros(max(reg, default=0) + 1, dtype=np.int32)
+        for (_, oid), rid in zip(shape_of, reg, strict=True):
+            ids[rid] = oid
+        params = mi.traverse(mscene)
+        moving = [p.id for p in self.objects if not p.static]
+        params.keep([f"obj{oid}.vertex_positions" for oid in moving])
+        robot = _pose(self.scene.robot.pose(frame))
+        return MitsubaFrame(
+            frame=frame,
+            scene=mscene,
+            robot_pose=robot,
+            object_poses=poses,
+            shape_ids=ids,
+            params=params,
+        )
+
+    def _update(self, slot: MitsubaFrame, frame: int) -> None:
+        """Re-pose the moving meshes of ``slot`` for ``frame`` through ``mi.traverse``."""
+        mi = ensure_mitsuba()
+        poses = self._poses(frame)
+        for part in self.objects:
+            if not part.static:
+                v = part.vertices @ poses[part.id][:3, :3].T + poses[part.id][:3, 3]
+                slot.params[f"obj{part.id}.vertex_positions"] = mi.Float(
+                    np.ascontiguousarray(v, dtype=np.float32).ravel()
+                )
+        slot.params.update()
+        slot.frame = frame
+        slot.object_poses = poses
+        slot.robot_pose = _pose(self.scene.robot.pose(frame))
+
+    def scene_object(self, oid: int):
+        for obj in self.scene.objects:
+            if int(obj.id) == oid:
+                return obj
+        raise KeyError(oid)
+
+    def parts(self, oid: int) -> _ObjectParts:
+        for part in self.objects:
+            if part.id == oid:
+                return part
+        raise KeyError(oid)
+
+    # -- sensors ------------------------------------------------------------
+    def sensor(self, cam: str, pose: NDArray):
+        sensor = self.sensors.get(cam)
+        if sensor is None:
+            spp = int(_get(self.scene.render, "spp", 16))
+            sensor = make_sensor(
+                _unit(self.scene, cam),
+                pose,
+                spp=spp,
+                sampler=_get(self.scene.render, "sampler", None),
+            )
+            self.sensors[cam] = sensor
+        else:
+            sensor.set_pose(pose)
+        return sensor
+
+
+def _pose(m) -> NDArray:
+    m = np.asarray(m, dtype=np.float64)
+    if m.shape != (4, 4):
+        raise ValueError(f"pose has shape {m.shape}: expected (4, 4)")
+    return m
+
+
+def _is_static(obj, frames: int) -> bool:
+    """True when the object's pose is the same at every frame we may need."""
+    moving = _get(obj, "moving", None)
+    if isinstance(moving, bool):
+        return not moving
+    p0 = _pose(obj.pose(0))
+    return all(np.array_equal(p0, _pose(obj.pose(f))) for f in (1, max(1, frames // 2), frames))
+
+
+def _object_parts(mi, obj, frames: int) -> _ObjectParts:
+    mesh = obj.mesh
+    vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    faces = np.asarray(mesh.faces, dtype=np.int64)
+    uv = _get(_get(mesh, "visual"), "uv")
+    if uv is None or len(uv) != len(vertices):
+        uv = np.zeros((len(vertices), 2))
+    uv = np.asarray(uv, dtype=np.float64)
+    uv_mi = uv.astype(np.float32)  # omnisim.textures: row 0 at v = 0, as Mitsuba's bitmap
+    bsdf = mi.load_dict(_bsdf_dict(mi, _get(obj, "material", "diffuse"), _get(obj, "texture")))
+    part = _ObjectParts(
+        id=int(obj.id),
+        name=str(_get(obj, "name", f"obj{obj.id}")),
+        vertices=vertices,
+        faces=faces,
+        uv=uv_mi,
+        bsdf=bsdf,
+        static=_is_static(obj, frames),
+    )
+    if part.static:
+        part.static_pose = _pose(obj.pose(0))
+        part.static_mesh = _make_mesh(mi, part, part.static_pose)
+    return part
+
+
+def _make_mesh(mi, part: _ObjectParts, pose: NDArray):
+    v = part.vertices @ pose[:3, :3].T + pose[:3, 3]
+    props = mi.Properties()
+    props["bsdf"] = part.bsdf
+    mesh = mi.Mesh(part.name, len(v), len(part.faces), props=props, has_vertex_texcoords=True)
+    params = mi.traverse(mesh)
+    params["vertex_positions"] = mi.Float(np.ascontiguousarray(v, dtype=np.float32).ravel())
+    params["faces"] = mi.UInt32(np.ascontiguousarray(part.faces, dtype=np.uint32).ravel())
+    params["vertex_texcoords"] = mi.Float(part.uv.ravel())
+    params.update()
+    return mesh
+
+
+def _texture_dict(mi, texture) -> dict | float:
+    """Bitmap texture of a float32 (H, W, 3) linear texture (omnisim.textures convention).
+
+    Texel [i, j] covers u in [j / W, (j + 1) / W), v in [i / H, (i + 1) / H)
+    (row 0 at v = 0), which is exactly Mitsuba's bitmap lookup of the UVs
+    given to an ``mi.Mesh`` built from arrays (no flip; only Mitsuba's OBJ
+    loader flips v). Bilinear, repeating, raw (no colour conversion).
+    """
+    if texture is None:
+        return 0.5
+    arr = np.asarray(texture, dtype=np.float32)
+    if arr.ndim == 2:
+        arr = np.repeat(arr[..., None], 3, axis=-1)
+    return {
+        "type": "bitmap",
+        "bitmap": mi.Bitmap(np.ascontiguousarray(arr)),
+        "raw": True,
+        "filter_type": "bilinear",
+        "wrap_mode": "repeat",
+    }
+
+
+def _bsdf_dict(mi, material, texture) -> dict:
+    """BSDF of an ``omnisim.scene.Material`` (or a material name) with its texture.
+
+    ``diffuse``: texture = albedo. ``plastic``: texture = diffuse albedo under
+    a dielectric coat (``int_ior``; ``roughplastic`` with GGX alpha =
+    ``roughness`` when > 0). ``conductor``: perfect specular, texture =
+    specular reflectance. ``roughconductor``: GGX alpha = ``roughness``.
+    Wrapped in ``twosided`` when ``material.two_sided`` (the default).
+    """
+    if material is None or isinstance(material, str):
+        kind, rough, ior, two = material or "diffuse", 0.0, 1.5, True
+    else:
+        kind = str(_get(material, "type", "diffuse"))
+        rough = float(_get(material, "roughness", 0.0) or 0.0)
+        ior = float(_get(material, "int_ior", 1.5))
+        two = bool(_get(material, "two_sided", True))
+    tex = _texture_dict(mi, texture)
+    if kind == "diffuse":
+        inner = {"type": "diffuse", "reflectance": tex}
+    elif kind == "plastic" and rough > 0:
+        inner = {"type": "roughplastic", "diffuse_reflectance": tex, "int_ior": ior, "alpha": rough}
+    elif kind == "plastic":
+        inner = {"type": "plastic", "diffuse_reflectance": tex, "int_ior": ior}
+    elif kind == "conductor":
+        inner = {"type": "conductor", "material": "none", "specular_reflectance": tex}
+    elif kind == "roughconductor":
+        inner = {
+            "type": "roughconductor",
+            "material": "none",
+            "specular_reflectance": tex,
+            "alpha": max(rough, 1e-3),
+        }
+    else:
+        raise ValueError(
+            f"material {kind!r}: expected diffuse, plastic, conductor or roughconductor"
+        )
+    return {"type": "twosided", "bsdf": inner} if two else inner
+
+
+def _integrator_dict(kind: str, max_depth: int) -> dict:
+    kind = str(kind or "path")
+    if kind == "direct":
+        return {"type": "direct"}
+    if kind == "path":
+        return {"type": "path", "max_depth": int(max_depth), "hide_emitters": False}
+    return {"type": kind, "max_depth": int(max_depth)}
+
+
+def _rgb(value, default=1.0):
+    if value is None:
+        value = default
+    arr = np.broadcast_to(np.asarray(value, dtype=np.float64), (3,))
+    return {"type": "rgb", "value": [float(a) for a in arr]}
+
+
+def _vec(value) -> list[float]:
+    return [float(a) for a in np.asarray(value, dtype=np.float64).reshape(3)]
+
+
+def _light_dicts(mi, lights) -> dict[str, Any]:
+    """Mitsuba emitters (and emitting shapes) for ``omnisim.scene`` lights.
+
+    ``point`` -> point emitter; ``area`` -> a one-sided ``rectangle`` with an
+    area emitter, placed by ``AreaLight.to_world()`` (black, non-reflecting
+    BSDF: it is a light panel, not a scene object, and has no object id);
+    ``environment`` -> ``constant`` or, with an image, ``envmap``;
+    ``directional`` -> ``directional``.
+    """
+    out: dict[str, Any] = {}
+    for i, light in enumerate(lights or ()):
+        kind = _get(light, "type", None) or _get(light, "kind", None)
+        if kind == "point":
+            out[f"light{i}"] = {
+                "type": "point",
+                "position": _vec(_get(light, "position")),
+                "intensity": _rgb(_get(light, "intensity")),
+            }
+        elif kind == "area":
+            if hasattr(light, "to_world"):
+                m = np.asarray(light.to_world(), dtype=np.float64)
+            else:
+                size = np.broadcast_to(np.asarray(_get(light, "size", 1.0), float), (2,))
+                m = np.eye(4)
+                m[:3, :3] = np.diag([size[0] / 2, size[1] / 2, -1.0])
+                m[:3, 3] = _vec(_get(light, "position"))
+            out[f"light{i}"] = {
+                "type": "rectangle",
+                "to_world": mi.ScalarTransform4f(m.tolist()),
+                "emitter": {"type": "area", "radiance": _rgb(_get(light, "radiance"))},
+                "bsdf": {"type": "diffuse", "reflectance": 0.0},
+            }
+        elif kind == "environment":
+            image = _get(light, "image", None)
+            scale = float(_get(light, "scale", 1.0))
+            if image is not None:
+                out[f"light{i}"] = {
+                    "type": "envmap",
+                    "scale": scale,
+                    "bitmap": mi.Bitmap(np.asarray(image, dtype=np.float32)),
+                }
+            else:
+                rad = np.asarray(_get(light, "radiance", 1.0), float) * scale
+                out[f"light{i}"] = {"type": "constant", "radiance": _rgb(rad)}
+        elif kind == "directional":
+            out[f"light{i}"] = {
+                "type": "directional",
+                "direction": _vec(_get(light, "direction")),
+                "irradiance": _rgb(_get(light, "irradiance")),
+            }
+        else:
+            raise ValueError(
+                f"light {i}: unknown type {kind!r}: expected point, area, "
+                "environment or directional"
+            )
+    return out
+
+
+# ----------------------------------------------------------------------------
+# Cache of Mitsuba scenes per Scene object
+# ----------------------------------------------------------------------------
+_CACHE: dict[int, MitsubaScene] = {}
+
+
+def get_mitsuba_scene(scene) -> MitsubaScene:
+    """The (cached) Mitsuba state of ``scene``; dropped when the Scene is collected."""
+    key = id(scene)
+    ms = _CACHE.get(key)
+    if ms is not None and ms.scene is scene:
+        return ms
+    ms = MitsubaScene(scene)
+    _CACHE[key] = ms
+    try:
+        weakref.finalize(scene, _CACHE.pop, key, None)
+    except TypeError:  # not weak-referenceable: keep only this one
+        for k in [k for k in _CACHE if k != key]:
+            del _CACHE[k]
+    return ms
+
+
+def clear_cache() -> None:
+    """Forget every cached Mitsuba scene (tests; frees JIT memory)."""
+    _CACHE.clear()
+
+
+# ----------------------------------------------------------------------------
+# Rendering
+# ----------------------------------------------------------------------------
+def render_camera(
+    scene, frame: int, cam: str, *, spp: int | None = None, seed: int | None = None
+) -> NDArray[np.float32]:
+    """Linear RGB radiance (H, W, 3) float32 of camera ``cam`` at ``frame``.
+
+    ``spp`` and ``seed`` default to the scene's render settings; the sampler
+    seed is :func:`frame_seed` of the scene seed, the frame and the camera.
+    """
+    mi = ensure_mitsuba()
+    ms = get_mitsuba_scene(scene)
+    fr = ms.frame(frame)
+    sensor = ms.sensor(cam, fr.robot_pose)
+    spp = int(_get(scene.render, "spp", 16)) if spp is None else int(spp)
+    base = int(_get(scene.render, "seed", 0)) if seed is None else int(seed)
+    img = mi.render(
+        fr.scene,
+        sensor=sensor,
+        integrator=ms.integrator,
+        spp=spp,
+        seed=frame_seed(base, frame, cam),
+    )
+    return np.array(img, dtype=np.float32).reshape(
+        _unit(scene, cam).height, _unit(scene, cam).width, 3
+    )
+
+
+def render_frame(
+    scene, frame: int, *, timings: dict[str, float] | None = None
+) -> dict[str, dict[str, NDArray[np.float32]]]:
+    """Both cameras' ``R``, ``G``, ``B`` and ``gt.*`` channels at ``frame``.
+
+    ``timings``, if given, receives the seconds spent in ``render`` and
+    ``groundtruth`` (summed over both cameras).
+    """
+    from omnisim.groundtruth import ground_truth_frame
+
+    t0 = time.perf_counter()
+    rgb = {cam: render_camera(scene, frame, cam) for cam in CAMERAS}
+    t1 = time.perf_counter()
+    gt = ground_truth_frame(scene, frame, CAMERAS)
+    t2 = time.perf_counter()
+    t_render, t_gt = t1 - t0, t2 - t1
+    out: dict[str, dict[str, NDArray[np.float32]]] = {}
+    for cam in CAMERAS:
+        chans = {c: np.ascontiguousarray(rgb[cam][..., i]) for i, c in enumerate("RGB")}
+        chans.update(gt[cam])
+        out[cam] = chans
+    if timings is not None:
+        timings["render"] = timings.get("render", 0.0) + t_render
+        timings["groundtruth"] = timings.get("groundtruth", 0.0) + t_gt
+    return out
