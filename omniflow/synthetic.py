@@ -557,7 +557,7 @@ class SyntheticScene:
         out = {
             "gt.valid": valid.astype(float),
             "gt.r": r,
-            "gt.theta": np.where(valid, theta, nan),
+            "gt.theta": np.where(valid, np.where(theta >= np.pi, -np.pi, theta), nan),
             "gt.h": h,
             "gt.X": X,
             "gt.Y": Y,
