@@ -103,3 +103,46 @@ def test_shifted_image_fails_photometric(synth, tmp_path):
     res = _by_name(run_checks(open_dataset(d)))
     assert res["static_world"].passed  # the geometry is untouched
     assert not res["photometric"].passed and res["photometric"].figure > 1.5
+
+
+# -- a real (Mitsuba) render ----------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def real(tmp_path_factory):
+    from pathlib import Path
+
+    from omnisim.job import render_dataset
+
+    scene = Path(__file__).resolve().parents[1] / "scenes" / "default.toml"
+    out = tmp_path_factory.mktemp("real") / "ds"
+    ov = {"frames": 3, "render.width": 64, "render.height": 64, "render.spp": 4}
+    render_dataset(scene, out, ov, progress=False)
+    return out
+
+
+@pytest.mark.render
+def test_real_render_passes_with_figures(real, capsys):
+    results = run_checks(open_dataset(real))
+    print(format_results(results))
+    res = _by_name(results)
+    for name in ("eq1", "theta", "world", "stereo", "flow_polar", "flo_file"):
+        assert res[name].passed and res[name].n > 1000, format_results(results)
+    assert res["eq1"].figure < 1e-3 and res["stereo"].figure < 1e-3
+    assert res["static_world"].passed and res["static_world"].n > 1000
+    assert res["photometric"].passed and res["photometric"].n > 1000
+    assert main(["check", str(real)]) == 0
+    assert "all checks passed" in capsys.readouterr().out
+
+
+@pytest.mark.render
+def test_real_render_corrupted_fails(real, tmp_path, capsys):
+    def bad(ch):
+        ch["gt.flow.dy"] = ch["gt.flow.dy"] - np.float32(1.0)
+        ch["gt.h"] = ch["gt.h"] + np.float32(0.01)
+
+    d = _corrupt(real, tmp_path / "bad", bad)
+    res = _by_name(run_checks(open_dataset(d)))
+    assert not res["eq1"].passed and not res["static_world"].passed
+    assert main(["check", str(d)]) == 1
+    assert "FAILED" in capsys.readouterr().out
