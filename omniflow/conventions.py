@@ -45,5 +45,13 @@ Images
     inputs are reduced to luminance with Rec. 709 weights. Radiance is linear.
 """
 
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
 #: Rec. 709 luminance weights applied to linear RGB.
 LUMA_WEIGHTS = (0.2126, 0.7152, 0.0722)
+
+
+def wrap_angle(angle: ArrayLike) -> NDArray:
+    """Wrap angles (radians) to the convention's interval [-pi, pi)."""
+    return (np.asarray(angle, dtype=float) + np.pi) % (2 * np.pi) - np.pi

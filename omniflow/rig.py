@@ -49,6 +49,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from omniflow.conventions import wrap_angle
+
 __all__ = [
     "Rig",
     "RigError",
@@ -105,7 +107,7 @@ class Unit:
         """Polar image coordinates (h_i, theta_i) of continuous pixel coordinates."""
         dx = np.asarray(x, dtype=float) - self.x_c
         dy = np.asarray(y, dtype=float) - self.y_c
-        return np.hypot(dx, dy), np.arctan2(dy, dx)
+        return np.hypot(dx, dy), wrap_angle(np.arctan2(dy, dx))
 
     def pixel_of_polar(self, h_i: ArrayLike, theta: ArrayLike) -> tuple[NDArray, NDArray]:
         """Continuous pixel coordinates of polar image coordinates, eq. (6)-(7)."""
@@ -148,9 +150,7 @@ class Unit:
             rho = self.d * k / (1.0 - k)
         return (rel > 0) & (rel <= (self.d + r) * self.R / (self.d + self.R)) & (r >= rho)
 
-    def project(
-        self, r: ArrayLike, theta: ArrayLike, h: ArrayLike
-    ) -> tuple[NDArray, NDArray]:
+    def project(self, r: ArrayLike, theta: ArrayLike, h: ArrayLike) -> tuple[NDArray, NDArray]:
         """Pixel (x, y) of the scene point (r, theta, h), eq. (1), (6), (7)."""
         return self.pixel_of_polar(self.image_radius(r, h), theta)
 
@@ -196,7 +196,7 @@ class Rig:
         return self.cam2.d
 
     @property
-    def R(self) -> float:  # noqa: N802 - the paper's symbol
+    def R(self) -> float:
         return self.cam2.R
 
     @classmethod
@@ -212,10 +212,14 @@ class Rig:
         """A rig of two identical units centred in (width, height) images."""
         width, height = (size, size) if isinstance(size, int) else size
         r_m = (min(width, height) / 2.0 - 2.0) if r_m is None else r_m
-        common = dict(d=d, R=R, x_c=width / 2.0, y_c=height / 2.0, r_m=r_m, width=width,
-                      height=height)
-        rig = cls(cam1=Unit(**common, tip_h=s, name="cam1"),
-                  cam2=Unit(**common, tip_h=0.0, name="cam2"), s=s)
+        common = dict(
+            d=d, R=R, x_c=width / 2.0, y_c=height / 2.0, r_m=r_m, width=width, height=height
+        )
+        rig = cls(
+            cam1=Unit(**common, tip_h=s, name="cam1"),
+            cam2=Unit(**common, tip_h=0.0, name="cam2"),
+            s=s,
+        )
         rig.validate()
         return rig
 
@@ -239,7 +243,9 @@ class Rig:
             h = np.where(disp > 0, u2 * (self.d + r), np.nan)  # eq. (4)
         return r, h
 
-    def disparity_window(self, h_1: ArrayLike, r_min: float, r_max: float) -> tuple[NDArray, NDArray]:
+    def disparity_window(
+        self, h_1: ArrayLike, r_min: float, r_max: float
+    ) -> tuple[NDArray, NDArray]:
         """Range of h_2 at which the match of h_1 can lie for r in [r_min, r_max].
 
         From eq. (3)-(4): h_2 = v_2 (h_1 / v_1 + s / (d + r)).
@@ -302,6 +308,8 @@ def rig_from_dict(data: dict[str, Any], where: str = "rig") -> Rig:
     if not isinstance(data, dict) or "rig" not in data or "cameras" not in data:
         raise RigError(f"{where}: expected a table 'rig' (d, R, s) and a list 'cameras'")
     rig = data["rig"]
+    if not isinstance(rig, dict):
+        raise RigError(f"{where}: rig = {rig!r}: expected a table with d, R, s")
     vals = {}
     for key in ("d", "R", "s"):
         if key not in rig:
@@ -317,7 +325,9 @@ def rig_from_dict(data: dict[str, Any], where: str = "rig") -> Rig:
             raise RigError(f"{label}: expected a table")
         unknown = set(cam) - _CAM_KEYS
         if unknown:
-            raise RigError(f"{label}: unknown key(s) {sorted(unknown)}; expected {sorted(_CAM_KEYS)}")
+            raise RigError(
+                f"{label}: unknown key(s) {sorted(unknown)}; expected {sorted(_CAM_KEYS)}"
+            )
         name = cam.get("name", f"cam{i + 1}")
         if name not in ("cam1", "cam2") or name in units:
             raise RigError(f"{label}.name = {name!r}: expected 'cam1' and 'cam2' once each")
@@ -326,12 +336,23 @@ def rig_from_dict(data: dict[str, Any], where: str = "rig") -> Rig:
             if key not in cam:
                 raise RigError(f"{label} ({name}).{key} is missing: expected a number in pixels")
             fields[key] = _number(cam[key], f"{label} ({name}).{key}")
+        for key in ("width", "height"):
+            if fields[key] != int(fields[key]) or fields[key] < 8:
+                raise RigError(f"{label} ({name}).{key} = {cam[key]!r}: expected integer >= 8")
         tip = vals["s"] if name == "cam1" else 0.0
         if "tip_h" in cam and abs(_number(cam["tip_h"], f"{label}.tip_h") - tip) > 1e-9:
             raise RigError(f"{label} ({name}).tip_h = {cam['tip_h']}: expected {tip}")
-        unit = Unit(d=vals["d"], R=vals["R"], x_c=fields["x_c"], y_c=fields["y_c"],
-                    r_m=fields["r_m"], width=int(fields["width"]), height=int(fields["height"]),
-                    tip_h=tip, name=name)
+        unit = Unit(
+            d=vals["d"],
+            R=vals["R"],
+            x_c=fields["x_c"],
+            y_c=fields["y_c"],
+            r_m=fields["r_m"],
+            width=int(fields["width"]),
+            height=int(fields["height"]),
+            tip_h=tip,
+            name=name,
+        )
         if "v" in cam:
             v = _number(cam["v"], f"{label}.v")
             if abs(v - unit.v) > 1e-6 * unit.v:
@@ -363,16 +384,14 @@ def _number(value: Any, where: str) -> float:
     return float(value)
 
 
-def unwarp(
-    image: NDArray, unit: Unit, *, width: int = 1024, height: int | None = None
-) -> NDArray:
+def unwarp(image: NDArray, unit: Unit, *, width: int = 1024, height: int | None = None) -> NDArray:
     """Panorama of an omni image for people to look at, eq. (6)-(7).
 
     Column x maps to theta_i = 2 pi (x + 0.5) / width and row y to
     h_i = r_m (height - (y + 0.5)) / height (the rim at the top row), sampled
     bilinearly with OpenCV. Shape (height, width) plus any channel axis.
     """
-    height = height or max(8, int(round(unit.r_m)))
+    height = height or max(8, round(unit.r_m))
     cols = (np.arange(width) + 0.5) * (2 * np.pi / width)
     rows = unit.r_m * (height - (np.arange(height) + 0.5)) / height
     theta, h_i = np.meshgrid(cols, rows)
@@ -380,6 +399,11 @@ def unwarp(
     import cv2
 
     # cv2 samples at integer pixel indices; pixel centres are at index + 0.5.
-    return cv2.remap(np.ascontiguousarray(image, dtype=np.float32), (x - 0.5).astype(np.float32),
-                     (y - 0.5).astype(np.float32), interpolation=cv2.INTER_LINEAR,
-                     borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    return cv2.remap(
+        np.ascontiguousarray(image, dtype=np.float32),
+        (x - 0.5).astype(np.float32),
+        (y - 0.5).astype(np.float32),
+        interpolation=cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=0,
+    )

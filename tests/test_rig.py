@@ -270,12 +270,6 @@ def test_rig_from_dict_errors_name_the_field(path, value, match):
         rig_from_dict(_edit(path, value), where="rig.json")
 
 
-@pytest.mark.xfail(
-    strict=True,
-    raises=TypeError,
-    reason="rig.py: a 'rig' entry that is not "
-    "a table raises TypeError, not RigError (reported to the lead)",
-)
 def test_rig_entry_that_is_not_a_table_is_a_rig_error():
     with pytest.raises(RigError, match="rig"):
         rig_from_dict(_edit(("rig",), None), where="rig.json")
@@ -286,11 +280,6 @@ def test_rig_from_dict_rejects_non_tables():
         rig_from_dict([1, 2])
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="rig.py truncates a fractional width with int() before "
-    "Unit.validate can see it (reported to the lead)",
-)
 def test_fractional_image_size_is_rejected():
     with pytest.raises(RigError, match="width"):
         rig_from_dict(_edit(("cameras", 0, "width"), 64.5))
@@ -341,11 +330,6 @@ def test_dtype_sweep(rig, dtype):
     np.testing.assert_allclose(h_t, h, rtol=1e-5)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="Unit.polar_of_pixel returns theta = +pi on the -x ray; "
-    "conventions.py says theta in [-pi, pi) (reported to the lead)",
-)
 def test_polar_angle_is_in_half_open_interval():
     unit = Unit(d=D, R=R_MIRROR, x_c=32.5, y_c=32.5, r_m=30.0, width=65, height=65)
     _, theta = unit.polar_of_pixel(10.5, 32.5)
