@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -56,7 +57,11 @@ def _env(**extra) -> dict[str, str]:
 
 def test_unknown_key_is_one_line_exit_2(tmp_path, capsys):
     bad = tmp_path / "bad.toml"
-    bad.write_text(DEFAULT.read_text().replace("[render]\n", "[render]\nbogus_key = 1\n", 1))
+    text, n = re.subn(
+        r"(?m)^\[render\]\s*$", "[render]\nbogus_key = 1", DEFAULT.read_text(), count=1
+    )
+    assert n == 1
+    bad.write_text(text)
     out = tmp_path / "out"
     assert main(["render", str(bad), "--out", str(out), *FAKE]) == 2
     err = capsys.readouterr().err.strip()
@@ -96,7 +101,9 @@ def test_bad_option_value(capsys):
 
 def test_scene_error_subprocess_exit_code(tmp_path):
     bad = tmp_path / "bad.toml"
-    bad.write_text(DEFAULT.read_text().replace("frames = 8", "frames = -3", 1))
+    text, n = re.subn(r"(?m)^frames\s*=.*$", "frames = -3", DEFAULT.read_text(), count=1)
+    assert n == 1
+    bad.write_text(text)
     p = subprocess.run(
         [sys.executable, "-m", "omnisim.cli", "render", str(bad), "--out", str(tmp_path / "o")],
         capture_output=True,
