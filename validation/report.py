@@ -248,7 +248,9 @@ def _figures(results: Results, summary: Mapping[str, Any], fig_dir: Path) -> dic
                 )
             ncol = 3
             nrow = math.ceil(len(panels) / ncol)
-            fig, axes = plt.subplots(nrow, ncol, figsize=(4 * ncol, 4.2 * nrow))
+            fig, axes = plt.subplots(
+                nrow, ncol, figsize=(4 * ncol, 4.3 * nrow + 0.4), layout="constrained"
+            )
             for ax in np.ravel(axes):
                 ax.axis("off")
             for ax, (title, img) in zip(np.ravel(axes), panels, strict=False):
@@ -259,7 +261,6 @@ def _figures(results: Results, summary: Mapping[str, Any], fig_dir: Path) -> dic
                 key.imshow(color_wheel(128))
                 key.set_title(f"colour key: saturated at {vmax:.2f} px", fontsize=10)
             fig.suptitle(f"{cam} flow, frame {snap.t} -> {snap.t + 1} (Middlebury colour coding)")
-            fig.tight_layout()
             _save(fig, fig_dir / f"flow_{cam}.png")
             plt.close(fig)
             out[f"flow_{cam}"] = f"figures/flow_{cam}.png"
@@ -289,28 +290,27 @@ def _figures(results: Results, summary: Mapping[str, Any], fig_dir: Path) -> dic
             )
             vmax = float(np.percentile(vals, 95)) if vals.size else 1.0
             vmax = vmax if vmax > 0 else 1.0
-            fig, axes = plt.subplots(1, len(maps), figsize=(4.2 * len(maps), 4.4), squeeze=False)
+            cmap = matplotlib.colormaps["magma"].with_extremes(bad="#b8bcc4")
+            fig, axes = plt.subplots(
+                1, len(maps), figsize=(3.6 * len(maps) + 1.2, 4.0), squeeze=False,
+                layout="constrained",
+            )  # fmt: skip
             im = None
             for ax, (title, dense, sparse) in zip(axes[0], maps, strict=True):
-                ax.set_facecolor("black")
                 if dense is not None:
-                    im = ax.imshow(dense, cmap="magma", vmin=0, vmax=vmax, interpolation="nearest")
+                    im = ax.imshow(dense, cmap=cmap, vmin=0, vmax=vmax, interpolation="nearest")
                 else:
-                    ax.imshow(np.zeros(valid.shape), cmap="gray", vmin=0, vmax=1)
-                    im = ax.scatter(
-                        sparse[0] - 0.5,
-                        sparse[1] - 0.5,
-                        c=sparse[2],
-                        s=4,
-                        cmap="magma",
-                        vmin=0,
-                        vmax=vmax,
-                    )
+                    ax.imshow(np.full(valid.shape, np.nan), cmap=cmap, vmin=0, vmax=vmax)
+                    im = ax.scatter(sparse[0] - 0.5, sparse[1] - 0.5, c=sparse[2], s=5,
+                                    cmap=cmap, vmin=0, vmax=vmax)  # fmt: skip
                 ax.set_title(title, fontsize=9)
                 ax.axis("off")
             if im is not None:
                 fig.colorbar(im, ax=list(axes[0]), shrink=0.8, label="endpoint error, px")
-            fig.suptitle(f"cam1 error maps, frame {snap.t} (clipped at the 95th percentile)")
+            fig.suptitle(
+                f"cam1 error maps, frame {snap.t} (colour clipped at the 95th percentile; "
+                "grey: no scene)"
+            )
             _save(fig, fig_dir / "error_maps.png")
             plt.close(fig)
             out["error_maps"] = "figures/error_maps.png"
@@ -327,7 +327,12 @@ def _figures(results: Results, summary: Mapping[str, Any], fig_dir: Path) -> dic
     axes[0].set_ylabel("median EPE (px), cam1")
     axes[0].set_title("flow error vs range")
     ax = axes[1]
-    for name in [m.name for m in results.methods if m.kind == "omniflow"][:4]:
+    # One line per matching rule: stereo does not depend on the flow choices.
+    by_rule: dict[str, str] = {}
+    for m in results.methods:
+        if m.kind == "omniflow":
+            by_rule.setdefault(str(m.config.get("match_method", m.name)), m.name)
+    for name in by_rule.values():
         frames = results.stereo.get(name, [])
         if not frames:
             continue
@@ -425,8 +430,14 @@ def _scatter_color(
     ok = np.isfinite(x) & np.isfinite(y) & np.isfinite(dx) & np.isfinite(dy)
     cols = np.floor(x[ok]).astype(int)
     rows = np.floor(y[ok]).astype(int)
-    inside = (cols >= 0) & (cols < shape[1]) & (rows >= 0) & (rows < shape[0])
-    img[rows[inside], cols[inside]] = flow_to_color(dx[ok][inside], dy[ok][inside], max_flow=vmax)
+    colours = flow_to_color(dx[ok], dy[ok], max_flow=vmax)
+    # Each point as a small square (about 1 % of the image), so sparse points stay visible.
+    rad = max(1, round(max(shape) / 100))
+    for di in range(-rad, rad + 1):
+        for dj in range(-rad, rad + 1):
+            r, c = rows + di, cols + dj
+            inside = (c >= 0) & (c < shape[1]) & (r >= 0) & (r < shape[0])
+            img[r[inside], c[inside]] = colours[inside]
     return img
 
 
@@ -434,51 +445,88 @@ def _scatter_color(
 
 
 def _method_table(summary: Mapping[str, Any]) -> tuple[list[str], list[list[str]]]:
+    header = ["method", "points", "n cam1", "EPE med", "EPE mean", "EPE p90", "noc EPE",
+              "occ EPE", ">1px", ">3px", "EPE cam2", "DIS same pts", "stereo >1px",
+              "r rel err", "match rate", "ms / frame"]  # fmt: skip
+    rows = []
+    for m, r in zip(summary["methods"], flat_table(summary), strict=True):
+        f = m["flow"].get("cam1", {})
+        rows.append([
+            r["method"], r["points"], _f(r.get("cam1_n")), _f(r.get("cam1_epe_median")),
+            _f(r.get("cam1_epe_mean")), _f(f.get("all", {}).get("epe", {}).get("p90")),
+            _f(r.get("cam1_noc_epe_median")), _f(r.get("cam1_occ_epe_median")),
+            _pct(r.get("cam1_out1")), _pct(r.get("cam1_out3")), _f(r.get("cam2_epe_median")),
+            _f(r.get("dis_same_points_cam1_epe_median")), _pct(r.get("stereo_outliers")),
+            _f(r.get("rel_r_median")), _pct(r.get("match_rate")), _f(r.get("time_ms"), 1),
+        ])  # fmt: skip
+    return header, rows
+
+
+def _polar_table(summary: Mapping[str, Any]) -> tuple[list[str], list[list[str]]]:
+    header = ["method", "points"]
+    for cam in ("cam1", "cam2"):
+        header += [f"{cam} |dh| med", f"{cam} |h dθ| med", f"{cam} AE med (°)"]
+    rows = []
+    for r in flat_table(summary):
+        cells = [r["method"], r["points"]]
+        for cam in ("cam1", "cam2"):
+            cells += [
+                _f(r.get(f"{cam}_dh_median")),
+                _f(r.get(f"{cam}_hdtheta_median")),
+                _f(r.get(f"{cam}_ae_median"), 2),
+            ]
+        rows.append(cells)
+    return header, rows
+
+
+def _headline_table(summary: Mapping[str, Any]) -> tuple[list[str], list[list[str]]]:
+    """The default omniflow variant, the paper's configuration and the baselines at the
+    default variant's points: median EPE of both cameras, stereo range error, time."""
     header = [
         "method",
-        "points",
-        "n cam1",
-        "EPE med",
-        "EPE mean",
-        "noc EPE",
-        "occ EPE",
-        "|dh| med",
-        "|h dθ| med",
-        "AE med (°)",
-        ">1px",
-        ">3px",
-        "EPE cam2",
-        "DIS same pts",
-        "stereo >1px",
+        "EPE cam1 (px)",
+        "EPE cam2 (px)",
+        ">1px cam1",
         "r rel err",
-        "match rate",
+        "stereo >1px",
         "ms / frame",
     ]
     rows = []
-    for r in flat_table(summary):
+    omni = [m for m in summary["methods"] if m["kind"] == "omniflow"]
+    picked = omni[:1] + [m for m in omni[1:] if _is_paper(m)][:1]
+    picked += [
+        m
+        for m in summary["methods"]
+        if m["kind"] == "baseline" and m["points"] == "omniflow points"
+    ]
+    for m in picked:
+        f1, f2 = m["flow"].get("cam1", {}), m["flow"].get("cam2", {})
+        st = m.get("stereo") or {}
+        label = m["name"] + (" (default)" if m.get("default") else "")
+        label += " (paper)" if m["kind"] == "omniflow" and _is_paper(m) else ""
+        a1, a2, sa = f1.get("all", {}), f2.get("all", {}), st.get("all", {})
         rows.append(
             [
-                r["method"],
-                r["points"],
-                _f(r.get("cam1_n")),
-                _f(r.get("cam1_epe_median")),
-                _f(r.get("cam1_epe_mean")),
-                _f(r.get("cam1_noc_epe_median")),
-                _f(r.get("cam1_occ_epe_median")),
-                _f(r.get("cam1_dh_median")),
-                _f(r.get("cam1_hdtheta_median")),
-                _f(r.get("cam1_ae_median"), 2),
-                _pct(r.get("cam1_out1")),
-                _pct(r.get("cam1_out3")),
-                _f(r.get("cam2_epe_median")),
-                _f(r.get("dis_same_points_cam1_epe_median")),
-                _pct(r.get("stereo_outliers")),
-                _f(r.get("rel_r_median")),
-                _pct(r.get("match_rate")),
-                _f(r.get("time_ms"), 1),
+                label,
+                _f(a1.get("epe", {}).get("median")),
+                _f(a2.get("epe", {}).get("median")),
+                _pct(a1.get("out1")),
+                _f(sa.get("rel_r", {}).get("median")),
+                _pct(sa.get("outliers")),
+                _f(1000 * _nan(m["time_per_frame"]["median_s"]), 1),
             ]
         )
     return header, rows
+
+
+def _is_paper(m: Mapping[str, Any]) -> bool:
+    c = m.get("config", {})
+    return (
+        c.get("match_method") == "paper"
+        and c.get("gradients") == "first"
+        and c.get("temporal") == "difference"
+        and c.get("solver") == "direct"
+    )
 
 
 def _speed_table(summary: Mapping[str, Any]) -> tuple[list[str], list[list[str]]]:
@@ -576,7 +624,18 @@ def _document(summary: Mapping[str, Any], figures: Mapping[str, str], command: s
         "the default omniflow variant (`omniflow points`), at every valid pixel (`dense`), and "
         "for each variant at that variant's own points (column `DIS same pts`)."
     )
+    doc.h(2, "Headline")
+    doc.table(*_headline_table(summary))
+    doc.h(2, "Inputs")
     for key, alt in (("inputs", "input frames"), ("panorama", "unwarped panorama of cam1")):
+        if key in figures:
+            doc.img(figures[key], alt)
+    doc.h(2, "Flow: estimated vs ground truth")
+    for key, alt in (
+        ("flow_cam1", "estimated vs ground-truth flow, cam1"),
+        ("flow_cam2", "estimated vs ground-truth flow, cam2"),
+        ("error_maps", "error maps, cam1"),
+    ):
         if key in figures:
             doc.img(figures[key], alt)
     doc.h(2, "Methods side by side (accuracy and time)")
@@ -587,13 +646,8 @@ def _document(summary: Mapping[str, Any], figures: Mapping[str, str], command: s
         "|r - r_gt| / r_gt; match rate = matches / significant points the other camera sees."
     )
     doc.table(*_method_table(summary))
-    for key, alt in (
-        ("flow_cam1", "estimated vs ground-truth flow, cam1"),
-        ("flow_cam2", "estimated vs ground-truth flow, cam2"),
-        ("error_maps", "error maps, cam1"),
-    ):
-        if key in figures:
-            doc.img(figures[key], alt)
+    doc.h(3, "Polar components and angular error")
+    doc.table(*_polar_table(summary))
     doc.h(2, "Flow error by speed (cam1, non-occluded)")
     doc.table(*_speed_table(summary))
     if "error_vs_speed" in figures:

@@ -34,9 +34,10 @@ ANGLE_CHANNELS = frozenset({"gt.theta"})
 def _nearest_index(
     x: NDArray, y: NDArray, width: int, height: int
 ) -> tuple[NDArray, NDArray, NDArray]:
-    j = np.floor(x).astype(np.int64)
-    i = np.floor(y).astype(np.int64)
-    inside = (j >= 0) & (j < width) & (i >= 0) & (i < height) & np.isfinite(x) & np.isfinite(y)
+    finite = np.isfinite(x) & np.isfinite(y)
+    j = np.floor(np.where(finite, x, -1.0)).astype(np.int64)
+    i = np.floor(np.where(finite, y, -1.0)).astype(np.int64)
+    inside = finite & (j >= 0) & (j < width) & (i >= 0) & (i < height)
     return np.clip(i, 0, height - 1), np.clip(j, 0, width - 1), inside
 
 

@@ -1,0 +1,257 @@
+"""validation: the harness end to end on a perfect method, the report files, thresholds, CLI.
+
+A truth oracle (validation.oracle) scored by the harness must come out with
+zero error: that tests the plumbing (sampling, polar conversion, pooling,
+tables) independently of any method's accuracy.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from validation.oracle import OracleConfig, TruthOracle
+from validation.report import write_report
+from validation.runner import run_validation
+from validation.summary import find_method, flat_table, get_path
+from validation.synthdata import demo_scene, write_synthetic_dataset
+from validation.thresholds import (
+    ThresholdError,
+    check_summary,
+    format_checks,
+    load_thresholds,
+)
+
+
+@pytest.fixture(scope="module")
+def synth(tmp_path_factory) -> Path:
+    d = tmp_path_factory.mktemp("synth") / "ds"
+    write_synthetic_dataset(d, demo_scene(64), 3, name="synthetic-demo", supersample=1)
+    return d
+
+
+@pytest.fixture(scope="module")
+def oracle_report(synth, tmp_path_factory):
+    res = run_validation(
+        synth,
+        variants=[("truth-oracle", OracleConfig())],
+        estimate=TruthOracle(synth),
+        progress=False,
+    )
+    out = tmp_path_factory.mktemp("report")
+    summary = write_report(res, out, command="pytest")
+    return res, summary, out
+
+
+def test_oracle_scores_zero_error(oracle_report):
+    _, summary, _ = oracle_report
+    m = find_method(summary, "truth-oracle")
+    for cam in ("cam1", "cam2"):
+        f = m["flow"][cam]["all"]
+        assert f["n"] > 50
+        # cam1 points sit on pixel centres (exact); cam2's are sub-pixel (bilinear truth).
+        tol = 1e-6 if cam == "cam1" else 0.02
+        assert f["epe"]["p90"] <= tol, cam
+        assert f["dh"]["p90"] <= tol and f["hdtheta"]["p90"] <= tol, cam
+    st = m["stereo"]
+    assert st["all"]["outliers"] == 0.0
+    assert st["all"]["rel_r"]["p90"] < 1e-6
+    assert st["match_rate"] == pytest.approx(1.0)
+    # The robot's true motion reaches the derived block (odometry from the poses).
+    assert m["time_per_frame"]["frames"] == 2
+
+
+def test_baselines_are_scored_at_the_same_points(oracle_report):
+    _, summary, _ = oracle_report
+    oracle = find_method(summary, "truth-oracle")
+    for name in ("DIS-medium", "Farneback", "DIS-medium-panorama"):
+        at_pts = find_method(summary, name, "omniflow points")
+        dense = find_method(summary, name, "dense")
+        assert at_pts["flow"]["cam1"]["all"]["n"] == oracle["flow"]["cam1"]["all"]["n"]
+        assert dense["flow"]["cam1"]["all"]["n"] > at_pts["flow"]["cam1"]["all"]["n"]
+        same = oracle["baselines_at_same_points"][name]["cam1"]["median"]
+        assert same == pytest.approx(at_pts["flow"]["cam1"]["all"]["epe"]["median"])
+        # Sub-pixel motion of a smooth closed-form scene: every baseline is well under 1 px.
+        assert dense["flow"]["cam1"]["noc"]["epe"]["median"] < 0.5
+        assert at_pts["time_per_frame"]["median_s"] > 0
+
+
+def test_report_files(oracle_report):
+    _, summary, out = oracle_report
+    for name in ("report.md", "report.html", "summary.json", "frames.csv"):
+        assert (out / name).is_file(), name
+    # summary.json is strict JSON (no NaN) and equals what write_report returned.
+    assert json.loads((out / "summary.json").read_text()) == summary
+    with (out / "frames.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    assert {
+        "frame",
+        "method",
+        "points",
+        "camera",
+        "epe_median",
+        "noc_epe_median",
+        "out1",
+        "out3",
+        "time_s",
+    } <= set(rows[0])
+    assert {r["frame"] for r in rows} == {"0", "1"}
+    assert {r["method"] for r in rows} == {
+        "truth-oracle",
+        "DIS-medium",
+        "Farneback",
+        "DIS-medium-panorama",
+    }
+    md = (out / "report.md").read_text()
+    html = (out / "report.html").read_text()
+    md_imgs = re.findall(r"!\[[^\]]*\]\(([^)]+)\)", md)
+    html_imgs = re.findall(r'<img src="([^"]+)"', html)
+    assert md_imgs == html_imgs and len(md_imgs) >= 8
+    for src in md_imgs:
+        assert not Path(src).is_absolute() and (out / src).is_file(), src
+        assert (out / src).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    for needle in ("Methods side by side", "per frame interval", "truth-oracle", "DIS-medium"):
+        assert needle in md and needle in html
+    table = flat_table(summary)
+    assert [r["method"] for r in table][:1] == ["truth-oracle"]
+    assert all(math.isfinite(r["time_ms"]) for r in table)
+
+
+# -- thresholds --------------------------------------------------------------------------------
+
+
+def test_the_reviewed_thresholds_file_is_valid():
+    data = load_thresholds()
+    for name, scene in data["scenes"].items():
+        for c in scene["check"]:
+            assert "measured" in c and c["margin"].strip(), (name, c)
+            lo, hi = c.get("min", -math.inf), c.get("max", math.inf)
+            # The value the bound was set from must itself pass.
+            assert lo <= c["measured"] <= hi, (name, c)
+
+
+def _write(tmp_path, text):
+    p = tmp_path / "t.toml"
+    p.write_text(text)
+    return p
+
+
+def test_threshold_checks_pass_and_fail(oracle_report, tmp_path):
+    _, summary, _ = oracle_report
+    p = _write(
+        tmp_path,
+        """
+[scenes.x]
+[[scenes.x.check]]
+method = "default"
+metric = "flow.cam1.all.epe.median"
+max = 0.001
+measured = 0.0
+margin = "oracle"
+[[scenes.x.check]]
+method = "DIS-medium"
+points = "dense"
+metric = "flow.cam1.all.epe.median"
+max = 1e-9
+measured = 0.0
+margin = "deliberately impossible"
+""",
+    )
+    checks = check_summary(summary, load_thresholds(p), "x")
+    assert [c.passed for c in checks] == [True, False]
+    text = format_checks(checks)
+    assert "1 passed, 1 failed" in text and "FAIL x: DIS-medium @dense" in text
+    assert get_path(find_method(summary, "truth-oracle"), "flow.cam1.all.n") > 0
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("[scenes.x]\n", "expected [[scenes.x.check]]"),
+        (
+            "[scenes.x]\n[[scenes.x.check]]\nmethod='a'\nmetric='b'\nmeasured=1\nmargin='m'\n",
+            "expected 'min' and/or 'max'",
+        ),
+        ("[scenes.x]\n[[scenes.x.check]]\nmethod='a'\nmetric='b'\nmax=1\n", "needs 'measured'"),
+        (
+            "[scenes.x]\n[[scenes.x.check]]\nmethod='a'\nmetric='b'\nmax=1\nmeasured=1\nmargin='m'\n"
+            "colour='red'\n",
+            "unknown key",
+        ),
+        ("scenes = 3\n", "expected [scenes.NAME] tables"),
+        ("[scenes.x\n", "not valid TOML"),
+    ],
+)
+def test_threshold_file_errors(tmp_path, text, message):
+    with pytest.raises(ThresholdError, match=re.escape(message)):
+        load_thresholds(_write(tmp_path, text))
+
+
+def test_threshold_names_an_absent_method_or_metric(oracle_report, tmp_path):
+    _, summary, _ = oracle_report
+    base = "[scenes.x]\n[[scenes.x.check]]\nmax=1\nmeasured=0\nmargin='m'\n"
+    with pytest.raises(ThresholdError, match="'nope' is not in the summary"):
+        check_summary(
+            summary, load_thresholds(_write(tmp_path, base + "method='nope'\nmetric='a'\n")), "x"
+        )
+    with pytest.raises(ThresholdError, match="no key 'cam9'"):
+        check_summary(
+            summary,
+            load_thresholds(_write(tmp_path, base + "method='default'\nmetric='flow.cam9.all'\n")),
+            "x",
+        )
+    with pytest.raises(ThresholdError, match=r"no \[scenes.y\]"):
+        check_summary(
+            summary,
+            load_thresholds(_write(tmp_path, base + "method='default'\nmetric='flow'\n")),
+            "y",
+        )
+
+
+# -- command line ------------------------------------------------------------------------------
+
+
+def _cli(*args):
+    return subprocess.run(
+        [sys.executable, "-m", "validation.cli", *args], capture_output=True, text=True, timeout=120
+    )
+
+
+def test_cli_help():
+    p = _cli("--help")
+    assert p.returncode == 0
+    for word in ("--out", "--variants", "--baselines", "--check", "report.html", "summary.json"):
+        assert word in p.stdout
+
+
+@pytest.mark.parametrize(
+    "args, needle",
+    [
+        (["{missing}", "--out", "{out}"], "no such dataset directory"),
+        (["{ds}", "--out", "{out}", "--baselines", "RAFT"], "unknown ['RAFT']"),
+        (["{ds}", "--out", "{out}", "--frames", "x"], "--frames 'x'"),
+        (["{ds}", "--out", "{out}", "--frames", "7"], "no complete frame pair"),
+        (["{notds}", "--out", "{out}"], "not an omnisim dataset"),
+        (["{ds}", "--out", "{out}", "--check", "{missing}"], "cannot read"),
+    ],
+)
+def test_cli_bad_input_exits_2_with_one_line(synth, tmp_path, args, needle):
+    (tmp_path / "notds").mkdir()
+    subs = {
+        "missing": str(tmp_path / "missing"),
+        "out": str(tmp_path / "out"),
+        "ds": str(synth),
+        "notds": str(tmp_path / "notds"),
+    }
+    p = _cli(*[a.format(**subs) for a in args])
+    assert p.returncode == 2, p.stderr
+    lines = p.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("omnivalidate: error:"), p.stderr
+    assert needle in lines[0]
