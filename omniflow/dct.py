@@ -77,10 +77,18 @@ def _weights(n_coef: int, n: int) -> tuple[NDArray, NDArray]:
 
 
 def _bases(coord: NDArray, n_coef: int, n: int) -> tuple[NDArray, NDArray]:
-    """cos(pi k c / N) and -(pi k / N) sin(pi k c / N) for k < n_coef, shape (M, n_coef)."""
+    """cos(pi k c / N) and -(pi k / N) sin(pi k c / N) for k < n_coef, shape (M, n_coef).
+
+    Built as the running product of exp(i pi c / N) (one complex exponential per
+    point instead of 2 n_coef trigonometric calls; error ~k eps, 1e-13 at k = 256).
+    """
     _, w = _weights(n_coef, n)
-    arg = coord.reshape(-1, 1) * w
-    return np.cos(arg), -w * np.sin(arg)
+    table = np.empty((coord.size, n_coef), np.complex128)
+    table[:, 0] = 1.0
+    if n_coef > 1:
+        table[:, 1:] = np.exp((1j * np.pi / n) * coord.reshape(-1))[:, None]
+        np.cumprod(table, axis=1, out=table)
+    return table.real, -w * table.imag
 
 
 def _cos3(c: NDArray, n: int, axis: int) -> NDArray:

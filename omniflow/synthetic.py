@@ -43,6 +43,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from omniflow.conventions import wrap_angle
 from omniflow.rig import Rig, Unit
 
 __all__ = [
@@ -399,7 +400,7 @@ class SyntheticScene:
         px, py = X - p[0], Y - p[1]
         ca, sa = np.cos(yaw), np.sin(yaw)
         qx, qy = ca * px + sa * py, -sa * px + ca * py
-        return np.hypot(qx, qy), _wrap(np.arctan2(qy, qx)), np.asarray(Z, float)
+        return np.hypot(qx, qy), wrap_angle(np.arctan2(qy, qx)), np.asarray(Z, float)
 
     def trace(self, unit: Unit, t: float, h_i: ArrayLike, theta: ArrayLike) -> Hit:
         """Nearest hits of the rays at polar image points (h_i, theta) at frame t.
@@ -557,7 +558,7 @@ class SyntheticScene:
         out = {
             "gt.valid": valid.astype(float),
             "gt.r": r,
-            "gt.theta": np.where(valid, np.where(theta >= np.pi, -np.pi, theta), nan),
+            "gt.theta": np.where(valid, theta, nan),
             "gt.h": h,
             "gt.X": X,
             "gt.Y": Y,
@@ -566,14 +567,9 @@ class SyntheticScene:
             "gt.flow.dx": x1 - x.ravel(),
             "gt.flow.dy": y1 - y.ravel(),
             "gt.flow.dh": hi1 - h_i,
-            "gt.flow.hdtheta": h_i * _wrap(th1 - theta),
+            "gt.flow.hdtheta": h_i * wrap_angle(th1 - theta),
             "gt.flow.valid": flow_valid.astype(float),
             "gt.stereo.h_other": h_other,
             "gt.stereo.valid": stereo_valid.astype(float),
         }
         return {key: np.asarray(val, float).reshape(shape) for key, val in out.items()}
-
-
-def _wrap(a: NDArray) -> NDArray:
-    """Angles wrapped to [-pi, pi)."""
-    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
