@@ -35,6 +35,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from omniflow.conventions import wrap_angle as _wrap
+
 __all__ = [
     "OdometryFit",
     "PoseFix",
@@ -46,11 +48,6 @@ __all__ = [
     "steering_heading",
     "time_to_contact",
 ]
-
-
-def _wrap(angle: ArrayLike) -> NDArray:
-    """Angles wrapped to [-pi, pi)."""
-    return (np.asarray(angle, dtype=float) + np.pi) % (2 * np.pi) - np.pi
 
 
 def _arrays(*values: ArrayLike) -> list[NDArray]:
