@@ -115,7 +115,7 @@ def _sin3(b: NDArray, n: int, axis: int) -> NDArray:
     return scipy.fft.dst(np.pad(shifted, pad), type=3, axis=axis)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class DCTFit:
     """The truncated cosine series of one image, eq. (18).
 
@@ -229,7 +229,7 @@ def fit_dct(
     return DCTFit(coeffs=coeffs, width=width, height=height, dtype=f.dtype)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class DCT3Fit:
     """The truncated cosine series of a stack of frames (x, y and time).
 

@@ -1,7 +1,8 @@
 """Tests of omniflow.dct: eq. (17)-(18), the fast grid paths and the 3-D fit.
 
-Tolerances were measured with ``python /tmp/a_meas_dct.py`` (random images,
-seed 1, 40 x 56; the figures are repeated next to each bound) and set with
+Tolerances were measured by printing the maxima on these inputs (random images,
+40 x 56 with the seed of each test; the figures are repeated next to each
+bound) and set with
 the stated margin.
 """
 

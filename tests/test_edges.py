@@ -1,6 +1,6 @@
 """Tests of the polar edge finder, eq. (19)-(20).
 
-Figures measured with ``python /tmp/a_meas_edges.py`` (same images and
+Figures measured by printing the maxima on these inputs (same images and
 seeds as here); each bound names the measured value and its margin.
 """
 

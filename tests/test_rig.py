@@ -1,7 +1,7 @@
 """Tests of the rig model omniflow.rig (eq. 1-7): geometry, stereo, unwarping, files.
 
-Float64 geometry round trips are exact to rounding. Maxima measured with
-``python /tmp/a_meas_rig.py`` (the same points): see each bound's comment.
+Float64 geometry round trips are exact to rounding. Maxima measured by
+printing them on the same points: see each bound's comment.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Tests of the closed-form scene generator (omniflow.synthetic).
 
-Figures measured with ``python /tmp/a_meas_syn.py`` (the fixtures of
+Figures measured by printing the maxima on the same scenes (the fixtures of
 tests/conftest.py rebuilt, 128 x 128); each bound states its measured value.
 The geometry is closed-form in float64, so the bounds are set at ~1e-9 (px,
 m or grey levels), orders above the measured rounding and far below anything
@@ -106,7 +106,7 @@ def test_bad_arguments_raise(small_rig):
         Texture.random(0, wavelengths=(0.5, 0.1))
 
 
-# -- motions with a known answer (measured with python /tmp/a_meas_syn2.py) ---------
+# -- motions with a known answer --------------------------------------------------
 
 
 def test_pure_rotation_shifts_theta_by_minus_the_yaw(small_rig):
