@@ -2,8 +2,7 @@
 
 Tolerances were measured by printing the maxima on these inputs (random images,
 40 x 56 with the seed of each test; the figures are repeated next to each
-bound) and set with
-the stated margin.
+bound) and set with the stated margin.
 """
 
 from __future__ import annotations
