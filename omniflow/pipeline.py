@@ -1,0 +1,562 @@
+"""The stereo omni flow step: fit, match, solve (paper section 5).
+
+:func:`estimate` takes the frames of both units, fits the DCT (eq. 17) to the
+two frames of each unit, evaluates the fitted images and their polar
+gradients (eq. 18-20) on the pixel grid by fast transforms, matches along the
+radial lines (section 5.2, :mod:`omniflow.matching`), samples the gradients
+and temporal derivatives at the matched points and solves for the flow
+(section 5.3, :mod:`omniflow.flow`). Every choice is a field of
+:class:`OmniFlowConfig`; :meth:`OmniFlowConfig.paper` gives the paper's.
+
+Output per point (:class:`OmniFlowResult`): cam1 position (x, y, theta, h1),
+its match h2 and cam2 position (x2, y2), range and height (r, h; eq. 5),
+the polar flow (dh1_dt, dtheta_dt; dh2_dt = (h2/h1) dh1_dt, eq. 14), dr_dt =
+-(d + r) dh1_dt / h1, the pixel flow of both units (dx, dy; dx2, dy2), the
+determinant D of eq. (16) and a confidence in [0, 1]. The pixel flow is the
+displacement of the point's image over one frame,
+(x_c + (h + dh) cos(theta + dtheta), ...) - (x, y), so it compares directly
+with a ground-truth displacement; velocities are per frame interval.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field, fields, replace
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from omniflow.dct import DCTFit, fit_dct, fit_dct3
+from omniflow.flow import conditioning as direct_conditioning
+from omniflow.flow import direct_solution, neighbourhoods, pooled_solution
+from omniflow.matching import (
+    MATCH_METHODS,
+    Matches,
+    PolarGrids,
+    match_radial,
+    polar_gradient_fast,
+    sample_xy,
+)
+from omniflow.rig import Rig, Unit
+
+__all__ = [
+    "COLUMNS",
+    "OmniFlowConfig",
+    "OmniFlowResult",
+    "estimate",
+    "fill_outside_rim",
+    "flow_at_matches",
+]
+
+#: Output columns and their units, in CSV order.
+COLUMNS: dict[str, str] = {
+    "x": "px, cam1 column coordinate (pixel centre j + 0.5)",
+    "y": "px, cam1 row coordinate",
+    "theta": "rad, azimuth (theta_1 = theta_2)",
+    "h1": "px, cam1 image radius",
+    "h2": "px, matched cam2 image radius",
+    "r": "m, range from the axis (eq. 5)",
+    "h": "m, height above cam2's tip (eq. 4)",
+    "dh1_dt": "px/frame, cam1 radial flow",
+    "dtheta_dt": "rad/frame, angular flow",
+    "dr_dt": "m/frame, radial velocity -(d + r) dh1_dt / h1",
+    "dx": "px/frame, cam1 flow along x",
+    "dy": "px/frame, cam1 flow along y",
+    "x2": "px, cam2 column coordinate",
+    "y2": "px, cam2 row coordinate",
+    "dh2_dt": "px/frame, cam2 radial flow (h2/h1) dh1_dt (eq. 14)",
+    "dx2": "px/frame, cam2 flow along x",
+    "dy2": "px/frame, cam2 flow along y",
+    "score": "1, stereo match score (NCC or gradient similarity)",
+    "confidence": "1, lambda_min/lambda_max of the flow system's normal matrix",
+    "D": "grey^2/(px rad), determinant of eq. (16)",
+}
+
+GRADIENTS = ("first", "average")
+TEMPORALS = ("difference", "dct3d")
+SOLVERS = ("direct", "pooled")
+SAMPLINGS = ("cubic", "linear", "exact")
+RIM_FILLS = ("reflect", "none")
+
+
+@dataclass(frozen=True)
+class OmniFlowConfig:
+    """Every knob of the stereo omni flow step.
+
+    The defaults are the robust choices measured best on closed-form scenes
+    (tests/test_flow.py, tests/test_pipeline.py); :meth:`paper` gives the
+    paper's own choices.
+
+    Attributes
+    ----------
+    band : float
+        DCT band: P = band * W, Q = band * H coefficients (eq. 17). Paper: 0.25.
+    match_method : {"robust", "paper"}
+        Radial matching rule (:func:`omniflow.matching.match_radial`).
+    threshold_percentile : float
+        Significant points: |df1/dh_1| above this percentile over the annulus.
+    r_min, r_max : float
+        Range interval searched, metres (disparity window); r_min None means
+        :attr:`Rig.min_common_range`.
+    n_theta, h_step, h_min, rim_margin : matching grid (see match_radial).
+    patch_radius, patch_lines, profile_step, min_score, uniqueness, left_right :
+        the robust matcher's knobs (see match_radial); profile_step None
+        means 1 / (2 band) px, twice the Nyquist rate of the fitted image.
+    gradients : {"first", "average"}
+        Spatial gradient of frame t (paper) or the mean of frames t and t + 1.
+    temporal : {"difference", "dct3d"}
+        f_t as the frame difference of the fitted images (paper, section 5.3)
+        or from a 3-D DCT over ``temporal_frames`` frames (the paper's
+        suggested refinement), evaluated at t + 1/2.
+    temporal_frames : int
+        Frames in the 3-D DCT window (>= 3), centred on t + 1/2 where possible.
+    solver : {"direct", "pooled"}
+        Eq. (16) per point (paper) or eq. (9) and (15) pooled in least squares
+        over neighbouring matches.
+    pool_radius, pool_k, pool_range_tol : the pooled solver's neighbourhood
+        (pixels, count, relative range difference).
+    min_conditioning : float
+        Drop points whose confidence is below this (0 keeps all).
+    sampling : {"cubic", "linear", "exact"}
+        How gradients and the fitted images are read at the matched points:
+        cv2.remap of the pixel grids, or the series evaluated exactly.
+    rim_fill : {"reflect", "none"}
+        Before the DCT fit, replace the pixels beyond the mirror's rim by the
+        image reflected radially about the rim (``"reflect"``), or keep them
+        (``"none"``, the paper). The step at the rim otherwise rings through
+        the truncated series (Gibbs) some 20 px into the image.
+    """
+
+    band: float = 0.25
+    match_method: str = "robust"
+    threshold_percentile: float = 80.0
+    r_min: float | None = None
+    r_max: float = 10.0
+    n_theta: int = 720
+    h_step: float = 0.5
+    h_min: float = 16.0
+    rim_margin: float = 4.0
+    patch_radius: float = 16.0
+    patch_lines: int = 1
+    profile_step: float | None = None
+    min_score: float = 0.95
+    uniqueness: float = 0.5
+    left_right: bool = True
+    gradients: str = "average"
+    temporal: str = "difference"
+    temporal_frames: int = 3
+    solver: str = "pooled"
+    pool_radius: float = 4.0
+    pool_k: int = 12
+    pool_range_tol: float | None = 0.1
+    min_conditioning: float = 0.0
+    sampling: str = "cubic"
+    rim_fill: str = "reflect"
+
+    def __post_init__(self) -> None:
+        checks = {
+            "match_method": (self.match_method, MATCH_METHODS),
+            "gradients": (self.gradients, GRADIENTS),
+            "temporal": (self.temporal, TEMPORALS),
+            "solver": (self.solver, SOLVERS),
+            "sampling": (self.sampling, SAMPLINGS),
+            "rim_fill": (self.rim_fill, RIM_FILLS),
+        }
+        for name, (val, allowed) in checks.items():
+            if val not in allowed:
+                raise ValueError(f"OmniFlowConfig.{name} = {val!r}: expected one of {allowed}")
+        if not (0 < self.band <= 1):
+            raise ValueError(f"OmniFlowConfig.band = {self.band!r}: expected a fraction in (0, 1]")
+        if self.temporal_frames < 3:
+            raise ValueError("OmniFlowConfig.temporal_frames must be >= 3")
+        if self.pool_k < 1 or self.pool_radius <= 0:
+            raise ValueError("OmniFlowConfig.pool_k must be >= 1 and pool_radius > 0")
+
+    @classmethod
+    def paper(cls, **overrides) -> OmniFlowConfig:
+        """The paper's choices: gradient-similarity matching, first-frame
+        gradients, frame differences, the direct solution, P = X/4."""
+        base = dict(
+            band=0.25,
+            match_method="paper",
+            gradients="first",
+            temporal="difference",
+            solver="direct",
+        )
+        base.update(overrides)
+        return cls(**base)
+
+    def replace(self, **changes) -> OmniFlowConfig:
+        """A copy with some fields changed."""
+        return replace(self, **changes)
+
+    def to_dict(self) -> dict:
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+
+@dataclass
+class OmniFlowResult:
+    """Per-point results of :func:`estimate`.
+
+    Attributes
+    ----------
+    columns : dict[str, ndarray]
+        Equal-length 1-D arrays, keys and units in :data:`COLUMNS`.
+    timings : dict[str, float]
+        Seconds per stage: ``fit``, ``grids``, ``match``, ``sample``,
+        ``solve``, ``total``.
+    config : OmniFlowConfig
+    n_significant : int
+        Significant points of image 1 that the matcher tried.
+    """
+
+    columns: dict[str, NDArray]
+    timings: dict[str, float] = field(default_factory=dict)
+    config: OmniFlowConfig | None = None
+    n_significant: int = 0
+
+    def __len__(self) -> int:
+        return int(next(iter(self.columns.values())).size) if self.columns else 0
+
+    def __getitem__(self, key: str) -> NDArray:
+        return self.columns[key]
+
+    def to_csv(self, path: str | Path) -> Path:
+        """Write the columns to CSV atomically, with a '#' header line of units."""
+        from omniflow.imageio import atomic_output
+
+        names = list(self.columns)
+        data = (
+            np.column_stack([np.asarray(self.columns[k], dtype=float) for k in names])
+            if names
+            else np.zeros((0, 0))
+        )
+        units = "; ".join(f"{k}: {COLUMNS.get(k, '')}" for k in names)
+        path = Path(path)
+        with atomic_output(path) as tmp, open(tmp, "w") as fh:
+            fh.write(f"# omniflow per-point results; {units}\n")
+            fh.write(",".join(names) + "\n")
+            np.savetxt(fh, data, delimiter=",", fmt="%.9g")
+        return path
+
+
+# ---------------------------------------------------------------------------
+
+
+def _grey(frame, what: str, unit: Unit, config: OmniFlowConfig) -> NDArray:
+    arr = np.asarray(frame)
+    if arr.ndim != 2:
+        raise ValueError(f"{what}: expected a grey image (H, W), got shape {arr.shape}")
+    if arr.shape != (unit.height, unit.width):
+        raise ValueError(
+            f"{what} has shape {arr.shape}; the rig's {unit.name} is "
+            f"{unit.height}x{unit.width} (rows x columns)"
+        )
+    arr = np.asarray(arr, dtype=np.float32)
+    if config.rim_fill == "reflect":
+        arr = fill_outside_rim(arr, unit)
+    return arr
+
+
+@lru_cache(maxsize=8)
+def _rim_maps(unit: Unit, margin: float) -> tuple[NDArray, NDArray]:
+    x, y = unit.pixel_centres()
+    h_i, theta = unit.polar_of_pixel(x, y)
+    edge = unit.r_m - margin
+    src = np.where(h_i > edge, np.maximum(2.0 * edge - h_i, 0.0), h_i)
+    xs, ys = unit.pixel_of_polar(src, theta)
+    return (xs - 0.5).astype(np.float32), (ys - 0.5).astype(np.float32)
+
+
+def fill_outside_rim(image: NDArray, unit: Unit, *, margin: float = 1.0) -> NDArray:
+    """The image with every pixel beyond r_m - margin replaced by its radial mirror image.
+
+    A pixel at image radius h_i > e = r_m - margin takes the (bilinear) value
+    at radius 2 e - h_i on the same radial line, so the image continues
+    smoothly across the rim instead of stepping to the background; the DCT
+    fit of eq. (17) then does not ring near the rim. Pixels inside are
+    unchanged. Returns float32 (H, W).
+    """
+    import cv2
+
+    mx, my = _rim_maps(unit, float(margin))
+    return cv2.remap(
+        np.ascontiguousarray(image, dtype=np.float32),
+        mx,
+        my,
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_REFLECT,
+    )
+
+
+class _Frame:
+    """One unit at one time: its fit, and grids made on demand."""
+
+    def __init__(self, fit: DCTFit, unit: Unit):
+        self.fit, self.unit = fit, unit
+        self._f = self._grad = None
+
+    @property
+    def f(self) -> NDArray:
+        if self._f is None:
+            self._f = np.asarray(self.fit.grid(), dtype=np.float32)
+        return self._f
+
+    @property
+    def grad(self) -> tuple[NDArray, NDArray]:
+        """(f_h, f_theta) grids."""
+        if self._grad is None:
+            self._grad = polar_gradient_fast(self.fit, self.unit)
+        return self._grad
+
+
+def _sample_polar_grad(
+    frame: _Frame, x: NDArray, y: NDArray, sampling: str
+) -> tuple[NDArray, NDArray]:
+    if sampling == "exact":
+        from omniflow.edges import polar_gradient
+
+        f_h, f_th = polar_gradient(frame.fit, frame.unit, x, y)
+        return f_h, f_th
+    f_h, f_th = frame.grad
+    return (
+        sample_xy(f_h, x, y, interpolation=sampling).astype(np.float64),
+        sample_xy(f_th, x, y, interpolation=sampling).astype(np.float64),
+    )
+
+
+def _sample_f(frame: _Frame, x: NDArray, y: NDArray, sampling: str) -> NDArray:
+    if sampling == "exact":
+        return frame.fit.evaluate(x, y)
+    return sample_xy(frame.f, x, y, interpolation=sampling).astype(np.float64)
+
+
+def _fits(frames: Sequence, t: int, unit: Unit, config: OmniFlowConfig, what: str) -> dict:
+    """Frames t and t + 1 of one unit as 2-D fits; with ``dct3d`` also the 3-D
+    series at t + 1/2 (``mid``) and its time derivative there (``f_t``)."""
+    n = len(frames)
+    if config.temporal == "dct3d":
+        T = config.temporal_frames
+        if n < T:
+            raise ValueError(f"{what}: temporal='dct3d' needs {T} frames, got {n}")
+        t0 = int(np.clip(t + 1 - T // 2, 0, n - T))
+        stack = np.stack(
+            [_grey(frames[k], f"{what}[{k}]", unit, config) for k in range(t0, t0 + T)]
+        )
+        f3 = fit_dct3(stack, band=config.band)
+        tw = t - t0  # frame t in the window's time
+        return {
+            "a": _Frame(_as32(f3.at_time(tw)), unit),
+            "b": _Frame(_as32(f3.at_time(tw + 1)), unit),
+            "mid": _Frame(_as32(f3.at_time(tw + 0.5)), unit),
+            "f_t": _Frame(_as32(f3.time_derivative_at(tw + 0.5)), unit),
+        }
+    fits = [
+        fit_dct(_grey(frames[k], f"{what}[{k}]", unit, config), band=config.band)
+        for k in (t, t + 1)
+    ]
+    return {"a": _Frame(fits[0], unit), "b": _Frame(fits[1], unit)}
+
+
+def _as32(fit: DCTFit) -> DCTFit:
+    return replace(fit, dtype=np.dtype(np.float32))
+
+
+def _check_inputs(frames1, frames2, rig: Rig, t: int) -> None:
+    if len(frames1) != len(frames2):
+        raise ValueError(f"frames1 has {len(frames1)} frames but frames2 {len(frames2)}")
+    if not (0 <= t and t + 1 < len(frames1)):
+        raise ValueError(f"t = {t}: need frames t and t + 1 of {len(frames1)}")
+    for name, frames, unit in (("frames1", frames1, rig.cam1), ("frames2", frames2, rig.cam2)):
+        shape = np.shape(frames[t])
+        if shape != (unit.height, unit.width):
+            raise ValueError(
+                f"{name}[{t}] has shape {shape}; the rig's {unit.name} is "
+                f"{unit.height}x{unit.width} (rows x columns)"
+            )
+
+
+def estimate(
+    frames1: Sequence[NDArray],
+    frames2: Sequence[NDArray],
+    rig: Rig,
+    config: OmniFlowConfig | None = None,
+    *,
+    t: int = 0,
+    matches: Matches | None = None,
+) -> OmniFlowResult:
+    """Stereo omni flow from frame t to t + 1 of both units.
+
+    Parameters
+    ----------
+    frames1, frames2 : sequence of ndarray, each shape (H, W)
+        Grey float frames of cam1 and cam2 (at least t + 2; at least
+        ``config.temporal_frames`` for ``temporal="dct3d"``).
+    rig : Rig
+    config : OmniFlowConfig, optional
+        Defaults to ``OmniFlowConfig()``.
+    t : int
+        The flow is from frame t to frame t + 1.
+    matches : Matches, optional
+        Use these stereo matches instead of matching (e.g. the true ones).
+
+    Returns
+    -------
+    OmniFlowResult
+    """
+    config = OmniFlowConfig() if config is None else config
+    _check_inputs(frames1, frames2, rig, t)
+    timings: dict[str, float] = {}
+    t_start = time.perf_counter()
+
+    cam1 = _fits(frames1, t, rig.cam1, config, "frames1")
+    cam2 = _fits(frames2, t, rig.cam2, config, "frames2")
+    t_fit = time.perf_counter()
+    timings["fit"] = t_fit - t_start
+
+    n_sig = 0
+    if matches is None:
+        grids = tuple(
+            PolarGrids(f=c["a"].f, f_h=c["a"].grad[0], f_theta=c["a"].grad[1]) for c in (cam1, cam2)
+        )
+        timings["grids"] = time.perf_counter() - t_fit
+        t_m = time.perf_counter()
+        matches = match_radial(
+            None,
+            None,
+            rig,
+            method=config.match_method,
+            threshold_percentile=config.threshold_percentile,
+            r_min=config.r_min,
+            r_max=config.r_max,
+            n_theta=config.n_theta,
+            h_step=config.h_step,
+            h_min=config.h_min,
+            rim_margin=config.rim_margin,
+            patch_radius=config.patch_radius,
+            patch_lines=config.patch_lines,
+            profile_step=(
+                0.5 / config.band if config.profile_step is None else config.profile_step
+            ),
+            min_score=config.min_score,
+            uniqueness=config.uniqueness,
+            left_right=config.left_right,
+            grids=grids,
+        )
+        n_sig = matches.n_significant
+        timings["match"] = time.perf_counter() - t_m
+    else:
+        timings["grids"] = 0.0
+        timings["match"] = 0.0
+
+    t_s = time.perf_counter()
+    result = flow_at_matches(matches, rig, cam1, cam2, config)
+    timings["sample"] = result.pop("_t_sample")
+    timings["solve"] = time.perf_counter() - t_s - timings["sample"]
+    timings["total"] = time.perf_counter() - t_start
+    return OmniFlowResult(columns=result, timings=timings, config=config, n_significant=n_sig)
+
+
+def flow_at_matches(
+    matches: Matches, rig: Rig, cam1: tuple, cam2: tuple, config: OmniFlowConfig
+) -> dict[str, NDArray]:
+    """Sample gradients and temporal derivatives at the matches and solve.
+
+    ``cam1`` and ``cam2`` are the per-unit fits as built by :func:`estimate`
+    (keys ``a``, ``b`` for frames t, t + 1; ``mid``, ``f_t`` for dct3d).
+    Returns the result columns (plus a private ``_t_sample`` timing).
+    """
+    t0 = time.perf_counter()
+    theta, h1, h2 = matches.theta, matches.h1, matches.h2
+    x1, y1 = rig.cam1.pixel_of_polar(h1, theta)
+    x2, y2 = rig.cam2.pixel_of_polar(h2, theta)
+    derivs = []
+    for fr, x, y in ((cam1, x1, y1), (cam2, x2, y2)):
+        sampling = config.sampling
+        if "f_t" in fr:  # 3-D DCT: analytic f_t at t + 1/2
+            f_t = _sample_f(fr["f_t"], x, y, sampling)
+            if config.gradients == "average":
+                f_h, f_th = _sample_polar_grad(fr["mid"], x, y, sampling)
+            else:
+                f_h, f_th = _sample_polar_grad(fr["a"], x, y, sampling)
+        else:  # frame difference of the fitted images (section 5.3)
+            f_t = _sample_f(fr["b"], x, y, sampling) - _sample_f(fr["a"], x, y, sampling)
+            f_h, f_th = _sample_polar_grad(fr["a"], x, y, sampling)
+            if config.gradients == "average":
+                gh, gth = _sample_polar_grad(fr["b"], x, y, sampling)
+                f_h, f_th = 0.5 * (f_h + gh), 0.5 * (f_th + gth)
+        derivs.append((f_h, f_th, f_t))
+    (f1_h, f1_th, f1_t), (f2_h, f2_th, f2_t) = derivs
+    t1 = time.perf_counter()
+    r, h = rig.triangulate(h1, h2)
+    if config.solver == "direct":
+        a, b, D = direct_solution(
+            f1_h, f1_th, f1_t, f2_h, f2_th, f2_t, h1, h2, min_conditioning=config.min_conditioning
+        )
+        conf = direct_conditioning(f1_h, f1_th, f2_h, f2_th, h1, h2)
+    else:
+        idx, w = neighbourhoods(
+            x1, y1, k=config.pool_k, radius=config.pool_radius, r=r, range_tol=config.pool_range_tol
+        )
+        a, b, conf = pooled_solution(
+            f1_h,
+            f1_th,
+            f1_t,
+            f2_h,
+            f2_th,
+            f2_t,
+            h1,
+            h2,
+            idx,
+            w,
+            min_conditioning=config.min_conditioning,
+        )
+        D = f1_h * f2_th - (h2 / h1) * f2_h * f1_th
+    keep = np.isfinite(a) & np.isfinite(b)
+    if not np.all(keep):
+        (theta, h1, h2, x1, y1, x2, y2, r, h, a, b, D, conf) = (
+            v[keep] for v in (theta, h1, h2, x1, y1, x2, y2, r, h, a, b, D, conf)
+        )
+        score = matches.score[keep]
+    else:
+        score = matches.score
+    with np.errstate(divide="ignore", invalid="ignore"):
+        dr_dt = -(rig.d + r) * a / h1
+    k = h2 / h1
+    dx, dy = _displacement(rig.cam1, h1, theta, a, b)
+    dx2, dy2 = _displacement(rig.cam2, h2, theta, k * a, b)
+    return {
+        "x": x1,
+        "y": y1,
+        "theta": theta,
+        "h1": h1,
+        "h2": h2,
+        "r": r,
+        "h": h,
+        "dh1_dt": a,
+        "dtheta_dt": b,
+        "dr_dt": dr_dt,
+        "dx": dx,
+        "dy": dy,
+        "x2": x2,
+        "y2": y2,
+        "dh2_dt": k * a,
+        "dx2": dx2,
+        "dy2": dy2,
+        "score": np.asarray(score, dtype=float),
+        "confidence": conf,
+        "D": D,
+        "_t_sample": t1 - t0,
+    }
+
+
+def _displacement(
+    unit: Unit, h_i: NDArray, theta: NDArray, dh: NDArray, dtheta: NDArray
+) -> tuple[NDArray, NDArray]:
+    """Pixel displacement of the polar point (h_i, theta) moved by (dh, dtheta)."""
+    x0, y0 = unit.pixel_of_polar(h_i, theta)
+    x1, y1 = unit.pixel_of_polar(h_i + dh, theta + dtheta)
+    return x1 - x0, y1 - y0
