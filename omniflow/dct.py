@@ -93,26 +93,21 @@ def _bases(coord: NDArray, n_coef: int, n: int) -> tuple[NDArray, NDArray]:
 
 def _cos3(c: NDArray, n: int, axis: int) -> NDArray:
     """sum_k c_k cos(pi k (j + 1/2) / N) for j < N along ``axis`` (c zero-padded to N)."""
-    pad = [(0, 0)] * c.ndim
-    pad[axis] = (0, n - c.shape[axis])
-    cp = np.pad(c, pad)
     # Unnormalised DCT-III: y_j = x_0 + 2 sum_{k>=1} x_k cos(pi k (2j + 1) / 2N).
-    idx = [slice(None)] * c.ndim
-    idx[axis] = slice(1, None)
-    cp[tuple(idx)] *= 0.5
-    return scipy.fft.dct(cp, type=3, axis=axis)
+    half = 0.5 * c
+    first = [slice(None)] * c.ndim
+    first[axis] = slice(0, 1)
+    half[tuple(first)] = c[tuple(first)]
+    return scipy.fft.dct(half, type=3, n=n, axis=axis, overwrite_x=True)
 
 
 def _sin3(b: NDArray, n: int, axis: int) -> NDArray:
     """sum_{k>=1} b_k sin(pi k (j + 1/2) / N) for j < N along ``axis`` (b_0 ignored)."""
     # Unnormalised DST-III: y_j = (-1)^j x_{N-1} + 2 sum_{m<N-1} x_m sin(pi (2j + 1)(m + 1) / 2N),
     # so x_m = b_{m+1} / 2 for m + 1 < N; b_N never exists because the band is < N + 1.
-    idx = [slice(None)] * b.ndim
-    idx[axis] = slice(1, None)
-    shifted = 0.5 * b[tuple(idx)]
-    pad = [(0, 0)] * b.ndim
-    pad[axis] = (0, n - shifted.shape[axis])
-    return scipy.fft.dst(np.pad(shifted, pad), type=3, axis=axis)
+    rest = [slice(None)] * b.ndim
+    rest[axis] = slice(1, None)
+    return scipy.fft.dst(0.5 * b[tuple(rest)], type=3, n=n, axis=axis, overwrite_x=True)
 
 
 @dataclass(frozen=True, eq=False)
@@ -222,7 +217,8 @@ def fit_dct(
     height, width = f.shape
     P = _band_size(width, band, P, "P")
     Q = _band_size(height, band, Q, "Q")
-    spec = scipy.fft.dctn(f, type=2)[:Q, :P]
+    # eq. (17): DCT-II along x, keep P columns, then along y (same as dctn(f)[:Q, :P]).
+    spec = scipy.fft.dct(scipy.fft.dct(f, type=2, axis=1)[:, :P], type=2, axis=0)[:Q]
     ay, _ = _weights(Q, height)
     ax, _ = _weights(P, width)
     coeffs = (ay[:, None] * ax[None, :]) * spec.astype(np.float64) / (4.0 * width * height)

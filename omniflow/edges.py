@@ -14,6 +14,8 @@ of eq. (8) is (f_h, f_theta / h_i). At h_i = 0 f_h is undefined (NaN).
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -24,14 +26,31 @@ __all__ = ["polar_from_cartesian", "polar_gradient", "polar_gradient_grid"]
 
 
 def polar_from_cartesian(
-    f_x: NDArray, f_y: NDArray, dx: NDArray, dy: NDArray
+    f_x: NDArray, f_y: NDArray, dx: NDArray, dy: NDArray, *, inv_h: NDArray | None = None
 ) -> tuple[NDArray, NDArray]:
-    """(f_h, f_theta) from (f_x, f_y) at offsets (dx, dy) = (x - x_c, y - y_c), eq. (19)-(20)."""
-    h_i = np.hypot(dx, dy)
+    """(f_h, f_theta) from (f_x, f_y) at offsets (dx, dy) = (x - x_c, y - y_c), eq. (19)-(20).
+
+    ``inv_h`` (1 / h_i, broadcastable) may be passed when it is already known.
+    """
     with np.errstate(divide="ignore", invalid="ignore"):
-        f_h = np.where(h_i > 0, (dx * f_x + dy * f_y) / h_i, np.nan)  # eq. (19)
+        if inv_h is None:
+            inv_h = 1.0 / np.sqrt(dx * dx + dy * dy)
+        f_h = (dx * f_x + dy * f_y) * inv_h  # eq. (19); 0 * inf = NaN at h_i = 0
     f_theta = dx * f_y - dy * f_x  # eq. (20)
     return f_h, f_theta
+
+
+@lru_cache(maxsize=8)
+def _offsets(width: int, height: int, x_c: float, y_c: float, dtype: np.dtype):
+    """(x - x_c) as (1, W), (y - y_c) as (H, 1) and 1 / h_i as (H, W), read-only."""
+    dt = np.dtype(dtype).type
+    dx = (np.arange(width, dtype=dtype) + dt(0.5 - x_c))[None, :]
+    dy = (np.arange(height, dtype=dtype) + dt(0.5 - y_c))[:, None]
+    with np.errstate(divide="ignore"):
+        inv_h = 1.0 / np.sqrt(dx * dx + dy * dy)
+    for a in (dx, dy, inv_h):
+        a.setflags(write=False)
+    return dx, dy, inv_h
 
 
 def polar_gradient(fit: DCTFit, unit: Unit, x: ArrayLike, y: ArrayLike) -> tuple[NDArray, NDArray]:
@@ -71,7 +90,5 @@ def polar_gradient_grid(fit: DCTFit, unit: Unit) -> tuple[NDArray, NDArray]:
             f"{unit.width}x{unit.height}: expected the same image size"
         )
     f_x, f_y = fit.grid_gradient()
-    dt = f_x.dtype
-    dx = (np.arange(fit.width, dtype=dt) + dt.type(0.5 - unit.x_c))[None, :]
-    dy = (np.arange(fit.height, dtype=dt) + dt.type(0.5 - unit.y_c))[:, None]
-    return polar_from_cartesian(f_x, f_y, dx, dy)
+    dx, dy, inv_h = _offsets(fit.width, fit.height, float(unit.x_c), float(unit.y_c), f_x.dtype)
+    return polar_from_cartesian(f_x, f_y, dx, dy, inv_h=inv_h)
