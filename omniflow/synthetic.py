@@ -18,6 +18,15 @@ eq. (1): h - tip_h = h_i (d + r) / v for r >= rho. So
 
 The nearest hit along the ray wins (occlusion).
 
+Sampling. ``render`` samples pixel centres (or an n x n grid per pixel with
+``supersample``). Textures are band-limited on the surface, not in the image:
+tangentially a wall at range r spans r / h_i metres per pixel, so near the
+image centre point sampling aliases. ``blur=sigma`` applies a Gaussian pixel
+footprint to every sinusoid analytically (from the Jacobian of the surface
+coordinates), which band-limits the image at the cost of brightness constancy
+holding only to the footprint's change between frames (tests/test_synthetic.py
+measures both).
+
 World and rig frames. World Z equals rig h (the rig moves only in the plane);
 the rig at frame t sits at world (x, y) = position(t) with yaw psi(t): a rig
 point q maps to world p(t) + Rot(psi(t)) q. Bodies move rigidly per frame:
@@ -128,13 +137,28 @@ class Texture:
         z = np.zeros(0)
         return cls(fu=z, fv=z, amp=z, phase=z, mean=value)
 
-    def __call__(self, u: NDArray, v: NDArray) -> NDArray:
-        """Texture values at surface coordinates (u, v), any equal shapes."""
+    def __call__(
+        self, u: NDArray, v: NDArray, *, jacobian: tuple | None = None, blur: float = 0.0
+    ) -> NDArray:
+        """Texture values at surface coordinates (u, v), any equal shapes.
+
+        With ``jacobian`` = (du/dx, du/dy, dv/dx, dv/dy) (metres per pixel, the
+        shape of u) and ``blur`` = sigma > 0 (pixels), each sinusoid is seen
+        through a Gaussian pixel footprint of that sigma: its local image
+        frequency g = (f_u, f_v) J (cycles per pixel) scales its amplitude by
+        exp(-2 pi^2 sigma^2 |g|^2). This band-limits the image analytically
+        (locally linear map), where point sampling would alias.
+        """
         u = np.asarray(u, dtype=float)
         v = np.asarray(v, dtype=float)
         out = np.full(np.broadcast(u, v).shape, float(self.mean))
         for fu, fv, amp, phase in zip(self.fu, self.fv, self.amp, self.phase, strict=True):
-            out += amp * np.sin(2 * np.pi * (fu * u + fv * v) + phase)
+            wave = amp * np.sin(2 * np.pi * (fu * u + fv * v) + phase)
+            if jacobian is not None and blur > 0:
+                ux, uy, vx, vy = jacobian
+                gx, gy = fu * ux + fv * vx, fu * uy + fv * vy
+                wave *= np.exp(-2 * np.pi**2 * blur**2 * (gx * gx + gy * gy))
+            out += wave
         return out
 
 
@@ -402,6 +426,25 @@ class SyntheticScene:
         qx, qy = ca * px + sa * py, -sa * px + ca * py
         return np.hypot(qx, qy), wrap_angle(np.arctan2(qy, qx)), np.asarray(Z, float)
 
+    def _rays(self, unit: Unit, t: float, h_i: NDArray, theta: NDArray):
+        """World ray geometry of polar image points: origin, direction, slope, mirror point."""
+        k = h_i / unit.v  # slope dh/dr, eq. (1)
+        ok = (h_i > 0) & (k < 1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            rho = np.where(ok, unit.d * k / (1 - k), np.inf)  # mirror point
+        p, yaw = self.rig_pose(t)
+        return p, np.cos(theta + yaw), np.sin(theta + yaw), k, rho
+
+    @staticmethod
+    def _intersect(body, unit: Unit, t: float, rays) -> NDArray:
+        """Range of each ray's hit on one body (inf: none), ignoring other bodies."""
+        p, dx, dy, k, rho = rays
+        if isinstance(body, Cylinder):
+            return body.intersect(
+                t, p[0], p[1], dx, dy, lambda r: unit.tip_h + k * (unit.d + r), rho
+            )
+        return body.intersect(t, p[0], p[1], dx, dy, k, unit.tip_h, unit.d, rho)
+
     def trace(self, unit: Unit, t: float, h_i: ArrayLike, theta: ArrayLike) -> Hit:
         """Nearest hits of the rays at polar image points (h_i, theta) at frame t.
 
@@ -409,40 +452,78 @@ class SyntheticScene:
         """
         h_i = np.asarray(h_i, float).ravel()
         theta = np.asarray(theta, float).ravel()
-        k = h_i / unit.v  # slope dh/dr, eq. (1)
-        ok = (h_i > 0) & (k < 1)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            rho = np.where(ok, unit.d * k / (1 - k), np.inf)  # mirror point
-        p, yaw = self.rig_pose(t)
-        dx, dy = np.cos(theta + yaw), np.sin(theta + yaw)
-
-        def z_of_r(r):
-            return unit.tip_h + k * (unit.d + r)  # eq. (1)
-
+        rays = self._rays(unit, t, h_i, theta)
+        p, dx, dy, k, _ = rays
         best = np.full(h_i.shape, np.inf)
         index = np.full(h_i.shape, -1)
         for i, body in enumerate(self.bodies):
-            if isinstance(body, Cylinder):
-                r = body.intersect(t, p[0], p[1], dx, dy, z_of_r, rho)
-            else:
-                r = body.intersect(t, p[0], p[1], dx, dy, k, unit.tip_h, unit.d, rho)
+            r = self._intersect(body, unit, t, rays)
             closer = r < best
             best = np.where(closer, r, best)
             index = np.where(closer, i, index)
         hit = np.isfinite(best)
         r = np.where(hit, best, np.nan)
         return Hit(
-            index=index, r=np.where(hit, r, np.inf), X=p[0] + r * dx, Y=p[1] + r * dy, Z=z_of_r(r)
+            index=index,
+            r=np.where(hit, r, np.inf),
+            X=p[0] + r * dx,
+            Y=p[1] + r * dy,
+            Z=unit.tip_h + k * (unit.d + r),  # eq. (1)
         )
 
-    def shade(self, hit: Hit, t: float) -> NDArray:
-        """Texture values of hits (``background`` where nothing is hit)."""
+    def _surface_uv(self, body, unit: Unit, t: float, x: NDArray, y: NDArray) -> tuple:
+        """Texture coordinates where the rays of pixel points (x, y) meet ``body`` (NaN: miss)."""
+        h_i, theta = unit.polar_of_pixel(x, y)
+        rays = self._rays(unit, t, h_i, theta)
+        p, dx, dy, k, _ = rays
+        r = self._intersect(body, unit, t, rays)
+        r = np.where(np.isfinite(r), r, np.nan)
+        local = body.to_local(t, p[0] + r * dx, p[1] + r * dy, unit.tip_h + k * (unit.d + r))
+        return body.surface_uv(*local)
+
+    def _jacobian(self, body, unit: Unit, t: float, x: NDArray, y: NDArray) -> tuple:
+        """(du/dx, du/dy, dv/dx, dv/dy) of ``body``'s texture coordinates, central differences."""
+        eps = 1e-3  # px; the map is smooth on the scale of a pixel
+        u_px, v_px = self._surface_uv(body, unit, t, x + eps, y)
+        u_mx, v_mx = self._surface_uv(body, unit, t, x - eps, y)
+        u_py, v_py = self._surface_uv(body, unit, t, x, y + eps)
+        u_my, v_my = self._surface_uv(body, unit, t, x, y - eps)
+        period = 2 * np.pi * body.radius if isinstance(body, Cylinder) else np.inf
+        du_x, du_y = u_px - u_mx, u_py - u_my
+        if np.isfinite(period):  # arc length jumps by the circumference at phi = +-pi
+            du_x = (du_x + period / 2) % period - period / 2
+            du_y = (du_y + period / 2) % period - period / 2
+        jac = (du_x, du_y, v_px - v_mx, v_py - v_my)
+        # Grazing rays that miss at an offset: no attenuation information, treat as flat.
+        return tuple(np.nan_to_num(j / (2 * eps), nan=0.0) for j in jac)
+
+    def shade(
+        self,
+        hit: Hit,
+        t: float,
+        *,
+        blur: float = 0.0,
+        unit: Unit | None = None,
+        x: NDArray | None = None,
+        y: NDArray | None = None,
+    ) -> NDArray:
+        """Texture values of hits (``background`` where nothing is hit).
+
+        With ``blur`` > 0 (Gaussian pixel footprint, sigma in pixels) also give
+        the ``unit`` and the hits' pixel coordinates ``x``, ``y`` (flat arrays):
+        each body's texture is then band-limited analytically (:class:`Texture`).
+        """
         out = np.full(hit.r.shape, float(self.background))
         for i, body in enumerate(self.bodies):
             sel = hit.index == i
             if np.any(sel):
                 xb, yb, zb = body.to_local(t, hit.X[sel], hit.Y[sel], hit.Z[sel])
-                out[sel] = body.texture(*body.surface_uv(xb, yb, zb))
+                jac = None
+                if blur > 0:
+                    if unit is None or x is None or y is None:
+                        raise ValueError("shade(blur > 0) needs unit, x and y")
+                    jac = self._jacobian(body, unit, t, x[sel], y[sel])
+                out[sel] = body.texture(*body.surface_uv(xb, yb, zb), jacobian=jac, blur=blur)
         return out
 
     # -- images ---------------------------------------------------------------
@@ -452,6 +533,7 @@ class SyntheticScene:
         t: float = 0,
         *,
         supersample: int = 1,
+        blur: float = 0.0,
         antialias_rim: bool = True,
         noise: float = 0.0,
         seed: int = 0,
@@ -467,6 +549,15 @@ class SyntheticScene:
         supersample : int
             n: average an n x n grid of sub-pixel rays per pixel (pixel-area
             integration). 1: sample at pixel centres.
+        blur : float
+            Sigma, pixels, of a Gaussian footprint applied to every texture
+            sinusoid analytically (its local image frequency from the Jacobian
+            of the surface coordinates). 0: none. Point sampling aliases where a
+            surface is seen obliquely or far away: tangentially a wall at range
+            r spans r / h_i metres per pixel, so a texture wavelength lambda is
+            under-sampled for h_i < 2 r / lambda. ``blur=0.5`` band-limits the
+            image (attenuation 0.29 at 0.5 cycle/px, 0.007 at 1 cycle/px); brightness
+            constancy then holds to the change of the footprint between frames.
         antialias_rim : bool
             Weight pixels the rim crosses by their area inside it (the texture
             continued just beyond the rim), else a hard cut at pixel centres.
@@ -485,8 +576,12 @@ class SyntheticScene:
         ox, oy = np.meshgrid(offs, offs)
         sx = x[..., None] + ox.ravel()
         sy = y[..., None] + oy.ravel()
+        if blur < 0:
+            raise ValueError(f"blur = {blur!r}: expected a sigma >= 0 in pixels")
         h_i, theta = unit.polar_of_pixel(sx, sy)
-        vals = self.shade(self.trace(unit, t, h_i, theta), t).reshape(sx.shape)
+        hit = self.trace(unit, t, h_i, theta)
+        vals = self.shade(hit, t, blur=blur, unit=unit, x=sx.ravel(), y=sy.ravel())
+        vals = vals.reshape(sx.shape)
         if antialias_rim:
             img = vals.mean(axis=-1)
             cov = rim_coverage(unit)
