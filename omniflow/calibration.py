@@ -3,8 +3,8 @@
 The rim circle (x_c, y_c, r_m) gives the image of the axis and, with the
 mirror's d and R, the image distance v = (d / R + 1) r_m (eq. 2). Steps:
 
-1. coarse circle: OpenCV's gradient Hough transform (``cv2.HoughCircles``)
-   on an 8-bit copy, the strongest circle with a radius in [r_min, r_max];
+1. coarse circles: OpenCV's gradient Hough transform (``cv2.HoughCircles``)
+   on an 8-bit copy, the few strongest circles with a radius in [r_min, r_max];
 2. sub-pixel edge points: along ``rays`` radial lines through the coarse
    centre, the image is sampled every 0.1 px (``scipy.ndimage.map_coordinates``,
    cubic spline), differentiated with a Gaussian derivative
@@ -13,7 +13,9 @@ mirror's d and R, the image distance v = (d / R + 1) r_m (eq. 2). Steps:
    (a parabola through the peak and its neighbours);
 3. circle fit: ``skimage.measure.ransac`` with ``CircleModel`` rejects edge
    points disturbed by texture, then a least-squares circle on the inliers;
-   steps 2-3 are repeated once about the refined centre.
+   steps 2-3 are repeated once about the refined centre. Of the candidates,
+   the circle with the most edge evidence wins (a rim cut by the image border
+   can get fewer Hough votes than a circle in the texture).
 
 Coordinates follow :mod:`omniflow.conventions` (pixel centre at j + 0.5,
 i + 0.5); OpenCV and scipy index pixel centres at j, i, converted here.
@@ -81,7 +83,9 @@ def _grey(image: ArrayLike) -> NDArray:
     return img
 
 
-def _coarse_circle(img: NDArray, r_min: float, r_max: float) -> tuple[float, float, float]:
+def _coarse_circles(
+    img: NDArray, r_min: float, r_max: float, count: int
+) -> list[tuple[float, float, float]]:
     lo, hi = np.percentile(img, [0.5, 99.5])
     if hi <= lo:
         lo, hi = img.min(), img.max()
@@ -92,19 +96,50 @@ def _coarse_circle(img: NDArray, r_min: float, r_max: float) -> tuple[float, flo
         img8,
         cv2.HOUGH_GRADIENT,
         dp=1,
-        minDist=size,
+        minDist=max(2.0, size / 16),
         param1=100,
         param2=30,
         minRadius=int(np.floor(r_min)),
         maxRadius=int(np.ceil(r_max)),
     )
     if circles is None or len(circles) == 0:
-        raise RimError(
-            f"no circle with a radius in [{r_min:.1f}, {r_max:.1f}] px found "
-            "(cv2.HoughCircles): is the mirror's rim in the image?"
+        return []
+    # Strongest first; OpenCV pixel centres are at integers, ours at + 0.5.
+    return [(float(x) + 0.5, float(y) + 0.5, float(r)) for x, y, r in circles[0, :count]]
+
+
+def _contour_circle(img: NDArray, r_min: float, r_max: float, seed: int):
+    """Coarse circle from the outline of the largest Otsu region (robust to a cut rim).
+
+    The mirror's disc differs in brightness from its surround; its outline, less
+    the points on the image border, is fitted with a RANSAC circle. None if that
+    does not give a circle in [r_min, r_max].
+    """
+    lo, hi = img.min(), img.max()
+    img8 = cv2.GaussianBlur(((img - lo) / (hi - lo) * 255.0).astype(np.uint8), (0, 0), 2.0)
+    _, mask = cv2.threshold(img8, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (7, 7))
+    best = None
+    for m in (mask, 255 - mask):  # the disc may be the brighter or the darker side
+        m = cv2.morphologyEx(cv2.morphologyEx(m, cv2.MORPH_OPEN, kernel), cv2.MORPH_CLOSE, kernel)
+        contours, _ = cv2.findContours(m, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+        if not contours:
+            continue
+        pts = max(contours, key=cv2.contourArea)[:, 0, :].astype(np.float64)
+        h, w = img.shape
+        keep = (pts[:, 0] > 1) & (pts[:, 0] < w - 2) & (pts[:, 1] > 1) & (pts[:, 1] < h - 2)
+        pts = pts[keep] + 0.5
+        if len(pts) < 20:
+            continue
+        model, inl = ransac(
+            pts, CircleModel, min_samples=3, residual_threshold=2.0, max_trials=200, rng=seed
         )
-    x, y, r = circles[0, 0]
-    return float(x) + 0.5, float(y) + 0.5, float(r)  # OpenCV pixel centres are at integers
+        if model is None or inl is None:
+            continue
+        x, y, r = _circle_params(model)
+        if r_min <= r <= r_max and (best is None or inl.sum() > best[1]):
+            best = ((x, y, r), inl.sum())
+    return None if best is None else best[0]
 
 
 def _edge_points(img, x_c, y_c, r0, *, rays, search, sigma):
@@ -159,6 +194,7 @@ def find_rim(
     sigma: float = 0.7,
     residual_threshold: float = 0.5,
     min_inliers: float = 0.5,
+    candidates: int = 5,
     seed: int = 0,
 ) -> RimCircle:
     """Locate the mirror's rim circle to sub-pixel accuracy.
@@ -180,6 +216,9 @@ def find_rim(
     min_inliers : float
         Smallest fraction of edge points that must agree on the circle (pure
         noise gives ~0.18 with the defaults; a textured omni image > 0.9).
+    candidates : int
+        Coarse circles (strongest Hough votes first) refined; the one with the
+        most edge evidence (summed edge strength of its inlier points) wins.
     seed : int
         RANSAC seed (the result is deterministic).
 
@@ -198,10 +237,44 @@ def find_rim(
     r_max = 0.55 * size if r_max is None else float(r_max)
     if not (0 < r_min < r_max):
         raise RimError(f"r_min = {r_min}, r_max = {r_max}: expected 0 < r_min < r_max")
-    x_c, y_c, r_m = _coarse_circle(img, r_min, r_max)
-    result = None
+    coarse = _coarse_circles(img, r_min, r_max, candidates)
+    outline = _contour_circle(img, r_min, r_max, seed)
+    if outline is not None:
+        coarse.append(outline)
+    if not coarse:
+        raise RimError(
+            f"no circle with a radius in [{r_min:.1f}, {r_max:.1f}] px found "
+            "(cv2.HoughCircles, Otsu outline): is the mirror's rim in the image?"
+        )
+    best, first_error = None, None
+    for x_c, y_c, r_m in coarse:
+        try:
+            rim, score = _refine(
+                img,
+                x_c,
+                y_c,
+                r_m,
+                rays=rays,
+                search=search,
+                sigma=sigma,
+                residual_threshold=residual_threshold,
+                min_inliers=min_inliers,
+                seed=seed,
+            )
+        except RimError as exc:
+            first_error = first_error or exc
+            continue
+        if best is None or score > best[1]:
+            best = (rim, score)
+    if best is None:
+        raise first_error
+    return best[0]
+
+
+def _refine(img, x_c, y_c, r_m, *, rays, search, sigma, residual_threshold, min_inliers, seed):
+    """Sub-pixel circle from a coarse one (steps 2-3, twice); also the edge evidence score."""
     for _ in range(2):
-        pts, _strength = _edge_points(img, x_c, y_c, r_m, rays=rays, search=search, sigma=sigma)
+        pts, strength = _edge_points(img, x_c, y_c, r_m, rays=rays, search=search, sigma=sigma)
         model, inl = ransac(
             pts,
             CircleModel,
@@ -220,15 +293,15 @@ def find_rim(
         if fit is None:
             raise RimError("circle fit to the rim's edge points failed")
         x_c, y_c, r_m = _circle_params(fit)
-        res = np.hypot(pts[inl, 0] - x_c, pts[inl, 1] - y_c) - r_m
-        result = RimCircle(
-            x_c=x_c,
-            y_c=y_c,
-            r_m=r_m,
-            residual_px=float(np.sqrt(np.mean(res**2))),
-            inlier_fraction=float(inl.mean()),
-        )
-    return result
+    res = np.hypot(pts[inl, 0] - x_c, pts[inl, 1] - y_c) - r_m
+    rim = RimCircle(
+        x_c=x_c,
+        y_c=y_c,
+        r_m=r_m,
+        residual_px=float(np.sqrt(np.mean(res**2))),
+        inlier_fraction=float(inl.mean()),
+    )
+    return rim, float(np.sum(strength[inl]))
 
 
 def calibrate_unit(

@@ -35,6 +35,7 @@ CASES = [
     (128, 128, 60.55, 66.2, 50.3, 0.0, 0.0),
     (160, 150, 77.3, 73.9, 70.2, 0.05, 0.0),
     (160, 150, 77.3, 73.9, 70.2, 0.02, 0.9),  # bright surround
+    (128, 120, 60.3, 58.2, 63.5, 0.01, 0.0),  # rim cut by the image border
 ]
 
 
@@ -44,8 +45,9 @@ def test_rim_found_to_a_tenth_of_a_pixel(case):
     img = _rim_image(width, height, x_c, y_c, r_m, noise=noise, seed=1, outside=outside)
     rim = find_rim(img)
     err = np.array([rim.x_c - x_c, rim.y_c - y_c, rim.r_m - r_m])
-    # Required: 0.1 px (the brief). Measured over these cases with texture seeds 1-3:
+    # Required: 0.1 px (the brief). Measured over these cases with texture seeds 1-5:
     # max |error| 0.021 px (noise 0.1, not tested here: 0.032 px), so a margin of ~5x.
+    # The cut rim needs the Otsu-outline candidate: Hough alone misses it for seed 1.
     assert np.abs(err).max() < 0.1, err
     assert rim.residual_px < 0.3  # measured 0.075-0.14 px RMS; bound ~2x
     assert rim.inlier_fraction > 0.9  # measured >= 0.994
