@@ -223,14 +223,26 @@ class Cylinder(_Body):
     z_min: float = -np.inf
     z_max: float = np.inf
 
+    def __post_init__(self):
+        if not (self.radius > 0 and self.z_min < self.z_max):
+            raise ValueError(
+                f"Cylinder {self.name or self.id}: radius = {self.radius}, z_min = "
+                f"{self.z_min}, z_max = {self.z_max}: expected radius > 0 and z_min < z_max"
+            )
+
     def intersect(self, t, ox, oy, dx, dy, z_of_r, rho):
+        """Range r of the nearest hit beyond the mirror point rho (inf: none), per ray.
+
+        Rays run horizontally from (ox, oy) along (dx, dy); z_of_r gives their
+        height at range r (eq. 1). |o + r d - c| = radius is a quadratic in r.
+        """
         c, _, dz = self.pose(t)
         wx, wy = ox - c[0], oy - c[1]
         b = wx * dx + wy * dy
         disc = b * b - (wx * wx + wy * wy - self.radius**2)
         root = np.sqrt(np.where(disc >= 0, disc, np.nan))
         best = np.full(np.shape(b), np.inf)
-        for r in (-b + root, -b - root):  # far first, so the near root overwrites
+        for r in (-b + root, -b - root):  # the smallest valid root wins
             z = z_of_r(r) - dz
             ok = (r >= rho) & (z >= self.z_min) & (z <= self.z_max)
             best = np.where(ok & (r < best), r, best)
@@ -253,7 +265,15 @@ class Disc(_Body):
     inner: float = 0.0
     outer: float = np.inf
 
+    def __post_init__(self):
+        if not (0 <= self.inner < self.outer):
+            raise ValueError(
+                f"Disc {self.name or self.id}: inner = {self.inner}, outer = {self.outer}: "
+                "expected 0 <= inner < outer"
+            )
+
     def intersect(self, t, ox, oy, dx, dy, k, tip_h, d, rho):
+        """Range r where rays of slope k meet the disc's plane (eq. 1), inf where they miss."""
         c, _, dz = self.pose(t)
         with np.errstate(divide="ignore", invalid="ignore"):
             r = (self.z + dz - tip_h) / k - d
@@ -322,7 +342,7 @@ class SyntheticScene:
     bodies : tuple of Cylinder | Disc
         Ids must be unique and >= 1 (0 means "nothing hit").
     robot : Motion
-        The rig's motion: world translation per frame and yaw rate (vz ignored).
+        The rig's motion: world translation per frame and yaw rate (vz must be 0).
     start : (float, float, float)
         The rig's world (x, y, yaw) at frame 0.
     background : float

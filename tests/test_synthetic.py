@@ -104,6 +104,10 @@ def test_bad_arguments_raise(small_rig):
         SyntheticScene(small_rig, robot=Motion(vz=0.1))
     with pytest.raises(ValueError, match="wavelengths"):
         Texture.random(0, wavelengths=(0.5, 0.1))
+    with pytest.raises(ValueError, match="radius = -1"):
+        Cylinder(radius=-1.0)
+    with pytest.raises(ValueError, match="inner"):
+        Disc(inner=2.0, outer=1.0)
 
 
 # -- motions with a known answer --------------------------------------------------
