@@ -38,7 +38,12 @@ Two methods:
     parabola through the NCC at the neighbouring samples. The patches compare
     equal radial scales, which is exact for vertical surfaces (both units map
     dh to dh_i = v dh / (d + r)); on inclined surfaces the scales differ by
-    up to h_2 / h_1 and the NCC drops.
+    up to h_2 / h_1 and the NCC drops. Tangential scales are not equal in
+    pixels: at one scene point cam1 (at h_1) resolves theta h_2 / h_1 times
+    more coarsely than cam2 (at h_2 > h_1), so both tables are blurred across
+    the lines (``tangential_blur``) to a common angular resolution first;
+    without it an isotropic texture gives almost no match above the NCC
+    threshold.
 
 Measured on closed-form scenes (``omniflow.synthetic``, see
 ``tests/test_matching.py``): see that file's module docstring for the
@@ -127,11 +132,12 @@ class Matches:
 
 @dataclass(frozen=True)
 class PolarGrids:
-    """Per-pixel grids of one fitted image that matching and flow sample from.
+    """Per-pixel grids of one fitted image that matching samples from.
 
     ``f`` is the fitted image (eq. 18), ``f_h`` and ``f_theta`` the polar
-    gradient (eq. 19-20) on every pixel centre; ``f_theta`` may be None when
-    not needed. All (H, W), float32.
+    gradient (eq. 19-20) on every pixel centre, all (H, W) float32. The
+    paper's rule needs all three; the robust matcher needs only ``f`` (with
+    ``f_h`` None it differentiates its polar table of ``f``).
     """
 
     f: NDArray
@@ -280,6 +286,28 @@ def _table(image: NDArray, maps: tuple[NDArray, NDArray]) -> NDArray:
     )
 
 
+def _blur_lines(table: NDArray, sigma: float) -> NDArray:
+    """Gaussian blur across the radial lines (theta, wrapping around), sigma in lines."""
+    half = int(np.ceil(3 * sigma))
+    if half < 1:
+        return table
+    padded = np.concatenate([table[-half:], table, table[:half]], axis=0)
+    out = cv2.GaussianBlur(
+        padded, (1, 2 * half + 1), sigmaX=0, sigmaY=sigma, borderType=cv2.BORDER_REPLICATE
+    )
+    return np.ascontiguousarray(out[half:-half])
+
+
+def _radial_derivative(table: NDArray, step: float) -> NDArray:
+    """Central difference along the columns (radius) of a polar table."""
+    out = np.empty_like(table)
+    np.subtract(table[:, 2:], table[:, :-2], out=out[:, 1:-1])
+    out[:, 1:-1] *= 0.5 / step
+    out[:, 0] = out[:, 1]
+    out[:, -1] = out[:, -2]
+    return out
+
+
 def _local_maxima(a: NDArray) -> NDArray:
     """Local maxima along axis 1 (a plateau counts once, at its right end)."""
     m = np.zeros(a.shape, dtype=bool)
@@ -351,6 +379,7 @@ def match_radial(
     *,
     method: str = "robust",
     threshold_percentile: float = 80.0,
+    min_gradient: float = 1e-4,
     r_min: float | None = None,
     r_max: float = 10.0,
     n_theta: int = 720,
@@ -364,6 +393,7 @@ def match_radial(
     uniqueness: float = 0.5,
     left_right: bool = True,
     candidate_fraction: float = 0.5,
+    tangential_blur: float = 0.06,
     grids: tuple[PolarGrids, PolarGrids] | None = None,
 ) -> Matches:
     """Match cam1's significant points along radial lines in cam2 (section 5.2).
@@ -380,6 +410,9 @@ def match_radial(
     threshold_percentile : float
         Significant points have |df1/dh_1| above this percentile of
         |df1/dh_1| over the annulus h_min <= h_1 <= r_m - rim_margin.
+    min_gradient : float
+        ... and at least this, grey levels per pixel (for images scaled to
+        [0, 1]), so a textureless image has no significant point.
     r_min, r_max : float
         Range interval searched, metres; gives the disparity window
         (:meth:`Rig.disparity_window`). r_max sets the paper's minimum
@@ -412,6 +445,12 @@ def match_radial(
     candidate_fraction : float
         ``robust``: edges of either image count as candidates down to this
         fraction of the significance threshold.
+    tangential_blur : float
+        ``robust``: Gaussian blur (sigma, radians) across the radial lines of
+        both polar tables before matching. cam1 resolves the scene h_2 / h_1
+        times more coarsely in theta than cam2 at the same point, so the
+        same patch looks different in the two units unless both are blurred
+        to a common angular resolution. 0 disables it.
     grids : (PolarGrids, PolarGrids), optional
         Precomputed grids of the two fits (saves re-evaluating them).
 
@@ -456,23 +495,35 @@ def match_radial(
     maps1 = _polar_maps(cam1, n_theta, h0, h_step, n_cols)
     maps2 = _polar_maps(cam2, n_theta, scale2 * h0, scale2 * h_step, n_cols)
     tab = _Tables(maps1, maps2, pad, n_h, h0, h_step, scale2, n_theta, win)
-    fh1 = _table(g1.f_h, maps1)
-    fh2 = _table(g2.f_h, maps2)
+    t1 = t2 = None
+    if method == "robust":
+        t1, t2 = _table(g1.f, maps1), _table(g2.f, maps2)
+        if tangential_blur > 0:
+            sigma = tangential_blur * n_theta / (2.0 * np.pi)  # in lines
+            t1, t2 = _blur_lines(t1, sigma), _blur_lines(t2, sigma)
+    # df/dh_i along the lines: the polar edge finder's grid (eq. 19) when
+    # given, else central differences of the table of f (the fitted image
+    # holds no frequency above band / 2 cycles per pixel, so over h_step of
+    # 1/2 px the difference is within ~10 % of the derivative; it serves only
+    # to find edges and their sign)
+    fh1 = _table(g1.f_h, maps1) if g1.f_h is not None else _radial_derivative(t1, h_step)
+    fh2 = _table(g2.f_h, maps2) if g2.f_h is not None else _radial_derivative(t2, scale2 * h_step)
     core = slice(pad, pad + n_h)
     # the percentile of every other line is the same to well within a percent
     thr = float(np.percentile(np.abs(fh1[::2, core]), threshold_percentile))
+    thr = max(thr, float(min_gradient))
 
     if method == "paper":
-        if g1.f_theta is None or g2.f_theta is None:
-            raise ValueError("the paper's rule needs f_theta grids")
+        if g1.f_theta is None or g2.f_theta is None or g1.f_h is None or g2.f_h is None:
+            raise ValueError("the paper's rule needs f_h and f_theta grids")
         res = _match_paper(tab, fh1, fh2, _table(g1.f_theta, maps1), _table(g2.f_theta, maps2), thr)
     else:
         res = _match_robust(
             tab,
             fh1,
             fh2,
-            _table(g1.f, maps1),
-            _table(g2.f, maps2),
+            t1,
+            t2,
             thr,
             w=w,
             stride=stride,

@@ -73,6 +73,12 @@ COLUMNS: dict[str, str] = {
     "score": "1, stereo match score (NCC or gradient similarity)",
     "confidence": "1, lambda_min/lambda_max of the flow system's normal matrix",
     "D": "grey^2/(px rad), determinant of eq. (16)",
+    "f1_h": "grey/px, df1/dh_1 used in eq. (9)",
+    "f1_theta": "grey/rad, df1/dtheta used in eq. (9)",
+    "f1_t": "grey/frame, df1/dt used in eq. (9)",
+    "f2_h": "grey/px, df2/dh_2 used in eq. (15)",
+    "f2_theta": "grey/rad, df2/dtheta used in eq. (15)",
+    "f2_t": "grey/frame, df2/dt used in eq. (15)",
 }
 
 GRADIENTS = ("first", "average")
@@ -93,18 +99,20 @@ class OmniFlowConfig:
     Attributes
     ----------
     band : float
-        DCT band: P = band * W, Q = band * H coefficients (eq. 17). Paper: 0.25.
+        DCT band: P = band * W, Q = band * H coefficients (eq. 17). Paper:
+        0.25; 0.5 keeps the gradients of finer texture and measured 2-6 times
+        more accurate flow (tests/test_flow.py).
     match_method : {"robust", "paper"}
         Radial matching rule (:func:`omniflow.matching.match_radial`).
-    threshold_percentile : float
-        Significant points: |df1/dh_1| above this percentile over the annulus.
+    threshold_percentile, min_gradient : float
+        Significant points: |df1/dh_1| above this percentile over the annulus
+        and above min_gradient (grey levels per pixel, images in [0, 1]).
     r_min, r_max : float
         Range interval searched, metres (disparity window); r_min None means
         :attr:`Rig.min_common_range`.
     n_theta, h_step, h_min, rim_margin : matching grid (see match_radial).
-    patch_radius, patch_lines, profile_step, min_score, uniqueness, left_right :
-        the robust matcher's knobs (see match_radial); profile_step None
-        means 1 / (2 band) px, twice the Nyquist rate of the fitted image.
+    patch_radius, patch_lines, profile_step, min_score, uniqueness, left_right,
+    tangential_blur : the robust matcher's knobs (see match_radial).
     gradients : {"first", "average"}
         Spatial gradient of frame t (paper) or the mean of frames t and t + 1.
     temporal : {"difference", "dct3d"}
@@ -130,9 +138,10 @@ class OmniFlowConfig:
         the truncated series (Gibbs) some 20 px into the image.
     """
 
-    band: float = 0.25
+    band: float = 0.5
     match_method: str = "robust"
     threshold_percentile: float = 80.0
+    min_gradient: float = 1e-4
     r_min: float | None = None
     r_max: float = 10.0
     n_theta: int = 720
@@ -141,10 +150,11 @@ class OmniFlowConfig:
     rim_margin: float = 4.0
     patch_radius: float = 16.0
     patch_lines: int = 1
-    profile_step: float | None = None
+    profile_step: float = 2.0
     min_score: float = 0.95
     uniqueness: float = 0.5
     left_right: bool = True
+    tangential_blur: float = 0.06
     gradients: str = "average"
     temporal: str = "difference"
     temporal_frames: int = 3
@@ -335,8 +345,15 @@ def _sample_f(frame: _Frame, x: NDArray, y: NDArray, sampling: str) -> NDArray:
 
 
 def _fits(frames: Sequence, t: int, unit: Unit, config: OmniFlowConfig, what: str) -> dict:
-    """Frames t and t + 1 of one unit as 2-D fits; with ``dct3d`` also the 3-D
-    series at t + 1/2 (``mid``) and its time derivative there (``f_t``)."""
+    """The series one unit needs, each a :class:`_Frame` with lazy grids.
+
+    ``a``: the image at frame t (matched on); ``g``: the series whose
+    gradient enters eq. (8) (frame t, or the mean of frames t and t + 1, or
+    the 3-D series at t + 1/2); ``t``: the series of f_t (the difference of
+    the fits of frames t + 1 and t, or the 3-D series' time derivative at
+    t + 1/2). Linear in the coefficients, so averaging or differencing the
+    coefficients equals doing it to the grids.
+    """
     n = len(frames)
     if config.temporal == "dct3d":
         T = config.temporal_frames
@@ -348,17 +365,19 @@ def _fits(frames: Sequence, t: int, unit: Unit, config: OmniFlowConfig, what: st
         )
         f3 = fit_dct3(stack, band=config.band)
         tw = t - t0  # frame t in the window's time
-        return {
-            "a": _Frame(_as32(f3.at_time(tw)), unit),
-            "b": _Frame(_as32(f3.at_time(tw + 1)), unit),
-            "mid": _Frame(_as32(f3.at_time(tw + 0.5)), unit),
-            "f_t": _Frame(_as32(f3.time_derivative_at(tw + 0.5)), unit),
-        }
-    fits = [
+        a = _Frame(_as32(f3.at_time(tw)), unit)
+        g = a if config.gradients == "first" else _Frame(_as32(f3.at_time(tw + 0.5)), unit)
+        return {"a": a, "g": g, "t": _Frame(_as32(f3.time_derivative_at(tw + 0.5)), unit)}
+    fa, fb = (
         fit_dct(_grey(frames[k], f"{what}[{k}]", unit, config), band=config.band)
         for k in (t, t + 1)
-    ]
-    return {"a": _Frame(fits[0], unit), "b": _Frame(fits[1], unit)}
+    )
+    a = _Frame(fa, unit)
+    if config.gradients == "first":
+        g = a
+    else:
+        g = _Frame(replace(fa, coeffs=0.5 * (fa.coeffs + fb.coeffs)), unit)
+    return {"a": a, "g": g, "t": _Frame(replace(fa, coeffs=fb.coeffs - fa.coeffs), unit)}
 
 
 def _as32(fit: DCTFit) -> DCTFit:
@@ -419,9 +438,13 @@ def estimate(
 
     n_sig = 0
     if matches is None:
-        grids = tuple(
-            PolarGrids(f=c["a"].f, f_h=c["a"].grad[0], f_theta=c["a"].grad[1]) for c in (cam1, cam2)
-        )
+        if config.match_method == "paper":  # the polar edge finder's f_h, f_theta
+            grids = tuple(
+                PolarGrids(f=c["a"].f, f_h=c["a"].grad[0], f_theta=c["a"].grad[1])
+                for c in (cam1, cam2)
+            )
+        else:  # the robust matcher differentiates its polar table of f
+            grids = tuple(PolarGrids(f=c["a"].f, f_h=None) for c in (cam1, cam2))
         timings["grids"] = time.perf_counter() - t_fit
         t_m = time.perf_counter()
         matches = match_radial(
@@ -430,6 +453,7 @@ def estimate(
             rig,
             method=config.match_method,
             threshold_percentile=config.threshold_percentile,
+            min_gradient=config.min_gradient,
             r_min=config.r_min,
             r_max=config.r_max,
             n_theta=config.n_theta,
@@ -438,12 +462,11 @@ def estimate(
             rim_margin=config.rim_margin,
             patch_radius=config.patch_radius,
             patch_lines=config.patch_lines,
-            profile_step=(
-                0.5 / config.band if config.profile_step is None else config.profile_step
-            ),
+            profile_step=config.profile_step,
             min_score=config.min_score,
             uniqueness=config.uniqueness,
             left_right=config.left_right,
+            tangential_blur=config.tangential_blur,
             grids=grids,
         )
         n_sig = matches.n_significant
@@ -465,8 +488,8 @@ def flow_at_matches(
 ) -> dict[str, NDArray]:
     """Sample gradients and temporal derivatives at the matches and solve.
 
-    ``cam1`` and ``cam2`` are the per-unit fits as built by :func:`estimate`
-    (keys ``a``, ``b`` for frames t, t + 1; ``mid``, ``f_t`` for dct3d).
+    ``cam1`` and ``cam2`` are the per-unit series as built by :func:`estimate`
+    (keys ``a``, ``g``, ``t``; see ``_fits``).
     Returns the result columns (plus a private ``_t_sample`` timing).
     """
     t0 = time.perf_counter()
@@ -475,19 +498,8 @@ def flow_at_matches(
     x2, y2 = rig.cam2.pixel_of_polar(h2, theta)
     derivs = []
     for fr, x, y in ((cam1, x1, y1), (cam2, x2, y2)):
-        sampling = config.sampling
-        if "f_t" in fr:  # 3-D DCT: analytic f_t at t + 1/2
-            f_t = _sample_f(fr["f_t"], x, y, sampling)
-            if config.gradients == "average":
-                f_h, f_th = _sample_polar_grad(fr["mid"], x, y, sampling)
-            else:
-                f_h, f_th = _sample_polar_grad(fr["a"], x, y, sampling)
-        else:  # frame difference of the fitted images (section 5.3)
-            f_t = _sample_f(fr["b"], x, y, sampling) - _sample_f(fr["a"], x, y, sampling)
-            f_h, f_th = _sample_polar_grad(fr["a"], x, y, sampling)
-            if config.gradients == "average":
-                gh, gth = _sample_polar_grad(fr["b"], x, y, sampling)
-                f_h, f_th = 0.5 * (f_h + gh), 0.5 * (f_th + gth)
+        f_h, f_th = _sample_polar_grad(fr["g"], x, y, config.sampling)
+        f_t = _sample_f(fr["t"], x, y, config.sampling)  # section 5.3
         derivs.append((f_h, f_th, f_t))
     (f1_h, f1_th, f1_t), (f2_h, f2_th, f2_t) = derivs
     t1 = time.perf_counter()
@@ -520,6 +532,9 @@ def flow_at_matches(
         (theta, h1, h2, x1, y1, x2, y2, r, h, a, b, D, conf) = (
             v[keep] for v in (theta, h1, h2, x1, y1, x2, y2, r, h, a, b, D, conf)
         )
+        (f1_h, f1_th, f1_t, f2_h, f2_th, f2_t) = (
+            v[keep] for v in (f1_h, f1_th, f1_t, f2_h, f2_th, f2_t)
+        )
         score = matches.score[keep]
     else:
         score = matches.score
@@ -549,6 +564,12 @@ def flow_at_matches(
         "score": np.asarray(score, dtype=float),
         "confidence": conf,
         "D": D,
+        "f1_h": f1_h,
+        "f1_theta": f1_th,
+        "f1_t": f1_t,
+        "f2_h": f2_h,
+        "f2_theta": f2_th,
+        "f2_t": f2_t,
         "_t_sample": t1 - t0,
     }
 

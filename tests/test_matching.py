@@ -1,0 +1,202 @@
+"""omniflow.matching: radial stereo matching (section 5.2) on closed-form scenes.
+
+A match is an outlier when |h2 - true h_other| > 1 px, where h_other is cam2's
+image radius of the scene point cam1 sees at (h1, theta) (points cam2 cannot
+see count as outliers too). Figures measured at 256 x 256 with the paper's
+rig (d = 0.10, R = 0.05, s = 0.30 m), band 0.5 as in the pipeline's default,
+with ``python -m pytest tests/test_matching.py -s`` (printed)::
+
+    scene (wall radius, texture seed)     robust: outliers  matches/significant  | paper's rule
+    striped wall 1.5 m, seeds 3 / 4        0.6 % / 0 %      1255/5581, 1950/7290 | 73 % / 66 %
+    striped wall 2 m, seeds 3 / 4          0 % / 0 %        2418/6997, 3366/9718 | 49 % / 44 %
+    striped wall 3 m, seeds 3 / 4          0 % / 0 %        4456/9944, 4942/13605| 40 % / 54 %
+    synthetic room texture 2 m / 3 m       0.9 % / 0 %      1094/7467, 2351/9695 | 86 % / 80 %
+
+With band 0.25 the robust matcher measured at most 3.9 % outliers (striped
+1.5 m, seed 3). The range of a wall is recovered to 0.01-0.12 % (median
+relative error). Without the left-right check, the uniqueness test and the
+NCC floor together, NCC alone gave 19-65 % outliers; each check alone
+removes most of them.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from omniflow_scenes import asymmetric_rig, paper_rig, true_h_other, wall_scene
+
+from omniflow.dct import fit_dct
+from omniflow.edges import polar_gradient_grid
+from omniflow.matching import Matches, match_radial, polar_gradient_fast, sample_xy
+from omniflow.pipeline import fill_outside_rim
+from omniflow.synthetic import SyntheticScene, Texture
+
+
+def _fits(scene: SyntheticScene, band: float = 0.5, **render_kw):
+    """DCT fits of both units' frame 0, prepared as the pipeline does (rim fill)."""
+    rig = scene.rig
+    out = []
+    for cam, unit in (("cam1", rig.cam1), ("cam2", rig.cam2)):
+        image = scene.render(cam, 0, dtype=np.float32, **render_kw)
+        out.append(fit_dct(fill_outside_rim(image, unit), band=band))
+    return tuple(out)
+
+
+def _outlier_rate(scene: SyntheticScene, m: Matches) -> float:
+    h2_true, _ = true_h_other(scene, m.h1, m.theta)
+    return float(np.mean(~(np.abs(m.h2 - h2_true) <= 1.0)))
+
+
+SCENES = {
+    "striped 1.5 m s3": lambda rig: wall_scene(rig, radius=1.5, seed=3),
+    "striped 1.5 m s4": lambda rig: wall_scene(rig, radius=1.5, seed=4),
+    "striped 2 m s3": lambda rig: wall_scene(rig, radius=2.0, seed=3),
+    "striped 2 m s4": lambda rig: wall_scene(rig, radius=2.0, seed=4),
+    "striped 3 m s3": lambda rig: wall_scene(rig, radius=3.0, seed=3),
+    "striped 3 m s4": lambda rig: wall_scene(rig, radius=3.0, seed=4),
+    "room 2 m": lambda rig: SyntheticScene.room(rig, wall_radius=2.0, ceiling=None, texture_seed=7),
+    "room 3 m": lambda rig: SyntheticScene.room(rig, wall_radius=3.0, ceiling=None, texture_seed=7),
+}
+
+
+@pytest.fixture(scope="module")
+def match_table():
+    rig = paper_rig()
+    rows = {}
+    for name, make in SCENES.items():
+        scene = make(rig)
+        f1, f2 = _fits(scene)
+        robust = match_radial(f1, f2, rig)
+        paper = match_radial(f1, f2, rig, method="paper")
+        rows[name] = {
+            "robust": _outlier_rate(scene, robust),
+            "paper": _outlier_rate(scene, paper),
+            "n": len(robust),
+            "n_sig": robust.n_significant,
+            "n_paper": len(paper),
+        }
+    print("\nscene               robust outliers  matches/significant   paper outliers (matches)")
+    for name, r in rows.items():
+        print(f"{name:20s} {r['robust']:10.3f} {r['n']:10d}/{r['n_sig']:<8d} "
+              f"{r['paper']:14.3f} ({r['n_paper']})")  # fmt: skip
+    return rows
+
+
+def test_robust_outliers_under_5_percent(match_table):
+    for name, row in match_table.items():
+        assert row["robust"] < 0.05, (name, row)
+        # and it does match: measured 1094 .. 4942 matches at 256 x 256
+        assert row["n"] > 800, (name, row)
+
+
+def test_paper_rule_outlier_rate_is_measured(match_table):
+    """The paper's most-similar-gradient rule is ambiguous on texture: measured
+    40-86 % outliers (OMNIFLOW_MATH.md's trial: ~90 %). Recorded, not required
+    to be good; the assertion only guards the robust method's advantage."""
+    for name, row in match_table.items():
+        assert 0.3 < row["paper"] < 0.95, (name, row)
+        assert row["robust"] < row["paper"] / 5
+
+
+@pytest.mark.parametrize("radius", [2.0, 3.0])
+def test_wall_radius_within_1_percent(radius):
+    rig = paper_rig()
+    scene = wall_scene(rig, radius=radius, seed=3)
+    m = match_radial(*_fits(scene), rig)
+    r, h = rig.triangulate(m.h1, m.h2)  # eq. (5)
+    rel = np.abs(r / radius - 1)
+    # measured: median 0.010 % (2 m) / 0.023 % (3 m); 90th percentile 0.09 % / 0.08 %
+    assert np.median(rel) < 0.01 * 0.1
+    assert np.percentile(rel, 90) < 0.01
+    assert abs(np.median(r) / radius - 1) < 0.01
+    # the heights follow eq. (4) and lie in the common field of view
+    assert np.all(h > rig.s) and np.all(h <= (rig.d + radius) * rig.R / (rig.d + rig.R) + 0.01)
+
+
+def test_band_quarter_and_asymmetric_rig():
+    """The paper's band 1/4 and a rig whose units differ in centre and rim radius."""
+    for rig, band, bound in ((paper_rig(), 0.25, 0.05), (asymmetric_rig(), 0.5, 0.05),
+                             (asymmetric_rig(), 0.25, 0.05)):  # fmt: skip
+        scene = wall_scene(rig, radius=2.0, seed=4)
+        m = match_radial(*_fits(scene, band=band), rig)
+        assert len(m) > 800
+        assert _outlier_rate(scene, m) < bound  # measured 0.1 % / 0 % / 0.8 %
+        r, _ = rig.triangulate(m.h1, m.h2)
+        assert abs(np.median(r) / 2.0 - 1) < 0.01
+
+
+def test_matches_respect_the_disparity_window():
+    rig = paper_rig()
+    scene = wall_scene(rig, radius=3.0, seed=3)
+    f1, f2 = _fits(scene)
+    for method in ("robust", "paper"):
+        m = match_radial(f1, f2, rig, method=method, r_min=1.0, r_max=5.0)
+        lo, hi = rig.disparity_window(m.h1, 1.0, 5.0)
+        assert np.all((m.h2 >= lo) & (m.h2 <= hi))
+        r, _ = rig.triangulate(m.h1, m.h2)
+        assert np.all((r >= 1.0 - 1e-9) & (r <= 5.0 + 1e-9))
+        # cam1 coordinates agree with (h1, theta)
+        x, y = rig.cam1.pixel_of_polar(m.h1, m.theta)
+        np.testing.assert_allclose(m.x, x)
+        np.testing.assert_allclose(m.y, y)
+    # a wall beyond r_max: the window excludes the true matches; the robust
+    # checks leave (almost) nothing
+    m = match_radial(f1, f2, rig, r_max=2.5)
+    assert len(m) < 0.02 * m.n_significant
+
+
+def test_textureless_wall_gives_no_matches():
+    rig = paper_rig()
+    scene = SyntheticScene.room(rig, wall_radius=2.0, ceiling=None)
+    flat = SyntheticScene(rig=rig, bodies=(
+        type(scene.bodies[0])(radius=2.0, id=1, texture=Texture.constant(0.5)),))  # fmt: skip
+    f1, f2 = _fits(flat)
+    assert len(match_radial(f1, f2, rig)) == 0
+
+
+def test_matches_from_polar_and_subset():
+    rig = paper_rig()
+    m = Matches.from_polar(rig, [0.0, np.pi / 2], [10.0, 20.0], [50.0, 70.0])
+    np.testing.assert_allclose(m.x, [rig.cam1.x_c + 10.0, rig.cam1.x_c])
+    np.testing.assert_allclose(m.y, [rig.cam1.y_c, rig.cam1.y_c + 20.0])
+    assert len(m) == 2 and np.all(m.score == 1.0)
+    s = m.subset(np.array([False, True]))
+    assert len(s) == 1 and s.h2[0] == 70.0
+
+
+def test_bad_arguments():
+    rig = paper_rig()
+    scene = wall_scene(rig)
+    f1, f2 = _fits(scene)
+    with pytest.raises(ValueError, match="method"):
+        match_radial(f1, f2, rig, method="best")
+    with pytest.raises(ValueError, match="threshold_percentile"):
+        match_radial(f1, f2, rig, threshold_percentile=100)
+    with pytest.raises(ValueError, match="r_min"):
+        match_radial(f1, f2, rig, r_min=5.0, r_max=2.0)
+    with pytest.raises(ValueError, match="fit1 and fit2"):
+        match_radial(None, f2, rig)
+
+
+def test_polar_gradient_fast_and_sampling():
+    """The cached fast path equals omniflow.edges.polar_gradient_grid (to float32
+    rounding), and remap sampling of the grid agrees with the series evaluated
+    at sub-pixel points: measured max 0.0089 (cubic) and 0.034 (linear) grey
+    levels, medians 0.0015 and 0.0023, for a texture spanning 0.1-0.9 at
+    band 0.5."""
+    rig = paper_rig()
+    scene = wall_scene(rig)
+    f1, _ = _fits(scene)
+    fh, fth = polar_gradient_fast(f1, rig.cam1)
+    gh, gth = polar_gradient_grid(f1, rig.cam1)
+    ok = np.isfinite(gh)
+    scale = np.abs(gh[ok]).max()
+    assert np.max(np.abs(fh[ok] - gh[ok])) < 1e-5 * scale
+    assert np.max(np.abs(fth - gth)) < 1e-5 * np.abs(gth).max()
+    rng = np.random.default_rng(0)
+    x = rng.uniform(40, 216, 2000)
+    y = rng.uniform(40, 216, 2000)
+    exact = f1.evaluate(x, y)
+    for interp, tol, tol_med in (("cubic", 0.012, 0.002), ("linear", 0.045, 0.003)):
+        err = np.abs(sample_xy(f1.grid(), x, y, interpolation=interp) - exact)
+        assert np.max(err) < tol and np.median(err) < tol_med, interp
