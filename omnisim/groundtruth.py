@@ -40,14 +40,20 @@ not exist) the channel holds 0; the flow and ``h_other`` are kept wherever
 ``gt.valid`` = 1, also where the corresponding ``valid`` is 0 (a point
 occluded at frame + 1 still has a well-defined image position).
 
-Accuracy: rays are computed in float64 (``omnisim.sensor.mirror_rays``),
-traced by Mitsuba/Embree in float32, and each hit is then re-intersected in
-float64 with the plane of the triangle that was hit (``prim_index`` is the
-trimesh face index), so the points obey eq. (1) to float64 round-off (the
-departure is measured in ``tests/test_groundtruth.py``). Shapes that are not
-scene objects (area-light panels) keep Embree's float32 distance and get
+Accuracy: rays are computed in float64 (the same formulas as
+``omnisim.sensor.mirror_rays``), traced by Mitsuba/Embree in float32, and
+each hit is then re-intersected in float64 with the plane of the triangle
+that was hit (``prim_index`` is the trimesh face index), so the points obey
+eq. (1) to float64 round-off before the float32 storage (max departure
+measured in ``tests/test_groundtruth.py``: ~1e-5 px, from storing r and h
+as float32). Shapes that are not scene objects (area-light panels) get
 ``gt.object`` = 0 and ``gt.valid`` = 0: they are not material points with a
-known motion.
+known motion; they do occlude.
+
+Speed: :func:`ground_truth_frame` runs every per-pixel step as fused float64
+Dr.Jit kernels (about 0.1 s per 512 x 512 stereo frame on 2 cores, a few
+percent of the render); :func:`ground_truth_reference` is the same
+computation step by step in numpy, kept as the tests' reference.
 
 The poses are defined for any frame number, so the flow of the last frame of
 a sequence is computed from the poses at frame + 1 like any other.
@@ -97,8 +103,10 @@ def trace(ms, fr: MitsubaFrame, origin: NDArray, direction: NDArray) -> tuple[ND
     """Trace world rays (N, 3) float64 through the frame's scene.
 
     Returns ``(t, obj)``: the float64 distance to the first hit (inf where
-    none; refined in float64 on the hit triangle's plane for scene objects)
-    and the object id (0 for no hit or a shape that is not an object).
+    none) and the object id (0 for no hit or a shape that is not an object).
+    Embree intersects in float32; for scene objects the distance is then
+    recomputed in float64 on the plane of the triangle that was hit
+    (``prim_index`` is the trimesh face index), in one fused Dr.Jit kernel.
     """
     mi = ensure_mitsuba()
     import drjit as dr
@@ -106,52 +114,61 @@ def trace(ms, fr: MitsubaFrame, origin: NDArray, direction: NDArray) -> tuple[ND
     n = len(origin)
     if n == 0:
         return np.zeros(0), np.zeros(0, dtype=np.int32)
-    o32 = np.ascontiguousarray(origin.T, dtype=np.float32)
-    d32 = np.ascontiguousarray(direction.T, dtype=np.float32)
-    ray = mi.Ray3f(
-        mi.Point3f(mi.Float(o32[0]), mi.Float(o32[1]), mi.Float(o32[2])),
-        mi.Vector3f(mi.Float(d32[0]), mi.Float(d32[1]), mi.Float(d32[2])),
-    )
+    tables = _tables(ms, fr)
+    f64 = mi.Float64
+    o = [f64(np.ascontiguousarray(origin[:, k])) for k in range(3)]
+    d = [f64(np.ascontiguousarray(direction[:, k])) for k in range(3)]
+    ray = mi.Ray3f(mi.Point3f(*(mi.Float(c) for c in o)), mi.Vector3f(*(mi.Float(c) for c in d)))
     pi = fr.scene.ray_intersect_preliminary(ray)
-    sid = dr.reinterpret_array(mi.UInt32, pi.shape)
-    valid = pi.is_valid()
-    dr.eval(pi.t, pi.prim_index, sid, valid)
-    t = np.array(pi.t, dtype=np.float64)
-    prim = np.array(pi.prim_index, dtype=np.int64)
-    sid = np.array(sid, dtype=np.int64)
-    hit = np.array(valid, dtype=bool)
-    t[~hit] = np.inf
-    ids = fr.shape_ids
-    obj = np.where(hit & (sid < len(ids)), ids[np.clip(sid, 0, len(ids) - 1)], 0)
-    # float64 refinement on the plane of the hit triangle
-    for oid in np.unique(obj[obj > 0]):
-        sel = np.nonzero(obj == oid)[0]
-        nrm, off = _planes(ms, fr, int(oid))
-        f = prim[sel]
-        n = nrm[f]
-        den = np.einsum("ij,ij->i", n, direction[sel])
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t64 = (off[f] - np.einsum("ij,ij->i", n, origin[sel])) / den
-        good = np.isfinite(t64) & (np.abs(t64 - t[sel]) <= 1e-3 * t[sel] + 1e-4)
-        t[sel[good]] = t64[good]
-    return t, obj.astype(np.int32)
+    hit = pi.is_valid()
+    sid = dr.select(hit, dr.reinterpret_array(mi.UInt32, pi.shape), 0)
+    obj = dr.gather(mi.UInt32, tables["obj"], sid)
+    is_obj = hit & (obj > 0)
+    face = dr.gather(mi.UInt32, tables["base"], sid) + pi.prim_index
+    nx, ny, nz, c = (dr.gather(f64, tables[k], face, is_obj) for k in ("nx", "ny", "nz", "c"))
+    den = nx * d[0] + ny * d[1] + nz * d[2]
+    t64 = (c - (nx * o[0] + ny * o[1] + nz * o[2])) / den
+    t32 = f64(pi.t)
+    close = dr.abs(t64 - t32) <= 1e-3 * t32 + 1e-4  # False for NaN / inf
+    t = dr.select(hit, dr.select(is_obj & close, t64, t32), dr.inf)
+    dr.eval(t, obj)
+    return np.array(t.numpy(), dtype=np.float64), np.array(obj.numpy(), dtype=np.int32)
 
 
-def _planes(ms, fr: MitsubaFrame, oid: int) -> tuple[NDArray, NDArray]:
-    """World-frame planes n . x = c of object ``oid``'s triangles at the slot's frame."""
-    key = (oid, fr.object_poses[oid].tobytes())
-    cache = fr.__dict__.setdefault("_planes", {})
-    hit = cache.get(key)
-    if hit is None:
-        for k in [k for k in cache if k[0] == oid]:
-            del cache[k]
-        part = ms.parts(oid)
-        pose = fr.object_poses[oid]
+def _tables(ms, fr: MitsubaFrame) -> dict:
+    """Dr.Jit lookup tables of the slot's frame: shape id -> object id and first face,
+    and every object's triangle planes n . x = c in world coordinates (float64)."""
+    mi = ensure_mitsuba()
+    key = tuple((oid, fr.object_poses[oid].tobytes()) for oid in sorted(fr.object_poses))
+    cached = fr.cache.get("tables")
+    if cached is not None and cached[0] == key:
+        return cached[1]
+    n_all, c_all, base = [], [], np.zeros(len(fr.shape_ids), dtype=np.uint32)
+    start = 0
+    for rid, oid in enumerate(fr.shape_ids):
+        if oid <= 0:
+            continue
+        part = ms.parts(int(oid))
+        pose = fr.object_poses[int(oid)]
         v = part.vertices @ pose[:3, :3].T + pose[:3, 3]
         tri = v[part.faces]
         nrm = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-        hit = cache[key] = (nrm, np.einsum("ij,ij->i", nrm, tri[:, 0]))
-    return hit
+        n_all.append(nrm)
+        c_all.append(np.einsum("ij,ij->i", nrm, tri[:, 0]))
+        base[rid] = start
+        start += len(nrm)
+    nrm = np.concatenate(n_all) if n_all else np.zeros((1, 3))
+    off = np.concatenate(c_all) if c_all else np.zeros(1)
+    tables = {
+        "obj": mi.UInt32(fr.shape_ids.astype(np.uint32)),
+        "base": mi.UInt32(base),
+        "nx": mi.Float64(np.ascontiguousarray(nrm[:, 0])),
+        "ny": mi.Float64(np.ascontiguousarray(nrm[:, 1])),
+        "nz": mi.Float64(np.ascontiguousarray(nrm[:, 2])),
+        "c": mi.Float64(off),
+    }
+    fr.cache["tables"] = (key, tables)
+    return tables
 
 
 def _cyl(q: NDArray) -> tuple[NDArray, NDArray, NDArray]:
@@ -210,13 +227,9 @@ def _same_point_batch(ms, fr: MitsubaFrame, jobs) -> list[NDArray]:
     return out
 
 
-def ground_truth_frame(scene, frame: int, cams=CAMERAS) -> dict[str, dict[str, NDArray]]:
-    """The ``gt.*`` channels of several cameras at ``frame``, traced in batches.
-
-    Tracing both cameras together needs three Mitsuba traces per frame: the
-    pixel centres at ``frame``, the flow checks at ``frame + 1`` and the
-    stereo checks at ``frame``.
-    """
+def ground_truth_reference(scene, frame: int, cams=CAMERAS) -> dict[str, dict[str, NDArray]]:
+    """:func:`ground_truth_frame` computed step by step in numpy (slower; the tests'
+    reference for the fused Dr.Jit path). Three batched traces per frame."""
     ms = get_mitsuba_scene(scene)
     fr = ms.frame(frame)
     inv_robot = _inv(fr.robot_pose)
@@ -315,6 +328,181 @@ def ground_truth_frame(scene, frame: int, cams=CAMERAS) -> dict[str, dict[str, N
         out["gt.stereo.valid"][idx] = sv
         result[cam] = {name: arr.reshape(H, W) for name, arr in out.items()}
     return result
+
+
+# ----------------------------------------------------------------------------
+# The fused Dr.Jit path (float64, multi-threaded; used by render_frame)
+# ----------------------------------------------------------------------------
+class _Consts:
+    """A unit's parameters as opaque float64 JIT scalars (no recompilation per scene)."""
+
+    def __init__(self, mi, unit):
+        import drjit as dr
+
+        def op(x):
+            return dr.opaque(mi.Float64, float(x))
+
+        self.x_c, self.y_c, self.r_m, self.v = op(unit.x_c), op(unit.y_c), op(unit.r_m), op(unit.v)
+        self.d, self.tip = op(unit.d), op(unit.tip_h)
+        self.slope = op(unit.R / (unit.d + unit.R))  # visible: h - tip <= (d + r) R / (d + R)
+        self.w, self.h = op(unit.width), op(unit.height)
+
+
+def _mat(mi, m: NDArray):
+    import drjit as dr
+
+    return [[dr.opaque(mi.Float64, float(m[i, j])) for j in range(4)] for i in range(3)]
+
+
+def _xf(m, p, translate=True):
+    return [
+        m[i][0] * p[0] + m[i][1] * p[1] + m[i][2] * p[2] + (m[i][3] if translate else 0.0)
+        for i in range(3)
+    ]
+
+
+def _dr_rays(dr, u: _Consts, x, y, pose):
+    """World reflected rays of image points (x, y): ``mirror_rays`` in Dr.Jit."""
+    dx, dy = x - u.x_c, y - u.y_c
+    h_i = dr.sqrt(dx * dx + dy * dy)
+    pos = h_i > 0
+    c = dr.select(pos, dx / h_i, 1.0)
+    s = dr.select(pos, dy / h_i, 0.0)
+    k = dr.minimum(h_i, u.r_m) / u.v
+    rho = u.d * k / (1.0 - k)
+    inv_n = 1.0 / dr.sqrt(u.v * u.v + h_i * h_i)
+    o = _xf(pose, [rho * c, rho * s, u.tip + rho])
+    w = _xf(pose, [u.v * c * inv_n, u.v * s * inv_n, h_i * inv_n], translate=False)
+    return o, w, h_i
+
+
+def _dr_trace(mi, dr, fr: MitsubaFrame, tables: dict, o, d, active):
+    """First hit (float64 distance refined on the hit triangle's plane, object id)."""
+    f64 = mi.Float64
+    ray = mi.Ray3f(mi.Point3f(*(mi.Float(c) for c in o)), mi.Vector3f(*(mi.Float(c) for c in d)))
+    pi = fr.scene.ray_intersect_preliminary(ray, active=active)
+    hit = active & pi.is_valid()
+    sid = dr.select(hit, dr.reinterpret_array(mi.UInt32, pi.shape), 0)
+    obj = dr.gather(mi.UInt32, tables["obj"], sid)
+    is_obj = hit & (obj > 0)
+    face = dr.gather(mi.UInt32, tables["base"], sid) + pi.prim_index
+    nx, ny, nz, c = (dr.gather(f64, tables[k], face, is_obj) for k in ("nx", "ny", "nz", "c"))
+    t64 = (c - (nx * o[0] + ny * o[1] + nz * o[2])) / (nx * d[0] + ny * d[1] + nz * d[2])
+    t32 = f64(pi.t)
+    close = dr.abs(t64 - t32) <= 1e-3 * t32 + 1e-4  # False for NaN / inf
+    t = dr.select(is_obj & close, t64, t32)
+    return t, dr.select(is_obj, obj, 0), is_obj
+
+
+def _dr_project(dr, u: _Consts, q):
+    """Eq. (1), (6), (7) of rig points q: (x, y, h_i, seen on the mirror and in the image)."""
+    r = dr.sqrt(q[0] * q[0] + q[1] * q[1])
+    rel = q[2] - u.tip
+    h_i = u.v * rel / (u.d + r)
+    x = u.x_c + h_i * q[0] / r
+    y = u.y_c + h_i * q[1] / r
+    k = rel / (u.d + r)
+    rho = u.d * k / (1.0 - k)
+    seen = (rel > 0) & (rel <= (u.d + r) * u.slope) & (r >= rho) & (r > 0)
+    seen &= (x >= 0) & (x < u.w) & (y >= 0) & (y < u.h)
+    return x, y, h_i, seen
+
+
+def _move_table(mi, fr0: MitsubaFrame, fr1: MitsubaFrame):
+    """12 float64 arrays indexed by object id: pose(t + 1) inv(pose(t))."""
+    n = max(fr0.object_poses, default=0) + 1
+    tab = np.zeros((12, n))
+    for oid, p0 in fr0.object_poses.items():
+        tab[:, oid] = (fr1.object_poses[oid] @ _inv(p0))[:3].ravel()
+    return [mi.Float64(np.ascontiguousarray(row)) for row in tab]
+
+
+def _dr_camera(mi, dr, ms, scene, fr, fr1, cam: str) -> dict[str, NDArray]:
+    unit = _unit(scene, cam)
+    other = _unit(scene, CAMERAS[1 - CAMERAS.index(cam)])
+    u, uo = _Consts(mi, unit), _Consts(mi, other)
+    f64 = mi.Float64
+    tab0, tab1 = _tables(ms, fr), _tables(ms, fr1)
+    pose0, pose1 = _mat(mi, fr.robot_pose), _mat(mi, fr1.robot_pose)
+    inv0, inv1 = _mat(mi, _inv(fr.robot_pose)), _mat(mi, _inv(fr1.robot_pose))
+    idx = dr.arange(mi.UInt32, unit.width * unit.height)
+    x = f64(idx % unit.width) + 0.5
+    y = f64(idx // unit.width) + 0.5
+    # 1. the pixel centre's reflected ray at this frame
+    o, d, h_i = _dr_rays(dr, u, x, y, pose0)
+    t, obj, valid = _dr_trace(mi, dr, fr, tab0, o, d, h_i <= u.r_m)
+    p = [o[k] + t * d[k] for k in range(3)]
+    q = _xf(inv0, p)
+    # 2. flow: the material point at frame + 1, its image, and the visibility trace
+    mv = [dr.gather(f64, row, obj, valid) for row in _move_table(mi, fr, fr1)]
+    mvm = [mv[0:4], mv[4:8], mv[8:12]]
+    p1 = _xf(mvm, p)
+    q1 = _xf(inv1, p1)
+    x1, y1, h_i1, seen1 = _dr_project(dr, u, q1)
+    o1, d1, _ = _dr_rays(dr, u, x1, y1, pose1)
+    t1, obj1, _ = _dr_trace(mi, dr, fr1, tab1, o1, d1, valid & seen1)
+    t1_exp = dr.norm(mi.Vector3d(*(p1[k] - o1[k] for k in range(3))))
+    flow_ok = valid & seen1 & (obj1 == obj)
+    flow_ok &= dr.abs(t1 - t1_exp) <= TRACE_TOL_REL * t1_exp + TRACE_TOL_ABS
+    fin1 = valid & (h_i1 > 0) & dr.isfinite(x1) & dr.isfinite(y1)
+    # dtheta = angle from the pixel's azimuth (dx, dy) to q1's, wrapped to [-pi, pi)
+    dxp, dyp = x - u.x_c, y - u.y_c
+    dtheta = dr.atan2(dxp * q1[1] - dyp * q1[0], dxp * q1[0] + dyp * q1[1])
+    # 3. stereo: the same point in the other unit at this frame
+    xo, yo, h_o, seen_o = _dr_project(dr, uo, q)
+    oo, do, _ = _dr_rays(dr, uo, xo, yo, pose0)
+    to, objo, _ = _dr_trace(mi, dr, fr, tab0, oo, do, valid & seen_o)
+    to_exp = dr.norm(mi.Vector3d(*(p[k] - oo[k] for k in range(3))))
+    stereo_ok = valid & seen_o & (objo == obj)
+    stereo_ok &= dr.abs(to - to_exp) <= TRACE_TOL_REL * to_exp + TRACE_TOL_ABS
+
+    f32 = mi.Float
+
+    def ch(value, mask=valid):
+        return f32(dr.select(mask, value, 0.0))
+
+    r = dr.sqrt(q[0] * q[0] + q[1] * q[1])
+    out = {
+        "gt.valid": f32(dr.select(valid, 1.0, 0.0)),
+        "gt.r": ch(r),
+        "gt.theta": ch(dr.atan2(q[1], q[0])),
+        "gt.h": ch(q[2]),
+        "gt.X": ch(p[0]),
+        "gt.Y": ch(p[1]),
+        "gt.Z": ch(p[2]),
+        "gt.object": f32(obj),
+        "gt.flow.dx": ch(x1 - x, fin1),
+        "gt.flow.dy": ch(y1 - y, fin1),
+        "gt.flow.dh": ch(h_i1 - h_i, fin1),
+        "gt.flow.hdtheta": ch(h_i * dtheta, fin1),
+        "gt.flow.valid": f32(dr.select(flow_ok & fin1, 1.0, 0.0)),
+        "gt.stereo.h_other": ch(h_o, valid & dr.isfinite(h_o)),
+        "gt.stereo.valid": f32(dr.select(stereo_ok, 1.0, 0.0)),
+    }
+    dr.eval(*out.values())
+    shape = (unit.height, unit.width)
+    return {
+        name: np.array(arr.numpy(), dtype=np.float32).reshape(shape) for name, arr in out.items()
+    }
+
+
+def ground_truth_frame(scene, frame: int, cams=CAMERAS) -> dict[str, dict[str, NDArray]]:
+    """The ``gt.*`` channels of several cameras at ``frame`` (module docstring).
+
+    Everything per pixel (rays, the three traces per camera: this frame,
+    the flow check at frame + 1 and the stereo check, the projections) runs
+    as float64 Dr.Jit kernels; every per-frame number is an opaque JIT
+    scalar or an array, so the kernels compile once per process.
+    """
+    mi = ensure_mitsuba()
+    import drjit as dr
+
+    ms = get_mitsuba_scene(scene)
+    fr = ms.frame(frame)
+    fr1 = ms.frame(frame + 1)
+    for cam in cams:
+        _unit(scene, cam)
+    return {cam: _dr_camera(mi, dr, ms, scene, fr, fr1, cam) for cam in cams}
 
 
 def ground_truth(scene, frame: int, cam: str) -> dict[str, NDArray[np.float32]]:

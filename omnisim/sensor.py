@@ -40,8 +40,16 @@ unit's mirror can never be hit, because
   Z <= R < s.
 
 Neither fan re-enters its own cone either (the rays leave the convex cone
-outward). Numerical departure from eq. (1): see ``geometry_error`` and the
-figures in ``tests/test_sensor.py`` / ``benchmarks/bench_render.py``.
+outward).
+
+Numerical departure from eq. (1): the sensor computes the ray in float32
+from the continuous film position (exact for the pixel centres of power-of-
+two image sizes). Tracing each pixel centre's float32 ray through Mitsuba
+and putting the hit's (r, h) through eq. (1) gives h_i within 6.4e-5 px of
+the pixel's own (max over a 512 x 512 image, a cylinder wall at 2.5 m around
+the axis; ``tests/test_sensor.py``) and within 1e-3 px max, 3e-5 px rms on
+the default scene's walls, pillar and crate (``benchmarks/bench_render.py``):
+far under the 0.02 px target, float32 round-off only.
 """
 
 from __future__ import annotations
