@@ -312,23 +312,30 @@ def _unit(rig: Rig, cam: str | Unit) -> tuple[Unit, Unit]:
     raise ValueError(f"cam = {cam!r}: expected 'cam1' or 'cam2'")
 
 
-def rim_coverage(unit: Unit, *, samples: int = 16, radius: float | None = None) -> NDArray:
+def rim_coverage(unit: Unit, *, samples: int = 32, radius: float | None = None) -> NDArray:
     """Fraction of each pixel's area inside the rim circle, shape (H, W).
 
-    Exact (0 or 1) away from the rim; pixels the circle crosses are integrated
-    with ``samples`` x ``samples`` sub-pixel points (area error <= ~1/samples^2
-    per pixel in practice, unbiased on average).
+    0 or 1 away from the rim. For pixels the circle crosses, the covered
+    length of each line across the pixel is exact (the circle's chord clipped
+    to the pixel) and is integrated with ``samples``-point Gauss-Legendre
+    quadrature, across x or y, whichever the boundary is a smooth graph of
+    (per-pixel area error < 2e-4 at the default: measured against 512 points).
     """
     r_m = unit.r_m if radius is None else radius
     x, y = unit.pixel_centres()
     dist = np.hypot(x - unit.x_c, y - unit.y_c)
     cov = (dist <= r_m).astype(float)
     edge = np.abs(dist - r_m) < 0.75  # half a pixel diagonal is 0.707
-    offs = (np.arange(samples) + 0.5) / samples - 0.5
-    ox, oy = np.meshgrid(offs, offs)
-    sx = x[edge][:, None] + ox.ravel()
-    sy = y[edge][:, None] + oy.ravel()
-    cov[edge] = np.mean(np.hypot(sx - unit.x_c, sy - unit.y_c) <= r_m, axis=1)
+    nodes, weights = np.polynomial.legendre.leggauss(samples)
+    # Integrate along the axis in which the circle's boundary is a smooth graph:
+    # across x where the boundary runs more horizontally, across y elsewhere.
+    ex, ey = x[edge] - unit.x_c, y[edge] - unit.y_c
+    along_x = np.abs(ey) >= np.abs(ex)
+    a = np.where(along_x, ex, ey)[:, None] + 0.5 * nodes  # integration variable
+    b0 = np.where(along_x, ey, ex)[:, None] - 0.5  # the other axis: [b0, b0 + 1)
+    half = np.sqrt(np.clip(r_m * r_m - a * a, 0.0, None))  # half chord at each a
+    covered = np.clip(np.minimum(b0 + 1.0, half) - np.maximum(b0, -half), 0.0, 1.0)
+    cov[edge] = 0.5 * covered @ weights  # the pixel is 1 wide: the weights sum to 2
     return cov
 
 
