@@ -14,7 +14,8 @@ axis rescaled: ``c = a * dctn(f) / (4 X Y)``.
 Two evaluation paths:
 
 * at arbitrary points (``evaluate``, ``gradient``): cosine/sine tables of the
-  points times the coefficient matrix (two matrix products, no Python loop);
+  points (running products of exp(i pi x / X)) times the coefficient matrix
+  (matrix products, no Python loop over coefficients);
 * on every pixel centre (``grid``, ``grid_gradient``): the zero-padded
   coefficients through scipy's DCT-III, and for the derivatives the DST-III of
   the frequency-weighted coefficients, since
@@ -24,6 +25,9 @@ Two evaluation paths:
 axis, so f_t is analytic. Time convention: frame k sits at t = k, and the
 time basis is cos(pi k' (t + 1/2) / T), the same half-sample convention as the
 pixels (frame k's "centre" is at k + 1/2 in the DCT's own coordinate).
+The plain cosine series has zero slope at the window's ends, which biases f_t
+(by pi / 3 halfway between the frames of a 3-frame window for linear change);
+``detrend=True`` removes a per-pixel straight line first and is exact there.
 """
 
 from __future__ import annotations
