@@ -306,7 +306,7 @@ def apply_overrides(data: dict, overrides: Mapping[str, Any] | None, where: str)
         elif isinstance(node, dict):
             node[last] = value
         else:
-            raise SceneError(f"{where}: override {key!r}: cannot set {last!r} there")
+            raise SceneError(f"{where}: override {key!r}: {'.'.join(parts[:-1])} is not a table")
     return out
 
 
@@ -321,12 +321,12 @@ class _Checker:
     """Reads typed values out of tables, raising SceneError naming file and key."""
 
     def __init__(self, file: Path, overridden: set[str]):
-        self.file = file
+        self.scene_file = file
         self.overridden = overridden
 
     def error(self, key: str, msg: str) -> SceneError:
         note = " (set by an override)" if key in self.overridden else ""
-        return SceneError(f"{self.file}: {key}{note}: {msg}")
+        return SceneError(f"{self.scene_file}: {key}{note}: {msg}")
 
     def bad(self, key: str, value: Any, expected: str) -> SceneError:
         return self.error(key, f"got {value!r}, expected {expected}")
@@ -420,6 +420,8 @@ class _Checker:
         scalar_ok: bool = False,
     ) -> NDArray[np.float64]:
         full, v = self._get(tbl, key, where, default)
+        if key not in tbl:
+            return np.asarray(v, dtype=np.float64)
         unit = _range_text("numbers", lo, hi, lo_open)
         expected = f"a list of {n} {unit}" + (" (or one number)" if scalar_ok else "")
         if scalar_ok and isinstance(v, int | float) and not isinstance(v, bool):
@@ -601,8 +603,12 @@ def _rig(chk: _Checker, tbl: Any, render: RenderSettings, path: Path) -> Rig:
     x_c = chk.number(tbl, "x_c", "rig", w / 2.0)
     y_c = chk.number(tbl, "y_c", "rig", h / 2.0)
     r_m = chk.number(tbl, "r_m", "rig", min(w, h) / 2.0 - margin, lo=0, lo_open=True)
+    for key, val, size in (("x_c", x_c, w), ("y_c", y_c, h)):
+        if not 0 <= val <= size:
+            raise chk.bad(f"rig.{key}", val, f"a centre inside the image, in [0, {size}] px")
     if x_c - r_m < 0 or y_c - r_m < 0 or x_c + r_m > w or y_c + r_m > h:
-        key = "rig.r_m" if "r_m" in tbl else "rig.margin"
+        given = [k for k in ("r_m", "x_c", "y_c") if k in tbl]
+        key = "rig." + (given[0] if given else "margin")
         raise chk.error(
             key,
             f"the rim circle (centre ({x_c:g}, {y_c:g}), radius {r_m:g} px) leaves the "
