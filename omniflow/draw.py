@@ -143,7 +143,7 @@ def draw_flow_arrows(
     dy: ArrayLike,
     *,
     scale: float | None = None,
-    max_arrows: int = 1500,
+    max_arrows: int | None = None,
     color: tuple[int, int, int] | None = None,
     thickness: int = 1,
     legend: bool = True,
@@ -163,9 +163,9 @@ def draw_flow_arrows(
     scale : float, optional
         Drawing magnification. Default: the 95th percentile magnitude is drawn
         3 % of the image's larger side long. Written in the legend.
-    max_arrows : int
+    max_arrows : int, optional
         At most this many arrows (a seeded random subset) so the picture stays
-        readable.
+        readable. Default: one per 200 pixels of the image (at least 50).
     color : (r, g, b), optional
         One colour for all arrows. Default: each arrow in its Middlebury colour.
     legend : bool
@@ -183,6 +183,8 @@ def draw_flow_arrows(
     if scale is None:
         p95 = float(np.percentile(mag, 95)) if mag.size else 0.0
         scale = 0.03 * max(canvas.shape[:2]) / p95 if p95 > 0 else 1.0
+    if max_arrows is None:
+        max_arrows = max(50, canvas.shape[0] * canvas.shape[1] // 200)
     if x.size > max_arrows:
         keep = np.random.default_rng(seed).choice(x.size, max_arrows, replace=False)
         x, y, dx, dy, mag = x[keep], y[keep], dx[keep], dy[keep], mag[keep]
