@@ -124,6 +124,26 @@ def test_report_files(oracle_report):
     assert all(math.isfinite(r["time_ms"]) for r in table)
 
 
+def test_a_failing_method_is_reported_not_fatal(synth, tmp_path):
+    def broken(*args, **kwargs):
+        raise ValueError("no matches\nsecond line")
+
+    res = run_validation(
+        synth,
+        variants=[("broken", OracleConfig())],
+        estimate=broken,
+        baselines=["DIS-medium"],
+        progress=False,
+    )
+    assert res.notes == [
+        "broken failed on frame pair(s) 0 -> 1, 1 -> 2: ValueError: no matches "
+        "(scored as no points)"
+    ]
+    summary = write_report(res, tmp_path / "r")
+    assert find_method(summary, "broken")["flow"]["cam1"]["all"]["n"] == 0
+    assert "failed on frame pair(s) 0 -> 1, 1 -> 2" in (tmp_path / "r" / "report.md").read_text()
+
+
 # -- thresholds --------------------------------------------------------------------------------
 
 

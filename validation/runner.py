@@ -22,6 +22,7 @@ import dataclasses
 import itertools
 import math
 import time
+import warnings
 from collections import defaultdict
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
@@ -129,6 +130,20 @@ def omniflow_variants(mode: str = "all") -> list[tuple[str, Any]]:
 
 class InputError(ValueError):
     """The dataset or the request cannot be scored (the message says why)."""
+
+
+#: Columns the harness reads from OmniFlowResult.columns.
+RESULT_COLUMNS = ("x", "y", "theta", "h1", "h2", "r", "h", "dh1_dt", "dtheta_dt", "dr_dt", "dx",
+                  "dy", "x2", "y2", "dh2_dt", "dx2", "dy2")  # fmt: skip
+
+
+class _FailedResult:
+    """Stands in for the result of an estimate that raised: no points."""
+
+    def __init__(self) -> None:
+        self.columns = {k: np.zeros(0) for k in RESULT_COLUMNS}
+        self.timings: dict[str, float] = {}
+        self.n_significant = None
 
 
 # -- results container ---------------------------------------------------------------
@@ -255,6 +270,7 @@ def _score_flow(
     )
     err["noc"] = tr["gt.flow.valid"][has] > 0.5
     err["range"] = tr["gt.r"][has]
+    err["object"] = tr["gt.object"][has]
     err["n_points"] = np.asarray(x).size
     return err
 
@@ -281,6 +297,7 @@ def _score_dense(
     err = flow_errors({k: v[has] for k, v in est.items()}, {k: v[has] for k, v in gt.items()})
     err["noc"] = truth["gt.flow.valid"][ii, jj][has] > 0.5
     err["range"] = truth["gt.r"][ii, jj][has].astype(np.float64)
+    err["object"] = truth["gt.object"][ii, jj][has].astype(np.float64)
     err["n_points"] = x.size
     return err
 
@@ -399,6 +416,7 @@ def run_validation(
             "size": [rig.cam1.width, rig.cam1.height],
             "rig": {"d": rig.d, "R": rig.R, "s": rig.s},
             "render": meta.get("render", {}),
+            "objects": {str(k): v for k, v in ds.objects.items()},
         },
         methods=[
             MethodInfo(name, "omniflow", _config_dict(cfg), i == 0)
@@ -470,8 +488,26 @@ def run_validation(
                 else:
                     t_rel = t - start
                 t0 = time.perf_counter()
-                res = estimate(g1, g2, rig, cfg, t=t_rel)
+                # Warnings and errors of a method are results, reported, not the end of the run.
+                with warnings.catch_warnings(record=True) as caught:
+                    warnings.simplefilter("always")
+                    try:
+                        res = estimate(g1, g2, rig, cfg, t=t_rel)
+                    except Exception as exc:
+                        res = _FailedResult()
+                        msg = str(exc).splitlines()[0] if str(exc) else ""
+                        results.notes.append(
+                            f"{name} failed on frame pair {t} -> {t + 1}: "
+                            f"{type(exc).__name__}: {msg} (scored as no points)"
+                        )
                 seconds = time.perf_counter() - t0
+                if caught:
+                    w0 = caught[0]
+                    results.notes.append(
+                        f"{name} emitted {len(caught)} warning(s) on frame pair {t} -> {t + 1}; "
+                        f"first: {w0.category.__name__}: {w0.message} "
+                        f"({Path(w0.filename).name}:{w0.lineno})"
+                    )
                 results.times[name].append(seconds)
                 for stage, sec in (getattr(res, "timings", None) or {}).items():
                     results.stages[name][stage] += float(sec)
@@ -519,9 +555,7 @@ def run_validation(
                         )
 
             if results.snapshot is None:
-                pan = None
-                if any(b.endswith("panorama") for b in baselines) or True:
-                    pan = bl.unwarp_u8(first["cam1"], units["cam1"])
+                pan = bl.unwarp_u8(first["cam1"], units["cam1"])
                 results.snapshot = FramePair(
                     t=t,
                     images={cam: first[cam] for cam in CAMERAS},
@@ -538,7 +572,23 @@ def run_validation(
                 )
     finally:
         bar.close()
+    results.notes = _compact_notes(results.notes)
     return results
+
+
+def _compact_notes(notes: list[str]) -> list[str]:
+    """Merge notes that differ only in their frame pair: '... on frame pairs 0 -> 1, 1 -> 2 ...'."""
+    import re
+
+    merged: dict[str, list[str]] = {}
+    for note in notes:
+        m = re.search(r" on frame pair (\d+ -> \d+)", note)
+        key = note if m is None else note.replace(m.group(0), " on frame pair(s) {}")
+        merged.setdefault(key, []).append("" if m is None else m.group(1))
+    return [
+        key.replace("{}", ", ".join(p for p in pairs if p)) if "{}" in key else key
+        for key, pairs in merged.items()
+    ]
 
 
 def _dense_array(field_: Any, truth: dict[str, NDArray]) -> NDArray:

@@ -29,7 +29,7 @@ def _concat(frames: Iterable[Mapping[str, NDArray]], keys: Iterable[str]) -> dic
     }
 
 
-_FLOW_KEYS = ("epe", "err_dh", "err_hdtheta", "ae", "speed", "noc", "range")
+_FLOW_KEYS = ("epe", "err_dh", "err_hdtheta", "ae", "speed", "noc", "range", "object")
 _STEREO_KEYS = ("err_h2", "rel_r", "err_h", "range")
 
 
@@ -45,12 +45,23 @@ def pooled_flow(results: Results, method: str, points: str, cam: str) -> dict[st
 
 def _flow_block(results: Results, method: str, points: str) -> dict[str, Any]:
     out = {}
+    names = results.dataset.get("objects", {})
     for cam in ("cam1", "cam2"):
         err = pooled_flow(results, method, points, cam)
         if err is None:
             continue
         s = flow_summary(err, err["noc"])
         s["n_points"] = err["n_points"]
+        # Per object (gt.object, named as in dataset.json), e.g. a mover vs the static room.
+        s["objects"] = {}
+        ids = np.rint(err["object"]).astype(np.int64)
+        every = {int(k) for k in names} | {int(i) for i in np.unique(ids)}
+        for oid in sorted(every):
+            sel = ids == oid
+            sub = {k: v[sel] for k, v in err.items() if isinstance(v, np.ndarray)}
+            block = flow_summary(sub, sub["noc"])
+            del block["speed"]
+            s["objects"][names.get(str(int(oid)), f"id{int(oid)}")] = block["all"]
         out[cam] = s
     return out
 

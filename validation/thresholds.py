@@ -30,10 +30,29 @@ from typing import Any
 
 from .summary import get_path
 
-__all__ = ["Check", "ThresholdError", "check_summary", "format_checks", "load_thresholds"]
+__all__ = [
+    "SCENE_KEYS",
+    "Check",
+    "ThresholdError",
+    "check_summary",
+    "format_checks",
+    "load_thresholds",
+]
 
 _DEFAULT_FILE = Path(__file__).with_name("thresholds.toml")
 _CHECK_KEYS = {"method", "points", "metric", "max", "min", "measured", "margin", "note"}
+#: Keys of a [scenes.KEY] table besides its checks: how the end-to-end test makes the dataset.
+SCENE_KEYS = {
+    "scene",
+    "resolution",
+    "spp",
+    "frames",
+    "seed",
+    "variants",
+    "description",
+    "dataset",
+    "check",
+}
 
 
 class ThresholdError(ValueError):
@@ -51,6 +70,7 @@ class Check:
     max: float | None
     measured: float | None
     passed: bool
+    note: str = ""
 
     def line(self) -> str:
         bound = " and ".join(
@@ -82,7 +102,15 @@ def load_thresholds(path: str | Path | None = None) -> dict[str, Any]:
     if not isinstance(scenes, dict) or not scenes:
         raise ThresholdError(f"{path}: expected [scenes.NAME] tables")
     for name, scene in scenes.items():
-        checks = scene.get("check") if isinstance(scene, dict) else None
+        if not isinstance(scene, dict):
+            raise ThresholdError(f"{path}: scenes.{name}: expected a table")
+        unknown = set(scene) - SCENE_KEYS
+        if unknown:
+            raise ThresholdError(
+                f"{path}: scenes.{name}: unknown key(s) {sorted(unknown)}; "
+                f"expected {sorted(SCENE_KEYS)}"
+            )
+        checks = scene.get("check")
         if not isinstance(checks, list) or not checks:
             raise ThresholdError(f"{path}: scenes.{name}: expected [[scenes.{name}.check]] entries")
         for i, c in enumerate(checks):
@@ -149,6 +177,7 @@ def check_summary(
                 max=c.get("max"),
                 measured=c.get("measured"),
                 passed=bool(ok),
+                note=c.get("note", ""),
             )
         )
     return out

@@ -1,0 +1,230 @@
+"""Measure the bounds of ``validation/thresholds.toml`` from the current method.
+
+    python -m validation.calibrate [--seeds 0 1 2] [--work runs/calibrate] [--scenes KEY ...]
+                                   [--write]
+
+The thresholds file says *what* is checked (scene, method, metric, and whether
+the figure has an upper bound ``max`` or a lower bound ``min``); this tool says
+*where* each bound goes, so that no threshold is guessed:
+
+1. For each ``[scenes.KEY]`` it makes the dataset the end-to-end test makes
+   (``omnisim render SCENE --resolution R --spp S --frames F --seed N``, or the
+   closed-form demo of :mod:`validation.synthdata` for ``scene =
+   "synthetic:demo"``), once per seed, and runs the harness on it.
+2. ``measured`` is the figure at the table's own ``seed`` (what CI sees: renders
+   are deterministic for a seed).
+3. The margin covers what legitimately moves a figure: render noise (the spread
+   over the seeds, which re-draws every pixel's noise; for the closed-form scene,
+   the texture) and platform differences (LLVM, OpenCV builds). An upper bound is
+   1.25 x the worst value over the seeds; a lower bound 0.8 x the lowest (both
+   rounded outward to 3 significant digits). A worse figure beyond that is a
+   regression; a better one should be re-measured (the check prints
+   ``[improved: tighten this threshold]``).
+
+The tool prints the new file; ``--write`` replaces ``validation/thresholds.toml``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import subprocess
+import sys
+import tomllib
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from .summary import get_path
+
+__all__ = ["main", "make_dataset"]
+
+HERE = Path(__file__).resolve().parent
+DEFAULT_FILE = HERE / "thresholds.toml"
+REPO = HERE.parent
+UPPER = 1.25
+LOWER = 0.8
+
+
+def make_dataset(spec: dict[str, Any], out: Path, seed: int) -> Path:
+    """Make the dataset a ``[scenes.KEY]`` table describes (render or closed form)."""
+    scene = spec["scene"]
+    if scene == "synthetic:demo":
+        from .synthdata import demo_scene, write_synthetic_dataset
+
+        write_synthetic_dataset(
+            out,
+            demo_scene(int(spec["resolution"]), seed=3 + seed),
+            int(spec["frames"]),
+            name="synthetic-demo",
+        )
+        return out
+    cmd = [
+        sys.executable,
+        "-m",
+        "omnisim.cli",
+        "render",
+        str(REPO / scene),
+        "--out",
+        str(out),
+        "--resolution",
+        str(spec["resolution"]),
+        "--spp",
+        str(spec["spp"]),
+        "--frames",
+        str(spec["frames"]),
+        "--seed",
+        str(seed),
+        "--no-progress",
+    ]
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise RuntimeError(f"render failed ({' '.join(cmd)}):\n{proc.stderr[-3000:]}")
+    return out
+
+
+def _summary(spec: dict[str, Any], dataset: Path, report: Path) -> dict[str, Any]:
+    from .report import write_report
+    from .runner import run_validation
+
+    res = run_validation(dataset, variants=spec.get("variants", "all"), progress=False)
+    return write_report(res, report)
+
+
+def _entry(summary: dict[str, Any], method: str, points: str | None) -> dict[str, Any]:
+    for m in summary["methods"]:
+        if (m["name"] == method or (method == "default" and m.get("default"))) and (
+            points is None or m["points"] == points
+        ):
+            return m
+    raise KeyError(f"method {method!r} ({points}) not in the summary")
+
+
+def _round_out(v: float, up: bool) -> float:
+    if v == 0 or not math.isfinite(v):
+        return v
+    e = math.floor(math.log10(abs(v))) - 2
+    q = v / 10**e
+    q = math.ceil(q) if up else math.floor(q)
+    return float(f"{q * 10**e:.6g}")
+
+
+def _fmt(v: Any) -> str:
+    if isinstance(v, str):
+        return json.dumps(v)
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, float):
+        if math.isnan(v):
+            return "nan"
+        return repr(float(f"{v:.6g}"))
+    return str(v)
+
+
+def _render_file(header: str, scenes: dict[str, Any]) -> str:
+    out = [header.rstrip(), ""]
+    for key, spec in scenes.items():
+        out.append(f"[scenes.{key}]")
+        for k in ("description", "scene", "resolution", "spp", "frames", "seed", "variants"):
+            if k in spec:
+                out.append(f"{k} = {_fmt(spec[k])}")
+        out.append("")
+        for c in spec["check"]:
+            out.append(f"[[scenes.{key}.check]]")
+            for k in ("method", "points", "metric", "min", "max", "measured", "margin", "note"):
+                if k in c:
+                    out.append(f"{k} = {_fmt(c[k])}")
+            out.append("")
+    return "\n".join(out).rstrip() + "\n"
+
+
+def _header(text: str) -> str:
+    lines = []
+    for line in text.splitlines():
+        if line.startswith("[") or (line.strip() and not line.startswith("#")):
+            break
+        lines.append(line)
+    return "\n".join(lines)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(
+        prog="python -m validation.calibrate",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    ap.add_argument(
+        "--file", default=str(DEFAULT_FILE), help="thresholds file (default: %(default)s)"
+    )
+    ap.add_argument(
+        "--seeds",
+        type=int,
+        nargs="+",
+        default=[0, 1, 2],
+        help="render seeds to measure over (default: 0 1 2)",
+    )
+    ap.add_argument(
+        "--work", default="runs/calibrate", help="datasets and reports (default: %(default)s)"
+    )
+    ap.add_argument("--scenes", nargs="*", default=None, help="only these [scenes.KEY] tables")
+    ap.add_argument("--write", action="store_true", help="replace the thresholds file")
+    args = ap.parse_args(argv)
+
+    path = Path(args.file)
+    text = path.read_text()
+    data = tomllib.loads(text)
+    scenes = data["scenes"]
+    work = Path(args.work)
+    for key, spec in scenes.items():
+        if args.scenes and key not in args.scenes:
+            continue
+        seeds = sorted(set(args.seeds) | {int(spec.get("seed", 0))})
+        values: dict[int, list[float]] = {i: [] for i in range(len(spec["check"]))}
+        own: dict[int, float] = {}
+        for seed in seeds:
+            ds = make_dataset(spec, work / f"{key}-seed{seed}", seed)
+            summary = _summary(spec, ds, work / f"{key}-seed{seed}-report")
+            for i, c in enumerate(spec["check"]):
+                try:
+                    v = get_path(_entry(summary, c["method"], c.get("points")), c["metric"])
+                except KeyError as exc:
+                    print(f"{key} seed {seed}: {exc}", file=sys.stderr)
+                    v = None
+                v = math.nan if v is None else float(v)
+                values[i].append(v)
+                if seed == int(spec.get("seed", 0)):
+                    own[i] = v
+            print(f"{key} seed {seed}: done", file=sys.stderr)
+        for i, c in enumerate(spec["check"]):
+            vals = [v for v in values[i] if math.isfinite(v)]
+            shown = ", ".join(f"{v:.4g}" for v in values[i])
+            c["measured"] = own[i]
+            if not vals:
+                c["margin"] = f"not measurable: seeds {seeds} gave {shown}"
+                continue
+            if "max" in c:
+                worst = max(vals)
+                c["max"] = _round_out(worst * UPPER if worst > 0 else 0.01, up=True)
+                c["margin"] = (
+                    f"{UPPER} x the worst of seeds {seeds} ({shown}), rounded up; "
+                    "covers render noise and platform differences"
+                )
+            if "min" in c:
+                low = min(vals)
+                c["min"] = _round_out(low * LOWER, up=False)
+                c["margin"] = (
+                    f"{LOWER} x the lowest of seeds {seeds} ({shown}), rounded down; "
+                    "covers render noise and platform differences"
+                )
+    new = _render_file(_header(text), scenes)
+    if args.write:
+        path.write_text(new)
+        print(f"wrote {path}", file=sys.stderr)
+    else:
+        print(new)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
