@@ -10,10 +10,12 @@ Public functions (docs/INTERFACES.md):
 
 Scene content -> Mitsuba: each object's trimesh mesh becomes an ``mi.Mesh``
 built from arrays (vertices, faces, per-vertex UVs, in the object's original
-face order so a hit's ``prim_index`` is the trimesh face index; flat
-shading), placed in the world by ``object.pose(frame)``; its texture becomes
-a ``bitmap`` texture (linear float32, bilinear, repeat; the texel convention
-of ``omnisim.textures``: row 0 at v = 0, which is Mitsuba's for UVs given as
+face order so a hit's ``prim_index`` is the trimesh face index; shading
+normals are trimesh's vertex normals: smooth on curved parts, flat where
+the scene's meshes split vertices at creases), placed in the world by
+``object.pose(frame)``; its texture becomes a ``bitmap`` texture (linear
+float32, bilinear, repeat; the texel convention of ``omnisim.textures``:
+row 0 at v = 0, which is Mitsuba's for UVs given as
 arrays); its material a BSDF (``diffuse``, ``plastic``/``roughplastic``,
 ``conductor``, ``roughconductor``; ``twosided`` unless the material says
 otherwise). Lights: ``area`` (a one-sided emitting rectangle placed by
@@ -113,6 +115,7 @@ class _ObjectParts:
     vertices: NDArray  # (V, 3) float64, object frame
     faces: NDArray  # (F, 3) int64
     uv: NDArray  # (V, 2) float32
+    normals: NDArray  # (V, 3) float64, object frame (trimesh's smooth vertex normals)
     bsdf: Any
     static: bool
     static_mesh: Any = None
@@ -195,7 +198,9 @@ class MitsubaScene:
             ids[rid] = oid
         params = mi.traverse(mscene)
         moving = [p.id for p in self.objects if not p.static]
-        params.keep([f"obj{oid}.vertex_positions" for oid in moving])
+        params.keep(
+            [f"obj{oid}.{key}" for oid in moving for key in ("vertex_positions", "vertex_normals")]
+        )
         robot = _pose(self.scene.robot.pose(frame))
         return MitsubaFrame(
             frame=frame,
@@ -215,6 +220,10 @@ class MitsubaScene:
                 v = part.vertices @ poses[part.id][:3, :3].T + poses[part.id][:3, 3]
                 slot.params[f"obj{part.id}.vertex_positions"] = mi.Float(
                     np.ascontiguousarray(v, dtype=np.float32).ravel()
+                )
+                n = part.normals @ poses[part.id][:3, :3].T
+                slot.params[f"obj{part.id}.vertex_normals"] = mi.Float(
+                    np.ascontiguousarray(n, dtype=np.float32).ravel()
                 )
         slot.params.update()
         slot.frame = frame
@@ -282,6 +291,7 @@ def _object_parts(mi, obj, frames: int) -> _ObjectParts:
         vertices=vertices,
         faces=faces,
         uv=uv_mi,
+        normals=np.asarray(mesh.vertex_normals, dtype=np.float64),
         bsdf=bsdf,
         static=_is_static(obj, frames),
     )
@@ -295,9 +305,18 @@ def _make_mesh(mi, part: _ObjectParts, pose: NDArray):
     v = part.vertices @ pose[:3, :3].T + pose[:3, 3]
     props = mi.Properties()
     props["bsdf"] = part.bsdf
-    mesh = mi.Mesh(part.name, len(v), len(part.faces), props=props, has_vertex_texcoords=True)
+    mesh = mi.Mesh(
+        part.name,
+        len(v),
+        len(part.faces),
+        props=props,
+        has_vertex_normals=True,
+        has_vertex_texcoords=True,
+    )
     params = mi.traverse(mesh)
     params["vertex_positions"] = mi.Float(np.ascontiguousarray(v, dtype=np.float32).ravel())
+    n = part.normals @ pose[:3, :3].T
+    params["vertex_normals"] = mi.Float(np.ascontiguousarray(n, dtype=np.float32).ravel())
     params["faces"] = mi.UInt32(np.ascontiguousarray(part.faces, dtype=np.uint32).ravel())
     params["vertex_texcoords"] = mi.Float(part.uv.ravel())
     params.update()
