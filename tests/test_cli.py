@@ -322,3 +322,29 @@ def test_bad_input_exits_2_with_one_line(case, tmp_path, name):
     assert lines[0].startswith("omniflow: error: ")
     assert expected in lines[0], lines[0]
     assert not out.exists()  # nothing written on bad input
+
+
+def test_no_matched_points_still_writes_every_output(case, tmp_path, monkeypatch, capsys):
+    # In-process with the pipeline replaced by one that finds nothing (as on a
+    # textureless scene): the command must still write a header-only CSV, the
+    # JSON and the pictures, and report the odometry as not computable.
+    import omniflow.cli
+    import omniflow.pipeline
+
+    real = omniflow.pipeline.estimate
+
+    def nothing(*args, **kwargs):
+        res = real(*args, **kwargs)
+        res.columns = {k: np.asarray(v)[:0] for k, v in res.columns.items()}
+        return res
+
+    monkeypatch.setattr(omniflow.pipeline, "estimate", nothing)
+    out = tmp_path / "out"
+    argv = [*map(str, inputs(case, "png")), "--rig", str(case["dir"] / "rig.toml")]
+    assert omniflow.cli.main([*argv, "--out", str(out), "--odometry"]) == 0
+    assert "0 points" in capsys.readouterr().out
+    cols = read_csv(out / "flow.csv")
+    assert all(len(v) == 0 for v in cols.values()) and "dx" in cols
+    meta = json.loads((out / "flow.json").read_text())
+    assert meta["points"] == 0 and "error" in meta["odometry"]
+    assert (out / "flow_arrows.png").is_file() and (out / "unwarp_cam1.png").is_file()
