@@ -7,6 +7,10 @@ them) whose ``visual`` is a ``TextureVisuals`` holding ``uv`` of shape
 so a texture that covers ``tile`` metres maps at its true size and repeats
 (see :mod:`omnisim.textures` for the texel convention).
 
+Shading normals: ``mesh.vertex_normals`` are the exact surface normals for the
+cylinder's side and caps and the sphere (smooth shading of the facets); flat
+faces have their vertices split, so their vertex normals are the face normals.
+
 Orientation: faces are counter-clockwise seen from the side their normal
 points to. Closed primitives (box, cylinder, sphere) have outward normals; the
 room's floor, ceiling and walls have normals pointing INTO the room, so a ray
@@ -163,7 +167,14 @@ def cylinder(
             v = np.concatenate([[[0.0, 0.0, zc]], np.column_stack([ring, np.full(sections, zc)])])
             cap_uv = (v[:, :2] + radius) / tile
             parts.append((v, cap_uv, fan[:, ::-1] if flip else fan))
-    return _join(parts)
+    mesh = _join(parts)
+    # Smooth shading normals: radial on the side, +-Z on the caps (the side comes first).
+    normals = np.zeros_like(mesh.vertices)
+    side = len(parts[0][0])
+    normals[:side, :2] = mesh.vertices[:side, :2] / radius
+    normals[side:, 2] = np.sign(mesh.vertices[side:, 2])
+    mesh.vertex_normals = normals
+    return mesh
 
 
 def sphere(radius: float, *, tile: float = 1.0, sections: int = 96) -> trimesh.Trimesh:
@@ -175,7 +186,9 @@ def sphere(radius: float, *, tile: float = 1.0, sections: int = 96) -> trimesh.T
     pts = radius * np.stack([np.sin(p) * np.cos(t), np.sin(p) * np.sin(t), np.cos(p)], axis=-1)
     n_rep = _repeats(2 * np.pi * radius, tile)
     uv = np.stack([t / (2 * np.pi) * n_rep, (np.pi - p) * radius / tile], axis=-1)
-    return _join([_grid(pts, uv)])
+    mesh = _join([_grid(pts, uv)])
+    mesh.vertex_normals = mesh.vertices / radius  # smooth shading normals, exact
+    return mesh
 
 
 def box_project_uv(mesh: trimesh.Trimesh, *, tile: float = 1.0) -> trimesh.Trimesh:

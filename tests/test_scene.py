@@ -506,6 +506,21 @@ def test_primitives_face_outwards_and_have_uvs():
     np.testing.assert_allclose(p.face_normals, [[0, 0, 1], [0, 0, 1]])
 
 
+def test_shading_normals_of_curved_primitives():
+    sph = geometry.sphere(0.7, sections=32)
+    np.testing.assert_allclose(sph.vertex_normals, sph.vertices / 0.7, atol=1e-12)
+    cyl = geometry.cylinder(0.3, 1.0, sections=32)
+    n = cyl.vertex_normals
+    np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-12)
+    side = np.abs(n[:, 2]) < 0.5
+    np.testing.assert_allclose(n[side, :2], cyl.vertices[side, :2] / 0.3, atol=1e-12)
+    # Every normal agrees with the faces it belongs to (outward).
+    for mesh in (sph, cyl, geometry.box((1, 1, 1))):
+        fn = mesh.face_normals
+        vn = mesh.vertex_normals[mesh.faces]
+        assert np.all(np.einsum("fij,fj->fi", vn, fn) > 0.9)
+
+
 def test_cylinder_uv_wraps_a_whole_number_of_tiles():
     mesh = geometry.cylinder(0.3, 1.0, tile=0.5, caps=False)
     uv = mesh.visual.uv
