@@ -224,7 +224,8 @@ def neighbourhoods(
     if n == 0:
         return np.zeros((0, k), dtype=np.intp), np.zeros((0, k))
     kk = min(k, n)
-    dist, idx = cKDTree(pts).query(pts, k=kk, distance_upper_bound=radius)
+    tree = cKDTree(pts, balanced_tree=False, compact_nodes=False)  # faster to build here
+    dist, idx = tree.query(pts, k=kk, distance_upper_bound=radius)
     dist = dist.reshape(n, kk)
     idx = idx.reshape(n, kk)
     found = idx < n
@@ -254,16 +255,32 @@ def pooled_solution(
     idx: NDArray,
     w: NDArray,
     *,
+    theta: ArrayLike | None = None,
+    model: str = "constant",
+    scale: float = 4.0,
+    relative: bool = True,
     min_conditioning: float = 0.0,
 ) -> tuple[NDArray, NDArray, NDArray]:
     """Eq. (9) and (15) of neighbouring matches pooled in weighted least squares.
 
     For point i with neighbours j (``idx[i]``, weights ``w[i]``), minimise
-    sum_j w_ij [(f1_h a + f1_theta b + f1_t)_j^2
-                + ((h_2/h_1) f2_h a + f2_theta b + f2_t)_j^2]
-    over a = dh_1/dt and b = dtheta/dt, both taken constant over the
-    neighbourhood. Solved in closed form per point (2x2 normal equations)
-    with the unknowns scaled to (a, h_1,i b).
+    sum_j w_ij [(f1_h a_j + f1_theta b_j + f1_t)_j^2
+                + ((h_2/h_1) f2_h a_j + f2_theta b_j + f2_t)_j^2]
+    where (a_j, b_j) = (dh_1/dt, dtheta/dt) at neighbour j follow a local
+    model of the point's own (a, b):
+
+    * ``relative``: a_j = a h_1,j / h_1,i. By eq. (13) at dh = 0,
+      dh_1 / h_1 = -dr / (d + r), the same for neighbours on one surface, so
+      the radial flow grows in proportion to h_1 (a neighbourhood of 4 px at
+      h_1 = 50 px spans 8 % of it). Otherwise a_j = a.
+    * ``model="constant"``: b_j = b (rigid motion makes dtheta/dt independent
+      of h). ``model="linear"``: both a and h_1 b also vary linearly with the
+      tangential offset u = h_1,i (theta_j - theta_i) / scale, two more
+      unknowns: a translating robot gives a flow that changes with theta at
+      the first order (needs ``theta``).
+
+    Unknowns are scaled to pixels per frame, (a, h_1,i b, ...). Solved per
+    point from the small normal equations.
 
     Parameters
     ----------
@@ -271,6 +288,13 @@ def pooled_solution(
         As in :func:`direct_solution`, at every match.
     idx, w : ndarray, shape (N, K)
         From :func:`neighbourhoods` (index N = no neighbour, weight 0).
+    theta : array_like, shape (N,), optional
+        Azimuth of the matches (for ``model="linear"``).
+    model : {"constant", "linear"}
+    scale : float
+        Tangential length that scales u, pixels (the neighbourhood radius).
+    relative : bool
+        Pool dh_1/dt / h_1 (True) or dh_1/dt itself (False).
     min_conditioning : float
         NaN where the confidence is below this.
 
@@ -278,8 +302,14 @@ def pooled_solution(
     -------
     dh1_dt, dtheta_dt : ndarray, shape (N,)
     confidence : ndarray, shape (N,)
-        lambda_min / lambda_max of the scaled normal matrix, in [0, 1].
+        lambda_min / lambda_max of the normal matrix of (a, h_1 b) (for
+        ``"linear"``, of its Schur complement: the information left on
+        (a, h_1 b) once the slopes are free), in [0, 1].
     """
+    if model not in ("constant", "linear"):
+        raise ValueError(f"model = {model!r}: expected 'constant' or 'linear'")
+    if model == "linear" and theta is None:
+        raise ValueError("model='linear' needs theta")
     f1_h, f1_theta, f1_t, f2_h, f2_theta, f2_t, h1, h2 = (
         np.append(np.asarray(v, dtype=np.float64).ravel(), 0.0)
         for v in (f1_h, f1_theta, f1_t, f2_h, f2_theta, f2_t, h1, h2)
@@ -287,21 +317,57 @@ def pooled_solution(
     n = f1_h.size - 1
     h1[n] = 1.0
     k = h2 / h1
-    hi = h1[:n, None]  # scale of the tangential unknown: c = h_1,i b
-    # rows of the scaled system at every neighbour: (p, q) . (a, c) = -f_t
-    p1, q1, t1 = f1_h[idx], f1_theta[idx] / hi, f1_t[idx]
-    p2, q2, t2 = (k * f2_h)[idx], f2_theta[idx] / hi, f2_t[idx]
-    m11 = np.einsum("nk,nk->n", w, p1 * p1 + p2 * p2)
-    m12 = np.einsum("nk,nk->n", w, p1 * q1 + p2 * q2)
-    m22 = np.einsum("nk,nk->n", w, q1 * q1 + q2 * q2)
-    v1 = -np.einsum("nk,nk->n", w, p1 * t1 + p2 * t2)
-    v2 = -np.einsum("nk,nk->n", w, q1 * t1 + q2 * t2)
+    hi = h1[:n, None]
+    rel = h1[idx] / hi if relative else 1.0
+    if model == "linear":
+        th = np.append(np.asarray(theta, dtype=np.float64).ravel(), 0.0)
+        u = (((th[idx] - th[:n, None]) + np.pi) % (2 * np.pi) - np.pi) * hi / scale
+    # design rows (one per neighbour and unit) times the unknowns = -f_t,
+    # each row scaled by sqrt(w) so the normal matrix is A^T A
+    kk = idx.shape[1]
+    n_par = 2 if model == "constant" else 4
+    A = np.empty((n, 2 * kk, n_par))
+    rhs = np.empty((n, 2 * kk))
+    sw = np.sqrt(w)
+    for blk, (fh, fth, ft) in enumerate(((f1_h, f1_theta, f1_t), (k * f2_h, f2_theta, f2_t))):
+        sl = slice(blk * kk, (blk + 1) * kk)
+        p = A[:, sl, 0]
+        q = A[:, sl, 1]
+        np.multiply(fh[idx], rel * sw, out=p)
+        np.multiply(fth[idx], sw / hi, out=q)
+        if n_par == 4:
+            np.multiply(p, u, out=A[:, sl, 2])
+            np.multiply(q, u, out=A[:, sl, 3])
+        np.multiply(ft[idx], sw, out=rhs[:, sl])
+    At = A.transpose(0, 2, 1)
+    M = At @ A  # normal matrices (N, P, P)
+    v = -(At @ rhs[..., None])[..., 0]
+    if model == "constant":
+        S = M
+    else:  # Schur complement on (a, c): the two slopes solved out
+        B = M[:, 2:, 2:]
+        det_b = B[:, 0, 0] * B[:, 1, 1] - B[:, 0, 1] * B[:, 1, 0]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            inv_b = (
+                np.stack(
+                    [
+                        np.stack([B[:, 1, 1], -B[:, 0, 1]], -1),
+                        np.stack([-B[:, 1, 0], B[:, 0, 0]], -1),
+                    ],
+                    axis=-2,
+                )
+                / np.where(det_b > 0, det_b, np.nan)[:, None, None]
+            )
+        C = M[:, :2, 2:] @ inv_b
+        S = M[:, :2, :2] - C @ M[:, 2:, :2]
+        v = v[:, :2] - (C @ v[:, 2:, None])[..., 0]
+    m11, m12, m22 = S[:, 0, 0], S[:, 0, 1], S[:, 1, 1]
     det = m11 * m22 - m12 * m12
-    conf = _eig_ratio(m11, m12, m22)
-    ok = (det > 0) & (conf >= min_conditioning)
+    conf = np.nan_to_num(_eig_ratio(m11, m12, m22))
+    ok = (det > 0) & (conf >= min_conditioning) & (conf > 0)
     with np.errstate(divide="ignore", invalid="ignore"):
-        a = np.where(ok, (m22 * v1 - m12 * v2) / det, np.nan)
-        c = np.where(ok, (m11 * v2 - m12 * v1) / det, np.nan)
+        a = np.where(ok, (m22 * v[:, 0] - m12 * v[:, 1]) / det, np.nan)
+        c = np.where(ok, (m11 * v[:, 1] - m12 * v[:, 0]) / det, np.nan)
     return a, c / h1[:n], conf
 
 

@@ -86,6 +86,7 @@ TEMPORALS = ("difference", "dct3d")
 SOLVERS = ("direct", "pooled")
 SAMPLINGS = ("cubic", "linear", "exact")
 RIM_FILLS = ("reflect", "none")
+POOL_MODELS = ("linear", "constant")
 
 
 @dataclass(frozen=True)
@@ -126,6 +127,9 @@ class OmniFlowConfig:
         over neighbouring matches.
     pool_radius, pool_k, pool_range_tol : the pooled solver's neighbourhood
         (pixels, count, relative range difference).
+    pool_model : {"linear", "constant"}
+        The pooled solver's local flow model (omniflow.flow.pooled_solution):
+        flow constant over the neighbourhood, or varying linearly with theta.
     min_conditioning : float
         Drop points whose confidence is below this (0 keeps all).
     sampling : {"cubic", "linear", "exact"}
@@ -159,9 +163,10 @@ class OmniFlowConfig:
     temporal: str = "difference"
     temporal_frames: int = 3
     solver: str = "pooled"
-    pool_radius: float = 4.0
-    pool_k: int = 12
+    pool_radius: float = 8.0
+    pool_k: int = 24
     pool_range_tol: float | None = 0.1
+    pool_model: str = "linear"
     min_conditioning: float = 0.0
     sampling: str = "cubic"
     rim_fill: str = "reflect"
@@ -174,6 +179,7 @@ class OmniFlowConfig:
             "solver": (self.solver, SOLVERS),
             "sampling": (self.sampling, SAMPLINGS),
             "rim_fill": (self.rim_fill, RIM_FILLS),
+            "pool_model": (self.pool_model, POOL_MODELS),
         }
         for name, (val, allowed) in checks.items():
             if val not in allowed:
@@ -524,6 +530,9 @@ def flow_at_matches(
             h2,
             idx,
             w,
+            theta=theta,
+            model=config.pool_model,
+            scale=config.pool_radius,
             min_conditioning=config.min_conditioning,
         )
         D = f1_h * f2_th - (h2 / h1) * f2_h * f1_th
