@@ -353,6 +353,7 @@ def rig_from_dict(data: dict[str, Any], where: str = "rig") -> Rig:
             tip_h=tip,
             name=name,
         )
+        unit.validate(where)  # an impossible d, R or r_m is named before v is compared
         if "v" in cam:
             v = _number(cam["v"], f"{label}.v")
             if abs(v - unit.v) > 1e-6 * unit.v:
