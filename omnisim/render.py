@@ -49,7 +49,6 @@ from __future__ import annotations
 
 import hashlib
 import time
-import weakref
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -486,22 +485,22 @@ def _light_dicts(mi, lights) -> dict[str, Any]:
 # ----------------------------------------------------------------------------
 # Cache of Mitsuba scenes per Scene object
 # ----------------------------------------------------------------------------
-_CACHE: dict[int, MitsubaScene] = {}
+#: Mitsuba states of the most recently used Scenes (each holds its Scene alive).
+_CACHE: list[MitsubaScene] = []
+#: How many Scenes keep their Mitsuba state (JIT memory is freed with the rest).
+MAX_SCENES = 2
 
 
 def get_mitsuba_scene(scene) -> MitsubaScene:
-    """The (cached) Mitsuba state of ``scene``; dropped when the Scene is collected."""
-    key = id(scene)
-    ms = _CACHE.get(key)
-    if ms is not None and ms.scene is scene:
-        return ms
+    """The cached Mitsuba state of ``scene`` (the ``MAX_SCENES`` last Scenes are kept)."""
+    for ms in _CACHE:
+        if ms.scene is scene:
+            _CACHE.remove(ms)
+            _CACHE.append(ms)
+            return ms
     ms = MitsubaScene(scene)
-    _CACHE[key] = ms
-    try:
-        weakref.finalize(scene, _CACHE.pop, key, None)
-    except TypeError:  # not weak-referenceable: keep only this one
-        for k in [k for k in _CACHE if k != key]:
-            del _CACHE[k]
+    _CACHE.append(ms)
+    del _CACHE[:-MAX_SCENES]
     return ms
 
 
