@@ -387,7 +387,7 @@ def match_radial(
     h_min: float = 16.0,
     rim_margin: float = 4.0,
     patch_radius: float = 16.0,
-    patch_lines: int = 1,
+    patch_lines: int = 0,
     profile_step: float = 2.0,
     min_score: float = 0.95,
     uniqueness: float = 0.5,

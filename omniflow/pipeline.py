@@ -30,6 +30,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from omniflow.dct import DCTFit, fit_dct, fit_dct3
+from omniflow.edges import polar_from_cartesian
 from omniflow.flow import conditioning as direct_conditioning
 from omniflow.flow import direct_solution, neighbourhoods, pooled_solution
 from omniflow.matching import (
@@ -153,7 +154,7 @@ class OmniFlowConfig:
     h_min: float = 16.0
     rim_margin: float = 4.0
     patch_radius: float = 16.0
-    patch_lines: int = 1
+    patch_lines: int = 0
     profile_step: float = 2.0
     min_score: float = 0.95
     uniqueness: float = 0.5
@@ -313,35 +314,42 @@ class _Frame:
 
     def __init__(self, fit: DCTFit, unit: Unit):
         self.fit, self.unit = fit, unit
-        self._f = self._grad = None
+        self._f = self._grad = self._grad_xy = None
 
     @property
     def f(self) -> NDArray:
+        """The fitted image on the pixel grid, eq. (18)."""
         if self._f is None:
             self._f = np.asarray(self.fit.grid(), dtype=np.float32)
         return self._f
 
     @property
     def grad(self) -> tuple[NDArray, NDArray]:
-        """(f_h, f_theta) grids."""
+        """(f_h, f_theta) grids, eq. (19)-(20)."""
         if self._grad is None:
             self._grad = polar_gradient_fast(self.fit, self.unit)
         return self._grad
+
+    @property
+    def grad_xy(self) -> tuple[NDArray, NDArray]:
+        """(f_x, f_y) grids."""
+        if self._grad_xy is None:
+            self._grad_xy = tuple(np.asarray(g, dtype=np.float32) for g in self.fit.grid_gradient())
+        return self._grad_xy
 
 
 def _sample_polar_grad(
     frame: _Frame, x: NDArray, y: NDArray, sampling: str
 ) -> tuple[NDArray, NDArray]:
+    """(f_h, f_theta) at points: f_x, f_y sampled (or evaluated exactly), then eq. (19)-(20)."""
     if sampling == "exact":
-        from omniflow.edges import polar_gradient
-
-        f_h, f_th = polar_gradient(frame.fit, frame.unit, x, y)
-        return f_h, f_th
-    f_h, f_th = frame.grad
-    return (
-        sample_xy(f_h, x, y, interpolation=sampling).astype(np.float64),
-        sample_xy(f_th, x, y, interpolation=sampling).astype(np.float64),
-    )
+        f_x, f_y = frame.fit.gradient(x, y)
+    else:
+        gx, gy = frame.grad_xy
+        f_x = sample_xy(gx, x, y, interpolation=sampling).astype(np.float64)
+        f_y = sample_xy(gy, x, y, interpolation=sampling).astype(np.float64)
+    f_h, f_th = polar_from_cartesian(f_x, f_y, x - frame.unit.x_c, y - frame.unit.y_c)
+    return f_h, f_th
 
 
 def _sample_f(frame: _Frame, x: NDArray, y: NDArray, sampling: str) -> NDArray:
