@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import copy
 import math
+import re
 import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -536,7 +537,8 @@ def load_scene(path: str | Path, overrides: Mapping[str, Any] | None = None) -> 
         raise SceneError(f"{path}: not valid TOML: {exc}") from exc
     overrides = dict(overrides or {})
     data = apply_overrides(raw, overrides, str(path))
-    chk = _Checker(path, {str(k).replace(".0.", "[0].") for k in overrides} | set(overrides))
+    # Error keys write list items as objects[1]; overrides as objects.1.
+    chk = _Checker(path, {re.sub(r"\.(\d+)(?=\.|$)", r"[\1]", str(k)) for k in overrides})
     return _build(chk, path, source, data, overrides)
 
 

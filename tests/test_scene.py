@@ -265,6 +265,12 @@ def test_overrides_apply_before_validation(tmp_path):
     msg = expect_error(path, "render.spp", "override", "integer", overrides={"render.spp": "x"})
     assert "render.spp" in msg
     expect_error(path, "render.sp", "unknown key", overrides={"render.sp": 3})
+    expect_error(
+        path,
+        "objects[0].size (set by an override)",
+        "list of 3",
+        overrides={"objects.0.size": [1, 2]},
+    )
 
 
 def test_apply_overrides_indexes_lists_and_does_not_mutate():
