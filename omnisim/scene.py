@@ -777,7 +777,7 @@ def _objects(
     if not isinstance(items, list):
         raise chk.bad("objects", items, "a list of tables ([[objects]])")
     # First pass: types and explicit ids, so automatic ids avoid explicit ones.
-    kinds, explicit = [], {}
+    kinds, explicit, used = [], {}, set()
     for i, tbl in enumerate(items):
         where = f"objects[{i}]"
         if not isinstance(tbl, dict):
@@ -786,15 +786,13 @@ def _objects(
         chk.table(tbl, where, OBJECT_KEYS[kinds[-1]])
         if "id" in tbl:
             first = chk.integer(tbl, "id", where, lo=1)
-            span = len(geometry.ROOM_PARTS) if kinds[-1] == "room" else 1
-            for k in range(first, first + span):
-                if k in explicit.values() or k in explicit:
-                    raise chk.bad(f"{where}.id", tbl["id"], "an id not used by another object")
+            span = range(first, first + (len(geometry.ROOM_PARTS) if kinds[-1] == "room" else 1))
+            if used.intersection(span):
+                raise chk.bad(
+                    f"{where}.id", first, "an id not used by another object (a room uses six)"
+                )
             explicit[i] = first
-    used = set()
-    for i, first in explicit.items():
-        span = len(geometry.ROOM_PARTS) if kinds[i] == "room" else 1
-        used.update(range(first, first + span))
+            used.update(span)
     next_id = 1
     objects: list[SceneObject] = []
     rooms: list[RoomInfo] = []

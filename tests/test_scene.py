@@ -214,6 +214,8 @@ def test_explicit_ids_and_automatic_ids_do_not_clash(tmp_path):
     )
     scene = load_scene(write(tmp_path, text))
     assert [o.id for o in scene.objects] == [1, 2, 3, 4, 5, 6, 10, 7]
+    # An explicit id inside the room's six is a clash.
+    expect_error(write(tmp_path, text.replace("id = 10", "id = 4")), "objects[1].id", "not used")
 
 
 def test_lights_of_every_kind(tmp_path):
