@@ -136,8 +136,7 @@ class PolarGrids:
 
     ``f`` is the fitted image (eq. 18), ``f_h`` and ``f_theta`` the polar
     gradient (eq. 19-20) on every pixel centre, all (H, W) float32. The
-    paper's rule needs all three; the robust matcher needs only ``f`` (with
-    ``f_h`` None it differentiates its polar table of ``f``).
+    paper's rule needs all three; the robust matcher reads only ``f``.
     """
 
     f: NDArray
@@ -146,11 +145,13 @@ class PolarGrids:
     extra: dict = field(default_factory=dict)
 
 
-def polar_grids(fit: DCTFit, unit: Unit, *, theta: bool = True) -> PolarGrids:
-    """Evaluate a fit and its polar gradient on the pixel grid (fast transform path)."""
+def polar_grids(fit: DCTFit, unit: Unit, *, gradient: bool = True) -> PolarGrids:
+    """Evaluate a fit (and its polar gradient) on the pixel grid (fast transform path)."""
     f = np.asarray(fit.grid(), dtype=np.float32)
+    if not gradient:
+        return PolarGrids(f=f, f_h=None)
     f_h, f_th = polar_gradient_fast(fit, unit)
-    return PolarGrids(f=f, f_h=f_h, f_theta=f_th if theta else None)
+    return PolarGrids(f=f, f_h=f_h, f_theta=f_th)
 
 
 @lru_cache(maxsize=8)
@@ -327,27 +328,80 @@ class _Descriptors:
     """Zero-mean, unit-norm polar patches of one table.
 
     A patch at (line k, column j) holds the radial profile at columns
-    j - w .. j + w (every ``stride``-th) on lines k - lines .. k + lines
-    (wrapping around theta); L = (2 lines + 1)(2 w + 1) values.
+    j - w stride .. j + w stride, every ``stride``-th, on lines
+    k - lines .. k + lines (wrapping around theta); L = (2 lines + 1)(2 w + 1)
+    values. The table is split by column parity into ``stride`` decimated
+    copies so each profile is a contiguous run, and each window's mean and
+    norm come from cumulative sums.
     """
 
     def __init__(self, table: NDArray, w: int, stride: int, lines: int):
-        self.table, self.w, self.stride, self.lines = table, w, stride, lines
-        self.view = sliding_window_view(table, 2 * w * stride + 1, axis=1)[..., ::stride]
-        self.length = (2 * lines + 1) * (2 * w + 1)
+        self.w, self.stride, self.lines = w, stride, lines
+        self.n_lines, n_cols = table.shape
+        m = 2 * w + 1
+        width = -(-n_cols // stride)
+        dec = np.zeros((stride, self.n_lines, width), dtype=np.float32)
+        for par in range(stride):
+            part = table[:, par::stride]
+            dec[par, :, : part.shape[1]] = part
+        self.view = sliding_window_view(dec, m, axis=2)  # (stride, lines, width - m + 1, m)
+
+        # per window: sum and sum of squares over the (2 lines + 1) x m patch
+        # (box filters anchored at the window's first sample)
+        def window_sum(a):
+            out = []
+            for par in range(stride):
+                x = a[par]
+                if lines:  # wrap around theta
+                    x = np.concatenate([x[-lines:], x, x[:lines]], axis=0)
+                y = cv2.boxFilter(x, -1, (m, 2 * lines + 1), anchor=(0, 0), normalize=False,
+                                  borderType=cv2.BORDER_CONSTANT)  # fmt: skip
+                out.append(y[: self.n_lines])
+            return np.stack(out)
+
+        s1 = window_sum(dec)
+        s2 = window_sum(dec * dec)
+        length = (2 * lines + 1) * m
+        self.length = length
+        self.mean = s1 / np.float32(length)
+        var = np.maximum(s2 - s1 * self.mean, np.float32(0.0))
+        self.inv_norm = np.float32(1.0) / np.maximum(np.sqrt(var), np.float32(1e-12))
 
     def __call__(self, k: NDArray, j: NDArray) -> NDArray:
         """Patches at (k, j) of any equal shapes S; returns S + (L,), float32."""
-        n = self.table.shape[0]
         start = j - self.w * self.stride
-        m = 2 * self.w + 1
-        p = np.empty((*k.shape, self.length), dtype=np.float32)
-        for i, dk in enumerate(range(-self.lines, self.lines + 1)):
-            p[..., i * m : (i + 1) * m] = self.view[(k + dk) % n, start]
-        p -= p.mean(axis=-1, keepdims=True)
-        norm = np.sqrt(np.einsum("...l,...l->...", p, p))
-        p /= np.maximum(norm, 1e-12)[..., None]
+        par, col = start % self.stride, start // self.stride
+        if self.lines == 0:
+            p = self.view[par, k, col]  # a copy: fancy indexing
+        else:
+            n, m = self.n_lines, 2 * self.w + 1
+            p = np.empty((*np.shape(k), self.length), dtype=np.float32)
+            for i, dk in enumerate(range(-self.lines, self.lines + 1)):
+                p[..., i * m : (i + 1) * m] = self.view[par, (k + dk) % n, col]
+        p -= self.mean[par, k, col][..., None]
+        p *= self.inv_norm[par, k, col][..., None]
         return p
+
+
+def _window_slots(
+    cols: NDArray, exists: NDArray, line: NDArray, lo: NDArray, hi: NDArray
+) -> tuple[NDArray, NDArray]:
+    """Slots [first, stop) of the edges of ``line`` whose column lies in [lo, hi].
+
+    ``cols``/``exists`` are a left-aligned layout from :func:`_per_line` (each
+    row's edges ascending), so the slots in range are contiguous. ``line``,
+    ``lo`` and ``hi`` have any one shape; so do the results.
+    """
+    n_lines, c = cols.shape
+    big = np.int64(1) << 40
+    key = np.where(exists, cols, big - 1).astype(np.int64)
+    key += np.arange(n_lines, dtype=np.int64)[:, None] * big
+    key = key.ravel()
+    base = np.asarray(line, dtype=np.int64) * big
+    first = np.searchsorted(key, (base + lo).ravel(), side="left").reshape(base.shape)
+    stop = np.searchsorted(key, (base + hi).ravel(), side="right").reshape(base.shape)
+    offset = np.asarray(line, dtype=np.int64) * c
+    return first - offset, stop - offset
 
 
 def _per_line(mask: NDArray) -> tuple[NDArray, NDArray, NDArray]:
@@ -383,12 +437,12 @@ def match_radial(
     r_min: float | None = None,
     r_max: float = 10.0,
     n_theta: int = 720,
-    h_step: float = 0.5,
+    h_step: float = 1.0,
     h_min: float = 16.0,
     rim_margin: float = 4.0,
-    patch_radius: float = 16.0,
+    patch_radius: float | None = None,
     patch_lines: int = 0,
-    profile_step: float = 2.0,
+    profile_step: float | None = None,
     min_score: float = 0.95,
     uniqueness: float = 0.5,
     left_right: bool = True,
@@ -426,15 +480,17 @@ def match_radial(
         Radii searched: h_min <= h_i <= r_m - rim_margin, pixels. Near the
         centre cam1 resolves much less of the scene tangentially than cam2
         (h_2 / h_1 times less), so its patches look different there.
-    patch_radius : float
-        ``robust``: half-length of the radial profile compared, pixels.
+    patch_radius : float, optional
+        ``robust``: half-length of the radial profile compared, pixels;
+        default r_m / 8 (16 px at 256 x 256), so the profile covers the same
+        part of the scene at every image size. Longer profiles are less
+        ambiguous on periodic texture and match fewer points.
     patch_lines : int
         ``robust``: neighbouring radial lines on each side in the patch.
-    profile_step : float
-        ``robust``: spacing of the patch's samples along the radial line,
-        pixels (rounded to a multiple of h_step). The fitted image holds no
-        frequency above band / 2 cycles per pixel, so 1 / (2 band) px (2 px
-        for the paper's band of 1/4) keeps twice the Nyquist rate.
+    profile_step : float, optional
+        ``robust``: spacing of the profile's samples along the radial line,
+        pixels (rounded to a multiple of h_step); default patch_radius / 8,
+        17 samples.
     min_score : float
         ``robust``: smallest NCC accepted.
     uniqueness : float
@@ -462,18 +518,22 @@ def match_radial(
         raise ValueError(f"method = {method!r}: expected one of {MATCH_METHODS}")
     if not (0.0 <= threshold_percentile < 100.0):
         raise ValueError(f"threshold_percentile = {threshold_percentile!r}: expected [0, 100)")
+    cam1, cam2 = rig.cam1, rig.cam2
+    if patch_radius is None:
+        patch_radius = cam1.r_m / 8.0
+    if profile_step is None:
+        profile_step = patch_radius / 8.0
     if not (h_step > 0 and n_theta >= 8 and patch_radius > 0 and patch_lines >= 0):
         raise ValueError("expected h_step > 0, n_theta >= 8, patch_radius > 0, patch_lines >= 0")
     r_min = rig.min_common_range if r_min is None else float(r_min)
     if not (0 <= r_min < r_max):
         raise ValueError(f"r_min = {r_min!r}, r_max = {r_max!r}: expected 0 <= r_min < r_max")
-    cam1, cam2 = rig.cam1, rig.cam2
     if grids is None:
         if fit1 is None or fit2 is None:
             raise ValueError("match_radial needs fit1 and fit2, or grids")
         grids = (
-            polar_grids(fit1, cam1, theta=method == "paper"),
-            polar_grids(fit2, cam2, theta=method == "paper"),
+            polar_grids(fit1, cam1, gradient=method == "paper"),
+            polar_grids(fit2, cam2, gradient=method == "paper"),
         )
     g1, g2 = grids
 
@@ -501,21 +561,23 @@ def match_radial(
         if tangential_blur > 0:
             sigma = tangential_blur * n_theta / (2.0 * np.pi)  # in lines
             t1, t2 = _blur_lines(t1, sigma), _blur_lines(t2, sigma)
-    # df/dh_i along the lines: the polar edge finder's grid (eq. 19) when
-    # given, else central differences of the table of f (the fitted image
-    # holds no frequency above band / 2 cycles per pixel, so over h_step of
-    # 1/2 px the difference is within ~10 % of the derivative; it serves only
-    # to find edges and their sign)
-    fh1 = _table(g1.f_h, maps1) if g1.f_h is not None else _radial_derivative(t1, h_step)
-    fh2 = _table(g2.f_h, maps2) if g2.f_h is not None else _radial_derivative(t2, scale2 * h_step)
+    # df/dh_i along the lines. The paper's rule reads the polar edge finder's
+    # grid (eq. 19); the robust matcher finds its edges on the same blurred
+    # profiles it compares, by central differences of the table (it needs
+    # only where |df/dh_i| peaks and its sign, not its exact value)
+    if method == "robust":
+        fh1 = _radial_derivative(t1, h_step)
+        fh2 = _radial_derivative(t2, scale2 * h_step)
+    else:
+        if g1.f_h is None or g2.f_h is None or g1.f_theta is None or g2.f_theta is None:
+            raise ValueError("the paper's rule needs f_h and f_theta grids")
+        fh1, fh2 = _table(g1.f_h, maps1), _table(g2.f_h, maps2)
     core = slice(pad, pad + n_h)
     # the percentile of every other line is the same to well within a percent
     thr = float(np.percentile(np.abs(fh1[::2, core]), threshold_percentile))
     thr = max(thr, float(min_gradient))
 
     if method == "paper":
-        if g1.f_theta is None or g2.f_theta is None or g1.f_h is None or g2.f_h is None:
-            raise ValueError("the paper's rule needs f_h and f_theta grids")
         res = _match_paper(tab, fh1, fh2, _table(g1.f_theta, maps1), _table(g2.f_theta, maps2), thr)
     else:
         res = _match_robust(
@@ -575,13 +637,17 @@ def _match_robust(
     left_right,
     candidate_fraction,
 ):
-    """NCC of polar patches between the edges of both images, line by line.
+    """NCC of radial profiles between the edges of both images, line by line.
 
-    Edges (local maxima of |f_h| along a line above candidate_fraction * thr)
-    of each line are laid out left-aligned in (n_theta, c) arrays, so the NCC
-    of every edge pair on every line is one batched matrix product.
+    The edges (local maxima of |f_h| along a line above candidate_fraction *
+    thr) of each line are laid out left-aligned in (n_theta, c) arrays, so
+    the NCC of every pair of edges on every line is one batched matrix
+    product: first the significant edges of image 1 against all edges of
+    image 2, then, for the left-right check, the chosen edges of image 2
+    against all edges of image 1.
     """
     n_theta, pad, n_h = tab.n_theta, tab.pad, tab.n_h
+    lo, hi = tab.win
     low = candidate_fraction * thr
     layout = []
     for fh in (fh1, fh2):
@@ -594,39 +660,60 @@ def _match_robust(
         rows = np.broadcast_to(np.arange(n_theta)[:, None], cols.shape)
         layout.append((cols, exists, rows, fh[rows, cols]))
     (c1, e1, rows1, g1), (c2, e2, rows2, g2) = layout
-    sig = e1 & (np.abs(g1) > thr)
-    n_sig = int(np.count_nonzero(sig))
+    # the significant edges of image 1, as slots of its edge layout
+    sslot, es, _ = _per_line(e1 & (np.abs(g1) > thr))
+    n_sig = int(np.count_nonzero(es))
     if n_sig == 0 or not e2.any():
         return np.zeros(0, int), np.zeros(0, int), np.zeros(0), np.zeros(0), n_sig
+    rows_s = np.broadcast_to(np.arange(n_theta)[:, None], sslot.shape)
     desc2 = _Descriptors(t2, w, stride, patch_lines)
     D1 = _Descriptors(t1, w, stride, patch_lines)(rows1, c1)  # (n_theta, c1, L)
     D2 = desc2(rows2, c2)  # (n_theta, c2, L)
-    S = np.matmul(D1, D2.transpose(0, 2, 1))  # (n_theta, c1, c2): NCC of every pair
-    # a pair is possible when both edges exist, the disparity lies in the
-    # window and the edges have the same polarity
-    disp = c2[:, None, :].astype(np.int32) - c1[:, :, None].astype(np.int32)
-    ok_pair = (disp >= tab.win[0]) & (disp <= tab.win[1])
-    ok_pair &= e1[:, :, None] & e2[:, None, :]
-    ok_pair &= (g1[:, :, None] > 0) == (g2[:, None, :] > 0)
-    np.copyto(S, np.float32(-np.inf), where=~ok_pair)
+    # padding slots get zero descriptors, hence NCC 0 with everything: never a
+    # match (min_score > 0), never a left-right winner over a real edge
+    D1[~e1] = 0.0
+    D2[~e2] = 0.0
+    D1s = D1[rows_s, sslot]
+    D1s[~es] = 0.0
 
-    # forward: each significant edge of image 1 takes its best candidate
-    ks, rs = np.nonzero(sig)
-    row = S[ks, rs]  # (n_sig, c2)
-    n = np.arange(ks.size)
-    best_c = np.argmax(row, axis=1)
-    best = row[n, best_c]
-    ok = np.isfinite(best) & (best >= min_score)
-    if uniqueness < 1.0 and row.shape[1] > 1:
-        row[n, best_c] = -np.inf
-        second = np.maximum(row.max(axis=1), -1.0)
+    # forward: each significant edge of image 1 takes its best edge of image 2
+    # inside the disparity window
+    j1 = c1[rows_s, sslot]
+    S = np.matmul(D1s, D2.transpose(0, 2, 1))  # (n_theta, cs, c2) NCC
+    _mask_outside(S, *_window_slots(c2, e2, rows_s, j1 + lo, j1 + hi))
+    best_c = np.argmax(S, axis=2)
+    best = np.take_along_axis(S, best_c[..., None], axis=2)[..., 0]
+    # the NCC at whole columns can sit below its peak between them by up to
+    # ~(1 - peak) (h_step / correlation length)^2; take a looser floor here
+    # and apply min_score to the interpolated peak below
+    floor = min_score - 0.5 * (1.0 - min_score)
+    ok = es & np.isfinite(best) & (best >= floor)
+    # the same edge polarity (an edge of the other polarity falls where this
+    # one rises: NCC near -1, so it seldom wins anyway)
+    ok &= (g1[rows_s, sslot] > 0) == (g2[rows_s, best_c] > 0)
+    if uniqueness < 1.0 and S.shape[2] > 1:
+        np.put_along_axis(S, best_c[..., None], -np.inf, axis=2)
+        second = np.maximum(S.max(axis=2), -1.0)
         ok &= (1.0 - best) <= uniqueness * (1.0 - second)
-    if left_right:
-        back = np.argmax(S[ks, :, best_c], axis=1)  # best image-1 edge of that image-2 edge
-        ok &= back == rs
-    ks, rs, best_c, best = ks[ok], rs[ok], best_c[ok], best[ok]
+    if left_right and ok.any():
+        # the best image-1 edge of each chosen image-2 edge, in its window
+        oslot, eo, _ = _per_line(ok)
+        rows_o = np.broadcast_to(np.arange(n_theta)[:, None], oslot.shape)
+        b2 = best_c[rows_o, oslot]
+        D2o = D2[rows_o, b2]
+        D2o[~eo] = 0.0
+        Sb = np.matmul(D2o, D1.transpose(0, 2, 1))  # (n_theta, co, c1)
+        j2 = c2[rows_o, b2]
+        _mask_outside(Sb, *_window_slots(c1, e1, rows_o, j2 - hi, j2 - lo))
+        back = np.argmax(Sb, axis=2)
+        agree = eo & (back == sslot[rows_o, oslot])
+        ok = np.zeros_like(ok)
+        ok[rows_o[agree], oslot[agree]] = True
+    ks, si = np.nonzero(ok)
+    rs = sslot[ks, si]
+    best = best[ks, si]
     jj1 = c1[ks, rs]
-    jj2 = c2[ks, best_c]
+    jj2 = c2[ks, best_c[ks, si]]
     dd1 = D1[ks, rs]
 
     # sub-sample h_2: parabola through the NCC at the neighbouring columns,
@@ -648,7 +735,17 @@ def _match_robust(
         )
         jj2 = jj2 + step
     off = _parabola_offset(sm, s0, sp)
-    return ks, jj1 - pad, jj2 + off - pad, np.clip(s0, 0.0, 1.0), n_sig
+    peak = s0 + 0.25 * (sp - sm) * off  # the parabola's vertex value
+    keep = peak >= min_score
+    return (ks[keep], (jj1 - pad)[keep], (jj2 + off - pad)[keep],
+            np.clip(peak[keep], 0.0, 1.0), n_sig)  # fmt: skip
+
+
+def _mask_outside(S: NDArray, first: NDArray, stop: NDArray) -> None:
+    """Set S[..., m] = -inf outside first <= m < stop (in place)."""
+    slot = np.arange(S.shape[-1], dtype=np.int32)
+    out = (slot < first[..., None].astype(np.int32)) | (slot >= stop[..., None].astype(np.int32))
+    np.copyto(S, np.float32(-np.inf), where=out)
 
 
 def _match_paper(tab: _Tables, fh1, fh2, ft1, ft2, thr):
