@@ -514,10 +514,9 @@ MAX_SCENES = 2
 
 def get_mitsuba_scene(scene) -> MitsubaScene:
     """The cached Mitsuba state of ``scene`` (the ``MAX_SCENES`` last Scenes are kept)."""
-    for ms in _CACHE:
-        if ms.scene is scene:
-            _CACHE.remove(ms)
-            _CACHE.append(ms)
+    for i, ms in enumerate(_CACHE):
+        if ms.scene is scene:  # by identity: Scenes hold arrays, so == is ambiguous
+            _CACHE.append(_CACHE.pop(i))
             return ms
     ms = MitsubaScene(scene)
     _CACHE.append(ms)
