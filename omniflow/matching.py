@@ -436,7 +436,7 @@ def match_radial(
     min_gradient: float = 1e-4,
     r_min: float | None = None,
     r_max: float = 10.0,
-    n_theta: int = 720,
+    n_theta: int = 360,
     h_step: float = 1.0,
     h_min: float = 16.0,
     rim_margin: float = 4.0,
@@ -473,7 +473,8 @@ def match_radial(
         disparity. r_min defaults to :attr:`Rig.min_common_range`, the
         nearest range both units can see.
     n_theta : int
-        Number of radial lines, evenly spaced in theta.
+        Number of radial lines, evenly spaced in theta (360: one per degree,
+        about the angular resolution left by ``tangential_blur``).
     h_step : float
         Sample spacing along cam1's radial lines, pixels.
     h_min, rim_margin : float

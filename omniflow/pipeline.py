@@ -155,7 +155,8 @@ class OmniFlowConfig:
         Eq. (16) per point (paper) or eq. (9) and (15) pooled in least squares
         over neighbouring matches.
     pool_radius, pool_k, pool_range_tol : the pooled solver's neighbourhood
-        (pixels, count, relative range difference).
+        (pixels, default r_m / 16, i.e. 8 px at 256 x 256; count; relative
+        range difference).
     pool_model : {"linear", "constant"}
         The pooled solver's local flow model (omniflow.flow.pooled_solution):
         flow constant over the neighbourhood, or varying linearly with theta.
@@ -178,7 +179,7 @@ class OmniFlowConfig:
     min_gradient: float = 1e-4
     r_min: float | None = None
     r_max: float = 10.0
-    n_theta: int = 720
+    n_theta: int = 360
     h_step: float = 1.0
     h_min: float = 16.0
     rim_margin: float = 4.0
@@ -194,7 +195,7 @@ class OmniFlowConfig:
     temporal: str = "difference"
     temporal_frames: int = 3
     solver: str = "pooled"
-    pool_radius: float = 8.0
+    pool_radius: float | None = None
     pool_k: int = 24
     pool_range_tol: float | None = 0.1
     pool_model: str = "linear"
@@ -219,7 +220,7 @@ class OmniFlowConfig:
             raise ValueError(f"OmniFlowConfig.band = {self.band!r}: expected a fraction in (0, 1]")
         if self.temporal_frames < 3:
             raise ValueError("OmniFlowConfig.temporal_frames must be >= 3")
-        if self.pool_k < 1 or self.pool_radius <= 0:
+        if self.pool_k < 1 or (self.pool_radius is not None and self.pool_radius <= 0):
             raise ValueError("OmniFlowConfig.pool_k must be >= 1 and pool_radius > 0")
 
     @classmethod
@@ -567,8 +568,9 @@ def flow_at_matches(
         )
         conf = direct_conditioning(f1_h, f1_th, f2_h, f2_th, h1, h2)
     else:
+        pool_radius = rig.cam1.r_m / 16.0 if config.pool_radius is None else config.pool_radius
         idx, w = neighbourhoods(
-            x1, y1, k=config.pool_k, radius=config.pool_radius, r=r, range_tol=config.pool_range_tol
+            x1, y1, k=config.pool_k, radius=pool_radius, r=r, range_tol=config.pool_range_tol
         )
         a, b, conf = pooled_solution(
             f1_h,
@@ -583,7 +585,7 @@ def flow_at_matches(
             w,
             theta=theta,
             model=config.pool_model,
-            scale=config.pool_radius,
+            scale=pool_radius,
             min_conditioning=config.min_conditioning,
         )
         D = f1_h * f2_th - (h2 / h1) * f2_h * f1_th
