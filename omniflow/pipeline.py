@@ -131,35 +131,74 @@ class OmniFlowConfig:
         DCT band: P = band * W, Q = band * H coefficients (eq. 17). Paper:
         0.25; 0.5 keeps the gradients of finer texture and measured 2-6 times
         more accurate flow (tests/test_flow.py).
+    match_band : float or None
+        Band of the image matched on (frame t's series truncated); None: band.
     match_method : {"robust", "paper"}
-        Radial matching rule (:func:`omniflow.matching.match_radial`).
-    threshold_percentile, min_gradient : float
-        Significant points: |df1/dh_1| above this percentile over the annulus
-        and above min_gradient (grey levels per pixel, images in [0, 1]).
-    r_min, r_max : float
-        Range interval searched, metres (disparity window); r_min None means
-        :attr:`Rig.min_common_range`.
-    n_theta, h_step, h_min, rim_margin : matching grid (see match_radial).
-    patch_radius, patch_lines, profile_step, min_score, uniqueness, left_right,
-    candidate_fraction, tangential_blur : the robust matcher's knobs (see
-        match_radial).
+        Radial matching rule (omniflow.matching.match_radial): NCC of radial
+        profiles with left-right and uniqueness checks, or the paper's most
+        similar gradient vector.
+    threshold_percentile : float
+        Significant points of image 1: |df1/dh_1| above this percentile over
+        the annulus searched (paper: "passes some threshold").
+    min_gradient : float
+        Significant points also need |df1/dh_1| above this, grey levels per
+        pixel (images in [0, 1]); a textureless image has none.
+    r_min : float or None
+        Nearest range searched, metres (far end of the disparity window);
+        None: the nearest range both units see (Rig.min_common_range).
+    r_max : float
+        Farthest range searched, metres: the paper's minimum disparity.
+    n_theta : int
+        Radial lines searched, evenly spaced in theta.
+    h_step : float
+        Sample spacing along the radial lines, pixels.
+    h_min : float
+        Smallest image radius searched in cam1, pixels.
+    rim_margin : float
+        Radii within this of the rim are not searched, pixels.
+    patch_radius : float or None
+        Robust matcher: half-length of the radial profile compared, pixels;
+        None: r_m / 8.
+    patch_lines : int
+        Robust matcher: neighbouring radial lines on each side in the patch.
+    profile_step : float or None
+        Robust matcher: spacing of the profile's samples, pixels; None:
+        patch_radius / 8.
+    min_score : float
+        Robust matcher: smallest normalised cross-correlation accepted.
+    uniqueness : float
+        Robust matcher: accept when (1 - NCC_best) <= uniqueness *
+        (1 - NCC_second); 1 disables the test.
+    left_right : bool
+        Robust matcher: require the left-right consistency check.
+    candidate_fraction : float
+        Robust matcher: edges count as candidates down to this fraction of the
+        significance threshold.
+    tangential_blur : float
+        Robust matcher: Gaussian blur across the radial lines, radians, to
+        bring both units to one angular resolution; 0 disables it.
     gradients : {"first", "average"}
         Spatial gradient of frame t (paper) or the mean of frames t and t + 1.
     temporal : {"difference", "dct3d"}
         f_t as the frame difference of the fitted images (paper, section 5.3)
-        or from a 3-D DCT over ``temporal_frames`` frames (the paper's
-        suggested refinement), evaluated at t + 1/2.
+        or from a 3-D DCT over temporal_frames frames (the paper's suggested
+        refinement), evaluated at t + 1/2.
     temporal_frames : int
         Frames in the 3-D DCT window (>= 3), centred on t + 1/2 where possible.
     solver : {"direct", "pooled"}
-        Eq. (16) per point (paper) or eq. (9) and (15) pooled in least squares
-        over neighbouring matches.
-    pool_radius, pool_k, pool_range_tol : the pooled solver's neighbourhood
-        (pixels, default r_m / 16, i.e. 8 px at 256 x 256; count; relative
-        range difference).
+        Eq. (16) per point (paper) or eq. (9) and (15) of neighbouring
+        matches pooled in least squares.
+    pool_radius : float or None
+        Pooled solver: neighbourhood radius, pixels; None: r_m / 16 (8 px at
+        256 x 256).
+    pool_k : int
+        Pooled solver: most neighbours, the point itself included.
+    pool_range_tol : float or None
+        Pooled solver: neighbours whose range differs by more than this
+        fraction (another surface) are left out; None keeps them.
     pool_model : {"linear", "constant"}
-        The pooled solver's local flow model (omniflow.flow.pooled_solution):
-        flow constant over the neighbourhood, or varying linearly with theta.
+        Pooled solver: local flow model (omniflow.flow.pooled_solution),
+        varying linearly with theta or constant.
     min_conditioning : float
         Drop points whose confidence is below this (0 keeps all).
     sampling : {"cubic", "linear", "exact"}
@@ -167,9 +206,9 @@ class OmniFlowConfig:
         cv2.remap of the pixel grids, or the series evaluated exactly.
     rim_fill : {"reflect", "none"}
         Before the DCT fit, replace the pixels beyond the mirror's rim by the
-        image reflected radially about the rim (``"reflect"``), or keep them
-        (``"none"``, the paper). The step at the rim otherwise rings through
-        the truncated series (Gibbs) some 20 px into the image.
+        image reflected radially about the rim ("reflect"), or keep them
+        ("none", the paper). The step at the rim otherwise rings through the
+        truncated series (Gibbs) some 20 px into the image.
     """
 
     band: float = 0.5
