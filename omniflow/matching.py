@@ -26,24 +26,30 @@ Two methods:
     samples. Ambiguous on real texture; kept to be measured.
 
 ``"robust"``
-    Significant points are the local maxima of |df/dh_i| along each radial
-    line (edges across the line) above the threshold; candidates are the
-    edges of image 2 with the same sign of df/dh_i in the window. The score is
-    the normalised cross-correlation (NCC) of small polar patches (a radial
-    intensity profile of +-``patch_radius`` px on 2 ``patch_lines`` + 1
-    neighbouring radial lines). A match must score at least ``min_score``,
-    be unique (1 - NCC of the best at most ``uniqueness`` times that of the
+    Both tables of f are first blurred across the lines (``tangential_blur``,
+    Gaussian in theta): at one scene point cam1 (at h_1) resolves theta
+    h_2 / h_1 times more coarsely than cam2 (at h_2 > h_1), so the same
+    point looks different in the two units until both are brought to one
+    angular resolution (without it an isotropic texture gave almost no match
+    above the NCC floor). Significant points are the local maxima of
+    |df/dh_i| along each radial line (edges across the line; central
+    differences of the blurred table) above the threshold; candidates are the
+    edges of image 2 inside the disparity window. The score is the normalised
+    cross-correlation (NCC) of the radial intensity profiles, +-
+    ``patch_radius`` px around each edge (on 2 ``patch_lines`` + 1 lines). A
+    match must have the same edge polarity, score at least ``min_score``, be
+    unique ((1 - NCC) of the best at most ``uniqueness`` times that of the
     second best edge) and pass a left-right check (matching image 2's edge
     back to image 1 finds the same edge). h_2 is refined to sub-pixel by a
-    parabola through the NCC at the neighbouring samples. The patches compare
-    equal radial scales, which is exact for vertical surfaces (both units map
-    dh to dh_i = v dh / (d + r)); on inclined surfaces the scales differ by
-    up to h_2 / h_1 and the NCC drops. Tangential scales are not equal in
-    pixels: at one scene point cam1 (at h_1) resolves theta h_2 / h_1 times
-    more coarsely than cam2 (at h_2 > h_1), so both tables are blurred across
-    the lines (``tangential_blur``) to a common angular resolution first;
-    without it an isotropic texture gives almost no match above the NCC
-    threshold.
+    parabola through the NCC at the neighbouring samples. The profiles
+    compare equal radial scales, which is exact for vertical surfaces (both
+    units map dh to dh_i = v dh / (d + r)); on inclined surfaces the scales
+    differ by up to h_2 / h_1 and the NCC drops.
+
+    Vectorised: the edges of each line are laid out left-aligned in
+    (n_theta, c) arrays, so the NCC of every pair of edges on every line is
+    one batched matrix product; the window is a contiguous range of slots
+    per row.
 
 Measured on closed-form scenes (``omniflow.synthetic``, see
 ``tests/test_matching.py``): see that file's module docstring for the
