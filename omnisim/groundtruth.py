@@ -64,6 +64,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from omnisim.dataset import GT_CHANNELS
 from omnisim.render import CAMERAS, MitsubaFrame, _unit, get_mitsuba_scene
 from omnisim.sensor import apply_affine, ensure_mitsuba, mirror_rays, transform_rays
 
@@ -76,23 +77,7 @@ __all__ = [
     "trace",
 ]
 
-GT_CHANNELS = (
-    "gt.valid",
-    "gt.r",
-    "gt.theta",
-    "gt.h",
-    "gt.X",
-    "gt.Y",
-    "gt.Z",
-    "gt.object",
-    "gt.flow.dx",
-    "gt.flow.dy",
-    "gt.flow.dh",
-    "gt.flow.hdtheta",
-    "gt.flow.valid",
-    "gt.stereo.h_other",
-    "gt.stereo.valid",
-)
+# The contract's channel names live in omnisim.dataset, the one place that defines them.
 
 #: Same-point test of the visibility traces: |t_hit - t_expected| <= REL * t + ABS.
 TRACE_TOL_REL = 1e-4
