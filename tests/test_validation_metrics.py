@@ -127,7 +127,8 @@ def test_flow_summary_splits_and_outlier_rates():
     assert s["all"]["out3"] == pytest.approx(1 / 5)
     assert s["occ"]["epe"]["median"] == 5.0
     # Speed bins over non-occluded points only.
-    assert s["speed"]["0-0.5px"]["n"] == 2
+    assert s["speed"]["0-0.25px"]["n"] == 2
+    assert s["speed"]["0.25-0.5px"]["n"] == 0
     assert s["speed"]["0.5-1px"]["n"] == 1
     assert s["speed"]["1-3px"]["n"] == 1
     assert s["speed"][">=3px"]["n"] == 0

@@ -10,7 +10,7 @@ the figure has an upper bound ``max`` or a lower bound ``min``); this tool says
 1. For each ``[scenes.KEY]`` it makes the dataset the end-to-end test makes
    (``omnisim render SCENE --resolution R --spp S --frames F --seed N``, or the
    closed-form demo of :mod:`validation.synthdata` for ``scene =
-   "synthetic:demo"``), once per seed, and runs the harness on it.
+   "synthetic:demo"`` or ``"synthetic:vertical"``), once per seed, and runs the harness on it.
 2. ``measured`` is the figure at the table's own ``seed`` (what CI sees: renders
    are deterministic for a seed).
 3. The margin covers what legitimately moves a figure: render noise (the spread
@@ -29,6 +29,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import shutil
 import subprocess
 import sys
 import tomllib
@@ -48,17 +49,19 @@ LOWER = 0.8
 
 
 def make_dataset(spec: dict[str, Any], out: Path, seed: int) -> Path:
-    """Make the dataset a ``[scenes.KEY]`` table describes (render or closed form)."""
+    """Make the dataset a ``[scenes.KEY]`` table describes (render or closed form) in a
+    new directory ``out`` (an old one is removed: scene files change)."""
+    shutil.rmtree(out, ignore_errors=True)
     scene = spec["scene"]
-    if scene == "synthetic:demo":
-        from .synthdata import demo_scene, write_synthetic_dataset
+    if scene.startswith("synthetic:"):
+        from .synthdata import SCENES, write_synthetic_dataset
 
-        write_synthetic_dataset(
-            out,
-            demo_scene(int(spec["resolution"]), seed=3 + seed),
-            int(spec["frames"]),
-            name="synthetic-demo",
-        )
+        kind = scene.split(":", 1)[1]
+        if kind not in SCENES:
+            raise ValueError(f"scene {scene!r}: expected synthetic:{'|'.join(SCENES)}")
+        make = SCENES[kind]
+        write_synthetic_dataset(out, make(int(spec["resolution"]), seed=3 + seed),
+                                int(spec["frames"]), name=f"synthetic-{kind}")  # fmt: skip
         return out
     cmd = [
         sys.executable,

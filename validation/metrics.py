@@ -45,7 +45,7 @@ __all__ = [
 ]
 
 #: Speed bins in pixels per frame (true displacement magnitude).
-SPEED_BINS: tuple[float, ...] = (0.0, 0.5, 1.0, 3.0, math.inf)
+SPEED_BINS: tuple[float, ...] = (0.0, 0.25, 0.5, 1.0, 3.0, math.inf)
 #: Range bins in metres (true distance from the axis).
 RANGE_BINS: tuple[float, ...] = (0.0, 1.0, 2.0, 4.0, math.inf)
 

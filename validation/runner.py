@@ -44,8 +44,10 @@ __all__ = [
     "FramePair",
     "InputError",
     "Results",
+    "TrueMatches",
     "omniflow_variants",
     "run_validation",
+    "true_matches",
     "variant_name",
 ]
 
@@ -89,30 +91,56 @@ STEREO_TRUTH = (
     "gt.Z",
 )
 CAMERAS = ("cam1", "cam2")
+#: At most this many matched points (a fixed random subset) go into the odometry fit.
+ODOMETRY_POINTS = 2000
+
+
+@dataclass(frozen=True)
+class TrueMatches:
+    """A variant that skips matching: omniflow's flow step on the TRUE stereo matches.
+
+    The points are the cam1 pixels whose radial gradient magnitude is in the
+    top ``100 - percentile`` % (the paper's significant points, from the 8-bit
+    frame by central differences) and that cam2 sees (``gt.stereo.valid``);
+    their match is ``h2 = gt.stereo.h_other``. The row isolates the flow
+    solution (section 5.3) from the matching (section 5.2).
+    """
+
+    config: Any
+    percentile: float = 80.0
+
+    def __getattr__(self, name: str) -> Any:  # temporal, gradients, ... of the inner config
+        if name == "config":
+            raise AttributeError(name)
+        return getattr(self.config, name)
 
 
 def variant_name(config: Any) -> str:
-    """Row name of an OmniFlowConfig, e.g. ``omniflow[robust,grad1,diff,direct]``."""
-    parts = [
-        _SHORT.get(str(getattr(config, k)), str(getattr(config, k)))
-        for k in VARIANT_CHOICES
-        if hasattr(config, k)
-    ]
+    """Row name of an OmniFlowConfig, e.g. ``omniflow[robust,grad1,diff,direct]``;
+    ``omniflow[truth,...]`` for :class:`TrueMatches`."""
+    inner = config.config if isinstance(config, TrueMatches) else config
+    parts = [_SHORT.get(str(getattr(inner, k)), str(getattr(inner, k)))
+             for k in VARIANT_CHOICES if hasattr(inner, k)]  # fmt: skip
+    if isinstance(config, TrueMatches) and parts:
+        parts[0] = "truth"
     return f"omniflow[{','.join(parts)}]"
 
 
-def omniflow_variants(mode: str = "all") -> list[tuple[str, Any]]:
+def omniflow_variants(mode: str = "all", *, true_matches: bool = True) -> list[tuple[str, Any]]:
     """(name, OmniFlowConfig) for each variant, the default configuration first.
 
     ``mode``: ``"default"`` (only the default), ``"oat"`` (the default plus each
-    choice changed one at a time), ``"all"`` (every combination).
+    choice changed one at a time), ``"all"`` (every combination). With
+    ``true_matches`` (not for "default") two more rows run the flow step of the
+    default and of the paper's configuration on the true matches
+    (:class:`TrueMatches`).
     """
     from omniflow.pipeline import OmniFlowConfig
 
     base = OmniFlowConfig()
     names = {f.name for f in dataclasses.fields(OmniFlowConfig)}
     choices = {k: v for k, v in VARIANT_CHOICES.items() if k in names}
-    configs = [base]
+    configs: list[Any] = [base]
     if mode == "oat":
         for key, values in choices.items():
             for val in values:
@@ -125,7 +153,45 @@ def omniflow_variants(mode: str = "all") -> list[tuple[str, Any]]:
                 configs.append(cfg)
     elif mode != "default":
         raise InputError(f"variants = {mode!r}: expected 'default', 'oat' or 'all'")
+    if true_matches and mode != "default":
+        configs.append(TrueMatches(base))
+        paper = OmniFlowConfig.paper() if hasattr(OmniFlowConfig, "paper") else base
+        if paper != base:
+            configs.append(TrueMatches(paper))
     return [(variant_name(c), c) for c in configs]
+
+
+def true_matches(
+    image: NDArray, truth: dict[str, NDArray], rig: Any, percentile: float = 80.0
+) -> Any:
+    """The true stereo matches at cam1's significant pixels (see :class:`TrueMatches`)."""
+    from omniflow.matching import Matches
+
+    unit = rig.cam1
+    g = image.astype(np.float64)
+    gy, gx = np.gradient(g)
+    x, y = unit.pixel_centres()
+    h1, theta = unit.polar_of_pixel(x, y)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        f_h = np.abs((x - unit.x_c) * gx + (y - unit.y_c) * gy) / h1
+    seen = (truth["gt.valid"] > 0.5) & (truth["gt.stereo.valid"] > 0.5) & (h1 >= 6.0)
+    seen &= h1 <= unit.r_m - 4.0
+    seen &= np.isfinite(truth["gt.stereo.h_other"]) & np.isfinite(f_h)
+    if not seen.any():
+        z = np.zeros(0)
+        return Matches(x=z, y=z, theta=z, h1=z, h2=z, score=z, n_significant=0, method="truth")
+    sig = seen & (f_h >= np.percentile(f_h[seen], percentile))
+    ii, jj = np.nonzero(sig)
+    return Matches(
+        x=x[ii, jj],
+        y=y[ii, jj],
+        theta=theta[ii, jj],
+        h1=h1[ii, jj],
+        h2=truth["gt.stereo.h_other"][ii, jj].astype(np.float64),
+        score=np.ones(ii.size),
+        n_significant=int(ii.size),
+        method="truth",
+    )
 
 
 class InputError(ValueError):
@@ -492,7 +558,11 @@ def run_validation(
                 with warnings.catch_warnings(record=True) as caught:
                     warnings.simplefilter("always")
                     try:
-                        res = estimate(g1, g2, rig, cfg, t=t_rel)
+                        if isinstance(cfg, TrueMatches):
+                            tm = true_matches(first["cam1"], truth["cam1"], rig, cfg.percentile)
+                            res = estimate(g1, g2, rig, cfg.config, t=t_rel, matches=tm)
+                        else:
+                            res = estimate(g1, g2, rig, cfg, t=t_rel)
                     except Exception as exc:
                         res = _FailedResult()
                         msg = str(exc).splitlines()[0] if str(exc) else ""
@@ -602,6 +672,11 @@ def _dense_array(field_: Any, truth: dict[str, NDArray]) -> NDArray:
 
 
 def _config_dict(cfg: Any) -> dict[str, Any]:
+    if isinstance(cfg, TrueMatches):
+        out = _config_dict(cfg.config)
+        out["match_method"] = "truth"
+        out["true_matches_percentile"] = cfg.percentile
+        return out
     out = {}
     for f in dataclasses.fields(cfg):
         v = getattr(cfg, f.name)
@@ -768,6 +843,10 @@ def _odometry(cols: dict) -> dict[str, dict[str, float]] | None:
     ok = np.isfinite(theta) & np.isfinite(r) & np.isfinite(dr) & np.isfinite(dth) & (r > 0)
     if ok.sum() < 10:
         return None
+    if ok.sum() > ODOMETRY_POINTS:  # a fixed random subset keeps the robust fit fast
+        keep = np.random.default_rng(0).choice(np.flatnonzero(ok), ODOMETRY_POINTS, replace=False)
+        ok = np.zeros_like(ok)
+        ok[keep] = True
     out = {}
     for label, radial in (("both", dr[ok]), ("tangential", None)):
         fit = odometry(theta[ok], r[ok], dth[ok], radial)

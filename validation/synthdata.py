@@ -27,7 +27,14 @@ from numpy.typing import NDArray
 from omniflow.rig import Rig
 from omniflow.synthetic import Cylinder, Motion, SyntheticScene, Texture
 
-__all__ = ["demo_scene", "main", "scene_meta", "write_synthetic_dataset"]
+__all__ = [
+    "SCENES",
+    "demo_scene",
+    "main",
+    "scene_meta",
+    "vertical_scene",
+    "write_synthetic_dataset",
+]
 
 
 def _pose(x: float, y: float, z: float, yaw: float) -> list[list[float]]:
@@ -136,6 +143,24 @@ def demo_scene(
         robot=Motion(velocity=(robot_speed, 0.0), yaw_rate=0.004),
         bodies=(pillar,),
     )
+
+
+def vertical_scene(size: int = 128, *, vz: float = 0.002, seed: int = 3) -> SyntheticScene:
+    """The robot standing still in the textured room; a textured pillar (id 3, 1.2 m
+    from the axis) rising at ``vz`` metres per frame. Eq. (14) assumes dh/dt = 0, so the
+    direct solution's cam2 radial flow on the pillar is biased by
+    s v dh / ((d + r)(s - h)) (OMNIFLOW_MATH.md); the static wall is the control."""
+    rig = Rig.symmetric(d=0.10, R=0.05, s=0.30, size=size)
+    pillar = Cylinder(
+        centre=(1.2 + 0.3, 0.4), radius=0.3, id=3, name="pillar",
+        motion=Motion(vz=vz),
+        texture=Texture.random(seed + 10, wavelengths=(0.04, 0.25), period_u=2 * np.pi * 0.3),
+    )  # fmt: skip
+    return SyntheticScene.room(rig, wall_radius=3.0, ceiling=2.5, texture_seed=seed,
+                               bodies=(pillar,))  # fmt: skip
+
+
+SCENES = {"demo": demo_scene, "vertical": vertical_scene}
 
 
 def main(argv: Sequence[str] | None = None) -> int:
