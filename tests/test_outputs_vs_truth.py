@@ -18,10 +18,10 @@ checks all of them, per point, on one scene.
 Scene: a round textured room (wall 3 m, no ceiling), 224 x 224 images of the
 paper's rig (d = 0.10, R = 0.05, s = 0.30 m); the robot drives (0.008, -0.006)
 m/frame and turns -0.0015 rad/frame (image motion: cam1 0.13 px/frame median,
-0.35 px at most; cam2 0.25 and 0.51 px). The frames are rendered with a 1.5 px Gaussian footprint
-(``blur``) so the images are band-limited and the DCT series (band 1/2) can
-represent them: the derivative columns are then compared with the exact
-derivatives of the rendered image.
+0.35 px at most; cam2 0.25 and 0.51 px). The frames are rendered with a
+1.5 px Gaussian footprint (``blur``) so the images are band-limited and the
+DCT series (band 1/2) can represent them: the derivative columns are then
+compared with the exact derivatives of the rendered image.
 Truth at each matched point comes from ``SyntheticScene.trace`` at the point's
 exact polar coordinates (no interpolation of truth grids).
 
