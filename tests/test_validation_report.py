@@ -275,3 +275,12 @@ def test_cli_bad_input_exits_2_with_one_line(synth, tmp_path, args, needle):
     lines = p.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("omnivalidate: error:"), p.stderr
     assert needle in lines[0]
+
+
+def test_calibrate_rounds_bounds_outward():
+    from validation.calibrate import _round_out
+
+    assert _round_out(0.043212, up=True) == 0.0433
+    assert _round_out(0.043212, up=False) == 0.0432
+    assert _round_out(1234.5, up=True) == 1240.0
+    assert _round_out(0.0, up=True) == 0.0

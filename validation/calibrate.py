@@ -46,6 +46,8 @@ DEFAULT_FILE = HERE / "thresholds.toml"
 REPO = HERE.parent
 UPPER = 1.25
 LOWER = 0.8
+#: Metrics that are fractions: an upper bound above 1 is capped at 1.
+FRACTIONS = {"outliers", "out1", "out3", "match_rate"}
 
 
 def make_dataset(spec: dict[str, Any], out: Path, seed: int) -> Path:
@@ -132,6 +134,13 @@ def _render_file(header: str, scenes: dict[str, Any]) -> str:
         for k in ("description", "scene", "resolution", "spp", "frames", "seed", "variants"):
             if k in spec:
                 out.append(f"{k} = {_fmt(spec[k])}")
+        if spec.get("dropped"):
+            out.append(
+                "# checks the current method cannot be measured on (no points at this seed):"
+            )
+            out.append("dropped = [")
+            out.extend(f"    {_fmt(d)}," for d in spec["dropped"])
+            out.append("]")
         out.append("")
         for c in spec["check"]:
             out.append(f"[[scenes.{key}.check]]")
@@ -199,12 +208,19 @@ def main(argv: Sequence[str] | None = None) -> int:
                 if seed == int(spec.get("seed", 0)):
                     own[i] = v
             print(f"{key} seed {seed}: done", file=sys.stderr)
+        kept, dropped = [], list(spec.get("dropped", []))
         for i, c in enumerate(spec["check"]):
             vals = [v for v in values[i] if math.isfinite(v)]
             shown = ", ".join(f"{v:.4g}" for v in values[i])
             c["measured"] = own[i]
-            if not vals:
-                c["margin"] = f"not measurable: seeds {seeds} gave {shown}"
+            if not math.isfinite(own[i]):
+                # CI would see this NaN: a check that cannot be measured is dropped, and said so.
+                pts = f" @{c['points']}" if c.get("points") else ""
+                dropped.append(
+                    f"{c['method']}{pts} {c['metric']}: not measurable at seed "
+                    f"{spec.get('seed', 0)} (seeds {seeds}: {shown})"
+                )
+                print(f"{key}: dropped {dropped[-1]}", file=sys.stderr)
                 continue
             if "max" in c:
                 worst = max(vals)
@@ -213,6 +229,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                     f"{UPPER} x the worst of seeds {seeds} ({shown}), rounded up; "
                     "covers render noise and platform differences"
                 )
+                if c["metric"].rsplit(".", 1)[-1] in FRACTIONS and c["max"] > 1.0:
+                    c["max"] = 1.0
+                    c["margin"] += " (a fraction: capped at 1)"
             if "min" in c:
                 low = min(vals)
                 c["min"] = _round_out(low * LOWER, up=False)
@@ -220,6 +239,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                     f"{LOWER} x the lowest of seeds {seeds} ({shown}), rounded down; "
                     "covers render noise and platform differences"
                 )
+            kept.append(c)
+        spec["check"] = kept
+        if dropped:
+            spec["dropped"] = dropped
     new = _render_file(_header(text), scenes)
     if args.write:
         path.write_text(new)

@@ -524,13 +524,7 @@ def _headline_table(summary: Mapping[str, Any]) -> tuple[list[str], list[list[st
 
 
 def _is_paper(m: Mapping[str, Any]) -> bool:
-    c = m.get("config", {})
-    return (
-        c.get("match_method") == "paper"
-        and c.get("gradients") == "first"
-        and c.get("temporal") == "difference"
-        and c.get("solver") == "direct"
-    )
+    return bool(m.get("paper"))
 
 
 def _speed_table(summary: Mapping[str, Any]) -> tuple[list[str], list[list[str]]]:

@@ -117,20 +117,34 @@ class TrueMatches:
 
 def variant_name(config: Any) -> str:
     """Row name of an OmniFlowConfig, e.g. ``omniflow[robust,grad1,diff,direct]``;
-    ``omniflow[truth,...]`` for :class:`TrueMatches`."""
+    ``omniflow[truth,...]`` for :class:`TrueMatches`. Other fields that differ from
+    ``OmniFlowConfig()`` follow a semicolon: ``omniflow[paper,grad1,diff,direct;band=0.25]``."""
     inner = config.config if isinstance(config, TrueMatches) else config
     parts = [_SHORT.get(str(getattr(inner, k)), str(getattr(inner, k)))
              for k in VARIANT_CHOICES if hasattr(inner, k)]  # fmt: skip
     if isinstance(config, TrueMatches) and parts:
         parts[0] = "truth"
-    return f"omniflow[{','.join(parts)}]"
+    extra = ""
+    if dataclasses.is_dataclass(inner):
+        try:
+            base = type(inner)()
+        except TypeError:
+            base = None
+        if base is not None:
+            diffs = [f"{f.name}={getattr(inner, f.name)!r}".replace("'", "")
+                     for f in dataclasses.fields(inner)
+                     if f.name not in VARIANT_CHOICES
+                     and getattr(inner, f.name) != getattr(base, f.name)]  # fmt: skip
+            extra = ";" + ",".join(diffs) if diffs else ""
+    return f"omniflow[{','.join(parts)}{extra}]"
 
 
 def omniflow_variants(mode: str = "all", *, true_matches: bool = True) -> list[tuple[str, Any]]:
     """(name, OmniFlowConfig) for each variant, the default configuration first.
 
     ``mode``: ``"default"`` (only the default), ``"oat"`` (the default plus each
-    choice changed one at a time), ``"all"`` (every combination). With
+    choice changed one at a time, plus the paper's configuration), ``"all"``
+    (every combination). With
     ``true_matches`` (not for "default") two more rows run the flow step of the
     default and of the paper's configuration on the true matches
     (:class:`TrueMatches`).
@@ -153,6 +167,9 @@ def omniflow_variants(mode: str = "all", *, true_matches: bool = True) -> list[t
                 configs.append(cfg)
     elif mode != "default":
         raise InputError(f"variants = {mode!r}: expected 'default', 'oat' or 'all'")
+    paper = OmniFlowConfig.paper() if hasattr(OmniFlowConfig, "paper") else base
+    if mode != "default" and paper not in configs:  # the paper's exact configuration
+        configs.append(paper)
     if true_matches and mode != "default":
         configs.append(TrueMatches(base))
         paper = OmniFlowConfig.paper() if hasattr(OmniFlowConfig, "paper") else base
@@ -221,6 +238,7 @@ class MethodInfo:
     kind: str  # "omniflow" | "baseline"
     config: dict[str, Any] = field(default_factory=dict)
     default: bool = False
+    paper: bool = False  # OmniFlowConfig.paper(), on the method's own matches
 
 
 @dataclass
@@ -485,7 +503,7 @@ def run_validation(
             "objects": {str(k): v for k, v in ds.objects.items()},
         },
         methods=[
-            MethodInfo(name, "omniflow", _config_dict(cfg), i == 0)
+            MethodInfo(name, "omniflow", _config_dict(cfg), i == 0, _is_paper_config(cfg))
             for i, (name, cfg) in enumerate(vlist)
         ]
         + [MethodInfo(b, "baseline") for b in baselines],
@@ -669,6 +687,15 @@ def _dense_array(field_: Any, truth: dict[str, NDArray]) -> NDArray:
     yy, xx = np.mgrid[0:h, 0:w] + 0.5
     est = field_.at(xx.ravel(), yy.ravel())
     return np.stack([est["dx"].reshape(h, w), est["dy"].reshape(h, w)], axis=-1)
+
+
+def _is_paper_config(cfg: Any) -> bool:
+    try:
+        from omniflow.pipeline import OmniFlowConfig
+
+        return bool(cfg == OmniFlowConfig.paper())
+    except (ImportError, AttributeError, TypeError):
+        return False
 
 
 def _config_dict(cfg: Any) -> dict[str, Any]:

@@ -148,6 +148,7 @@ def summarize(results: Results) -> dict[str, Any]:
                     "name": m.name,
                     "kind": "omniflow",
                     "default": m.default,
+                    "paper": m.paper,
                     "config": m.config,
                     "points": "own",
                     "time_per_frame": _time_block(results.times.get(m.name, [])),

@@ -52,6 +52,7 @@ SCENE_KEYS = {
     "description",
     "dataset",
     "check",
+    "dropped",
 }
 
 
