@@ -508,6 +508,7 @@ def _headline_table(summary: Mapping[str, Any]) -> tuple[list[str], list[list[st
         st = m.get("stereo") or {}
         label = m["name"] + (" (default)" if m.get("default") else "")
         label += " (paper)" if m["kind"] == "omniflow" and _is_paper(m) else ""
+        label += " at the default's points" if m["kind"] == "baseline" else ""
         a1, a2, sa = f1.get("all", {}), f2.get("all", {}), st.get("all", {})
         rows.append(
             [
