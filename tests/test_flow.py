@@ -340,3 +340,32 @@ def test_vertical_motion_bias_matches_prediction():
     assert np.median(np.abs(err_b - c["h1"] * db_pred)) < 0.1 * np.median(np.abs(err_b))
     epe = np.hypot(c["dx"] - gt["gt.flow.dx"][sel], c["dy"] - gt["gt.flow.dy"][sel])
     assert np.median(epe) > 0.5
+
+
+def test_iterations_reduce_the_error_of_a_large_motion():
+    """Gauss-Newton refinement (OmniFlowConfig.iterations): on the striped
+    wall with the robot driving 0.03 m/frame (median true motion 0.72 px,
+    printed), measured with the true matches (this test, -s): pooled
+    default 0.0364 px median EPE -> 0.0216 px with one iteration (ratio 0.59);
+    the direct solution 0.183 -> 0.128 (0.70). Bounds: ratio <= 0.75 and
+    <= 0.85 (about 25 % and 20 % margins). iterations=0 (the paper's single
+    step) is unchanged: same result as the default configuration."""
+    rig = paper_rig()
+    scene = wall_scene(rig, robot=Motion(velocity=(0.03, 0.0)))
+    f1, f2 = frames(scene)
+    m, gt, sel = true_matches(scene)
+    tdx, tdy = gt["gt.flow.dx"][sel], gt["gt.flow.dy"][sel]
+    print(f"\nmedian true motion {np.median(np.hypot(tdx, tdy)):.3f} px")
+    for solver, bound in (("pooled", 0.75), ("direct", 0.85)):
+        epe = []
+        for it in (0, 1):
+            c = estimate(f1, f2, rig, OmniFlowConfig(solver=solver, iterations=it), matches=m)
+            assert len(c) == sel.sum()
+            epe.append(float(np.median(np.hypot(c["dx"] - tdx, c["dy"] - tdy))))
+        print(solver, "iterations 0, 1:", epe)
+        assert epe[1] <= bound * epe[0], (solver, epe)
+    c0 = estimate(f1, f2, rig, OmniFlowConfig(iterations=0), matches=m)
+    cd = estimate(f1, f2, rig, matches=m)
+    np.testing.assert_array_equal(c0["dx"], cd["dx"])
+    with pytest.raises(ValueError, match="iterations"):
+        OmniFlowConfig(iterations=-1)
