@@ -195,14 +195,14 @@ def test_world_point_moves_with_its_object_to_pixel_plus_flow(gts, scene):
             ok &= _nearest(g1["gt.object"], xf, yf) == obj
             assert ok.sum() > 0.4 * (g["gt.valid"] == 1).sum()
             p = np.stack([g["gt.X"], g["gt.Y"], g["gt.Z"]], -1).astype(float)
-            moved = np.empty_like(p)
+            moved = np.full_like(p, np.nan)  # only the checked objects' points are moved
             for oid in np.unique(obj[ok]):
                 o = scene.object_by_id(int(oid))
                 m = o.pose(f + 1) @ np.linalg.inv(o.pose(f))
                 sel = obj == oid
                 moved[sel] = p[sel] @ m[:3, :3].T + m[:3, 3]
             p1 = np.stack([_bilinear(g1[k], xf, yf) for k in ("gt.X", "gt.Y", "gt.Z")], -1)
-            err = np.linalg.norm(p1 - moved, axis=-1)[ok]
+            err = np.linalg.norm((p1 - moved)[ok], axis=-1)
             rng = np.linalg.norm(p - scene.robot.pose(f)[:3, 3], axis=-1)[ok]
             # bilinear interpolation of X over a surface: second-order small
             assert np.median(err / rng) < 2e-4, np.median(err / rng)
