@@ -453,7 +453,7 @@ def match_radial(
     uniqueness: float = 0.5,
     left_right: bool = True,
     candidate_fraction: float = 0.5,
-    tangential_blur: float = 0.06,
+    tangential_blur: float = 0.03,
     grids: tuple[PolarGrids, PolarGrids] | None = None,
 ) -> Matches:
     """Match cam1's significant points along radial lines in cam2 (section 5.2).
@@ -496,8 +496,12 @@ def match_radial(
         ``robust``: neighbouring radial lines on each side in the patch.
     profile_step : float, optional
         ``robust``: spacing of the profile's samples along the radial line,
-        pixels (rounded to a multiple of h_step); default patch_radius / 8,
-        17 samples.
+        pixels (rounded to a multiple of h_step); default patch_radius / 16,
+        33 samples (at most one per h_step). On rendered frames (path-tracing
+        noise) the denser profile halved the outliers at 512 x 512 (16 spp:
+        13.7 % instead of 20.6 % alone, 7.8 % instead of 14.9 % with
+        tangential_blur 0.03); patch_radius / 8 was as good on noise-free
+        closed-form frames.
     min_score : float
         ``robust``: smallest NCC accepted.
     uniqueness : float
@@ -513,7 +517,13 @@ def match_radial(
         both polar tables before matching. cam1 resolves the scene h_2 / h_1
         times more coarsely in theta than cam2 at the same point, so the
         same patch looks different in the two units unless both are blurred
-        to a common angular resolution. 0 disables it.
+        to a common angular resolution. 0 disables it. Default 0.03 (1.7
+        lines of 360): on rendered frames it matched more points with fewer
+        outliers than 0.06 (default scene, 512 x 512, 16 spp: 14.9 % instead
+        of 20.6 %; 256 x 256, 64 spp: 2.5 % instead of 6.7 %; 0.02 and 0.04
+        were as good or worse); on closed-form frames it matched as well
+        (0.2 % outliers in all, 0.3 % with 0.06) but fewer points on the
+        room texture (704 / 1525 instead of 893 / 1893).
     grids : (PolarGrids, PolarGrids), optional
         Precomputed grids of the two fits (saves re-evaluating them).
 
@@ -529,7 +539,7 @@ def match_radial(
     if patch_radius is None:
         patch_radius = cam1.r_m / 8.0
     if profile_step is None:
-        profile_step = patch_radius / 8.0
+        profile_step = patch_radius / 16.0
     if not (h_step > 0 and n_theta >= 8 and patch_radius > 0 and patch_lines >= 0):
         raise ValueError("expected h_step > 0, n_theta >= 8, patch_radius > 0, patch_lines >= 0")
     r_min = rig.min_common_range if r_min is None else float(r_min)
