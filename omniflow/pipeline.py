@@ -29,8 +29,9 @@ gradients, frame difference, direct (eq. 16)                    (58-91 % wrong
                                                                 matches)
 band 1/2, averaged gradients, direct              0.009-0.145
 band 1/4, averaged gradients, pooled              0.014-0.066
-default: band 1/2, robust matching, averaged      0.0007-0.014  0.008-0.013
-gradients, frame difference, pooled (linear)                    (0 % wrong)
+default: band 1/2, robust matching, averaged      0.0005-0.011  0.004-0.009
+gradients, frame difference, pooled (linear,                    (0 % wrong)
+48 neighbours within r_m / 8)
 same with the 3-D DCT over 3 frames               0.0035-0.015
 OpenCV DIS medium, same frames and points         0.014-0.097   0.033-0.097
 ================================================  ============  ==============
@@ -189,10 +190,16 @@ class OmniFlowConfig:
         Eq. (16) per point (paper) or eq. (9) and (15) of neighbouring
         matches pooled in least squares.
     pool_radius : float or None
-        Pooled solver: neighbourhood radius, pixels; None: r_m / 16 (8 px at
-        256 x 256).
+        Pooled solver: neighbourhood radius, pixels; None: r_m / 8 (16 px at
+        256 x 256, 32 px at 512 x 512).
     pool_k : int
-        Pooled solver: most neighbours, the point itself included.
+        Pooled solver: most neighbours, the point itself included. With
+        r_m / 8, 48 neighbours measured better than r_m / 16 and 24 on
+        closed-form frames (median EPE with the true matches 0.0050 ->
+        0.0030 px striped, 0.0142 -> 0.0112 room) and on rendered ones
+        (default scene, 16 spp, true matches: 0.224 -> 0.183 px cam1,
+        0.398 -> 0.321 px cam2 at 512 px; 0.321 -> 0.187, 0.533 -> 0.327 at
+        128 px 4 spp): the render noise averages out over more equations.
     pool_range_tol : float or None
         Pooled solver: neighbours whose range differs by more than this
         fraction (another surface) are left out; None keeps them.
@@ -214,10 +221,14 @@ class OmniFlowConfig:
         gradients="average"), and eq. (9) and (15) are solved again (same
         solver) for the increment. 0 is the paper's single first-order step
         of eq. (8); the paper does not iterate. Measured: helps on exact
-        closed-form frames with ~0.7 px of motion (0.036 -> 0.022 px median
+        closed-form frames with ~0.7 px of motion (0.028 -> 0.013 px median
         EPE, tests/test_flow.py), hurts on rendered frames (default scene,
-        true matches, 512 px 16 spp: 0.224 -> 0.283 px cam1), so off by
-        default.
+        true matches, 512 px 16 spp, 24 neighbours: 0.224 -> 0.283 px cam1;
+        scenes/turn_in_place, default pooling: 0.125 -> 0.187 px) where the
+        error is render noise, not the linearisation; it
+        helps again where the motion is several pixels (scenes/large_motion,
+        512 px: 2.77 -> 1.50 px cam1 with 3 iterations, still far off). Off
+        by default.
     rim_fill : {"reflect", "none"}
         Before the DCT fit, replace the pixels beyond the mirror's rim by the
         image reflected radially about the rim ("reflect"), or keep them
@@ -249,7 +260,7 @@ class OmniFlowConfig:
     temporal_frames: int = 3
     solver: str = "pooled"
     pool_radius: float | None = None
-    pool_k: int = 24
+    pool_k: int = 48
     pool_range_tol: float | None = 0.1
     pool_model: str = "linear"
     min_conditioning: float = 0.0
@@ -764,7 +775,7 @@ def _solver(
             return a, b, direct_conditioning(f1_h, f1_th, f2_h, f2_th, h1, h2)
 
         return solve
-    pool_radius = rig.cam1.r_m / 16.0 if config.pool_radius is None else config.pool_radius
+    pool_radius = rig.cam1.r_m / 8.0 if config.pool_radius is None else config.pool_radius
     idx, w = neighbourhoods(
         x1, y1, k=config.pool_k, radius=pool_radius, r=r, range_tol=config.pool_range_tol
     )
