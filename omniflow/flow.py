@@ -322,26 +322,44 @@ def pooled_solution(
     if model == "linear":
         th = np.append(np.asarray(theta, dtype=np.float64).ravel(), 0.0)
         u = (((th[idx] - th[:n, None]) + np.pi) % (2 * np.pi) - np.pi) * hi / scale
-    # design rows (one per neighbour and unit) times the unknowns = -f_t,
-    # each row scaled by sqrt(w) so the normal matrix is A^T A
-    kk = idx.shape[1]
-    n_par = 2 if model == "constant" else 4
-    A = np.empty((n, 2 * kk, n_par))
-    rhs = np.empty((n, 2 * kk))
-    sw = np.sqrt(w)
-    for blk, (fh, fth, ft) in enumerate(((f1_h, f1_theta, f1_t), (k * f2_h, f2_theta, f2_t))):
-        sl = slice(blk * kk, (blk + 1) * kk)
-        p = A[:, sl, 0]
-        q = A[:, sl, 1]
-        np.multiply(fh[idx], rel * sw, out=p)
-        np.multiply(fth[idx], sw / hi, out=q)
-        if n_par == 4:
-            np.multiply(p, u, out=A[:, sl, 2])
-            np.multiply(q, u, out=A[:, sl, 3])
-        np.multiply(ft[idx], sw, out=rhs[:, sl])
-    At = A.transpose(0, 2, 1)
-    M = At @ A  # normal matrices (N, P, P)
-    v = -(At @ rhs[..., None])[..., 0]
+    # Normal equations without forming the design matrix: a row of neighbour j
+    # and one unit is (p, q, p u, q u) [ * sqrt(w)] with p = f_h rel (k f2_h
+    # for unit 2), q = f_theta / h_1, right side -f_t, so every entry of
+    # A^T A and A^T rhs is a weighted sum of pp, pq, qq, pf, qf times 1, u or
+    # u^2 (both units share j's weight and u).
+    p1, p2 = f1_h[idx] * rel, (k * f2_h)[idx] * rel
+    q1, q2 = f1_theta[idx] / hi, f2_theta[idx] / hi
+    t1, t2 = f1_t[idx], f2_t[idx]
+    prods = np.stack(
+        [
+            p1 * p1 + p2 * p2,
+            p1 * q1 + p2 * q2,
+            q1 * q1 + q2 * q2,
+            p1 * t1 + p2 * t2,
+            q1 * t1 + q2 * t2,
+        ],
+        axis=-1,
+    )  # fmt: skip  (N, K, 5)
+    if model == "constant":
+        powers = w[:, None, :]  # (N, 1, K)
+    else:
+        powers = np.stack([w, w * u, w * u * u], axis=1)  # (N, 3, K)
+    sums = powers @ prods  # (N, 1 or 3, 5): sum_j w u^m (pp, pq, qq, pf, qf)
+    pp, pq, qq, pf, qf = (sums[:, :, c] for c in range(5))
+    if model == "constant":
+        M = np.stack([np.stack([pp[:, 0], pq[:, 0]], -1), np.stack([pq[:, 0], qq[:, 0]], -1)], 1)
+        v = -np.stack([pf[:, 0], qf[:, 0]], -1)
+    else:
+        M = np.stack(
+            [
+                np.stack([pp[:, 0], pq[:, 0], pp[:, 1], pq[:, 1]], -1),
+                np.stack([pq[:, 0], qq[:, 0], pq[:, 1], qq[:, 1]], -1),
+                np.stack([pp[:, 1], pq[:, 1], pp[:, 2], pq[:, 2]], -1),
+                np.stack([pq[:, 1], qq[:, 1], pq[:, 2], qq[:, 2]], -1),
+            ],
+            axis=1,
+        )
+        v = -np.stack([pf[:, 0], qf[:, 0], pf[:, 1], qf[:, 1]], -1)
     if model == "constant":
         S = M
     else:  # Schur complement on (a, c): the two slopes solved out
