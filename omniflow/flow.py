@@ -339,7 +339,7 @@ def pooled_solution(
             q1 * t1 + q2 * t2,
         ],
         axis=-1,
-    )  # fmt: skip  (N, K, 5)
+    )  # (N, K, 5)
     if model == "constant":
         powers = w[:, None, :]  # (N, 1, K)
     else:
