@@ -65,6 +65,7 @@ import cv2
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 from numpy.typing import NDArray
+from scipy.spatial import cKDTree
 
 from omniflow.dct import DCTFit
 from omniflow.rig import Rig, Unit
@@ -454,6 +455,8 @@ def match_radial(
     left_right: bool = True,
     candidate_fraction: float = 0.5,
     tangential_blur: float = 0.03,
+    consistency: float = 1.0,
+    consistency_support: int = 2,
     grids: tuple[PolarGrids, PolarGrids] | None = None,
 ) -> Matches:
     """Match cam1's significant points along radial lines in cam2 (section 5.2).
@@ -524,6 +527,18 @@ def match_radial(
         were as good or worse); on closed-form frames it matched as well
         (0.2 % outliers in all, 0.3 % with 0.06) but fewer points on the
         room texture (704 / 1525 instead of 893 / 1893).
+    consistency : float
+        ``robust``: disparity consistency vote, pixels of cam2 (0 disables).
+        A surface's disparity h_2 - (v_2 / v_1) h_1 varies smoothly, so a
+        match is kept only when at least ``consistency_support`` of its
+        neighbouring matches (within +-0.05 rad in theta and +-r_m / 16 in
+        h_1), and at least half of them, have a disparity within
+        ``consistency`` of its own. On rendered frames most outliers are
+        1-3 px errors of isolated matches (path-tracing noise); measured on
+        the default scene, 512 x 512, 16 spp: 7.8 % -> 5.2 % outliers for
+        18 % fewer matches (see ``tests/test_matching.py``).
+    consistency_support : int
+        ``robust``: the agreeing neighbours a match needs.
     grids : (PolarGrids, PolarGrids), optional
         Precomputed grids of the two fits (saves re-evaluating them).
 
@@ -618,9 +633,37 @@ def match_radial(
     h2 = scale2 * (h_min + h_step * c2)
     lo, hi = rig.disparity_window(h1, r_min, r_max)
     ok = (h2 >= lo) & (h2 <= hi) & np.isfinite(h2)
+    if method == "robust" and consistency > 0 and np.any(ok):
+        idx = np.nonzero(ok)[0]
+        agree = _consistent(
+            theta[idx], h1[idx], h2[idx] - scale2 * h1[idx],
+            half_theta=0.05, half_h=cam1.r_m / 16.0, tol=consistency,
+            support=consistency_support,
+        )  # fmt: skip
+        ok[idx[~agree]] = False
     return Matches.from_polar(
         rig, theta[ok], h1[ok], h2[ok], score[ok], n_significant=n_sig, method=method
     )
+
+
+def _consistent(
+    theta: NDArray, h1: NDArray, disparity: NDArray, *, half_theta: float, half_h: float,
+    tol: float, support: int,
+) -> NDArray:  # fmt: skip
+    """Matches whose disparity agrees (within ``tol``) with at least ``support``
+    of their neighbours (|d theta| <= half_theta, wrapping; |d h1| <= half_h),
+    and with at least half of them; bool (N,)."""
+    n = theta.size
+    scale = half_h / half_theta  # theta in pixels, so the window is a square
+    t = np.mod(theta, 2.0 * np.pi) * scale
+    box = (2.0 * np.pi * scale, 4.0 * (float(h1.max()) + half_h) + 1.0)
+    pts = np.column_stack([np.minimum(t, np.nextafter(box[0], 0)), h1 - h1.min()])
+    pairs = cKDTree(pts, boxsize=box).query_pairs(half_h, p=np.inf, output_type="ndarray")
+    i = np.concatenate([pairs[:, 0], pairs[:, 1]])
+    j = np.concatenate([pairs[:, 1], pairs[:, 0]])
+    near = np.bincount(i, minlength=n)
+    agree = np.bincount(i, weights=np.abs(disparity[i] - disparity[j]) <= tol, minlength=n)
+    return (agree >= support) & (agree >= 0.5 * near)
 
 
 @dataclass(frozen=True)
