@@ -41,7 +41,9 @@ Two methods:
     unique ((1 - NCC) of the best at most ``uniqueness`` times that of the
     second best edge) and pass a left-right check (matching image 2's edge
     back to image 1 finds the same edge). h_2 is refined to sub-pixel by a
-    parabola through the NCC at the neighbouring samples. The profiles
+    parabola through the NCC at the neighbouring samples. Last, a disparity
+    consistency vote (``consistency``) keeps a match only where enough of
+    its neighbours in (theta, h_1) agree with its disparity. The profiles
     compare equal radial scales, which is exact for vertical surfaces (both
     units map dh to dh_i = v dh / (d + r)); on inclined surfaces the scales
     differ by up to h_2 / h_1 and the NCC drops.
@@ -54,6 +56,23 @@ Two methods:
 Measured on closed-form scenes (``omniflow.synthetic``, see
 ``tests/test_matching.py``): see that file's module docstring for the
 figures and the command.
+
+On rendered frames (omnisim, path traced) the robust matcher's outliers
+(|h_2 - gt.stereo.h_other| > 1 px) are mostly small: on the default scene at
+512 x 512, 16 spp, with the earlier defaults (tangential_blur 0.06, profiles
+of 9 samples, no vote) 20.6 % of 1208 matches, of which 216 of 249 within
+3 px and unbiased (median signed error 0.0 px, no trend with theta or h_1);
+0.5 % of the matches see a point cam2 does not (gt.stereo.valid = 0), 13 %
+of the outliers lie within 3 px of an object boundary, none near the rim.
+The outliers follow the render noise (256 x 256: 22.8 % at 4 spp, 6.7 % at
+64 spp) and the score (33 % below NCC 0.97, 12.5 % above 0.99). Added
+Gaussian noise on closed-form frames does not reproduce them (0 % at 5 %
+noise): path-traced frames differ between the units by more than white
+noise. Three changes, measured on that frame (``match_radial`` on the
+frame's 8-bit grey image, as ``omnivalidate`` feeds it): a narrower
+tangential blur (0.03: 14.9 %), profiles of 17 samples either side
+(``profile_step`` patch_radius / 16: 13.7 % alone, 7.8 % with the blur,
+as many matches) and the consistency vote (5.0 % of 1036 matches).
 """
 
 from __future__ import annotations
