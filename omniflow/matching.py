@@ -60,10 +60,11 @@ figures and the command.
 On rendered frames (omnisim, path traced) the robust matcher's outliers
 (|h_2 - gt.stereo.h_other| > 1 px) are mostly small: on the default scene at
 512 x 512, 16 spp, with the earlier defaults (tangential_blur 0.06, profiles
-of 9 samples, no vote) 20.6 % of 1208 matches, of which 216 of 249 within
+of 9 samples, no vote) 20.6 % of 1208 matches, of which 215 of 249 within
 3 px and unbiased (median signed error 0.0 px, no trend with theta or h_1);
 0.5 % of the matches see a point cam2 does not (gt.stereo.valid = 0), 13 %
-of the outliers lie within 3 px of an object boundary, none near the rim.
+of the outliers (6 % of all matches) lie within 6 px of an object boundary,
+and no match lies beyond 0.85 r_m (the rim is not the cause).
 The outliers follow the render noise (256 x 256: 22.8 % at 4 spp, 6.7 % at
 64 spp) and the score (33 % below NCC 0.97, 12.5 % above 0.99). Added
 Gaussian noise on closed-form frames does not reproduce them (0 % at 5 %
