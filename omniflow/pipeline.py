@@ -177,7 +177,16 @@ class OmniFlowConfig:
         significance threshold.
     tangential_blur : float
         Robust matcher: Gaussian blur across the radial lines, radians, to
-        bring both units to one angular resolution; 0 disables it.
+        bring both units to one angular resolution; 0 disables it. 0.03
+        (was 0.06) cut outliers on rendered 512 px frames of the default
+        scene from 11.4 % to 4.9 % (tests/test_matching.py).
+    consistency : float
+        Robust matcher: disparity consistency vote, pixels: keep a match only
+        if enough neighbours (+-0.05 rad, +-r_m/16) have a disparity within
+        this much of its own; 0 disables the vote.
+    consistency_support : int
+        Robust matcher: how many agreeing neighbours the vote needs (and at
+        least half of them).
     gradients : {"first", "average"}
         Spatial gradient of frame t (paper) or the mean of frames t and t + 1.
     temporal : {"difference", "dct3d"}
@@ -254,7 +263,9 @@ class OmniFlowConfig:
     uniqueness: float = 0.5
     left_right: bool = True
     candidate_fraction: float = 0.5
-    tangential_blur: float = 0.06
+    tangential_blur: float = 0.03
+    consistency: float = 1.0
+    consistency_support: int = 2
     gradients: str = "average"
     temporal: str = "difference"
     temporal_frames: int = 3
@@ -288,6 +299,11 @@ class OmniFlowConfig:
         if not (isinstance(self.iterations, int) and self.iterations >= 0):
             raise ValueError(
                 f"OmniFlowConfig.iterations = {self.iterations!r}: expected an integer >= 0"
+            )
+        if self.consistency < 0 or self.consistency_support < 1:
+            raise ValueError(
+                f"OmniFlowConfig.consistency = {self.consistency!r}, consistency_support = "
+                f"{self.consistency_support!r}: expected >= 0 and >= 1"
             )
         if self.pool_k < 1 or (self.pool_radius is not None and self.pool_radius <= 0):
             raise ValueError("OmniFlowConfig.pool_k must be >= 1 and pool_radius > 0")
@@ -633,6 +649,8 @@ def estimate(
             left_right=config.left_right,
             candidate_fraction=config.candidate_fraction,
             tangential_blur=config.tangential_blur,
+            consistency=config.consistency,
+            consistency_support=config.consistency_support,
             grids=grids,
         )
         n_sig = matches.n_significant

@@ -196,11 +196,15 @@ def test_polar_position_is_the_pixel_of_the_point(scene, result, truth):
 # ``python -m pytest tests/test_outputs_vs_truth.py -s`` (printed per column).
 GEOMETRY_BOUNDS = {
     # column: (median bound, p90 bound)   measured median, p90
-    "r": (0.01, 0.03),  # m: 0.0045, 0.0142 (wall at 3 m)
-    "h": (0.0012, 0.003),  # m: 0.00057, 0.0014
-    "h2": (0.1, 0.3),  # px: 0.047, 0.147
-    "x2": (0.06, 0.2),  # px: 0.027, 0.095
-    "y2": (0.06, 0.2),  # px: 0.026, 0.098
+    # Re-measured with the pipeline's tangential_blur 0.03 (was 0.06): sub-pixel
+    # precision on this closed-form scene halved (h2 median 0.047 -> 0.106 px,
+    # r 0.0045 -> 0.0103 m), traded for 1-px outliers on rendered 512 px frames
+    # of the default scene falling from 11.4 % to 4.9 % (tests/test_matching.py).
+    "r": (0.021, 0.061),  # m: 0.0103, 0.0304 (wall at 3 m)
+    "h": (0.0028, 0.0072),  # m: 0.00137, 0.00358
+    "h2": (0.21, 0.62),  # px: 0.106, 0.311
+    "x2": (0.12, 0.46),  # px: 0.057, 0.228
+    "y2": (0.11, 0.42),  # px: 0.055, 0.211
 }
 
 FLOW_BOUNDS = {
