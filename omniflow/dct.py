@@ -41,10 +41,6 @@ from numpy.typing import ArrayLike, NDArray
 
 __all__ = ["DCT3Fit", "DCTFit", "fit_dct", "fit_dct3"]
 
-# scipy.fft threads per transform: the lines of a 2-D array are split between
-# them, each line transformed as with one thread (results unchanged)
-_WORKERS = 2
-
 
 def _check_image(image: ArrayLike, name: str = "image", ndim: int = 2) -> NDArray:
     arr = np.asarray(image)
@@ -106,7 +102,7 @@ def _cos3(c: NDArray, n: int, axis: int) -> NDArray:
     first = [slice(None)] * c.ndim
     first[axis] = slice(0, 1)
     half[tuple(first)] = c[tuple(first)]
-    return scipy.fft.dct(half, type=3, n=n, axis=axis, overwrite_x=True, workers=_WORKERS)
+    return scipy.fft.dct(half, type=3, n=n, axis=axis, overwrite_x=True)
 
 
 def _sin3(b: NDArray, n: int, axis: int) -> NDArray:
@@ -115,8 +111,7 @@ def _sin3(b: NDArray, n: int, axis: int) -> NDArray:
     # so x_m = b_{m+1} / 2 for m + 1 < N; b_N never exists because the band is < N + 1.
     rest = [slice(None)] * b.ndim
     rest[axis] = slice(1, None)
-    half = 0.5 * b[tuple(rest)]
-    return scipy.fft.dst(half, type=3, n=n, axis=axis, overwrite_x=True, workers=_WORKERS)
+    return scipy.fft.dst(0.5 * b[tuple(rest)], type=3, n=n, axis=axis, overwrite_x=True)
 
 
 @dataclass(frozen=True, eq=False)
@@ -227,9 +222,7 @@ def fit_dct(
     P = _band_size(width, band, P, "P")
     Q = _band_size(height, band, Q, "Q")
     # eq. (17): DCT-II along x, keep P columns, then along y (same as dctn(f)[:Q, :P]).
-    spec = scipy.fft.dct(
-        scipy.fft.dct(f, type=2, axis=1, workers=_WORKERS)[:, :P], type=2, axis=0, workers=_WORKERS
-    )[:Q]
+    spec = scipy.fft.dct(scipy.fft.dct(f, type=2, axis=1)[:, :P], type=2, axis=0)[:Q]
     ay, _ = _weights(Q, height)
     ax, _ = _weights(P, width)
     coeffs = (ay[:, None] * ax[None, :]) * spec.astype(np.float64) / (4.0 * width * height)
