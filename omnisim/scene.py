@@ -98,6 +98,7 @@ class RenderSettings:
     seed: int = 0
     integrator: str = "path"
     variant: str = "llvm_ad_rgb"
+    denoise: str = "none"
 
 
 @dataclass(frozen=True)
@@ -468,7 +469,9 @@ def _range_text(what: str, lo, hi, lo_open) -> str:
 TOP_KEYS = frozenset(
     "name description frames frame_interval render rig robot objects lights".split()
 )
-RENDER_KEYS = frozenset({"width", "height", "spp", "max_depth", "seed", "integrator", "variant"})
+RENDER_KEYS = frozenset(
+    {"width", "height", "spp", "max_depth", "seed", "integrator", "variant", "denoise"}
+)
 RIG_KEYS = frozenset({"d", "R", "s", "x_c", "y_c", "r_m", "margin"})
 ROBOT_KEYS = frozenset({"position", "rotation", "motion"})
 MOTION_KEYS = frozenset({"type", "velocity", "angular_velocity", "interpolation", "keys"})
@@ -502,6 +505,8 @@ LIGHT_KEYS = {
     "directional": frozenset({"type", "direction", "irradiance"}),
 }
 INTEGRATORS = ("path", "direct")
+#: ``render.denoise``: none, or Intel Open Image Denoise (``omnisim.denoise``).
+DENOISERS = ("none", "oidn")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr", ".hdr", ".tif", ".tiff", ".bmp")
 
 
@@ -590,6 +595,7 @@ def _render_settings(chk: _Checker, tbl: Any) -> RenderSettings:
         seed=chk.integer(tbl, "seed", w, d.seed, lo=0, hi=2**31 - 1),
         integrator=chk.string(tbl, "integrator", w, d.integrator, choices=INTEGRATORS),
         variant=variant,
+        denoise=chk.string(tbl, "denoise", w, d.denoise, choices=DENOISERS),
     )
 
 
