@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["GUIDE_AOVS", "DENOISERS", "guide_integrator_dict", "oidn_denoise"]
+__all__ = ["DENOISERS", "GUIDE_AOVS", "guide_integrator_dict", "oidn_denoise"]
 
 #: ``render.denoise`` values: none, or Open Image Denoise's RT filter.
 DENOISERS = ("none", "oidn")

@@ -63,8 +63,8 @@ __all__ = [
     "MitsubaScene",
     "frame_seed",
     "get_mitsuba_scene",
-    "render_camera",
     "outside_rim",
+    "render_camera",
     "render_frame",
 ]
 
