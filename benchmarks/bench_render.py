@@ -79,9 +79,10 @@ def time_frames(scene, frames: int) -> dict:
         t = _clock()
         ground_truth_frame(scene, f)
         g_wall, g_cpu = _since(t)
-        rows.append((r_wall, r_cpu, g_wall, g_cpu))
+        rows.append((r_wall, r_cpu, g_wall, g_cpu, tm.get("denoise", 0.0)))
         print(
-            f"  frame {f}: render {r_wall:.2f} s (cpu {r_cpu:.2f}), "
+            f"  frame {f}: render {r_wall:.2f} s (cpu {r_cpu:.2f}; of which denoise "
+            f"{tm.get('denoise', 0.0):.2f} s), "
             f"ground truth {g_wall:.3f} s (cpu {g_cpu:.3f})" + ("  [warm-up]" if f == 0 else ""),
             flush=True,
         )
@@ -92,6 +93,7 @@ def time_frames(scene, frames: int) -> dict:
         "render_cpu_s": med[1],
         "groundtruth_s": med[2],
         "groundtruth_cpu_s": med[3],
+        "denoise_s": med[4],
         "first_frame_s": rows[0][0] + rows[0][2],
         "images": imgs,
     }
@@ -237,13 +239,11 @@ def updates(scene, frames: int) -> dict:
 #: Render settings compared by ``--candidates``: "integrator:spp" or "integrator:spp+oidn".
 CANDIDATES = (
     "path:16",
-    "path:64",
     "path:4+oidn",
     "path:8+oidn",
     "path:16+oidn",
     "direct:16",
     "direct:64",
-    "direct:256",
     "direct:4+oidn",
     "direct:16+oidn",
 )
@@ -444,6 +444,40 @@ def candidates(
     return out
 
 
+def sizes(path: str, overrides: dict, widths, reps: int) -> dict:
+    """Seconds per stereo frame and two-seed noise of the scene's render at other sizes."""
+    out = {}
+    for w in widths:
+        render.clear_cache()
+        sc = load_scene(path, {**overrides, "render.width": w, "render.height": w})
+        rows = []
+        for k in range(reps + 1):
+            tm: dict = {}
+            for cam in render.CAMERAS:
+                render.render_camera(sc, k, cam, timings=tm)
+            t = time.perf_counter()
+            ground_truth_frame(sc, k)
+            tm["groundtruth"] = time.perf_counter() - t
+            if k:
+                rows.append(tm)
+        med = {
+            key: statistics.median(r.get(key, 0.0) for r in rows)
+            for key in ("render", "denoise", "groundtruth")
+        }
+        nz = noise(sc)
+        rel = float(np.mean([v["relative"] for v in nz.values()]))
+        total = sum(med.values())
+        out[w] = {**med, "total": total, "noise": rel}
+        print(
+            f"  {w:4d} px: render {med['render']:.2f} s, denoise {med['denoise']:.2f} s, "
+            f"ground truth {med['groundtruth']:.2f} s = {total:.2f} s per stereo frame; "
+            f"two-seed noise {100 * rel:.2f} % of the mean  (load {os.getloadavg()[0]:.1f})",
+            flush=True,
+        )
+    render.clear_cache()
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", default=str(ROOT / "scenes" / "default.toml"))
@@ -477,6 +511,12 @@ def main(argv=None) -> int:
         "--ref-cache", type=Path, default=Path("/tmp/omnisim_render_ref"), help="reference cache"
     )
     ap.add_argument("--epe", action="store_true", help="with --candidates: DIS flow EPE too")
+    ap.add_argument(
+        "--sizes", type=int, nargs="*", metavar="PX", help="time and noise at these sizes too"
+    )
+    ap.add_argument(
+        "--skip-default", action="store_true", help="skip the scene's own timing and noise"
+    )
     ap.add_argument("--json", type=Path, help="also write the figures here")
     args = ap.parse_args(argv)
 
@@ -502,30 +542,34 @@ def main(argv=None) -> int:
         "cpus": os.cpu_count(),
         "machine": platform.processor() or platform.machine(),
     }
-    print("per stereo frame (both cameras):")
-    t = time_frames(scene, args.frames)
-    t.pop("images")
-    res.update(t)
-    total = t["render_s"] + t["groundtruth_s"]
-    print(
-        f"render {t['render_s']:.2f} s (cpu {t['render_cpu_s']:.2f}), ground truth "
-        f"{t['groundtruth_s']:.3f} s (cpu {t['groundtruth_cpu_s']:.3f}) = "
-        f"{100 * t['groundtruth_s'] / total:.1f} % of {total:.2f} s per frame "
-        f"(target <= 4 s, ground truth < 10 %)"
-    )
-    nz = noise(scene)
-    res["noise"] = nz
-    for cam, v in nz.items():
+    if not args.skip_default:
+        print("per stereo frame (both cameras):")
+        t = time_frames(scene, args.frames)
+        t.pop("images")
+        res.update(t)
+        total = t["render_s"] + t["groundtruth_s"]
         print(
-            f"noise {cam} at {r.spp} spp: sigma {v['sigma']:.5f} on mean {v['mean']:.4f} "
-            f"= {100 * v['relative']:.2f} % of the mean radiance"
+            f"render {t['render_s']:.2f} s (cpu {t['render_cpu_s']:.2f}), ground truth "
+            f"{t['groundtruth_s']:.3f} s (cpu {t['groundtruth_cpu_s']:.3f}) = "
+            f"{100 * t['groundtruth_s'] / total:.1f} % of {total:.2f} s per frame "
+            f"(target <= 4 s, ground truth < 10 %)"
         )
-    geo = geometry_departure(scene)
-    res["eq1_departure"] = geo
-    print(
-        f"rendered geometry vs eq. (1) at the pixel centres: max {geo['max_px']:.2e} px, "
-        f"rms {geo['rms_px']:.2e} px over {geo['pixels']} pixels (target < 0.02 px)"
-    )
+        nz = noise(scene)
+        res["noise"] = nz
+        for cam, v in nz.items():
+            print(
+                f"noise {cam} at {r.spp} spp: sigma {v['sigma']:.5f} on mean {v['mean']:.4f} "
+                f"= {100 * v['relative']:.2f} % of the mean radiance"
+            )
+        geo = geometry_departure(scene)
+        res["eq1_departure"] = geo
+        print(
+            f"rendered geometry vs eq. (1) at the pixel centres: max {geo['max_px']:.2e} px, "
+            f"rms {geo['rms_px']:.2e} px over {geo['pixels']} pixels (target < 0.02 px)"
+        )
+    if args.sizes:
+        print(f"sizes, scene render settings ({r.integrator}, {r.spp} spp, denoise {r.denoise}):")
+        res["sizes"] = sizes(args.scene, overrides, args.sizes, args.reps)
     if args.candidates is not None:
         print(
             "candidates, frame 0, seconds per stereo frame (median of --reps), residual "

@@ -553,7 +553,10 @@ def render_camera(
     ``spp`` and ``seed`` default to the scene's render settings; the sampler
     seed is :func:`frame_seed` of the scene seed, the frame and the camera.
     With ``render.denoise = "oidn"`` the guides (albedo, shading normal) are
-    rendered at the same spp with their own seed and the image is denoised
+    rendered with the same spp and seed, hence through the same film positions
+    (the film sample is the sampler's first draw in both integrators), so the
+    guides average the texture over the same samples as the colour; then the
+    image is denoised
     (:func:`omnisim.denoise.oidn_denoise`). ``timings``, if given, receives
     the seconds spent in ``render`` and ``denoise`` (guides included).
     """
@@ -582,7 +585,7 @@ def render_camera(
             sensor=sensor,
             integrator=ms.guides,
             spp=spp,
-            seed=frame_seed(base, frame, cam + ":guides"),
+            seed=frame_seed(base, frame, cam),
         )
         guides = np.array(guides, dtype=np.float32).reshape(unit.height, unit.width, 6)
         img = oidn_denoise(img, guides, outside_rim(unit))
