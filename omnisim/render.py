@@ -24,8 +24,13 @@ latitude-longitude image with row 0 at the zenith), ``directional``.
 The cone mirrors are not shapes: the sensor (``omnisim.sensor``) traces them
 analytically, as perfect conductors (reflectance 1).
 
-Integrator, spp, resolution, seed and variant come from ``scene.render``
-(:func:`_integrator_dict` says what ``path`` and ``direct`` mean here).
+Integrator, spp, resolution, seed, variant and denoiser come from
+``scene.render`` (:func:`_integrator_dict` says what ``path`` and ``direct``
+mean here). ``render.denoise = "oidn"`` renders the albedo and shading normal
+of the first hit through the same film samples (Mitsuba's ``aov``
+integrator, same seed) and denoises the colour with Intel Open Image Denoise
+guided by them (:mod:`omnisim.denoise`); ``docs/measurements.md`` ("Render:
+converged radiance") has the residual error and the time of each choice.
 
 Moving objects: every Scene keeps ``FRAME_SLOTS`` (2) Mitsuba scenes; a
 frame not in a slot re-poses the least recently used one in place (the
@@ -553,10 +558,9 @@ def render_camera(
     ``spp`` and ``seed`` default to the scene's render settings; the sampler
     seed is :func:`frame_seed` of the scene seed, the frame and the camera.
     With ``render.denoise = "oidn"`` the guides (albedo, shading normal) are
-    rendered with the same spp and seed, hence through the same film positions
-    (the film sample is the sampler's first draw in both integrators), so the
-    guides average the texture over the same samples as the colour; then the
-    image is denoised
+    rendered with the same seed at ``min(spp, GUIDE_SPP)`` (then through the
+    same film positions when spp <= GUIDE_SPP: the film sample is the
+    sampler's first draw in both integrators) and the image is denoised
     (:func:`omnisim.denoise.oidn_denoise`). ``timings``, if given, receives
     the seconds spent in ``render`` and ``denoise`` (guides included).
     """
@@ -578,13 +582,13 @@ def render_camera(
     img = np.array(img, dtype=np.float32).reshape(unit.height, unit.width, 3)
     t1 = time.perf_counter()
     if ms.guides is not None:
-        from omnisim.denoise import oidn_denoise
+        from omnisim.denoise import GUIDE_SPP, oidn_denoise
 
         guides = mi.render(
             fr.scene,
             sensor=sensor,
             integrator=ms.guides,
-            spp=spp,
+            spp=min(spp, GUIDE_SPP),
             seed=frame_seed(base, frame, cam),
         )
         guides = np.array(guides, dtype=np.float32).reshape(unit.height, unit.width, 6)

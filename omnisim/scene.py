@@ -93,12 +93,12 @@ class RenderSettings:
 
     width: int = 512
     height: int = 512
-    spp: int = 16
+    spp: int = 64
     max_depth: int = 4
     seed: int = 0
-    integrator: str = "path"
+    integrator: str = "direct"
     variant: str = "llvm_ad_rgb"
-    denoise: str = "none"
+    denoise: str = "oidn"
 
 
 @dataclass(frozen=True)

@@ -226,15 +226,20 @@ def test_denoiser_brings_a_few_spp_closer_to_a_converged_render(mods, tmp_path_f
     """Path tracing with one indirect bounce, 96 px: 4 spp + oidn and 4 spp vs 256 spp.
 
     Measured (this test): RMS luminance error / mean, 4 spp 0.352, 4 spp +
-    oidn 0.061 (the 256 spp reference's own noise included in both).
+    oidn 0.077 (the 256 spp reference's own noise included in both).
     """
     render = mods[1]
     ov = {"render.max_depth": 3}
     kw = dict(size=96, integrator="path")
     ref = render.render_camera(
-        _load(mods, tmp_path_factory, spp=256, overrides=ov, **kw), 1, "cam1", seed=99
+        _load(mods, tmp_path_factory, spp=256, overrides={**ov, "render.denoise": "none"}, **kw),
+        1,
+        "cam1",
+        seed=99,
     )
-    noisy = render.render_camera(_load(mods, tmp_path_factory, overrides=ov, **kw), 1, "cam1")
+    noisy = render.render_camera(
+        _load(mods, tmp_path_factory, overrides={**ov, "render.denoise": "none"}, **kw), 1, "cam1"
+    )
     den = render.render_camera(
         _load(mods, tmp_path_factory, overrides={**ov, "render.denoise": "oidn"}, **kw), 1, "cam1"
     )
@@ -246,7 +251,7 @@ def test_denoiser_brings_a_few_spp_closer_to_a_converged_render(mods, tmp_path_f
         return float(np.sqrt(np.mean(((img @ lum)[inside] - r) ** 2)) / r.mean())
 
     print(f"\n4 spp {err(noisy):.3f}, 4 spp + oidn {err(den):.3f} of the mean")
-    assert err(den) < 0.35 * err(noisy)  # measured 0.17 x (0.061 / 0.352)
+    assert err(den) < 0.35 * err(noisy)  # measured 0.22 x (0.077 / 0.352)
 
 
 def test_bad_denoise_key_is_one_line(mods, tmp_path_factory):
