@@ -453,21 +453,24 @@ def sizes(path: str, overrides: dict, widths, reps: int) -> dict:
         rows = []
         for k in range(reps + 1):
             tm: dict = {}
+            c0 = time.process_time()
             for cam in render.CAMERAS:
                 render.render_camera(sc, k, cam, timings=tm)
             t = time.perf_counter()
             ground_truth_frame(sc, k)
             tm["groundtruth"] = time.perf_counter() - t
+            tm["cpu"] = time.process_time() - c0
             if k:
                 rows.append(tm)
         med = {
             key: statistics.median(r.get(key, 0.0) for r in rows)
             for key in ("render", "denoise", "groundtruth")
         }
+        cpu = statistics.median(r["cpu"] for r in rows)
         nz = noise(sc)
         rel = float(np.mean([v["relative"] for v in nz.values()]))
         total = sum(med.values())
-        out[w] = {**med, "total": total, "noise": rel}
+        out[w] = {**med, "total": total, "cpu": cpu, "noise": rel}
         print(
             f"  {w:4d} px: render {med['render']:.2f} s, denoise {med['denoise']:.2f} s, "
             f"ground truth {med['groundtruth']:.2f} s = {total:.2f} s per stereo frame; "
