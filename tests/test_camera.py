@@ -149,6 +149,10 @@ def test_noise_8bit_with_quantisation():
     sigma = d.noise_electrons(1e4) * _dn_per_electron(d)
     assert sigma == pytest.approx(1.28, abs=0.005)
     assert _measured_dn_std(d, 1e4) == pytest.approx(math.hypot(sigma, 12**-0.5), rel=NOISE_RTOL)
+    # Rounding to the nearest DN is unbiased: the mean is 127.5 DN (measured 127.4995; its
+    # standard error is 1.31 / sqrt(196608) = 0.003 DN); truncation would give 127.0.
+    mean = d.apply(_flat(d, 1e4), frame=2, cam="cam1").astype(np.float64).mean()
+    assert mean == pytest.approx(1e4 * _dn_per_electron(d), abs=0.05)
 
 
 def test_srgb_response_scales_noise_by_its_slope():
