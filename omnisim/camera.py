@@ -18,8 +18,11 @@ in this order:
    of the full well that a radiance of 1 fills; it is one fixed number per dataset,
    so frames stay independent. The default 2.0 puts the radiance of the shipped
    scenes (mean about 0.2, 99th percentile 0.3-0.67) at 40 % of full well on average.
-4. **Photon shot noise**: the charge is Poisson distributed with mean ``mu`` (exact,
-   ``numpy.random.Generator.poisson``), then clipped at ``full_well`` (saturation).
+4. **Photon shot noise**: the charge is Poisson distributed with mean ``mu``: drawn
+   exactly (``numpy.random.Generator.poisson``) where ``mu`` < 1000 e-, and from a
+   Gaussian of the same mean and variance above (its skewness 1/sqrt(mu) is then
+   below 0.03; the Gaussian is four times faster); then clipped at ``full_well``
+   (saturation).
 5. **Read noise**: Gaussian, ``read_noise`` electrons rms, added to the charge.
 6. **Gain and ADC**: the normalised signal is ``v = gain * charge / full_well``,
    clipped to [0, 1] (``gain`` is the unitless analog gain: 1 maps a full well to the
@@ -70,6 +73,9 @@ BITS = (8, 10, 12, 16)
 RESPONSES = ("linear", "srgb")
 #: Largest full well accepted (electrons); also keeps Poisson means far inside int64.
 MAX_FULL_WELL = 1e12
+#: Mean charge (electrons) below which shot noise is drawn exactly from a Poisson
+#: distribution; at and above it from a Gaussian of the same mean and variance.
+POISSON_EXACT_BELOW = 1000.0
 #: Largest defocus sigma accepted (pixels).
 MAX_DEFOCUS = 100.0
 
@@ -277,15 +283,28 @@ class CameraModel:
         img = np.maximum(img, 0.0)
         img = self.optics(img, centre=centre, r_m=r_m)
         rng = self.rng(frame, cam, seed)
-        mu = self.electrons(img)
-        charge = rng.poisson(mu).astype(np.float64)
-        np.minimum(charge, self.full_well, out=charge)
+        # float32 throughout: its 24-bit mantissa resolves 1e-7 of the signal, far below
+        # the shot noise (1e-6 of a full 1e12 e- well).
+        mu = img * np.float32(self.exposure * self.full_well)
+        # Shot noise: Gaussian with the Poisson's mean and variance where mu >= 1000 e-
+        # (skewness 1/sqrt(mu) <= 0.03; 4x faster), exact Poisson below.
+        charge = rng.standard_normal(mu.shape, dtype=np.float32)
+        charge *= np.sqrt(mu)
+        charge += mu
+        low = mu < POISSON_EXACT_BELOW
+        if low.any():
+            charge[low] = rng.poisson(mu[low])
+        np.minimum(charge, np.float32(self.full_well), out=charge)
         if self.read_noise > 0:
-            charge += rng.normal(0.0, self.read_noise, size=charge.shape)
-        v = np.clip(charge * (self.gain / self.full_well), 0.0, 1.0)
+            read = rng.standard_normal(mu.shape, dtype=np.float32)
+            read *= np.float32(self.read_noise)
+            charge += read
+        charge *= np.float32(self.gain / self.full_well)
+        v = np.clip(charge, 0.0, 1.0, out=charge)
         if self.response == "srgb":
             v = srgb_encode(v)
-        return np.rint(v * self.max_dn).astype(self.dtype)
+        v *= np.float32(self.max_dn)
+        return np.rint(v, out=v).astype(self.dtype)
 
     def to_float(self, dn: NDArray) -> NDArray[np.float32]:
         """Digital numbers -> float32 in [0, 1] (``DN / (2^bits - 1)``; the response is
