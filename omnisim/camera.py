@@ -16,8 +16,8 @@ in this order:
 3. **Exposure**: the mean collected charge is ``mu = exposure * full_well * L``
    electrons for radiance ``L`` (W m^-2 sr^-1, linear). So ``exposure`` is the fraction
    of the full well that a radiance of 1 fills; it is one fixed number per dataset,
-   so frames stay independent. The default 2.0 puts the radiance of the shipped
-   scenes (mean about 0.2, 99th percentile 0.3-0.67) at 40 % of full well on average.
+   so frames stay independent. The default 2.0 puts the mean radiance of the shipped
+   scenes (0.12-0.26 in the mirror) at 25-51 % of full well (docs/measurements.md).
 4. **Photon shot noise**: the charge is Poisson distributed with mean ``mu``: drawn
    exactly (``numpy.random.Generator.poisson``) where ``mu`` < 1000 e-, and from a
    Gaussian of the same mean and variance above (its skewness 1/sqrt(mu) is then
