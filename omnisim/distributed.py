@@ -93,7 +93,17 @@ def render_task(
 
 def _connect(scheduler: str, timeout: float):
     from distributed import Client
+    from distributed.comm.addressing import parse_address
+    from distributed.comm.registry import get_backend
 
+    try:  # a malformed address is refused before a Client exists (its __del__ complains)
+        get_backend(parse_address(scheduler)[0])
+    except (ValueError, TypeError) as exc:
+        raise ClusterError(
+            f"--scheduler {scheduler!r}: not a scheduler address ({exc}); expected e.g. "
+            "tcp://host:8786",
+            exit_status=2,
+        ) from None
     try:
         return Client(scheduler, timeout=timeout, set_as_default=False)
     except (OSError, TimeoutError) as exc:

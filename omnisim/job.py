@@ -218,9 +218,9 @@ def check_variant(scene: Any) -> None:
     variant = str(scene.render.variant)
     try:
         ensure_mitsuba(variant)
-    except ImportError:
-        raise
-    except Exception as exc:
+    except ModuleNotFoundError:
+        raise  # Mitsuba itself is missing: the sim extra (reported by the command)
+    except Exception as exc:  # Dr.Jit raises ImportError for a backend it cannot start
         import mitsuba
 
         avail = [v for v in mitsuba.variants() if v.endswith("_rgb") and "_ad_" in v]
