@@ -561,3 +561,95 @@ def test_debug_shows_the_traceback(tmp_path):
 
 if __name__ == "__main__":  # pragma: no cover
     sys.exit(pytest.main([__file__, "-q"]))
+
+
+def test_two_renders_into_one_directory(tmp_path):
+    """The second render is refused with one line while the first runs; the first
+    finishes every frame (its temporaries are not touched by the second)."""
+    scene = _scene(tmp_path)
+    argv = render_args(scene, tmp_path / "data", "--frames", "4")
+    first = subprocess.Popen(
+        [OMNISIM, *argv],
+        env=_env(OMNISIM_FAKE_DELAY="1.0"),
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        meta = tmp_path / "data" / "dataset.json"
+        for _ in range(600):
+            if meta.exists() or first.poll() is not None:
+                break
+            __import__("time").sleep(0.05)
+        second = _run(argv)
+        out, err = first.communicate(timeout=120)
+    finally:
+        first.kill()
+        first.wait()
+    assert second.returncode == 2 and len(second.stderr.splitlines()) == 1, second.stderr
+    assert "another omnisim process" in second.stderr and "Traceback" not in second.stderr
+    assert first.returncode == 0, err
+    assert "4 rendered now" in out
+    frames = sorted(p.name for p in (tmp_path / "data" / "frames").iterdir())
+    assert frames == ["000000", "000001", "000002", "000003"]
+
+
+# -- the Dask cluster failing -------------------------------------------------------------
+
+
+@pytest.fixture
+def lonely_cluster():
+    distributed = pytest.importorskip("distributed")
+    with distributed.LocalCluster(
+        n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None
+    ) as lc:
+        yield lc
+
+
+def test_scheduler_without_workers(tmp_path, lonely_cluster):
+    from omnisim.distributed import ClusterError
+    from omnisim.job import render_dataset
+
+    lonely_cluster.scale(0)
+    lonely_cluster.sync(lonely_cluster._correct_state)
+    scene = _scene(tmp_path)
+    with pytest.raises(ClusterError, match="has no workers"):
+        render_dataset(
+            scene,
+            tmp_path / "out",
+            renderer=FAKE[1],
+            scheduler=lonely_cluster.scheduler_address,
+            scheduler_timeout=1.0,
+            progress=False,
+        )
+    assert not (tmp_path / "out").exists()  # nothing rendered: nothing left
+
+
+def test_all_workers_gone_mid_run(tmp_path, lonely_cluster):
+    from distributed import Client
+
+    from omnisim.distributed import ClusterError
+    from omnisim.job import render_dataset
+
+    scene = _scene(tmp_path)
+    with Client(lonely_cluster) as client:
+
+        def retire(k):
+            if k == 0:  # the only worker goes away after the first frame
+                lonely_cluster.scale(0)
+                lonely_cluster.sync(lonely_cluster._correct_state)
+
+        with pytest.raises(ClusterError, match="all Dask workers are gone"):
+            render_dataset(
+                scene,
+                tmp_path / "out",
+                {"frames": 6},
+                renderer=FAKE[1],
+                scheduler=client,
+                scheduler_timeout=2.0,
+                progress=False,
+                on_frame=retire,
+            )
+    done = sorted(p.name for p in (tmp_path / "out" / "frames").iterdir())
+    assert "000000" in done and len(done) < 6  # the finished frames stay for a resume
