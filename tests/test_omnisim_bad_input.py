@@ -169,6 +169,7 @@ class Case:
     names: list[str]  # each must appear in the one stderr line ("{d}" is the case dir)
     fresh_out: str | None = "out"  # a --out that must not exist afterwards
     env: dict[str, str] = field(default_factory=dict)
+    root_ok: bool = True  # False: root ignores file modes, the case cannot happen
 
 
 def render_args(scene: Path, out: Path, *more: str) -> list[str]:
@@ -199,6 +200,16 @@ def _out_is_file(d):
 def _out_under_file(d):
     (d / "afile").write_text("precious\n")
     return render_args(_scene(d), d / "afile" / "out")
+
+
+def _out_read_only(d):
+    (d / "ro").mkdir()
+    os.chmod(d / "ro", 0o555)
+    return render_args(_scene(d), d / "ro" / "out")
+
+
+def _out_in_sys(d):
+    return render_args(_scene(d), Path("/sys/omnisim_bad_input_test"), "--no-resource-check")
 
 
 def _out_foreign(d):
@@ -371,6 +382,15 @@ CASES = [
     # render: the output directory
     Case("--out is a file", _out_is_file, 2, ["{d}/out", "not a directory"], fresh_out=None),
     Case("--out under a file", _out_under_file, 2, ["afile"], fresh_out="afile/out"),
+    Case(
+        "--out in a read-only dir",
+        _out_read_only,
+        2,
+        ["{d}/ro/out", "ermission denied"],
+        fresh_out="ro/out",
+        root_ok=False,
+    ),
+    Case("--out in /sys", _out_in_sys, 2, ["/sys/omnisim_bad_input_test"], fresh_out=None),
     Case("--out foreign dir", _out_foreign, 2, ["{d}/out", "not empty"], fresh_out=None),
     Case(
         "changed texture on resume",
@@ -483,6 +503,10 @@ CASES = [
 @pytest.mark.parametrize("case", CASES, ids=[c.name for c in CASES])
 def test_bad_input(case: Case, tmp_path: Path):
     d = tmp_path
+    if not case.root_ok and os.geteuid() == 0:
+        pytest.skip("root writes into read-only directories")
+    if "/sys" in case.name and not Path("/sys").is_dir():
+        pytest.skip("no /sys here")
     argv = case.setup(d)
     before = _snapshot(d)
     env = dict(case.env)
