@@ -835,6 +835,13 @@ def open_dataset(dir: str | Path) -> Dataset:
         rig = rig_from_dict(meta, where=str(meta_path))
     except RigError as exc:
         raise DatasetError(str(exc)) from exc
+    for i, unit in enumerate((rig.cam1, rig.cam2)):
+        if unit.r_m > max(unit.width, unit.height):
+            raise DatasetError(
+                f"{meta_path}: cameras[{i}] ({unit.name}).r_m = {unit.r_m:g} px: larger than "
+                f"the {unit.width}x{unit.height} image; expected the rim radius in pixels, "
+                "inside the image"
+            )
     frames = meta["frames"]
     if isinstance(frames, bool) or not isinstance(frames, int) or frames < 1:
         raise DatasetError(f"{meta_path}: frames = {frames!r}: expected a positive integer")

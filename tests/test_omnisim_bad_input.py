@@ -297,6 +297,34 @@ def _missing_extra(d):
     return render_args(_scene(d), d / "out")
 
 
+def _bad_mesh(d):
+    (d / "blob.obj").write_text("v 1 2\nf 1 2 3 4 5\ngarbage\n")
+    blob = """
+[[objects]]
+name = "blob"
+type = "mesh"
+path = "blob.obj"
+position = [1.5, 0.5, 1.0]
+"""
+    return render_args(_scene(d, extra=blob), d / "out")
+
+
+def _bad_environment_map(d):
+    (d / "sky.exr").write_bytes(bytes(range(256)) * 2)
+    sky = """
+[[lights]]
+type = "environment"
+path = "sky.exr"
+"""
+    return render_args(_scene(d, extra=sky), d / "out")
+
+
+def _huge_rim(meta):
+    for c in meta["cameras"]:  # r_m four times the image, v kept consistent (eq. 2)
+        c["v"] = c["v"] / c["r_m"] * 128.0
+        c["r_m"] = 128.0
+
+
 def _dataset(d, frames: int = 2) -> Path:
     _render(d, _scene(d), d / "data", frames=frames)
     return d / "data"
@@ -371,6 +399,7 @@ CASES = [
     Case("--frames 0", _opt("--frames", "0"), 2, ["--frames", "'0'"]),
     Case("--resolution abc", _opt("--resolution", "abc"), 2, ["--resolution", "abc"]),
     Case("--spp -1", _opt("--spp", "-1"), 2, ["--spp", "-1"]),
+    Case("--set render.spp=0", _set("render.spp=0"), 2, ["render.spp", "got 0"]),
     Case("resolution too small", _opt("--resolution", "4"), 2, ["render.width", "4"]),
     Case(
         "resolution beyond memory",
@@ -433,6 +462,8 @@ CASES = [
         ["objects[1].texture.path", "t.txt"],
     ),
     Case("texture missing", _texture(lambda d: d / "gone.png"), 2, ["gone.png", "not found"]),
+    Case("mesh file garbage", _bad_mesh, 2, ["objects[2].path", "blob.obj"]),
+    Case("environment map garbage", _bad_environment_map, 2, ["lights[1].path", "sky.exr"]),
     # render: the cluster and the installation
     Case(
         "scheduler unreachable",
@@ -491,6 +522,13 @@ CASES = [
         _edit_meta(lambda m: m.update(frames="two")),
         2,
         ["dataset.json", "frames"],
+        None,
+    ),
+    Case(
+        "check: r_m four times the image",
+        _edit_meta(_huge_rim),
+        2,
+        ["dataset.json", "r_m = 128", "32x32"],
         None,
     ),
     Case("check: corrupt EXR", _check_corrupt_exr, 2, ["cam1.exr"], None),
