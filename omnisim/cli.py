@@ -33,6 +33,10 @@ class _UsageError(Exception):
     pass
 
 
+class _IncompleteError(Exception):
+    """A dataset to check has frames missing (and --partial was not given)."""
+
+
 #: Modules of the ``sim`` extra (``pip install "omniflow-testbed[sim]"``).
 SIM_MODULES = ("mitsuba", "drjit", "trimesh", "dask", "distributed", "psutil")
 #: errno values that mean "the path you gave is wrong" (exit 2) rather than the machine.
@@ -287,10 +291,6 @@ def _cmd_render(args: argparse.Namespace) -> int:
 
 def _sigterm(signum, frame):  # let finally/except blocks clean temporaries up
     raise KeyboardInterrupt(f"signal {signum}")
-
-
-class _IncompleteError(Exception):
-    pass
 
 
 def _error(msg: object) -> None:
