@@ -664,7 +664,7 @@ def test_two_renders_into_one_directory(tmp_path):
 def lonely_cluster():
     distributed = pytest.importorskip("distributed")
     with distributed.LocalCluster(
-        n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None
+        n_workers=1, threads_per_worker=1, processes=False, dashboard_address=":0"
     ) as lc:
         yield lc
 
