@@ -18,6 +18,14 @@ its final directory exists with all its files; no partial file is ever visible
 under a final name. ``dataset.json`` is written the same way (temporary name,
 fsync, rename) before any frame.
 
+One writer at a time: :class:`DatasetWriter` holds an exclusive ``fcntl`` lock on
+``DIR/.omnisim.lock`` while it writes, so a second render into the same directory
+is refused with one line (:class:`DatasetLockedError`) instead of racing the first.
+Every temporary name starts with a dot and contains ``.tmp.`` (frame directories,
+``dataset.json``, the EXR encoder's scratch directories ``frames/.exr.tmp.XXXX``);
+the writer removes them, under the lock, when it opens the directory, together
+with the ``frames/tmpXXXXXXXX/`` scratch directories of older versions.
+
 This module imports neither Mitsuba nor the scene model, so readers (validation,
 the omniflow command) need only numpy and OpenEXR.
 """
@@ -25,11 +33,13 @@ the omniflow command) need only numpy and OpenEXR.
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import json
 import math
 import os
 import re
 import shutil
+import threading
 import uuid
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
@@ -51,6 +61,7 @@ __all__ = [
     "GT_CHANNELS",
     "Dataset",
     "DatasetError",
+    "DatasetLockedError",
     "DatasetMismatchError",
     "DatasetWriter",
     "atomic_write_bytes",
@@ -104,7 +115,11 @@ FLO_UNKNOWN_THRESH = 1e9
 META_NAME = "dataset.json"
 FRAMES_DIR = "frames"
 _FRAME_RE = re.compile(r"^\d{6}$")
-_TMP_RE = re.compile(r"^\.(\d{6}|dataset\.json)\.tmp\.")
+LOCK_NAME = ".omnisim.lock"
+_TMP_RE = re.compile(r"^\.(\d{6}|dataset\.json|exr)\.tmp\.")
+#: Scratch directories of the EXR encoder before it used ``.exr.tmp.`` names
+#: (``tempfile``'s default ``tmpXXXXXXXX``), removed when they hold nothing but ``x.exr``.
+_OLD_SCRATCH_RE = re.compile(r"^tmp[a-z0-9_]{8}$")
 
 
 class DatasetError(ValueError):
@@ -113,6 +128,60 @@ class DatasetError(ValueError):
 
 class DatasetMismatchError(DatasetError):
     """A render would resume into a directory made from a different scene or settings."""
+
+
+class DatasetLockedError(DatasetError):
+    """Another process holds the dataset directory's write lock."""
+
+
+#: Locks this process holds: real path of the directory -> [descriptor, users]. A
+#: process may open several writers on one directory (tests, a threaded Dask worker);
+#: they share the lock, which is released when the last one closes.
+_HELD: dict[str, list[int]] = {}
+_HELD_GUARD = threading.Lock()
+
+
+def _lock_dir(d: Path) -> str:
+    """Take the exclusive write lock of dataset directory ``d``; return its key.
+
+    Raises :class:`DatasetLockedError` at once (no waiting) when another process
+    holds it. The lock file stays; the lock itself ends with the descriptor
+    (:func:`_unlock_dir`, or the process's end, ``kill -9`` included).
+    """
+    key = os.path.realpath(d)
+    with _HELD_GUARD:
+        if key in _HELD:
+            _HELD[key][1] += 1
+            return key
+        path = d / LOCK_NAME
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 64, 0).decode("ascii", "replace").strip() or "?"
+            os.close(fd)
+            raise DatasetLockedError(
+                f"{d}: another omnisim process (pid {holder}) is writing this dataset; wait "
+                "for it to finish (then run again to resume) or use another --out directory"
+            ) from None
+        except BaseException:
+            os.close(fd)
+            raise
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        _HELD[key] = [fd, 1]
+        return key
+
+
+def _unlock_dir(key: str) -> None:
+    with _HELD_GUARD:
+        held = _HELD.get(key)
+        if held is None:
+            return
+        held[1] -= 1
+        if held[1] <= 0:
+            del _HELD[key]
+            os.close(held[0])
 
 
 def frame_name(k: int) -> str:
@@ -244,7 +313,7 @@ def exr_bytes(
     """The bytes :func:`write_exr` would write (via a scratch file; OpenEXR writes to paths)."""
     import tempfile
 
-    with tempfile.TemporaryDirectory(dir=scratch_dir) as tmp:
+    with tempfile.TemporaryDirectory(dir=scratch_dir, prefix=".exr.tmp.") as tmp:
         p = Path(tmp) / "x.exr"
         write_exr(p, channels, attributes=attributes)
         return p.read_bytes()
@@ -427,7 +496,14 @@ class DatasetWriter:
     frame directories of an interrupted run are removed.
     """
 
-    def __init__(self, dir: str | Path, meta: Mapping[str, Any], *, cleanup: bool = True):
+    def __init__(
+        self,
+        dir: str | Path,
+        meta: Mapping[str, Any],
+        *,
+        cleanup: bool = True,
+        lock: bool = True,
+    ):
         self.dir = Path(dir)
         self.meta = _canonical(meta)
         if self.meta.get("format") != FORMAT_NAME:
@@ -437,37 +513,110 @@ class DatasetWriter:
             raise DatasetError("meta['cameras'] lists no camera")
         self.expected_files = _expected_files(self.cameras, "camera" in self.meta)
         self.frame_count = int(self.meta["frames"])
-        if self.dir.exists() and not self.dir.is_dir():
-            raise DatasetError(f"{self.dir}: exists and is not a directory")
+        self._lock_key: str | None = None
+        self._made: list[Path] = []  # what this writer created, newest last (see abandon)
+        existed = self.dir.exists()
+        if existed and not self.dir.is_dir():
+            raise DatasetError(f"{self.dir}: exists and is not a directory; expected a directory")
         meta_path = self.dir / META_NAME
-        if meta_path.exists():
-            old = _load_meta(meta_path)
-            diffs = _diff_paths(old, self.meta)
-            if diffs:
-                shown = "; ".join(
-                    f"{'.'.join(k)}: {_describe(old, k)} in the directory vs "
-                    f"{_describe(self.meta, k)} now"
-                    for k in diffs[:3]
-                )
-                more = f" and {len(diffs) - 3} more" if len(diffs) > 3 else ""
-                raise DatasetMismatchError(
-                    f"{self.dir}: refusing to resume: it holds a dataset made from a different "
-                    f"scene or settings ({shown}{more}); use another --out directory or delete it"
-                )
-        else:
-            if self.dir.exists() and any(
-                p.name != FRAMES_DIR for p in self.dir.iterdir() if not p.name.startswith(".")
-            ):
-                raise DatasetError(
-                    f"{self.dir}: not empty and has no {META_NAME}: refusing to write a "
-                    "dataset into it; use an empty or new --out directory"
-                )
+        if existed and not meta_path.exists():
+            self._refuse_foreign()
+        if not existed:
+            missing = [p for p in (self.dir, *self.dir.parents) if not p.exists()]
             self.dir.mkdir(parents=True, exist_ok=True)
-            atomic_write_json(meta_path, self.meta)
-        self.frames_dir.mkdir(exist_ok=True)
-        _fsync_dir(self.dir)
-        if cleanup:
+            self._made.extend(reversed(missing))
+        try:
+            if lock:
+                had_lock = (self.dir / LOCK_NAME).exists()
+                self._lock_key = _lock_dir(self.dir)
+                if not had_lock:
+                    self._made.append(self.dir / LOCK_NAME)
+            if meta_path.exists():
+                old = _load_meta(meta_path)
+                self._check_resume(old)
+            else:
+                self._refuse_foreign()
+                atomic_write_json(meta_path, self.meta)
+                self._made.append(meta_path)
+            if not self.frames_dir.exists():
+                self.frames_dir.mkdir()
+                self._made.append(self.frames_dir)
+            _fsync_dir(self.dir)
+            if cleanup:
+                self.remove_temporaries()
+        except BaseException:
+            self.abandon()
+            raise
+
+    def _refuse_foreign(self) -> None:
+        if self.dir.exists() and any(
+            p.name != FRAMES_DIR for p in self.dir.iterdir() if not p.name.startswith(".")
+        ):
+            raise DatasetError(
+                f"{self.dir}: not empty and has no {META_NAME}: refusing to write a "
+                "dataset into it; use an empty or new --out directory"
+            )
+
+    def _check_resume(self, old: Mapping[str, Any]) -> None:
+        diffs = _diff_paths(old, self.meta)
+        if not diffs:
+            return
+        changed = [k for k in diffs if k[:2] == ("inputs", "files") and len(k) > 2]
+        if changed:
+            name = changed[0][2]
+            scene_dir = Path(str(self.meta.get("scene", {}).get("path", "."))).parent
+            raise DatasetMismatchError(
+                f"{scene_dir / name}: changed since the dataset in {self.dir} was started "
+                f"(sha256 {_describe(old, ('inputs', 'files', name, 'sha256'))[1:13]}... "
+                f"then, {_describe(self.meta, ('inputs', 'files', name, 'sha256'))[1:13]}... "
+                "now); restore the file or render into another --out directory"
+            )
+        shown = "; ".join(
+            f"{'.'.join(k)}: {_describe(old, k)} in the directory vs {_describe(self.meta, k)} now"
+            for k in diffs[:3]
+        )
+        more = f" and {len(diffs) - 3} more" if len(diffs) > 3 else ""
+        raise DatasetMismatchError(
+            f"{self.dir}: refusing to resume: it holds a dataset made from a different "
+            f"scene or settings ({shown}{more}); use another --out directory or delete it"
+        )
+
+    def close(self) -> None:
+        """Release the directory's write lock (also done when the process ends)."""
+        if self._lock_key is not None:
+            _unlock_dir(self._lock_key)
+            self._lock_key = None
+
+    def __del__(self) -> None:
+        with contextlib.suppress(Exception):
+            self.close()
+
+    def __enter__(self) -> DatasetWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def abandon(self) -> None:
+        """Undo this writer's start when no frame was written: remove the dataset.json,
+        frames/, lock file and directories it created (nothing that existed before),
+        then release the lock. A failure before the first frame (a renderer that cannot
+        start, say) thus leaves no half-made dataset to block the corrected rerun."""
+        if self.frames_dir.is_dir() and any(
+            _FRAME_RE.match(p.name) for p in self.frames_dir.iterdir()
+        ):
+            self.close()
+            return
+        if self.frames_dir in self._made:
             self.remove_temporaries()
+        for p in reversed(self._made):
+            with contextlib.suppress(OSError):
+                if p.is_dir():
+                    p.rmdir()  # only when empty
+                else:
+                    p.unlink()
+        self._made.clear()
+        self.close()
 
     @property
     def frames_dir(self) -> Path:
@@ -483,7 +632,13 @@ class DatasetWriter:
             if not parent.is_dir():
                 continue
             for p in parent.iterdir():
-                if _TMP_RE.match(p.name):
+                old = (
+                    parent == self.frames_dir
+                    and _OLD_SCRATCH_RE.match(p.name)
+                    and p.is_dir()
+                    and {c.name for c in p.iterdir()} <= {"x.exr"}
+                )
+                if _TMP_RE.match(p.name) or old:
                     if p.is_dir():
                         shutil.rmtree(p, ignore_errors=True)
                     else:
@@ -551,22 +706,60 @@ class DatasetWriter:
 
 def _load_meta(path: Path) -> dict[str, Any]:
     try:
-        meta = json.loads(path.read_text())
+        meta = json.loads(path.read_text(encoding="utf-8"))
     except OSError as exc:
-        raise DatasetError(f"{path}: cannot read: {exc}") from exc
+        raise DatasetError(f"{path}: cannot read: {exc.strerror or exc}") from exc
+    except UnicodeDecodeError:
+        raise DatasetError(f"{path}: not UTF-8 text; expected the dataset's JSON") from None
     except json.JSONDecodeError as exc:
         raise DatasetError(f"{path}: not valid JSON: {exc}") from exc
     if not isinstance(meta, dict) or meta.get("format") != FORMAT_NAME:
         raise DatasetError(f"{path}: 'format' is not {FORMAT_NAME!r}: not an omnisim dataset")
     ver = meta.get("format_version")
-    if not isinstance(ver, int) or ver > FORMAT_VERSION:
+    if isinstance(ver, bool) or not isinstance(ver, int) or not 1 <= ver <= FORMAT_VERSION:
         raise DatasetError(
-            f"{path}: format_version {ver!r}: this omnisim reads versions <= {FORMAT_VERSION}"
+            f"{path}: format_version = {ver!r}: this omnisim reads versions 1 to {FORMAT_VERSION}"
         )
     for key in ("rig", "cameras", "frames"):
         if key not in meta:
             raise DatasetError(f"{path}: key {key!r} missing")
     return meta
+
+
+def _check_poses(meta: Mapping[str, Any], where: Path, frames: int) -> None:
+    """Raise DatasetError unless robot.poses and every objects[].poses hold ``frames``
+    4x4 matrices (the readers index them by frame)."""
+    lists = [
+        (
+            "robot.poses",
+            meta.get("robot", {}).get("poses") if isinstance(meta.get("robot"), dict) else None,
+        )
+    ]
+    objs = meta.get("objects", [])
+    if not isinstance(objs, list):
+        raise DatasetError(f"{where}: objects = {_describe(meta, ('objects',))}: expected a list")
+    for i, o in enumerate(objs):
+        if not isinstance(o, dict) or "id" not in o:
+            raise DatasetError(f"{where}: objects[{i}]: expected a table with id, name, poses")
+        lists.append((f"objects[{i}].poses", o.get("poses")))
+    for key, poses in lists:
+        if key == "robot.poses" and poses is None:
+            continue  # a dataset of images without robot motion (e.g. from a real rig)
+        if not isinstance(poses, list) or len(poses) != frames:
+            n = len(poses) if isinstance(poses, list) else poses
+            raise DatasetError(
+                f"{where}: {key} has {n!r} entries; expected one 4x4 matrix per frame "
+                f"(frames = {frames})"
+            )
+        try:
+            arr = np.asarray(poses, dtype=float)
+        except (TypeError, ValueError):
+            arr = np.zeros(0)
+        if arr.shape != (frames, 4, 4) or not np.isfinite(arr).all():
+            raise DatasetError(
+                f"{where}: {key}: expected {frames} finite 4x4 matrices (shape "
+                f"({frames}, 4, 4)), got shape {arr.shape}"
+            )
 
 
 @dataclass
@@ -717,10 +910,18 @@ def open_dataset(dir: str | Path) -> Dataset:
         rig = rig_from_dict(meta, where=str(meta_path))
     except RigError as exc:
         raise DatasetError(str(exc)) from exc
+    for i, unit in enumerate((rig.cam1, rig.cam2)):
+        if unit.r_m > max(unit.width, unit.height):
+            raise DatasetError(
+                f"{meta_path}: cameras[{i}] ({unit.name}).r_m = {unit.r_m:g} px: larger than "
+                f"the {unit.width}x{unit.height} image; expected the rim radius in pixels, "
+                "inside the image"
+            )
     frames = meta["frames"]
     if isinstance(frames, bool) or not isinstance(frames, int) or frames < 1:
         raise DatasetError(f"{meta_path}: frames = {frames!r}: expected a positive integer")
     fi = meta.get("frame_interval")
     if not isinstance(fi, int | float) or not math.isfinite(fi) or fi <= 0:
         raise DatasetError(f"{meta_path}: frame_interval = {fi!r}: expected seconds > 0")
+    _check_poses(meta, meta_path, frames)
     return Dataset(dir=d, meta=meta, rig=rig, cameras=_camera_names(meta))

@@ -235,3 +235,117 @@ def test_same_frame_same_bytes(tmp_path):
     a = ds.encode_frame(make_frame(1), ["cam1", "cam2"], k=1)
     b = ds.encode_frame(make_frame(1), ["cam1", "cam2"], k=1)
     assert a == b
+
+
+# -- one writer at a time; temporaries; nothing left by a failed start --------------------
+
+_HOLD = """
+import sys, time
+sys.path[:0] = {paths!r}
+from omnisim.dataset import DatasetWriter
+import test_dataset as t
+w = DatasetWriter({d!r}, t.make_meta(frames=2))
+print("held", flush=True)
+time.sleep(60)
+"""
+
+
+def test_second_writer_in_another_process_is_refused(tmp_path):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    d = tmp_path / "d"
+    w = DatasetWriter(d, make_meta(frames=2))
+    w.write_frame(0, make_frame(0))
+    (d / "frames" / ".000001.tmp.1.abcd").mkdir()  # "the other writer's" frame in progress
+    tests = str(Path(__file__).resolve().parent)
+    root = str(Path(__file__).resolve().parents[1])
+    code = _HOLD.format(paths=[tests, root], d=str(d))
+    # Held here: the other process is refused and removes nothing.
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert proc.returncode != 0 and "DatasetLockedError" in proc.stderr
+    assert "another omnisim process" in proc.stderr and "use another --out" in proc.stderr
+    assert (d / "frames" / ".000001.tmp.1.abcd").is_dir()
+    # Same process: a second writer shares the lock (tests, threaded Dask workers).
+    DatasetWriter(d, make_meta(frames=2), cleanup=False).close()
+    w.close()
+    # Released: another process takes it (and would now clean up).
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().strip() == "held"
+        assert not (d / "frames" / ".000001.tmp.1.abcd").exists()
+        with pytest.raises(ds.DatasetLockedError, match=f"pid {proc.pid}"):
+            DatasetWriter(d, make_meta(frames=2))
+    finally:
+        proc.kill()
+        proc.wait()
+        proc.stdout.close()
+    DatasetWriter(d, make_meta(frames=2)).close()  # a killed holder leaves no lock
+
+
+def test_encoder_scratch_names_are_cleaned_up(tmp_path):
+    """kill -9 while OpenEXR writes leaves the encoder's scratch directory: both the
+    current name (.exr.tmp.*) and the old one (tmpXXXXXXXX holding x.exr) are removed
+    on resume; a tmp-like directory holding anything else is not ours and stays."""
+    import tempfile
+
+    d = tmp_path / "d"
+    w = DatasetWriter(d, make_meta(frames=1))
+    frames = d / "frames"
+    seen = []
+    real = tempfile.TemporaryDirectory
+
+    def spy(*a, **kw):
+        t = real(*a, **kw)
+        seen.append(Path(t.name).name)
+        return t
+
+    from pathlib import Path
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(tempfile, "TemporaryDirectory", spy)
+        w.write_frame(0, make_frame(0))
+    assert seen and all(ds._TMP_RE.match(n) for n in seen), seen
+    w.close()
+    for name in (".exr.tmp.k2j4l5", "tmpab12cd34"):
+        (frames / name).mkdir()
+        (frames / name / "x.exr").write_bytes(b"half an exr")
+    (frames / "tmpzz99zz99").mkdir()
+    (frames / "tmpzz99zz99" / "notes.txt").write_text("mine")
+    DatasetWriter(d, make_meta(frames=1)).close()
+    assert sorted(p.name for p in frames.iterdir()) == ["000000", "tmpzz99zz99"]
+
+
+def test_abandon_removes_only_what_this_start_made(tmp_path):
+    d = tmp_path / "new" / "d"
+    w = DatasetWriter(d, make_meta(frames=2))
+    w.abandon()
+    assert not (tmp_path / "new").exists()
+    # An existing dataset with a frame is never touched.
+    w = DatasetWriter(d, make_meta(frames=2))
+    w.write_frame(0, make_frame(0))
+    w.abandon()
+    assert (d / "dataset.json").is_file() and w.is_done(0)
+    # A resume into it made nothing, so abandoning it removes nothing.
+    w2 = DatasetWriter(d, make_meta(frames=2))
+    w2.abandon()
+    assert (d / "dataset.json").is_file() and w2.is_done(0)
+
+
+@pytest.mark.parametrize(
+    "change, match",
+    [
+        (lambda m: m.update(format_version=0), "format_version = 0"),
+        (lambda m: m.update(format_version=True), "format_version = True"),
+        (lambda m: m["robot"].update(poses=m["robot"]["poses"][:2]), "robot.poses has 2 entries"),
+        (lambda m: m["objects"][0].update(poses=[[1, 2]] * 3), r"objects\[0\].poses: expected"),
+    ],
+)
+def test_open_refuses_bad_metadata(tmp_path, change, match):
+    meta = make_meta(frames=3)
+    change(meta)
+    (tmp_path / "d").mkdir()
+    (tmp_path / "d" / "dataset.json").write_text(json.dumps(meta))
+    with pytest.raises(DatasetError, match=match):
+        open_dataset(tmp_path / "d")
