@@ -20,10 +20,13 @@ Checks (names as printed):
     where gt.stereo.valid, gt.stereo.h_other equals eq. (3)/(4) of the other camera
     at (gt.r, gt.h): max |difference|, px.
 ``flow_polar``
-    gt.flow.dh, gt.flow.hdtheta agree with gt.flow.dx, dy (conventions.py): max px.
+    gt.flow.dh, gt.flow.hdtheta agree with gt.flow.dx, dy (conventions.py): max px
+    (format version 2: the same for gt.bflow).
 ``flo_file``
-    the .flo files hold gt.flow.dx, dy where gt.flow.valid and the unknown value
-    elsewhere: max |difference|, px, and no validity disagreement.
+    the .flo files hold gt.flow.dx, dy where the flow is known (version 1: where
+    gt.flow.valid; version 2: where the next position is defined, gt.flow.valid +
+    occluded + outside) and the unknown value elsewhere: max |difference|, px, and no
+    validity disagreement; version 2's mask PNGs must equal gt.flow.occluded, outside.
 ``static_world``
     on static objects (same pose in frames t and t+1), away from object boundaries
     (object-id mask eroded by one pixel in both frames), the world point at pixel p in
@@ -262,11 +265,20 @@ def run_checks(
             e_dh = np.abs((h2 - h_i) - ch["gt.flow.dh"])
             e_ht = np.abs(h_i * _wrap(th2 - th_i) - ch["gt.flow.hdtheta"])
             acc["flow_polar"].add(np.maximum(e_dh, e_ht)[fv])
+            if ds.version >= 2:  # the backward flow, wherever it is seen at t - 1
+                bv = (ch["gt.bflow.valid"] > 0.5) & valid
+                h2, th2 = unit.polar_of_pixel(x + ch["gt.bflow.dx"], y + ch["gt.bflow.dy"])
+                e_dh = np.abs((h2 - h_i) - ch["gt.bflow.dh"])
+                e_ht = np.abs(h_i * _wrap(th2 - th_i) - ch["gt.bflow.hdtheta"])
+                acc["flow_polar"].add(np.maximum(e_dh, e_ht)[bv])
 
             # the .flo file
             flow, flo_ok = ds.read_flo(k, cam)
-            flo_mismatch += int((flo_ok != (ch["gt.flow.valid"] > 0.5)).sum())
-            both = flo_ok & (ch["gt.flow.valid"] > 0.5)
+            known = ds.flo_known(ch)  # version 1: gt.flow.valid; 2: every defined flow
+            flo_mismatch += int((flo_ok != known).sum())
+            for name, mask in ds.read_flow_masks(k, cam).items():  # version 2's PNGs
+                flo_mismatch += int((mask != (ch[name] > 0.5)).sum())
+            both = flo_ok & known
             e = np.maximum(np.abs(flow[..., 0] - ch["gt.flow.dx"]), np.abs(flow[..., 1] - dy))
             acc["flo_file"].add(e[both])
 

@@ -42,11 +42,25 @@ CONTRACT = [
 ]
 
 
-def make_meta(frames: int = 3, size: int = 24, seed: int = 1) -> dict:
+#: Format version 2 adds these after gt.flow.valid.
+CONTRACT_V2_ADDED = [
+    "gt.flow.occluded",
+    "gt.flow.outside",
+    "gt.bflow.dx",
+    "gt.bflow.dy",
+    "gt.bflow.dh",
+    "gt.bflow.hdtheta",
+    "gt.bflow.valid",
+    "gt.bflow.occluded",
+    "gt.bflow.outside",
+]
+
+
+def make_meta(frames: int = 3, size: int = 24, seed: int = 1, version: int = 2) -> dict:
     rig = Rig.symmetric(d=0.1, R=0.05, s=0.3, size=size)
     return {
         "format": ds.FORMAT_NAME,
-        "format_version": ds.FORMAT_VERSION,
+        "format_version": version,
         "scene": {"name": "t", "path": "/x/t.toml", "source": "# scene\n", "overrides": {}},
         **rig.to_dict(),
         "frames": frames,
@@ -59,26 +73,37 @@ def make_meta(frames: int = 3, size: int = 24, seed: int = 1) -> dict:
     }
 
 
-def make_frame(k: int, size: int = 24, cams=("cam1", "cam2")) -> dict:
+def make_frame(k: int, size: int = 24, cams=("cam1", "cam2"), version: int = 2) -> dict:
+    if version == 1:
+        v1 = make_frame(k, size, cams)
+        return {cam: {name: ch[name] for name in ds.CHANNELS_V1} for cam, ch in v1.items()}
     out = {}
     for ci, cam in enumerate(cams):
         rng = np.random.default_rng(100 * k + ci)
         ch = {name: rng.normal(size=(size, size)).astype(np.float32) for name in CHANNELS}
         for name in ("gt.valid", "gt.flow.valid", "gt.stereo.valid"):
             ch[name] = (rng.random((size, size)) > 0.3).astype(np.float32)
+        for key in ("gt.flow", "gt.bflow"):  # version 2: three disjoint 0/1 masks
+            split = rng.integers(0, 4, (size, size)) * ch["gt.valid"]
+            for m, name in enumerate(("valid", "occluded", "outside"), start=1):
+                ch[f"{key}.{name}"] = (split == m).astype(np.float32)
         ch["gt.object"] = rng.integers(0, 3, (size, size)).astype(np.float32)
         out[cam] = ch
     return out
 
 
 def test_channel_names_are_the_contract():
-    assert list(CHANNELS) == CONTRACT
+    assert list(ds.CHANNELS_V1) == CONTRACT  # version 1
+    i = CONTRACT.index("gt.flow.valid") + 1
+    assert list(CHANNELS) == [*CONTRACT[:i], *CONTRACT_V2_ADDED, *CONTRACT[i:]]
+    assert set(ds.CHANNEL_INFO) == set(CHANNELS)
 
 
-def test_round_trip(tmp_path):
-    meta = make_meta()
+@pytest.mark.parametrize("version", [1, 2])
+def test_round_trip(tmp_path, version):
+    meta = make_meta(version=version)
     w = DatasetWriter(tmp_path / "d", meta)
-    frames = {k: make_frame(k) for k in range(3)}
+    frames = {k: make_frame(k, version=version) for k in range(3)}
     for k, fr in frames.items():
         w.write_frame(k, fr)
     d = open_dataset(tmp_path / "d")
@@ -91,17 +116,16 @@ def test_round_trip(tmp_path):
         "000001",
         "000002",
     ]
+    masks = ["occluded.png", "outside.png"] if version == 2 else []
     assert sorted(p.name for p in (tmp_path / "d" / "frames" / "000001").iterdir()) == [
-        "cam1.exr",
-        "cam1.flo",
-        "cam2.exr",
-        "cam2.flo",
+        f"{cam}.{ext}" for cam in ("cam1", "cam2") for ext in ["exr", "flo", *masks]
     ]
+    contract = CONTRACT + (CONTRACT_V2_ADDED if version == 2 else [])
     for k, fr in frames.items():
         for cam in ("cam1", "cam2"):
             got = d.read_frame(k, cam)
-            assert list(sorted(got)) == sorted(CONTRACT)
-            for name in CONTRACT:
+            assert list(sorted(got)) == sorted(contract)
+            for name in contract:
                 assert got[name].dtype == np.float32
                 np.testing.assert_array_equal(got[name], fr[cam][name])
             rgb = d.read_rgb(k, cam)
