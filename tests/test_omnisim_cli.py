@@ -31,16 +31,16 @@ def tree_bytes(d: Path) -> dict[str, bytes]:
 
 
 def final_frames_complete(d: Path) -> list[str]:
-    """Names under frames/: each final frame directory must hold all four files."""
+    """Names under frames/: each final frame directory must hold all its files
+    (format version 2: the EXR, the .flo and its two mask PNGs per camera)."""
     names = []
     for p in sorted((d / "frames").iterdir()):
         names.append(p.name)
         if not p.name.startswith("."):
             assert sorted(f.name for f in p.iterdir()) == [
-                "cam1.exr",
-                "cam1.flo",
-                "cam2.exr",
-                "cam2.flo",
+                f"{cam}.{ext}"
+                for cam in ("cam1", "cam2")
+                for ext in ("exr", "flo", "occluded.png", "outside.png")
             ], p
     return names
 
