@@ -333,7 +333,7 @@ def test_v1_dataset_reads_as_before(tmp_path):
 
 def test_version_mismatch_and_unknown_versions_are_refused(tmp_path):
     w = DatasetWriter(tmp_path / "d", make_meta(frames=1, version=1))
-    with pytest.raises(DatasetError, match="format version 2.*format_version 1"):
+    with pytest.raises(DatasetError, match=r"format version 2.*format_version 1"):
         w.write_frame(0, make_frame(0))  # version 2 channels into a version 1 dataset
     with pytest.raises(DatasetError, match="format_version"):
         DatasetWriter(tmp_path / "e", make_meta(frames=1, version=3))
