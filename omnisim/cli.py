@@ -1,4 +1,5 @@
-"""The ``omnisim`` command: ``omnisim render SCENE --out DIR`` and ``omnisim check DIR``.
+"""The ``omnisim`` command: ``omnisim render SCENE --out DIR``, ``omnisim check DIR`` and
+``omnisim export DIR --format sintel|kitti|png --out OUT``.
 
 Exit status: 0 success; 1 a self-check failed (``check``, or ``render --check``);
 2 a bad scene file, bad option, or an output directory that holds another dataset
@@ -137,6 +138,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--json", dest="json_out", type=Path, metavar="FILE", help="also write the results as JSON"
     )
     c.add_argument("--progress", action="store_true", help="progress bar")
+    from omnisim.export import add_export_parser
+
+    add_export_parser(sub)
     return p
 
 
@@ -238,6 +242,10 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.command == "render":
             return _cmd_render(args)
+        if args.command == "export":
+            from omnisim.export import run_cli
+
+            return run_cli(args)
         return _cmd_check(args)
     except SceneError as exc:
         print(f"{PROG}: error: {_one_line(exc)}", file=sys.stderr)
