@@ -266,3 +266,19 @@ def test_bad_input_is_one_line_exit_2_and_leaves_nothing(tmp_path, capsys, monke
     assert main(["export", str(v1), "--format", "png", "--out", str(tmp_path / "o")]) == 2
     assert "simulated" in capsys.readouterr().err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["inc", "taken", "v1"]
+
+
+def test_camera_model_images_are_exported_when_present(tmp_path):
+    """A dataset whose frames hold the camera model's camK.png (omnisim.camera): the png
+    layout copies them byte for byte into <cam>/camera/ (simulated here with 16-bit PNGs)."""
+    v1 = _v1(tmp_path)
+    d = open_dataset(v1)
+    written = {}
+    for k in range(d.frame_count):
+        for cam in d.cameras:
+            img = np.full((32, 32, 3), 1000 * (k + 1), np.uint16)
+            cv2.imwrite(str(d.path(k, cam, "png")), img)
+            written[(k, cam)] = d.path(k, cam, "png").read_bytes()
+    out = export_dataset(v1, tmp_path / "p", "png")
+    for (k, cam), data in written.items():
+        assert (out / cam / "camera" / f"{k:06d}.png").read_bytes() == data
