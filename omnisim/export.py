@@ -294,9 +294,12 @@ def export_dataset(dataset: str | Path, out: str | Path, fmt: str, *, bits: int 
     out = Path(out)
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise ExportError(f"{out}: exists and is not an empty directory; choose another --out")
-    out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.parent / f".{out.name}.tmp.{os.getpid()}.{uuid.uuid4().hex[:8]}"
-    tmp.mkdir()
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp.mkdir()
+    except OSError as exc:
+        raise ExportError(f"{out}: cannot create the output directory: {exc}") from exc
 
     def put(rel: str, data: bytes) -> None:
         p = tmp / rel

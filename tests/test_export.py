@@ -250,6 +250,9 @@ def test_bad_input_is_one_line_exit_2_and_leaves_nothing(tmp_path, capsys, monke
         assert main([*argv, "--out", str(out)]) == 2
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and msg in err, err
+    # an output below a file
+    assert main(["export", str(v1), "--format", "png", "--out", str(taken / "x" / "o")]) == 2
+    assert "cannot create the output directory" in capsys.readouterr().err
     # an incomplete dataset
     inc = tmp_path / "inc"
     shutil.copytree(v1, inc)
