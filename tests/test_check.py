@@ -157,7 +157,8 @@ def test_version_1_dataset_still_validates(synth):
     assert d.version == 1 and d.meta["format_version"] == 1
     assert "gt.bflow.dx" not in d.read_frame(0, "cam1") and d.read_flow_masks(0, "cam1") == {}
     assert not list((synth / "frames" / "000000").glob("*.png"))
-    assert all(r.passed for r in run_checks(d))
+    res = run_checks(d)
+    assert all(r.passed for r in res if r.name != "flow_masks")  # flow_masks: skipped
 
 
 @pytest.mark.render
@@ -204,3 +205,28 @@ def test_real_render_is_version_2_and_its_flo_and_masks_are_checked(real, tmp_pa
 
     res = _by_name(run_checks(open_dataset(_corrupt(real, tmp_path / "bflow", bad_bflow))))
     assert not res["flow_polar"].passed and res["flow_polar"].figure > 0.4
+
+
+@pytest.mark.render
+def test_flow_masks_check_catches_overlapping_masks(real, tmp_path):
+    """``flow_masks`` passes on a render, is skipped on version 1, and fails when a mask
+    overlaps another or frame 0 gets a backward flow."""
+    res = _by_name(run_checks(open_dataset(real)))
+    assert res["flow_masks"].passed and res["flow_masks"].n == 3 * 2 * 64 * 64
+
+    def overlap(c):
+        c["gt.flow.occluded"][30:32, :] = c["gt.flow.valid"][30:32, :]  # occluded and seen
+
+    res = _by_name(run_checks(open_dataset(_corrupt(real, tmp_path / "ov", overlap))))
+    assert not res["flow_masks"].passed and res["flow_masks"].figure > 0
+
+    def bflow0(c):
+        c["gt.bflow.dx"][32, 32] = np.float32(0.5)
+
+    res = _by_name(run_checks(open_dataset(_corrupt(real, tmp_path / "b0", bflow0, frames=(0,)))))
+    assert not res["flow_masks"].passed and res["flow_masks"].figure == 2  # cam1 and cam2
+
+
+def test_flow_masks_check_skipped_on_version_1(synth):
+    res = _by_name(run_checks(open_dataset(synth)))
+    assert res["flow_masks"].passed is None and "version 1" in res["flow_masks"].detail
