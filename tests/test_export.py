@@ -76,9 +76,11 @@ def test_sintel_layout_reads_back(real, exports):
     d = open_dataset(real)
     name = d.meta["scene"]["name"]
     want = ["README.txt"]
+    assert d.camera is not None  # scenes/default.toml has a [camera]: Sintel's final pass
     for cam in ("cam1", "cam2"):
         for k in range(1, 4):
-            for kind, ext in (("clean", "png"), ("depth", "dpt"), ("segmentation", "png")):
+            kinds = (("clean", "png"), ("final", "png"), ("depth", "dpt"), ("segmentation", "png"))
+            for kind, ext in kinds:
                 want.append(f"training/{kind}/{name}_{cam}/frame_{k:04d}.{ext}")
         for k in range(1, 3):  # N - 1 flows, as in Sintel
             for kind in ("flow", "occlusions", "outside", "invalid"):
@@ -105,6 +107,11 @@ def test_sintel_layout_reads_back(real, exports):
                 assert ((m == 255) == want_mask).all() and ((m == 0) | (m == 255)).all()
             depth = sintel_depth_read(out / "training/depth" / folder / f"{base}.dpt")
             np.testing.assert_array_equal(depth, np.where(ch["gt.valid"] > 0.5, ch["gt.r"], 0))
+            final = out / "training/final" / folder / f"{base}.png"
+            assert final.read_bytes() == d.path(k, cam, "png").read_bytes()
+            np.testing.assert_array_equal(
+                cv2.imread(str(final), cv2.IMREAD_UNCHANGED)[..., ::-1], d.read_camera_dn(k, cam)
+            )
             img = cv2.imread(str(out / "training/clean" / folder / f"{base}.png"), -1)
             assert img.dtype == np.uint8 and img.shape == (64, 64, 3)
             on = ch["gt.valid"] > 0.5
