@@ -1,4 +1,5 @@
-"""The ``omnisim`` command: ``omnisim render SCENE --out DIR`` and ``omnisim check DIR``.
+"""The ``omnisim`` command: ``omnisim render SCENE --out DIR``, ``omnisim check DIR`` and
+``omnisim export DIR --format sintel|kitti|png --out OUT``.
 
 Exit status: 0 success; 1 a self-check failed (``check``, or ``render --check``),
 or the environment failed (a renderer package not installed, a Dask scheduler that
@@ -200,7 +201,10 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="check the frames that are there even if some are missing (says how many)",
     )
-    for sp in (r, c):
+    from omnisim.export import add_export_parser
+
+    e = add_export_parser(sub)
+    for sp in (r, c, e):
         sp.add_argument(
             "--debug", action="store_true", help="show the Python traceback of an error"
         )
@@ -361,6 +365,10 @@ def main(argv: list[str] | None = None) -> int:
         try:
             if args.command == "render":
                 return _cmd_render(args)
+            if args.command == "export":
+                from omnisim.export import run_cli
+
+                return run_cli(args)
             return _cmd_check(args)
         except (SceneError, ResourceError) as exc:
             if debug:

@@ -5,6 +5,8 @@ Layout (see ``docs/dataset_format.md`` for every key and channel)::
     DIR/dataset.json                 metadata: format, scene, rig, cameras, poses, ...
     DIR/frames/000000/cam1.exr       one multi-channel float32 EXR per camera and frame
     DIR/frames/000000/cam1.flo       Middlebury optical flow (dx, dy) of that camera
+    DIR/frames/000000/cam1.occluded.png  (version 2) 0/255: the point is hidden at t + 1
+    DIR/frames/000000/cam1.outside.png   (version 2) 0/255: the point leaves the mirror
     DIR/frames/000000/cam1.png       the camera model's image of the radiance (when
                                      dataset.json has a "camera" section; 8 or 16 bit)
     DIR/frames/000000/cam2.exr
@@ -53,12 +55,17 @@ from omniflow.rig import Rig, RigError, rig_from_dict
 
 __all__ = [
     "CHANNELS",
+    "CHANNELS_V1",
+    "CHANNEL_INFO",
     "FLO_MAGIC",
     "FLO_UNKNOWN",
     "FLO_UNKNOWN_THRESH",
     "FORMAT_NAME",
     "FORMAT_VERSION",
     "GT_CHANNELS",
+    "GT_CHANNELS_V1",
+    "MASK_FILES",
+    "READ_VERSIONS",
     "Dataset",
     "DatasetError",
     "DatasetLockedError",
@@ -67,24 +74,31 @@ __all__ = [
     "atomic_write_bytes",
     "atomic_write_json",
     "camera_from_meta",
+    "channels_for",
     "compare_meta",
     "encode_frame",
     "exr_bytes",
+    "exr_header",
     "flo_bytes",
+    "flo_known",
     "frame_name",
     "open_dataset",
     "read_exr",
     "read_flo",
+    "read_mask_png",
     "write_exr",
     "write_flo",
 ]
 
 #: ``dataset.json["format"]`` and ``["format_version"]``.
 FORMAT_NAME = "omnisim-dataset"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+#: Format versions this module reads (and writes: a frame of version 1 channels is
+#: written as version 1, e.g. by ``omniflow.synthetic``, which has no backward flow).
+READ_VERSIONS = (1, 2)
 
-#: Ground-truth channel names, exactly as the contract spells them.
-GT_CHANNELS: tuple[str, ...] = (
+#: Ground-truth channel names of format version 1.
+GT_CHANNELS_V1: tuple[str, ...] = (
     "gt.valid",
     "gt.r",
     "gt.theta",
@@ -101,8 +115,78 @@ GT_CHANNELS: tuple[str, ...] = (
     "gt.stereo.h_other",
     "gt.stereo.valid",
 )
+#: Channels format version 2 adds: why forward flow is not visible at t + 1, and the
+#: backward flow (t to t - 1) with the same three masks.
+_V2_ADDED: tuple[str, ...] = (
+    "gt.flow.occluded",
+    "gt.flow.outside",
+    "gt.bflow.dx",
+    "gt.bflow.dy",
+    "gt.bflow.dh",
+    "gt.bflow.hdtheta",
+    "gt.bflow.valid",
+    "gt.bflow.occluded",
+    "gt.bflow.outside",
+)
+#: Ground-truth channel names (the current version), exactly as the contract spells them:
+#: version 1's with the added ones after ``gt.flow.valid``.
+GT_CHANNELS: tuple[str, ...] = (
+    *GT_CHANNELS_V1[: GT_CHANNELS_V1.index("gt.flow.valid") + 1],
+    *_V2_ADDED,
+    *GT_CHANNELS_V1[GT_CHANNELS_V1.index("gt.flow.valid") + 1 :],
+)
 #: Every channel of a camera's EXR: linear radiance R, G, B, then the ground truth.
 CHANNELS: tuple[str, ...] = ("R", "G", "B", *GT_CHANNELS)
+#: The channels of a version 1 EXR.
+CHANNELS_V1: tuple[str, ...] = ("R", "G", "B", *GT_CHANNELS_V1)
+
+#: Unit and one-line meaning of every channel; written into each version 2 EXR's header
+#: (``omnisim.channel.<name>``) so one file is understood without dataset.json.
+CHANNEL_INFO: dict[str, tuple[str, str]] = {
+    "R": ("radiance", "linear red radiance (Mitsuba, no tone mapping); 0 outside the rim"),
+    "G": ("radiance", "linear green radiance"),
+    "B": ("radiance", "linear blue radiance"),
+    "gt.valid": ("0/1", "1 where the pixel centre sees a scene object through the mirror"),
+    "gt.r": ("m", "range of the seen point: distance from the rig axis"),
+    "gt.theta": ("rad", "azimuth of the seen point in the rig frame, atan2(Y, X), [-pi, pi)"),
+    "gt.h": ("m", "height of the seen point in the rig frame, above cam2's cone tip"),
+    "gt.X": ("m", "world X of the seen point"),
+    "gt.Y": ("m", "world Y of the seen point"),
+    "gt.Z": ("m", "world Z (height) of the seen point; NOT a depth or distance"),
+    "gt.object": ("id", "object id of dataset.json objects[], 0 where nothing is hit"),
+    "gt.flow.dx": ("px", "flow t -> t+1, x (right); 0 where the next position is undefined"),
+    "gt.flow.dy": ("px", "flow t -> t+1, y (down); 0 where the next position is undefined"),
+    "gt.flow.dh": ("px", "flow t -> t+1, radial: image radius at t+1 minus at t"),
+    "gt.flow.hdtheta": ("px", "flow t -> t+1, tangential: h_i(t) wrap(theta_i(t+1) - theta_i)"),
+    "gt.flow.valid": ("0/1", "1 where the point is seen at t+1 (on the mirror, unoccluded)"),
+    "gt.flow.occluded": ("0/1", "1 where the point is on the mirror at t+1 but hidden"),
+    "gt.flow.outside": ("0/1", "1 where the point's image at t+1 is off the mirror"),
+    "gt.bflow.dx": ("px", "flow t -> t-1, x; 0 where undefined (all of frame 0)"),
+    "gt.bflow.dy": ("px", "flow t -> t-1, y; 0 where undefined (all of frame 0)"),
+    "gt.bflow.dh": ("px", "flow t -> t-1, radial"),
+    "gt.bflow.hdtheta": ("px", "flow t -> t-1, tangential"),
+    "gt.bflow.valid": ("0/1", "1 where the point was seen at t-1; 0 on frame 0"),
+    "gt.bflow.occluded": ("0/1", "1 where the point was on the mirror at t-1 but hidden"),
+    "gt.bflow.outside": ("0/1", "1 where the point's image at t-1 was off the mirror"),
+    "gt.stereo.h_other": ("px", "image radius of the point in the other unit, eq. (3)/(4)"),
+    "gt.stereo.valid": ("0/1", "1 where the other unit sees the point"),
+}
+
+#: Version 2 mask images beside each camera's .flo: file suffix -> channel (0 or 255).
+MASK_FILES: dict[str, str] = {
+    "occluded.png": "gt.flow.occluded",
+    "outside.png": "gt.flow.outside",
+}
+
+
+def channels_for(version: int) -> tuple[str, ...]:
+    """The EXR channels of a dataset of format ``version`` (1 or 2)."""
+    if version == 1:
+        return CHANNELS_V1
+    if version == 2:
+        return CHANNELS
+    raise DatasetError(f"format_version {version!r}: this omnisim reads {list(READ_VERSIONS)}")
+
 
 #: Middlebury .flo magic number (the float32 whose bytes read "PIEH").
 FLO_MAGIC = 202021.25
@@ -243,14 +327,16 @@ def atomic_write_json(path: str | Path, obj: Any) -> None:
 
 def _check_channels(channels: Mapping[str, NDArray], where: str) -> tuple[int, int]:
     names = list(channels)
-    if set(names) != set(CHANNELS) or len(names) != len(CHANNELS):
+    expected = CHANNELS_V1 if set(names) == set(CHANNELS_V1) else CHANNELS
+    if set(names) != set(expected) or len(names) != len(expected):
         missing = [c for c in CHANNELS if c not in channels]
         extra = [c for c in names if c not in CHANNELS]
         raise DatasetError(
-            f"{where}: channels must be exactly {list(CHANNELS)}; missing {missing}, extra {extra}"
+            f"{where}: channels must be exactly {list(CHANNELS)} (or version 1's "
+            f"{list(CHANNELS_V1)}); missing {missing}, extra {extra}"
         )
     shape = None
-    for name in CHANNELS:
+    for name in expected:
         arr = np.asarray(channels[name])
         if arr.ndim != 2:
             raise DatasetError(f"{where}: channel {name} has shape {arr.shape}: expected (H, W)")
@@ -319,6 +405,79 @@ def exr_bytes(
         return p.read_bytes()
 
 
+def _channels_version(channels: Mapping[str, NDArray]) -> int:
+    """Format version of a frame's channel set (checked by :func:`_check_channels`)."""
+    return 1 if "gt.flow.occluded" not in channels else 2
+
+
+def exr_header(meta: Mapping[str, Any], cam: str) -> dict[str, str]:
+    """Version 2 EXR header attributes that make one file self-describing.
+
+    The rig (``omnisim.rig.d``, ``.R``, ``.s``), the camera (``omnisim.cam.tip_h``,
+    ``.x_c``, ``.y_c``, ``.r_m``, ``.v``), units and each channel's unit and meaning
+    (``omnisim.channel.<name>``), all as strings: numbers are Python's shortest
+    round-trip decimal of the float64 in dataset.json (an EXR ``float`` attribute is
+    float32 and would lose the digits eq. (1) needs).
+    """
+    rig = meta.get("rig", {})
+    unit = next((c for c in meta.get("cameras", []) if c.get("name") == cam), None)
+    if unit is None:
+        raise DatasetError(f"dataset.json: camera {cam!r} not in cameras")
+    attrs = {
+        "omnisim.format": f"{FORMAT_NAME} {FORMAT_VERSION}",
+        "omnisim.units": "lengths m (rig, gt.r, gt.h, gt.X/Y/Z), angles rad, image "
+        "quantities px; pixel centre of column j at x = j + 0.5, y down; rig frame: "
+        "h up the axis from cam2's cone tip; world = dataset.json robot.poses[k] x rig",
+        "omnisim.note": "gt.Z is the world height of the seen point, not depth "
+        "(OpenImageIO takes a channel named *Z as depth)",
+    }
+    for key in ("d", "R", "s"):
+        attrs[f"omnisim.rig.{key}"] = repr(float(rig[key]))
+    for key in ("tip_h", "x_c", "y_c", "r_m", "v"):
+        attrs[f"omnisim.cam.{key}"] = repr(float(unit[key]))
+    if "frame_interval" in meta:
+        attrs["omnisim.frame_interval"] = repr(float(meta["frame_interval"]))
+    for name in CHANNELS:
+        u, text = CHANNEL_INFO[name]
+        attrs[f"omnisim.channel.{name}"] = f"[{u}] {text}"
+    return attrs
+
+
+def flo_known(channels: Mapping[str, NDArray], version: int = FORMAT_VERSION) -> NDArray:
+    """Where a dataset's .flo holds a flow (elsewhere Middlebury's unknown, 1e10).
+
+    Version 1: where ``gt.flow.valid`` is 1. Version 2: wherever the point's position
+    at t + 1 is defined, ``gt.flow.valid`` + ``gt.flow.occluded`` + ``gt.flow.outside``
+    (disjoint 0/1 masks).
+    """
+    if version == 1:
+        return np.asarray(channels["gt.flow.valid"]) > 0.5
+    known = sum(
+        np.asarray(channels[f"gt.flow.{m}"], np.float64) for m in ("valid", "occluded", "outside")
+    )
+    return (known > 0.5) & (np.asarray(channels["gt.valid"]) > 0.5)
+
+
+def _mask_png(mask: NDArray) -> bytes:
+    """An 8-bit greyscale PNG, 255 where ``mask`` > 0.5, else 0 (Sintel's mask style)."""
+    import cv2
+
+    ok, buf = cv2.imencode(".png", np.where(np.asarray(mask) > 0.5, 255, 0).astype(np.uint8))
+    if not ok:
+        raise DatasetError("cannot encode a mask PNG")
+    return buf.tobytes()
+
+
+def read_mask_png(path: str | Path) -> NDArray[np.bool_]:
+    """A mask PNG (:data:`MASK_FILES`) as bool (H, W): True where the pixel is > 127."""
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None or img.ndim != 2:
+        raise DatasetError(f"{path}: cannot read as a greyscale mask PNG")
+    return img > 127
+
+
 # -- Middlebury .flo ---------------------------------------------------------------
 
 
@@ -383,8 +542,11 @@ def encode_frame(
 ) -> dict[str, bytes]:
     """Encode one rendered frame into file bytes ``{"cam1.exr": ..., "cam1.flo": ..., ...}``.
 
-    ``frame`` maps camera name to its channels (exactly :data:`CHANNELS`). The bytes are
-    what :meth:`DatasetWriter.write_frame` writes, so local and distributed runs agree.
+    ``frame`` maps camera name to its channels (exactly :data:`CHANNELS`, or
+    :data:`CHANNELS_V1` for a version 1 dataset). The bytes are what
+    :meth:`DatasetWriter.write_frame` writes, so local and distributed runs agree.
+    Version 2 adds the mask PNGs (:data:`MASK_FILES`) and, given ``meta``
+    (dataset.json), the header attributes of :func:`exr_header`.
     When ``meta`` (dataset.json) has a ``camera`` section, its camera model
     (:mod:`omnisim.camera`) is applied to each camera's radiance and ``cam1.png``, ...
     are added (``k`` is then required: it seeds the noise).
@@ -398,18 +560,29 @@ def encode_frame(
             raise DatasetError(f"frame {k}: camera {cam!r} missing (got {sorted(frame)})")
         chans = frame[cam]
         _check_channels(chans, f"frame {k} {cam}")
+        version = _channels_version(chans)
+        if meta is not None and meta.get("format_version") != version:
+            raise DatasetError(
+                f"frame {k} {cam}: channels of format version {version}, but dataset.json "
+                f"says format_version {meta.get('format_version')!r}"
+            )
         attrs = {"omnisim.camera": cam}
         if k is not None:
             attrs["omnisim.frame"] = str(int(k))
+        if version >= 2 and meta is not None:
+            attrs.update(exr_header(meta, cam))
         files[f"{cam}.exr"] = exr_bytes(chans, attributes=attrs, scratch_dir=scratch_dir)
         files[f"{cam}.flo"] = flo_bytes(
-            chans["gt.flow.dx"], chans["gt.flow.dy"], chans["gt.flow.valid"]
+            chans["gt.flow.dx"], chans["gt.flow.dy"], flo_known(chans, version)
         )
         if camera is not None:
             unit = getattr(rig, cam)
             rgb = np.stack([chans["R"], chans["G"], chans["B"]], axis=-1)
             dn = camera.apply(rgb, frame=int(k), cam=cam, centre=(unit.x_c, unit.y_c), r_m=unit.r_m)
             files[f"{cam}.png"] = camera.png_bytes(dn)
+        if version >= 2:
+            for suffix, name in MASK_FILES.items():
+                files[f"{cam}.{suffix}"] = _mask_png(chans[name])
     return files
 
 
@@ -431,8 +604,10 @@ def camera_from_meta(meta: Mapping[str, Any]) -> tuple[Any, Rig | None]:
     return model, rig
 
 
-def _expected_files(cameras: Iterable[str], images: bool = False) -> list[str]:
-    exts = ("exr", "flo", "png") if images else ("exr", "flo")
+def _expected_files(
+    cameras: Iterable[str], images: bool = False, version: int = FORMAT_VERSION
+) -> list[str]:
+    exts = ("exr", "flo", *(MASK_FILES if version >= 2 else ()), *(("png",) if images else ()))
     return [f"{cam}.{ext}" for cam in cameras for ext in exts]
 
 
@@ -511,7 +686,12 @@ class DatasetWriter:
         self.cameras = _camera_names(self.meta)
         if not self.cameras:
             raise DatasetError("meta['cameras'] lists no camera")
-        self.expected_files = _expected_files(self.cameras, "camera" in self.meta)
+        self.version = self.meta.get("format_version")
+        if self.version not in READ_VERSIONS:
+            raise DatasetError(
+                f"meta['format_version'] = {self.version!r}: expected one of {list(READ_VERSIONS)}"
+            )
+        self.expected_files = _expected_files(self.cameras, "camera" in self.meta, self.version)
         self.frame_count = int(self.meta["frames"])
         self._lock_key: str | None = None
         self._made: list[Path] = []  # what this writer created, newest last (see abandon)
@@ -716,9 +896,9 @@ def _load_meta(path: Path) -> dict[str, Any]:
     if not isinstance(meta, dict) or meta.get("format") != FORMAT_NAME:
         raise DatasetError(f"{path}: 'format' is not {FORMAT_NAME!r}: not an omnisim dataset")
     ver = meta.get("format_version")
-    if isinstance(ver, bool) or not isinstance(ver, int) or not 1 <= ver <= FORMAT_VERSION:
+    if isinstance(ver, bool) or ver not in READ_VERSIONS:
         raise DatasetError(
-            f"{path}: format_version = {ver!r}: this omnisim reads versions 1 to {FORMAT_VERSION}"
+            f"{path}: format_version = {ver!r}: this omnisim reads versions {list(READ_VERSIONS)}"
         )
     for key in ("rig", "cameras", "frames"):
         if key not in meta:
@@ -786,6 +966,16 @@ class Dataset:
         """gt.object id -> object name (0 means no object / background)."""
         return {int(o["id"]): str(o["name"]) for o in self.meta.get("objects", [])}
 
+    @property
+    def version(self) -> int:
+        """``format_version`` of the dataset (1 or 2)."""
+        return int(self.meta["format_version"])
+
+    @property
+    def channels(self) -> tuple[str, ...]:
+        """The EXR channels of this dataset's format version."""
+        return channels_for(self.version)
+
     def unit(self, cam: str):
         """The :class:`omniflow.rig.Unit` of camera ``cam``."""
         if cam not in ("cam1", "cam2"):
@@ -798,13 +988,16 @@ class Dataset:
         return self.dir / FRAMES_DIR / frame_name(k)
 
     def path(self, k: int, cam: str, ext: str = "exr") -> Path:
-        """Path of frame ``k``'s file for camera ``cam`` (``ext`` "exr", "flo" or "png")."""
+        """Path of frame ``k``'s file for camera ``cam`` (``ext`` "exr", "flo", "png",
+        "occluded.png" or "outside.png")."""
         return self.frame_dir(k) / f"{cam}.{ext}"
 
     def is_done(self, k: int) -> bool:
         d = self.frame_dir(k)
         images = "camera" in self.meta
-        return d.is_dir() and all((d / f).is_file() for f in _expected_files(self.cameras, images))
+        return d.is_dir() and all(
+            (d / f).is_file() for f in _expected_files(self.cameras, images, self.version)
+        )
 
     def frames_done(self) -> list[int]:
         """Indices of frames whose directory is complete."""
@@ -829,7 +1022,7 @@ class Dataset:
         self._check(k, cam)
         path = self.path(k, cam, "exr")
         chans = read_exr(path)
-        missing = [c for c in CHANNELS if c not in chans]
+        missing = [c for c in self.channels if c not in chans]
         if missing:
             raise DatasetError(f"{path}: channels {missing} missing")
         unit = self.unit(cam)
@@ -897,6 +1090,18 @@ class Dataset:
         """The .flo of frame ``k``, camera ``cam``: (flow (H, W, 2), valid (H, W))."""
         self._check(k, cam)
         return read_flo(self.path(k, cam, "flo"))
+
+    def read_flow_masks(self, k: int, cam: str) -> dict[str, NDArray[np.bool_]]:
+        """The mask PNGs beside frame ``k``'s .flo: ``{"gt.flow.occluded": (H, W) bool,
+        "gt.flow.outside": ...}`` (version 2; a version 1 dataset has none: {})."""
+        self._check(k, cam)
+        if self.version < 2:
+            return {}
+        return {name: read_mask_png(self.path(k, cam, sfx)) for sfx, name in MASK_FILES.items()}
+
+    def flo_known(self, channels: Mapping[str, NDArray]) -> NDArray[np.bool_]:
+        """Where this dataset's .flo holds a flow, from the frame's channels (:func:`flo_known`)."""
+        return flo_known(channels, self.version)
 
 
 def open_dataset(dir: str | Path) -> Dataset:

@@ -234,7 +234,9 @@ def _render(out: Path, **overrides) -> Path:
 
 
 def _files(d: Path, ext: str) -> dict[str, bytes]:
-    return {str(p.relative_to(d)): p.read_bytes() for p in sorted((d / "frames").rglob(f"*.{ext}"))}
+    """camK.<ext> of every frame (not the format-version-2 mask PNGs camK.occluded.png, ...)."""
+    paths = sorted((d / "frames").rglob(f"cam?.{ext}"))
+    return {str(p.relative_to(d)): p.read_bytes() for p in paths}
 
 
 def test_same_seed_same_bytes_other_camera_seed_other_noise(tmp_path):

@@ -42,11 +42,25 @@ CONTRACT = [
 ]
 
 
-def make_meta(frames: int = 3, size: int = 24, seed: int = 1) -> dict:
+#: Format version 2 adds these after gt.flow.valid.
+CONTRACT_V2_ADDED = [
+    "gt.flow.occluded",
+    "gt.flow.outside",
+    "gt.bflow.dx",
+    "gt.bflow.dy",
+    "gt.bflow.dh",
+    "gt.bflow.hdtheta",
+    "gt.bflow.valid",
+    "gt.bflow.occluded",
+    "gt.bflow.outside",
+]
+
+
+def make_meta(frames: int = 3, size: int = 24, seed: int = 1, version: int = 2) -> dict:
     rig = Rig.symmetric(d=0.1, R=0.05, s=0.3, size=size)
     return {
         "format": ds.FORMAT_NAME,
-        "format_version": ds.FORMAT_VERSION,
+        "format_version": version,
         "scene": {"name": "t", "path": "/x/t.toml", "source": "# scene\n", "overrides": {}},
         **rig.to_dict(),
         "frames": frames,
@@ -59,26 +73,37 @@ def make_meta(frames: int = 3, size: int = 24, seed: int = 1) -> dict:
     }
 
 
-def make_frame(k: int, size: int = 24, cams=("cam1", "cam2")) -> dict:
+def make_frame(k: int, size: int = 24, cams=("cam1", "cam2"), version: int = 2) -> dict:
+    if version == 1:
+        v1 = make_frame(k, size, cams)
+        return {cam: {name: ch[name] for name in ds.CHANNELS_V1} for cam, ch in v1.items()}
     out = {}
     for ci, cam in enumerate(cams):
         rng = np.random.default_rng(100 * k + ci)
         ch = {name: rng.normal(size=(size, size)).astype(np.float32) for name in CHANNELS}
         for name in ("gt.valid", "gt.flow.valid", "gt.stereo.valid"):
             ch[name] = (rng.random((size, size)) > 0.3).astype(np.float32)
+        for key in ("gt.flow", "gt.bflow"):  # version 2: three disjoint 0/1 masks
+            split = rng.integers(0, 4, (size, size)) * ch["gt.valid"]
+            for m, name in enumerate(("valid", "occluded", "outside"), start=1):
+                ch[f"{key}.{name}"] = (split == m).astype(np.float32)
         ch["gt.object"] = rng.integers(0, 3, (size, size)).astype(np.float32)
         out[cam] = ch
     return out
 
 
 def test_channel_names_are_the_contract():
-    assert list(CHANNELS) == CONTRACT
+    assert list(ds.CHANNELS_V1) == CONTRACT  # version 1
+    i = CONTRACT.index("gt.flow.valid") + 1
+    assert list(CHANNELS) == [*CONTRACT[:i], *CONTRACT_V2_ADDED, *CONTRACT[i:]]
+    assert set(ds.CHANNEL_INFO) == set(CHANNELS)
 
 
-def test_round_trip(tmp_path):
-    meta = make_meta()
+@pytest.mark.parametrize("version", [1, 2])
+def test_round_trip(tmp_path, version):
+    meta = make_meta(version=version)
     w = DatasetWriter(tmp_path / "d", meta)
-    frames = {k: make_frame(k) for k in range(3)}
+    frames = {k: make_frame(k, version=version) for k in range(3)}
     for k, fr in frames.items():
         w.write_frame(k, fr)
     d = open_dataset(tmp_path / "d")
@@ -91,17 +116,16 @@ def test_round_trip(tmp_path):
         "000001",
         "000002",
     ]
+    masks = ["occluded.png", "outside.png"] if version == 2 else []
     assert sorted(p.name for p in (tmp_path / "d" / "frames" / "000001").iterdir()) == [
-        "cam1.exr",
-        "cam1.flo",
-        "cam2.exr",
-        "cam2.flo",
+        f"{cam}.{ext}" for cam in ("cam1", "cam2") for ext in ["exr", "flo", *masks]
     ]
+    contract = CONTRACT + (CONTRACT_V2_ADDED if version == 2 else [])
     for k, fr in frames.items():
         for cam in ("cam1", "cam2"):
             got = d.read_frame(k, cam)
-            assert list(sorted(got)) == sorted(CONTRACT)
-            for name in CONTRACT:
+            assert list(sorted(got)) == sorted(contract)
+            for name in contract:
                 assert got[name].dtype == np.float32
                 np.testing.assert_array_equal(got[name], fr[cam][name])
             rgb = d.read_rgb(k, cam)
@@ -114,9 +138,9 @@ def test_exr_is_zip_float32(tmp_path):
     w = DatasetWriter(tmp_path / "d", make_meta(frames=1))
     w.write_frame(0, make_frame(0))
     with OpenEXR.File(str(tmp_path / "d/frames/000000/cam1.exr"), separate_channels=True) as f:
-        hdr = f.header()
+        hdr = dict(f.header())  # the header is emptied when the file closes
         assert hdr["compression"] == OpenEXR.ZIP_COMPRESSION
-        assert sorted(f.channels()) == sorted(CONTRACT)
+        assert sorted(f.channels()) == sorted(CONTRACT + CONTRACT_V2_ADDED)
         assert all(c.pixels.dtype == np.float32 for c in f.channels().values())
 
 
@@ -349,3 +373,88 @@ def test_open_refuses_bad_metadata(tmp_path, change, match):
     (tmp_path / "d" / "dataset.json").write_text(json.dumps(meta))
     with pytest.raises(DatasetError, match=match):
         open_dataset(tmp_path / "d")
+
+
+# -- format version 2 -------------------------------------------------------------------------
+
+
+def test_v2_flo_holds_every_defined_flow_and_masks_beside_it(tmp_path):
+    """.flo: the flow wherever gt.flow.valid, occluded or outside is 1; 1e10 only where no
+    next position exists. The mask PNGs equal the channels (read back with OpenCV)."""
+    w = DatasetWriter(tmp_path / "d", make_meta(frames=1))
+    fr = make_frame(0)
+    w.write_frame(0, fr)
+    d = open_dataset(tmp_path / "d")
+    for cam in ("cam1", "cam2"):
+        ch = fr[cam]
+        defined = (ch["gt.flow.valid"] + ch["gt.flow.occluded"] + ch["gt.flow.outside"]) > 0
+        assert 0 < ch["gt.flow.occluded"].sum() and 0 < ch["gt.flow.outside"].sum()
+        cv_flow = cv2.readOpticalFlow(str(d.path(0, cam, "flo")))
+        np.testing.assert_array_equal(cv_flow[defined, 0], ch["gt.flow.dx"][defined])
+        np.testing.assert_array_equal(cv_flow[defined, 1], ch["gt.flow.dy"][defined])
+        assert (cv_flow[~defined] == FLO_UNKNOWN).all()
+        _, known = d.read_flo(0, cam)
+        assert (known == defined).all()
+        masks = d.read_flow_masks(0, cam)
+        for suffix, name in ds.MASK_FILES.items():
+            png = cv2.imread(str(d.path(0, cam, suffix)), cv2.IMREAD_UNCHANGED)
+            assert png.dtype == np.uint8 and set(np.unique(png)) == {0, 255}
+            assert ((png == 255) == (ch[name] == 1)).all() and (masks[name] == (png == 255)).all()
+
+
+def test_v2_exr_header_describes_the_frame(tmp_path):
+    """Rig, camera, units and each channel's meaning are in the EXR header; the numbers
+    are exact (decimal strings of the float64 in dataset.json)."""
+    import OpenEXR
+
+    meta = make_meta(frames=1)
+    meta["rig"]["d"] = 0.1 + 1e-12  # a value float32 could not keep
+    w = DatasetWriter(tmp_path / "d", meta)
+    w.write_frame(0, make_frame(0))
+    d = open_dataset(tmp_path / "d")
+    with OpenEXR.File(str(d.path(0, "cam2", "exr"))) as f:
+        hdr = dict(f.header())  # the header is emptied when the file closes
+    assert hdr["omnisim.camera"] == "cam2" and hdr["omnisim.frame"] == "0"
+    assert hdr["omnisim.format"] == "omnisim-dataset 2"
+    assert float(hdr["omnisim.rig.d"]) == meta["rig"]["d"]
+    for key in ("R", "s"):
+        assert float(hdr[f"omnisim.rig.{key}"]) == meta["rig"][key]
+    cam2 = meta["cameras"][1]
+    for key in ("tip_h", "x_c", "y_c", "r_m", "v"):
+        assert float(hdr[f"omnisim.cam.{key}"]) == cam2[key], key
+    for name in CHANNELS:
+        assert hdr[f"omnisim.channel.{name}"].startswith(f"[{ds.CHANNEL_INFO[name][0]}] ")
+    assert "not depth" in hdr["omnisim.note"] and "m" in hdr["omnisim.units"]
+
+
+def test_v1_dataset_reads_as_before(tmp_path):
+    """A version 1 dataset: no masks, .flo unknown where gt.flow.valid is 0, V1 channels."""
+    w = DatasetWriter(tmp_path / "d", make_meta(frames=1, version=1))
+    fr = make_frame(0, version=1)
+    w.write_frame(0, fr)
+    d = open_dataset(tmp_path / "d")
+    assert d.version == 1 and d.channels == ds.CHANNELS_V1 and d.complete
+    assert d.read_flow_masks(0, "cam1") == {}
+    _, known = d.read_flo(0, "cam1")
+    assert (known == (fr["cam1"]["gt.flow.valid"] == 1)).all()
+    assert sorted(p.name for p in d.frame_dir(0).iterdir()) == [
+        "cam1.exr",
+        "cam1.flo",
+        "cam2.exr",
+        "cam2.flo",
+    ]
+
+
+def test_version_mismatch_and_unknown_versions_are_refused(tmp_path):
+    w = DatasetWriter(tmp_path / "d", make_meta(frames=1, version=1))
+    with pytest.raises(DatasetError, match=r"format version 2.*format_version 1"):
+        w.write_frame(0, make_frame(0))  # version 2 channels into a version 1 dataset
+    with pytest.raises(DatasetError, match="format_version"):
+        DatasetWriter(tmp_path / "e", make_meta(frames=1, version=3))
+    meta_path = tmp_path / "d" / "dataset.json"
+    for bad in (3, 0, True, "2"):
+        meta = json.loads(meta_path.read_text())
+        meta["format_version"] = bad
+        meta_path.write_text(json.dumps(meta))
+        with pytest.raises(DatasetError, match="format_version"):
+            open_dataset(tmp_path / "d")

@@ -31,18 +31,16 @@ def tree_bytes(d: Path) -> dict[str, bytes]:
 
 
 def final_frames_complete(d: Path) -> list[str]:
-    """Names under frames/: each final frame directory must hold all six files."""
+    """Names under frames/: each final frame directory must hold all its files (format
+    version 2: per camera the EXR, the .flo, its two mask PNGs and the camera image)."""
     names = []
     for p in sorted((d / "frames").iterdir()):
         names.append(p.name)
         if not p.name.startswith("."):
             assert sorted(f.name for f in p.iterdir()) == [
-                "cam1.exr",
-                "cam1.flo",
-                "cam1.png",
-                "cam2.exr",
-                "cam2.flo",
-                "cam2.png",
+                f"{cam}.{ext}"
+                for cam in ("cam1", "cam2")
+                for ext in ("exr", "flo", "occluded.png", "outside.png", "png")
             ], p
     return names
 
