@@ -106,6 +106,16 @@ def build_parser() -> argparse.ArgumentParser:
         help="override any scene key (dotted, TOML value), e.g. render.max_depth=3; repeatable",
     )
     r.add_argument(
+        "--camera",
+        dest="camera_sets",
+        type=_parse_set,
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a camera-model parameter (the scene's [camera] table), e.g. "
+        "read_noise=10, bits=12, response=srgb; repeatable; see docs/scene_format.md",
+    )
+    r.add_argument(
         "--scheduler",
         metavar="ADDRESS",
         help="render frames as tasks on this Dask scheduler (tcp://host:8786); the "
@@ -144,6 +154,8 @@ def _overrides(args: argparse.Namespace) -> dict[str, Any]:
     ov: dict[str, Any] = {}
     for key, value in args.sets:
         ov[key] = value
+    for key, value in getattr(args, "camera_sets", []):
+        ov[f"camera.{key.removeprefix('camera.')}"] = value
     if args.frames is not None:
         ov["frames"] = args.frames
     if args.resolution is not None:

@@ -5,6 +5,8 @@ Layout (see ``docs/dataset_format.md`` for every key and channel)::
     DIR/dataset.json                 metadata: format, scene, rig, cameras, poses, ...
     DIR/frames/000000/cam1.exr       one multi-channel float32 EXR per camera and frame
     DIR/frames/000000/cam1.flo       Middlebury optical flow (dx, dy) of that camera
+    DIR/frames/000000/cam1.png       the camera model's image of the radiance (when
+                                     dataset.json has a "camera" section; 8 or 16 bit)
     DIR/frames/000000/cam2.exr
     DIR/frames/000000/cam2.flo
     DIR/frames/000001/...
@@ -53,6 +55,7 @@ __all__ = [
     "DatasetWriter",
     "atomic_write_bytes",
     "atomic_write_json",
+    "camera_from_meta",
     "compare_meta",
     "encode_frame",
     "exr_bytes",
@@ -307,12 +310,19 @@ def encode_frame(
     *,
     k: int | None = None,
     scratch_dir: str | Path | None = None,
+    meta: Mapping[str, Any] | None = None,
 ) -> dict[str, bytes]:
     """Encode one rendered frame into file bytes ``{"cam1.exr": ..., "cam1.flo": ..., ...}``.
 
     ``frame`` maps camera name to its channels (exactly :data:`CHANNELS`). The bytes are
     what :meth:`DatasetWriter.write_frame` writes, so local and distributed runs agree.
+    When ``meta`` (dataset.json) has a ``camera`` section, its camera model
+    (:mod:`omnisim.camera`) is applied to each camera's radiance and ``cam1.png``, ...
+    are added (``k`` is then required: it seeds the noise).
     """
+    camera, rig = camera_from_meta(meta) if meta is not None else (None, None)
+    if camera is not None and k is None:
+        raise DatasetError("encode_frame: the frame index k is needed to apply the camera model")
     files: dict[str, bytes] = {}
     for cam in cameras:
         if cam not in frame:
@@ -326,11 +336,35 @@ def encode_frame(
         files[f"{cam}.flo"] = flo_bytes(
             chans["gt.flow.dx"], chans["gt.flow.dy"], chans["gt.flow.valid"]
         )
+        if camera is not None:
+            unit = getattr(rig, cam)
+            rgb = np.stack([chans["R"], chans["G"], chans["B"]], axis=-1)
+            dn = camera.apply(rgb, frame=int(k), cam=cam, centre=(unit.x_c, unit.y_c), r_m=unit.r_m)
+            files[f"{cam}.png"] = camera.png_bytes(dn)
     return files
 
 
-def _expected_files(cameras: Iterable[str]) -> list[str]:
-    return [f"{cam}.{ext}" for cam in cameras for ext in ("exr", "flo")]
+def camera_from_meta(meta: Mapping[str, Any]) -> tuple[Any, Rig | None]:
+    """``(CameraModel, Rig)`` of a dataset.json with a ``camera`` section, else ``(None, None)``.
+
+    Raises :class:`DatasetError` when the section or the rig is malformed.
+    """
+    section = meta.get("camera")
+    if section is None:
+        return None, None
+    from omnisim.camera import CameraError, CameraModel
+
+    try:
+        model = CameraModel.from_mapping(section, where="dataset.json")
+        rig = rig_from_dict(meta, where="dataset.json")
+    except (CameraError, RigError) as exc:
+        raise DatasetError(str(exc)) from exc
+    return model, rig
+
+
+def _expected_files(cameras: Iterable[str], images: bool = False) -> list[str]:
+    exts = ("exr", "flo", "png") if images else ("exr", "flo")
+    return [f"{cam}.{ext}" for cam in cameras for ext in exts]
 
 
 def _camera_names(meta: Mapping[str, Any]) -> list[str]:
@@ -401,6 +435,7 @@ class DatasetWriter:
         self.cameras = _camera_names(self.meta)
         if not self.cameras:
             raise DatasetError("meta['cameras'] lists no camera")
+        self.expected_files = _expected_files(self.cameras, "camera" in self.meta)
         self.frame_count = int(self.meta["frames"])
         if self.dir.exists() and not self.dir.is_dir():
             raise DatasetError(f"{self.dir}: exists and is not a directory")
@@ -460,7 +495,7 @@ class DatasetWriter:
     def is_done(self, k: int) -> bool:
         """True when frame ``k``'s final directory exists with every expected file."""
         d = self.frame_dir(k)
-        return d.is_dir() and all((d / f).is_file() for f in _expected_files(self.cameras))
+        return d.is_dir() and all((d / f).is_file() for f in self.expected_files)
 
     def done_frames(self) -> list[int]:
         return [k for k in range(self.frame_count) if self.is_done(k)]
@@ -471,7 +506,7 @@ class DatasetWriter:
     def write_frame(self, k: int, frame: Mapping[str, Mapping[str, NDArray]]) -> Path:
         """Encode and write frame ``k`` (camera -> channels) atomically; returns its directory."""
         return self.write_frame_files(
-            k, encode_frame(frame, self.cameras, k=k, scratch_dir=self.frames_dir)
+            k, encode_frame(frame, self.cameras, k=k, scratch_dir=self.frames_dir, meta=self.meta)
         )
 
     def write_frame_files(self, k: int, files: Mapping[str, bytes]) -> Path:
@@ -483,7 +518,7 @@ class DatasetWriter:
         """
         if not 0 <= k < self.frame_count:
             raise DatasetError(f"frame {k} outside 0..{self.frame_count - 1}")
-        expected = _expected_files(self.cameras)
+        expected = self.expected_files
         if sorted(files) != sorted(expected):
             raise DatasetError(f"frame {k}: files {sorted(files)}; expected {sorted(expected)}")
         final = self.frame_dir(k)
@@ -570,12 +605,13 @@ class Dataset:
         return self.dir / FRAMES_DIR / frame_name(k)
 
     def path(self, k: int, cam: str, ext: str = "exr") -> Path:
-        """Path of frame ``k``'s file for camera ``cam`` (``ext`` "exr" or "flo")."""
+        """Path of frame ``k``'s file for camera ``cam`` (``ext`` "exr", "flo" or "png")."""
         return self.frame_dir(k) / f"{cam}.{ext}"
 
     def is_done(self, k: int) -> bool:
         d = self.frame_dir(k)
-        return d.is_dir() and all((d / f).is_file() for f in _expected_files(self.cameras))
+        images = "camera" in self.meta
+        return d.is_dir() and all((d / f).is_file() for f in _expected_files(self.cameras, images))
 
     def frames_done(self) -> list[int]:
         """Indices of frames whose directory is complete."""
@@ -624,6 +660,45 @@ class Dataset:
         c = self.read_frame(k, cam)
         wr, wg, wb = LUMA_WEIGHTS
         return (wr * c["R"] + wg * c["G"] + wb * c["B"]).astype(np.float32)
+
+    @property
+    def camera(self):
+        """The dataset's :class:`omnisim.camera.CameraModel` (dataset.json ``camera``), or
+        None for a dataset written without one (no PNGs)."""
+        return camera_from_meta(self.meta)[0]
+
+    def read_camera_dn(self, k: int, cam: str) -> NDArray[np.unsignedinteger]:
+        """Digital numbers (H, W, 3) of the camera image ``cam.png`` of frame ``k``:
+        ``uint8`` for 8 bits, else ``uint16`` in ``[0, 2^bits - 1]``."""
+        import cv2
+
+        self._check(k, cam)
+        model = self.camera
+        path = self.path(k, cam, "png")
+        if model is None:
+            raise DatasetError(f"{self.dir}: dataset.json has no camera section: no camera images")
+        pixels = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if pixels is None:
+            raise DatasetError(f"{path}: cannot read the camera image")
+        if pixels.ndim == 3:
+            pixels = pixels[..., ::-1]  # OpenCV's BGR -> RGB
+        unit = self.unit(cam)
+        if pixels.shape[:2] != (unit.height, unit.width):
+            raise DatasetError(
+                f"{path}: image is {pixels.shape[1]}x{pixels.shape[0]}, dataset.json says "
+                f"{unit.width}x{unit.height}"
+            )
+        try:
+            return model.dn_from_png(pixels)
+        except ValueError as exc:
+            raise DatasetError(f"{path}: {exc}") from exc
+
+    def read_camera_image(self, k: int, cam: str, *, grey: bool = False) -> NDArray[np.float32]:
+        """The stored camera image of frame ``k`` as float32 in [0, 1]: RGB (H, W, 3), or
+        with ``grey=True`` its Rec. 709 luma (H, W), as omniflow reads it."""
+        model = self.camera
+        dn = self.read_camera_dn(k, cam)
+        return model.grey(dn) if grey else model.to_float(dn)
 
     def read_flo(self, k: int, cam: str) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
         """The .flo of frame ``k``, camera ``cam``: (flow (H, W, 2), valid (H, W))."""

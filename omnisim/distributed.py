@@ -64,7 +64,7 @@ def render_task(
         )
     frame = render_fn(scene, k)
     if out is None:
-        return k, encode_frame(frame, [c["name"] for c in meta["cameras"]], k=k)
+        return k, encode_frame(frame, [c["name"] for c in meta["cameras"]], k=k, meta=meta)
     writer = DatasetWriter(out, meta, cleanup=False)
     assert not compare_meta(writer.meta, meta)
     writer.write_frame(k, frame)

@@ -173,6 +173,7 @@ def build_meta(
         "objects": objects,
         "lights": _jsonable(list(_attr(scene, "lights", []) or [])),
         "channels": list(CHANNELS),
+        **({"camera": scene.camera.to_dict()} if _attr(scene, "camera") is not None else {}),
         "flo": {"unknown_value": FLO_UNKNOWN, "unknown_threshold": FLO_UNKNOWN_THRESH},
         "versions": _versions(),
     }

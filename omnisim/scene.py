@@ -51,6 +51,7 @@ from scipy.spatial.transform import Rotation
 
 from omniflow.rig import Rig, RigError, rig_from_dict
 from omnisim import geometry, textures
+from omnisim.camera import CameraError, CameraModel
 from omnisim.motion import (
     ConstantMotion,
     KeyframeMotion,
@@ -234,6 +235,7 @@ class Scene:
     lights: tuple[Light, ...] = field(repr=False)
     rooms: tuple[RoomInfo, ...] = ()
     overrides: dict[str, Any] = field(default_factory=dict)
+    camera: CameraModel = field(default_factory=CameraModel)
 
     def object_by_id(self, object_id: int) -> SceneObject:
         for obj in self.objects:
@@ -466,7 +468,7 @@ def _range_text(what: str, lo, hi, lo_open) -> str:
 # ---------------------------------------------------------------------------
 
 TOP_KEYS = frozenset(
-    "name description frames frame_interval render rig robot objects lights".split()
+    "name description frames frame_interval render rig robot objects lights camera".split()
 )
 RENDER_KEYS = frozenset({"width", "height", "spp", "max_depth", "seed", "integrator", "variant"})
 RIG_KEYS = frozenset({"d", "R", "s", "x_c", "y_c", "r_m", "margin"})
@@ -554,6 +556,7 @@ def _build(chk: _Checker, path: Path, source: str, data: dict, overrides: dict) 
     robot = _robot(chk, data.get("robot", {}), dt)
     objects, rooms = _objects(chk, data.get("objects", []), dt, path.parent)
     lights = _lights(chk, data.get("lights", _REQUIRED), path.parent)
+    camera = _camera(chk, data.get("camera", {}))
 
     scene = Scene(
         name=name,
@@ -570,6 +573,7 @@ def _build(chk: _Checker, path: Path, source: str, data: dict, overrides: dict) 
         lights=tuple(lights),
         rooms=tuple(rooms),
         overrides=overrides,
+        camera=camera,
     )
     _check_rig_in_scene(chk, scene)
     return scene
@@ -591,6 +595,21 @@ def _render_settings(chk: _Checker, tbl: Any) -> RenderSettings:
         integrator=chk.string(tbl, "integrator", w, d.integrator, choices=INTEGRATORS),
         variant=variant,
     )
+
+
+def _camera(chk: _Checker, tbl: Any) -> CameraModel:
+    """The ``[camera]`` table (:class:`omnisim.camera.CameraModel`; defaults for missing keys)."""
+    if not isinstance(tbl, dict):
+        raise chk.bad("camera", tbl, "a table of camera parameters ([camera])")
+    try:
+        return CameraModel.from_mapping(tbl, where=str(chk.scene_file))
+    except CameraError as exc:
+        if f"camera.{exc.key}" in chk.overridden:
+            raise SceneError(
+                f"{exc.where}: camera.{exc.key} (set by an override) = {exc.value!r}: "
+                f"expected {exc.expected}"
+            ) from exc
+        raise SceneError(str(exc)) from exc
 
 
 def _rig(chk: _Checker, tbl: Any, render: RenderSettings, path: Path) -> Rig:
