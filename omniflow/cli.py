@@ -739,7 +739,9 @@ def explain_error(exc: BaseException, out: str | None = None) -> tuple[int, str]
     """
     # Only modules this run imported can have raised their errors (and importing
     # scikit-image here just to name a class would cost a second).
-    known: tuple[type, ...] = (CLIError, ImageError, RigError, OutputError)
+    if isinstance(exc, OutputError):
+        return 2, f"--out {_one_line(exc)}"
+    known: tuple[type, ...] = (CLIError, ImageError, RigError)
     for module, name in (("omniflow.calibration", "RimError"), ("omnisim.dataset", "DatasetError")):
         if module in sys.modules:
             known += (getattr(sys.modules[module], name),)
@@ -778,6 +780,9 @@ def main(argv: list[str] | None = None) -> int:
         warnings.showwarning = _one_line_warning
         try:
             summary = run(args, parser._config_fields, argv)  # type: ignore[attr-defined]
+        except KeyboardInterrupt:
+            print(f"{PROG}: interrupted; nothing was written", file=sys.stderr)
+            return 130
         except Exception as exc:  # every failure becomes one line (or, with --debug, a trace)
             if args.debug:
                 traceback.print_exc()

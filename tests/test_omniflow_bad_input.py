@@ -451,6 +451,7 @@ CASES = {
     "out under a file": (_out(_out_under_file), 2, "plain is a file, not a folder"),
     "an output name is a folder": (_out(_out_name_is_folder), 2, "flow_color.png: is a folder"),
     "out name too long": (_out(lambda w: w / ("x" * 300)), 2, "name too long"),
+    "out is a device": (_out(lambda w: Path("/dev/null")), 2, "--out /dev/null: exists and is not"),
 }
 
 NO_OUT = {"no --out"}  # cases whose point is a missing --out
@@ -539,7 +540,7 @@ def _old_outputs(out: Path) -> None:
         (out / file).write_bytes(data)
 
 
-@pytest.mark.parametrize("what", ["out folder", "out parent", "input image"])
+@pytest.mark.parametrize("what", ["out folder", "out parent", "input image", "rig file"])
 def test_permission_denied_exits_1(base, tmp_path, what):
     wrap = _unprivileged()
     out = tmp_path / "out"
@@ -553,15 +554,21 @@ def test_permission_denied_exits_1(base, tmp_path, what):
         locked.mkdir(mode=0o555)
         out = locked / "new"
         fragment = str(locked)
-    else:
+    elif what == "input image":
         secret = tmp_path / "secret.png"
         shutil.copy(files[3], secret)
         secret.chmod(0)
         files[3] = secret
         fragment = "secret.png: Permission denied"
+    else:
+        rig = tmp_path / "secret.toml"
+        shutil.copy(base["dir"] / "rig.toml", rig)
+        rig.chmod(0)
+        fragment = "secret.toml: Permission denied"
+    rig = tmp_path / "secret.toml" if what == "rig file" else base["dir"] / "rig.toml"
     before = snapshot(tmp_path)
     try:
-        proc = run_omniflow([*files, "--rig", base["dir"] / "rig.toml", "--out", out], wrap=wrap)
+        proc = run_omniflow([*files, "--rig", rig, "--out", out], wrap=wrap)
     finally:
         for p in tmp_path.rglob("*"):
             p.chmod(0o755)
