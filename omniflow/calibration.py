@@ -13,12 +13,13 @@ surround's texture away but not an edge that follows the circle), and
 differentiated along the radius. Steps:
 
 1. coarse centre and radius, coarse to fine: on an image pyramid
-   (``cv2.pyrDown``) from about 64 px up, every candidate centre of a grid is
-   scored by the strongest radius of its angle-averaged radial-edge profile
-   (all candidates in one ``cv2.remap``); the grid is refined about the best
-   centre at each finer level. Of the strong radii (at least half the
-   strongest) the outermost is taken: the rim encloses every circle the scene
-   draws about the axis;
+   (``cv2.pyrDown``) whose coarsest level is 41-80 px, every candidate
+   centre of a 2 px grid over the middle half of the image is scored by how
+   far the peak of its angle-averaged radial-edge profile rises above the
+   profile's median (a textured surround raises the whole profile, the rim
+   adds a peak); all candidates go through one ``cv2.remap``. The best few
+   distinct centres are each refined on a +-2 px grid at every finer level,
+   and the best score at full resolution wins;
 2. sub-pixel edge points: on ``rays`` radial lines about the coarse centre,
    samples every 0.1 px within ``search`` px of the coarse radius (cubic
    ``cv2.remap``), smoothed along the circle by ``arc_sigma`` px of arc, a
@@ -128,7 +129,7 @@ def _radial_edges(polar: NDArray, *, arc_samples: float, sigma_samples: float) -
         weight = ndimage.gaussian_filter1d(ok.astype(np.float32), arc_samples, axis=-2, mode="wrap")
         vals = vals / np.maximum(weight, 1e-6)
     deriv = np.abs(ndimage.gaussian_filter1d(vals, sigma_samples, axis=-1, order=1))
-    # A sample near the image border or a NaN would step: drop whole stretches with one.
+    # The derivative steps where the samples leave the image: zero it within 3 samples.
     reach = np.ones((1,) * (deriv.ndim - 1) + (7,), bool)
     bad = ndimage.binary_dilation(~ok, structure=reach)
     return np.where(bad, 0.0, deriv)
@@ -154,7 +155,7 @@ def _coarse_circle(
     followed to full resolution, where the best score wins.
     """
     levels = [img.astype(np.float32)]
-    while min(levels[-1].shape) >= 128:
+    while min(levels[-1].shape) > 80:  # the coarsest level is 41-80 px
         levels.append(cv2.pyrDown(levels[-1]))
     h, w = img.shape
     top = len(levels) - 1
