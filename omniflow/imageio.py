@@ -233,12 +233,14 @@ class OutputSet:
             target = self.dest / name
             if target.exists() and not target.is_file():
                 raise OutputError(f"{target}: is a folder; expected a file")
-        for name in staged:
-            if name == self.manifest:
-                for stale in set(self.owned) - set(staged):
-                    with contextlib.suppress(FileNotFoundError):
-                        (self.dest / stale).unlink()
+        data = [name for name in staged if name != self.manifest]
+        for name in data:
             os.replace(self.staging / name, self.dest / name)
+        for stale in sorted(set(self.owned) - set(staged)):  # an earlier run's, not this one's
+            with contextlib.suppress(FileNotFoundError):
+                (self.dest / stale).unlink()
+        if self.manifest in staged:
+            os.replace(self.staging / self.manifest, self.dest / self.manifest)
         return [self.dest / name for name in staged]
 
     def discard(self) -> None:
