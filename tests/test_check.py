@@ -112,25 +112,38 @@ def test_shifted_image_fails_photometric(synth, tmp_path):
 
 @pytest.fixture(scope="module")
 def real(tmp_path_factory):
+    from pathlib import Path
+
+    from omnisim.job import render_dataset
+
+    scene = Path(__file__).resolve().parents[1] / "scenes" / "default.toml"
+    out = tmp_path_factory.mktemp("real") / "ds"
+    ov = {"frames": 3, "render.width": 64, "render.height": 64, "render.spp": 4}
+    render_dataset(scene, out, ov, progress=False)
+    return out
+
+
+@pytest.fixture(scope="module")
+def real_moving(tmp_path_factory):
     """scenes/large_motion.toml at 128 px, 3 frames, with the scene's render settings.
 
     Its image motion (median 1.4 px at 128 px) lets the photometric checks see a
-    flow that is 10 % too short or 0.3 px off; the default scene moves 0.15 px.
+    flow that is 10 % too short or 0.3 px off; the default scene moves 0.15 px there.
     """
     from pathlib import Path
 
     from omnisim.job import render_dataset
 
     scene = Path(__file__).resolve().parents[1] / "scenes" / "large_motion.toml"
-    out = tmp_path_factory.mktemp("real") / "ds"
+    out = tmp_path_factory.mktemp("real_moving") / "ds"
     ov = {"frames": 3, "render.width": 128, "render.height": 128}
     render_dataset(scene, out, ov, progress=False)
     return out
 
 
 @pytest.mark.render
-def test_real_render_passes_with_figures(real, capsys):
-    results = run_checks(open_dataset(real))
+def test_real_render_passes_with_figures(real_moving, capsys):
+    results = run_checks(open_dataset(real_moving))
     print(format_results(results))
     res = _by_name(results)
     for name in ("eq1", "theta", "world", "stereo", "flow_polar", "flo_file"):
@@ -140,7 +153,7 @@ def test_real_render_passes_with_figures(real, capsys):
     # measured 0.164 with the true flow (threshold 0.9) and 0.884 (threshold 1)
     assert res["photometric"].passed and res["photometric"].n > 1000
     assert res["photometric_min"].passed
-    assert main(["check", str(real)]) == 0
+    assert main(["check", str(real_moving)]) == 0
     assert "all checks passed" in capsys.readouterr().out
 
 
@@ -183,7 +196,7 @@ def _rewrite_flow(src, dst, fn):
             dth = (th2 - th + np.pi) % (2 * np.pi) - np.pi
             ch["gt.flow.hdtheta"] = (h * dth).astype(np.float32)
             write_exr(p, ch)
-            write_flo(ds.path(k, cam, "flo"), dx, dy, ch["gt.flow.valid"] > 0.5)
+            write_flo(ds.path(k, cam, "flo"), dx, dy, ds.flo_known(ch))
     return dst
 
 
@@ -201,18 +214,102 @@ WRONG_FLOWS = {
 
 @pytest.mark.render
 @pytest.mark.parametrize("name", sorted(WRONG_FLOWS))
-def test_real_render_wrong_flow_fails_photometric(real, tmp_path, name):
+def test_real_render_wrong_flow_fails_photometric(real_moving, tmp_path, name):
     fn, catches = WRONG_FLOWS[name]
-    d = _rewrite_flow(real, tmp_path / name, fn)
+    d = _rewrite_flow(real_moving, tmp_path / name, fn)
     res = _by_name(run_checks(open_dataset(d)))
     assert res["flow_polar"].passed and res["flo_file"].passed  # consistent corruption
     assert not res[catches].passed, format_results(list(res.values()))
 
 
 @pytest.mark.render
-def test_real_render_rewritten_true_flow_passes(real, tmp_path):
+def test_real_render_rewritten_true_flow_passes(real_moving, tmp_path):
     """The rewrite itself (identity) leaves every check passing: the failures are the flow's."""
-    d = _rewrite_flow(real, tmp_path / "same", lambda dx, dy: (dx, dy))
+    d = _rewrite_flow(real_moving, tmp_path / "same", lambda dx, dy: (dx, dy))
     res = _by_name(run_checks(open_dataset(d)))
     assert res["photometric"].passed and res["photometric_min"].passed
     assert res["flow_polar"].passed and res["flo_file"].passed
+
+
+# -- format versions ------------------------------------------------------------------------
+
+
+def test_version_1_dataset_still_validates(synth):
+    """The synthetic fixture is written as format version 1 (no masks, no backward flow)."""
+    d = open_dataset(synth)
+    assert d.version == 1 and d.meta["format_version"] == 1
+    assert "gt.bflow.dx" not in d.read_frame(0, "cam1") and d.read_flow_masks(0, "cam1") == {}
+    assert not list((synth / "frames" / "000000").glob("*.png"))
+    res = run_checks(d)
+    assert all(r.passed for r in res if r.name != "flow_masks")  # flow_masks: skipped
+
+
+@pytest.mark.render
+def test_real_render_is_version_2_and_its_flo_and_masks_are_checked(real, tmp_path):
+    """A rendered dataset is version 2; ``flo_file`` catches a .flo written the version-1
+    way (unknown where merely occluded / outside), a wrong mask PNG; ``flow_polar`` a
+    wrong backward polar flow."""
+    import shutil
+
+    import cv2
+
+    from omnisim.dataset import flo_bytes
+
+    d = open_dataset(real)
+    assert d.version == 2
+    ch = d.read_frame(1, "cam1")
+    hidden = (ch["gt.flow.occluded"] + ch["gt.flow.outside"]) > 0.5
+    assert hidden.sum() > 0  # measured: a few dozen pixels per camera at 64 px
+    flow, known = d.read_flo(1, "cam1")
+    assert known[hidden].all() and (np.abs(flow[hidden]) < 1e3).all()
+    assert (known == d.flo_known(ch)).all()
+
+    frame1 = "frames/000001"
+    bad_flo = tmp_path / "flo"
+    shutil.copytree(real, bad_flo)
+    (bad_flo / frame1 / "cam1.flo").write_bytes(
+        flo_bytes(ch["gt.flow.dx"], ch["gt.flow.dy"], ch["gt.flow.valid"])
+    )
+    res = _by_name(run_checks(open_dataset(bad_flo)))
+    assert not res["flo_file"].passed
+    assert res["flo_file"].detail == f"{hidden.sum()} validity disagreements"
+
+    bad_mask = tmp_path / "mask"
+    shutil.copytree(real, bad_mask)
+    p = bad_mask / frame1 / "cam2.occluded.png"
+    m = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+    m[:3, :3] = 255 - m[:3, :3]
+    cv2.imwrite(str(p), m)
+    res = _by_name(run_checks(open_dataset(bad_mask)))
+    assert not res["flo_file"].passed and res["flo_file"].detail == "9 validity disagreements"
+
+    def bad_bflow(c):
+        c["gt.bflow.dh"] = c["gt.bflow.dh"] + np.float32(0.5)
+
+    res = _by_name(run_checks(open_dataset(_corrupt(real, tmp_path / "bflow", bad_bflow))))
+    assert not res["flow_polar"].passed and res["flow_polar"].figure > 0.4
+
+
+@pytest.mark.render
+def test_flow_masks_check_catches_overlapping_masks(real, tmp_path):
+    """``flow_masks`` passes on a render, is skipped on version 1, and fails when a mask
+    overlaps another or frame 0 gets a backward flow."""
+    res = _by_name(run_checks(open_dataset(real)))
+    assert res["flow_masks"].passed and res["flow_masks"].n == 3 * 2 * 64 * 64
+
+    def overlap(c):
+        c["gt.flow.occluded"][30:32, :] = c["gt.flow.valid"][30:32, :]  # occluded and seen
+
+    res = _by_name(run_checks(open_dataset(_corrupt(real, tmp_path / "ov", overlap))))
+    assert not res["flow_masks"].passed and res["flow_masks"].figure > 0
+
+    def bflow0(c):
+        c["gt.bflow.dx"][32, 32] = np.float32(0.5)
+
+    res = _by_name(run_checks(open_dataset(_corrupt(real, tmp_path / "b0", bflow0, frames=(0,)))))
+    assert not res["flow_masks"].passed and res["flow_masks"].figure == 2  # cam1 and cam2
+
+
+def test_flow_masks_check_skipped_on_version_1(synth):
+    res = _by_name(run_checks(open_dataset(synth)))
+    assert res["flow_masks"].passed is None and "version 1" in res["flow_masks"].detail
