@@ -35,11 +35,12 @@ GUIDE_AOVS = "albedo:albedo,normal:sh_normal"
 #: Samples per pixel of the guides (fewer when the colour has fewer). The guides are
 #: handed to the filter as clean (``clean_aux``), so they need enough samples to carry
 #: the texture averaged over the pixel: with 4 spp guides the residual of direct 64 spp +
-#: oidn rose from 0.81 % to 1.32 %, with 64 spp it fell to 0.77 % at twice the guides'
+#: oidn rose from 0.81 % to 1.32 %, with 64 spp it fell to 0.79 % at 3.5x the guides'
 #: cost (docs/measurements.md).
 GUIDE_SPP = 16
-#: Open Image Denoise quality: "balanced" gave 0.81 % residual at 0.8 CPU s per 512 px
-#: image, "high" 0.77 % at 2.1 CPU s, "fast" 0.95 % at 0.4 CPU s (docs/measurements.md).
+#: Open Image Denoise quality: "balanced" gave 0.79 % residual at 0.8 CPU s per 512 px
+#: image, "high" 0.73 % at 2.1 CPU s, "fast" 0.95 % at 0.4 CPU s (direct 64 spp, guides
+#: at 64 spp; docs/measurements.md).
 QUALITY = "balanced"
 
 
