@@ -51,10 +51,10 @@ Checks (names as printed):
     with gt.flow divided by the smallest of those with gt.flow scaled by 1 -/+ 10 % and
     shifted by -/+ 0.1 px in x and in y. Fails when the figure is > 1 and the excess
     is significant (mean per-pixel excess > ``Tolerances.photometric_min_z`` standard
-    errors). Catches a flow that is slightly wrong (scaled by 0.9, shifted by 0.3 px). Also printed: the residual
-    over the render noise expected in a difference of two frames, sqrt(2) x sigma
-    (Immerkaer's Laplacian estimator on the same surfaces; it also counts fine
-    texture, so it errs high).
+    errors). Catches a flow that is slightly wrong (scaled by 0.9, shifted by 0.3 px).
+    Also printed: the residual over the render noise expected in a difference of two
+    frames, sqrt(2) x sigma (Immerkaer's Laplacian estimator on the same surfaces; it
+    also counts fine texture, so it errs high).
 """
 
 from __future__ import annotations
