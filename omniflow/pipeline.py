@@ -118,6 +118,7 @@ SAMPLINGS = ("cubic", "linear", "exact")
 RIM_FILLS = ("reflect", "none")
 POOL_MODELS = ("linear", "constant")
 EIVS = ("correct", "residual", "none")
+BAND_RULES = ("gain", "variance")
 
 
 @dataclass(frozen=True)
@@ -139,16 +140,27 @@ class OmniFlowConfig:
     flow_band : float or None
         DCT band of the series the flow step differentiates (gradients and
         f_t of eq. 9 and 15). None: chosen per frame pair from the images
-        (omniflow.noise.choose_band: the widest band whose fitted gradient
-        keeps at least ``flow_band_gain`` of its power as signal, with the
-        noise measured by Immerkaer's estimator on each unit's annulus; the
-        narrower of the two units' choices). The flow step's band trades
-        gradient noise (which shrinks the radial flow, an errors-in-variables
+        by ``flow_band_rule`` (omniflow.noise.choose_band, with the noise
+        measured by Immerkaer's estimator on each unit's annulus; the
+        narrower of the two units' choices). The band trades noise (in f_t,
+        and in the gradients, which shrinks the flow: an errors-in-variables
         bias) against texture detail; docs/measurements.md, "omniflow
         accuracy", has the figures.
+    flow_band_rule : {"gain", "variance"}
+        With ``flow_band=None``: the widest band whose fitted gradient keeps
+        ``flow_band_gain`` of its power as signal
+        (omniflow.noise.predicted_gain), or the widest whose predicted flow
+        variance (omniflow.noise.predicted_variance) is within
+        ``flow_band_tolerance`` of the least. "variance" measured better on
+        rendered frames (1 % noise: it picks 1/4 on the default scene, cam2
+        EPE 0.55x DIS instead of 0.77x) but picks too narrow a band for
+        texture whose detail runs along one direction only (closed-form
+        striped wall: 0.075 px instead of 0.0025); docs/measurements.md.
+    flow_band_tolerance : float
+        ``flow_band_rule="variance"``: the factor over the least variance allowed.
     flow_band_gain : float
-        With ``flow_band=None``: the least predicted signal share of the
-        gradient power (omniflow.noise.predicted_gain) the chosen band keeps.
+        ``flow_band_rule="gain"``: the least predicted signal share of the
+        gradient power the chosen band keeps.
     noise_sigma : float or None
         Standard deviation of the image noise, grey levels (images in
         [0, 1]); None: Immerkaer's estimate on each unit's frame t
@@ -214,6 +226,11 @@ class OmniFlowConfig:
     consistency_support : int
         Robust matcher: how many agreeing neighbours the vote needs (and at
         least half of them).
+    self_similarity : float
+        Robust matcher: periodic-alias test (omniflow.matching.match_radial):
+        accept a match only when (1 - NCC_best) <= self_similarity
+        (1 - NCC_self), NCC_self the best NCC of the point's profile with
+        another edge of its own line within the window's width; 1 disables.
     gradients : {"first", "average"}
         Spatial gradient of frame t (paper) or the mean of frames t and t + 1.
     temporal : {"difference", "dct3d"}
@@ -280,6 +297,8 @@ class OmniFlowConfig:
     band: float = 0.5
     match_band: float | None = None
     flow_band: float | None = None
+    flow_band_rule: str = "gain"
+    flow_band_tolerance: float = 1.35
     flow_band_gain: float = 0.99
     noise_sigma: float | None = None
     eiv: str = "residual"
@@ -302,6 +321,7 @@ class OmniFlowConfig:
     tangential_blur: float = 0.03
     consistency: float = 1.0
     consistency_support: int = 2
+    self_similarity: float = 0.5
     gradients: str = "average"
     temporal: str = "difference"
     temporal_frames: int = 3
@@ -326,6 +346,7 @@ class OmniFlowConfig:
             "rim_fill": (self.rim_fill, RIM_FILLS),
             "pool_model": (self.pool_model, POOL_MODELS),
             "eiv": (self.eiv, EIVS),
+            "flow_band_rule": (self.flow_band_rule, BAND_RULES),
         }
         for name, (val, allowed) in checks.items():
             if val not in allowed:
@@ -334,6 +355,10 @@ class OmniFlowConfig:
             val = getattr(self, name)
             if val is not None and not (0 < val <= 1):
                 raise ValueError(f"OmniFlowConfig.{name} = {val!r}: expected a fraction in (0, 1]")
+        if not self.flow_band_tolerance >= 1:
+            raise ValueError(
+                f"OmniFlowConfig.flow_band_tolerance = {self.flow_band_tolerance!r}: expected >= 1"
+            )
         if not (0 < self.flow_band_gain < 1):
             raise ValueError(
                 f"OmniFlowConfig.flow_band_gain = {self.flow_band_gain!r}: "
@@ -660,7 +685,14 @@ def _flow_band(fits: Sequence[dict], sigmas: Sequence[float], config: OmniFlowCo
         return float(config.flow_band)
     averaged = 1 if config.gradients == "first" else 2
     return min(
-        choose_band(f["a"], s, min_gain=config.flow_band_gain, frames=averaged)
+        choose_band(
+            f["a"],
+            s,
+            rule=config.flow_band_rule,
+            min_gain=config.flow_band_gain,
+            tolerance=config.flow_band_tolerance,
+            frames=averaged,
+        )
         for f, s in zip(fits, sigmas, strict=True)
     )
 
@@ -794,6 +826,7 @@ def estimate(
             tangential_blur=config.tangential_blur,
             consistency=config.consistency,
             consistency_support=config.consistency_support,
+            self_similarity=config.self_similarity,
             grids=grids,
         )
         n_sig = matches.n_significant
