@@ -484,7 +484,7 @@ def match_radial(
     tangential_blur: float = 0.03,
     consistency: float = 1.0,
     consistency_support: int = 2,
-    self_similarity: float = 0.5,
+    self_similarity: float = 1.0,
     grids: tuple[PolarGrids, PolarGrids] | None = None,
 ) -> Matches:
     """Match cam1's significant points along radial lines in cam2 (section 5.2).
