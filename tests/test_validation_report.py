@@ -108,7 +108,9 @@ def test_report_files(oracle_report):
         "DIS-medium",
         "Farneback",
         "DIS-medium-panorama",
+        "zero-flow",
     }
+    assert {"radial_gain", "tangential_gain", "radial_mean_signed", "density_valid"} <= set(rows[0])
     md = (out / "report.md").read_text()
     html = (out / "report.html").read_text()
     md_imgs = re.findall(r"!\[[^\]]*\]\(([^)]+)\)", md)

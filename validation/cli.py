@@ -57,8 +57,9 @@ def _parser() -> argparse.ArgumentParser:
     )
     ap.add_argument(
         "--baselines",
-        default="DIS-medium,Farneback,DIS-medium-panorama",
-        help="comma-separated baselines, or 'none' (default: %(default)s)",
+        default="DIS-medium,Farneback,DIS-medium-panorama,zero-flow",
+        help="comma-separated baselines, or 'none'; zero-flow predicts no motion, the floor "
+        "every method must clearly beat (default: %(default)s)",
     )
     ap.add_argument(
         "--frames",

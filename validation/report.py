@@ -47,6 +47,9 @@ class _Doc:
     def p(self, text: str) -> None:
         self.blocks.append(("p", text))
 
+    def ul(self, items: Sequence[str]) -> None:
+        self.blocks.append(("ul", list(items)))
+
     def code(self, text: str) -> None:
         self.blocks.append(("code", text))
 
@@ -65,6 +68,8 @@ class _Doc:
                 out.append(val)
             elif kind == "code":
                 out.append("```\n" + val + "\n```")
+            elif kind == "ul":
+                out.append("\n".join(f"- {item}" for item in val))
             elif kind == "img":
                 out.append(f"![{val[1]}]({val[0]})")
             elif kind == "table":
@@ -86,6 +91,9 @@ class _Doc:
                 body.append(f"<p>{_inline_html(val)}</p>")
             elif kind == "code":
                 body.append(f"<pre><code>{html.escape(val)}</code></pre>")
+            elif kind == "ul":
+                items = "".join(f"<li>{_inline_html(item)}</li>" for item in val)
+                body.append(f"<ul>{items}</ul>")
             elif kind == "img":
                 src, alt = (html.escape(v, quote=True) for v in val)
                 body.append(
@@ -487,10 +495,15 @@ def _headline_table(summary: Mapping[str, Any]) -> tuple[list[str], list[list[st
     cameras, stereo range error, time."""
     header = [
         "method",
-        "EPE cam1 (px)",
-        "EPE cam2 (px)",
+        "cam1 EPE mean (px)",
+        "cam1 EPE median (px)",
+        "cam1 radial gain",
+        "cam2 EPE mean (px)",
+        "cam2 EPE median (px)",
+        "cam2 radial gain",
+        "points / frame",
         ">1px cam1",
-        "r rel err",
+        "r rel err median",
         "stereo >1px",
         "ms / frame",
     ]
@@ -513,8 +526,13 @@ def _headline_table(summary: Mapping[str, Any]) -> tuple[list[str], list[list[st
         rows.append(
             [
                 label,
+                _f(a1.get("epe", {}).get("mean")),
                 _f(a1.get("epe", {}).get("median")),
+                _f(a1.get("radial", {}).get("gain"), 2),
+                _f(a2.get("epe", {}).get("mean")),
                 _f(a2.get("epe", {}).get("median")),
+                _f(a2.get("radial", {}).get("gain"), 2),
+                _f(f1.get("density", {}).get("points_per_frame"), 0),
                 _pct(a1.get("out1")),
                 _f(sa.get("rel_r", {}).get("median")),
                 _pct(sa.get("outliers")),
@@ -565,7 +583,7 @@ def _derived_table(summary: Mapping[str, Any]) -> tuple[list[str], list[list[str
         "method",
         "|dr/dt err| med (mm/frame)",
         "true |dr/dt| med (mm/frame)",
-        "TTC rel err med (n)",
+        "TTC rel err med, failures as inf (n, failed)",
         "odometry |w err| (mrad/frame)",
         "|V err| (mm/frame)",
         "tangential only: |w err|",
@@ -587,13 +605,91 @@ def _derived_table(summary: Mapping[str, Any]) -> tuple[list[str], list[list[str
                 m["name"],
                 _f(1000 * _nan(d["dr_dt_abs_error_m_per_frame"]["median"])),
                 _f(1000 * _nan(d["dr_dt_true_abs_m_per_frame"]["median"])),
-                f"{_f(d['ttc_relative_error']['median'])} ({d['ttc_relative_error']['n']})",
+                f"{_f(d['ttc_relative_error']['median'])} ({d['ttc_relative_error']['n']}, "
+                f"{_pct(d['ttc_relative_error']['failure_share'])} failed)",
                 milli(ob, "yaw_rate_abs_error_rad_per_frame"),
                 milli(ob, "velocity_abs_error_m_per_frame"),
                 milli(ot, "yaw_rate_abs_error_rad_per_frame"),
                 milli(ot, "velocity_abs_error_m_per_frame"),
             ]
         )
+    return header, rows
+
+
+def _bias_table(summary: Mapping[str, Any]) -> tuple[list[str], list[list[str]]]:
+    header = ["method", "points", "camera", "n", "radial gain", "radial slope",
+              "radial mean signed (px)", "tangential gain", "tangential slope",
+              "tangential mean signed (px)"]  # fmt: skip
+    rows = []
+    for m in summary["methods"]:
+        for cam in ("cam1", "cam2"):
+            a = m["flow"].get(cam, {}).get("all")
+            if not a:
+                continue
+            rad, tan = a["radial"], a["tangential"]
+            rows.append([m["name"], m["points"], cam, _f(a["n"]), _f(rad["gain"], 2),
+                         _f(rad["slope"], 2), _f(rad["mean_signed"]), _f(tan["gain"], 2),
+                         _f(tan["slope"], 2), _f(tan["mean_signed"])])  # fmt: skip
+    return header, rows
+
+
+def _bias_speed_table(summary: Mapping[str, Any]) -> tuple[list[str], list[list[str]]]:
+    labels = [bin_label(lo, hi, "px") for lo, hi in itertools.pairwise(SPEED_BINS)]
+    header = ["method", "points"] + [f"radial gain {lab} (mean signed px)" for lab in labels]
+    rows = []
+    for m in summary["methods"]:
+        f = m["flow"].get("cam1")
+        if f is None:
+            continue
+        cells = []
+        for lab in labels:
+            r = f["speed"].get(lab, {}).get("radial", {})
+            cells.append(f"{_f(r.get('gain'), 2)} ({_f(r.get('mean_signed'))})")
+        rows.append([m["name"], m["points"], *cells])
+    return header, rows
+
+
+def _objects_table(summary: Mapping[str, Any]) -> tuple[list[str], list[list[str]]]:
+    """Points, density and EPE per object (cam1), every object of the dataset, 0 shown."""
+    names: list[str] = []
+    for m in summary["methods"]:
+        for name in m["flow"].get("cam1", {}).get("objects", {}):
+            if name not in names:
+                names.append(name)
+    moving = {str(i) for i in summary["dataset"].get("moving_objects", [])}
+    objs = summary["dataset"].get("objects", {})
+    header = ["method", "points"] + [
+        name + (" (moving)" if any(objs.get(i) == name for i in moving) else "") for name in names
+    ]
+    rows = []
+    for m in summary["methods"]:
+        if m["points"] == "dense" and m["name"] != "zero-flow":
+            continue
+        o = m["flow"].get("cam1", {}).get("objects", {})
+        cells = []
+        for name in names:
+            b = o.get(name, {"n": 0})
+            epe = b.get("epe", {})
+            cells.append(f"{b['n']} ({_pct(b.get('density'))}), EPE {_f(epe.get('mean'))} / "
+                         f"{_f(epe.get('median'))}" if b["n"] else "0")  # fmt: skip
+        rows.append([m["name"], m["points"], *cells])
+    return header, rows
+
+
+def _movers_table(summary: Mapping[str, Any]) -> tuple[list[str], list[list[str]]]:
+    header = ["method", "object", "points", "approaching", "TTC true med (frames)",
+              "TTC est med (frames)", "failures", "TTC rel err med (all)",
+              "rel err med (successes)", "dr/dt est mean (mm/frame)",
+              "dr/dt true mean (mm/frame)"]  # fmt: skip
+    rows = []
+    for m in summary["methods"]:
+        for name, o in ((m.get("derived") or {}).get("objects") or {}).items():
+            t = o["ttc"]
+            rows.append([m["name"], name, _f(o["n"]), _f(t["n"]), _f(t["true_median_frames"], 1),
+                         _f(t["est_median_frames"], 1), _pct(t["failure_share"]),
+                         _f(t["median"]), _f(t["median_of_successes"]),
+                         _f(1000 * _nan(o["dr_dt_est_mean_m_per_frame"])),
+                         _f(1000 * _nan(o["dr_dt_true_mean_m_per_frame"]))])  # fmt: skip
     return header, rows
 
 
@@ -624,6 +720,16 @@ def _document(summary: Mapping[str, Any], figures: Mapping[str, str], command: s
         "for each variant at that variant's own points (column `DIS same pts`)."
     )
     doc.h(2, "Headline")
+    doc.p(
+        "The default omniflow variant against each baseline at the same points, per camera. "
+        "Verdicts: better / worse = both mean and median EPE more than 10 % lower / higher, "
+        "else comparable; biased = radial or tangential gain (least-squares slope of the "
+        "estimated against the true component, through the origin; 1 = unbiased) outside "
+        "1 +- 0.2; a method must be below 0.8 x zero flow's mean and median EPE to be "
+        "clearly below it. Time to contact counts points that truly approach but are "
+        "estimated as receding or infinite as failures (infinite error)."
+    )
+    doc.ul(summary.get("headline", []))
     doc.table(*_headline_table(summary))
     doc.h(2, "Inputs")
     for key, alt in (("inputs", "input frames"), ("panorama", "unwarped panorama of cam1")):
@@ -647,6 +753,26 @@ def _document(summary: Mapping[str, Any], figures: Mapping[str, str], command: s
     doc.table(*_method_table(summary))
     doc.h(3, "Polar components and angular error")
     doc.table(*_polar_table(summary))
+    doc.h(2, "Bias: how much of the true motion each method recovers")
+    doc.p(
+        "Gain = least-squares slope through the origin of the estimated against the true "
+        "component (radial `dh`, tangential `h dtheta`), slope = straight-line fit, mean "
+        "signed = mean of estimated minus true (px). 1 / 1 / 0 is unbiased; zero flow has gain 0."
+    )
+    doc.table(*_bias_table(summary))
+    doc.h(3, "Radial gain by true speed (cam1, non-occluded)")
+    doc.table(*_bias_speed_table(summary))
+    doc.h(2, "Objects: where each method answers (cam1)")
+    doc.p(
+        "Per object (`gt.object`, named from dataset.json): points scored over all frame "
+        "pairs, their share of the object's valid pixels, and EPE mean / median (px). "
+        "0 = the method scored no point on it."
+    )
+    doc.table(*_objects_table(summary))
+    movers = _movers_table(summary)
+    if movers[1]:
+        doc.h(3, "Moving objects: their own motion recovered")
+        doc.table(*movers)
     doc.h(2, "Flow error by speed (cam1, non-occluded)")
     doc.table(*_speed_table(summary))
     if "error_vs_speed" in figures:

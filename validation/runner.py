@@ -48,6 +48,7 @@ __all__ = [
     "omniflow_variants",
     "run_validation",
     "true_matches",
+    "ttc_scores",
     "variant_name",
 ]
 
@@ -338,6 +339,17 @@ def _meta_poses(meta: dict[str, Any]) -> tuple[list | None, dict[int, list]]:
     return robot, objects
 
 
+def _moving(meta: dict[str, Any]) -> list[int]:
+    """Ids of the objects whose pose changes over the dataset's frames."""
+    _, objects = _meta_poses(meta)
+    out = []
+    for oid, poses in objects.items():
+        p = np.asarray(poses, np.float64)
+        if p.ndim == 3 and len(p) > 1 and np.abs(p - p[0]).max() > 1e-9:
+            out.append(int(oid))
+    return sorted(out)
+
+
 # -- scoring helpers -------------------------------------------------------------------
 
 
@@ -356,7 +368,25 @@ def _score_flow(
     err["range"] = tr["gt.r"][has]
     err["object"] = tr["gt.object"][has]
     err["n_points"] = np.asarray(x).size
+    err.update(_coverage(truth))
     return err
+
+
+def _coverage(truth: dict[str, NDArray]) -> dict[str, Any]:
+    """The pixels a method could have scored in this frame: the denominators of density.
+
+    ``n_valid_pixels`` see the scene (``gt.valid``), ``n_stereo_pixels`` also are
+    seen by the other camera (``gt.stereo.valid``), ``object_pixels`` maps each
+    ``gt.object`` id to its valid pixels.
+    """
+    valid = truth["gt.valid"] > 0.5
+    ids = np.rint(truth["gt.object"][valid]).astype(np.int64)
+    counts = np.bincount(ids[ids >= 0]) if ids.size else np.zeros(0, np.int64)
+    return {
+        "n_valid_pixels": int(np.count_nonzero(valid)),
+        "n_stereo_pixels": int(np.count_nonzero(valid & (truth["gt.stereo.valid"] > 0.5))),
+        "object_pixels": {int(i): int(c) for i, c in enumerate(counts) if c},
+    }
 
 
 def _score_dense(
@@ -383,6 +413,7 @@ def _score_dense(
     err["range"] = truth["gt.r"][ii, jj][has].astype(np.float64)
     err["object"] = truth["gt.object"][ii, jj][has].astype(np.float64)
     err["n_points"] = x.size
+    err.update(_coverage(truth))
     return err
 
 
@@ -501,6 +532,7 @@ def run_validation(
             "rig": {"d": rig.d, "R": rig.R, "s": rig.s},
             "render": meta.get("render", {}),
             "objects": {str(k): v for k, v in ds.objects.items()},
+            "moving_objects": _moving(meta),
         },
         methods=[
             MethodInfo(name, "omniflow", _config_dict(cfg), i == 0, _is_paper_config(cfg))
@@ -720,6 +752,12 @@ def _flow_row(t: int, method: str, points: str, cam: str, err: dict, seconds: fl
         "camera": cam,
         "n_points": int(err["n_points"]),
         "n_with_truth": s["all"]["n"],
+        "density_valid": (
+            s["all"]["n"] / err["n_valid_pixels"] if err["n_valid_pixels"] else math.nan
+        ),
+        "density_stereo": (
+            s["all"]["n"] / err["n_stereo_pixels"] if err["n_stereo_pixels"] else math.nan
+        ),
         "epe_median": s["all"]["epe"]["median"],
         "epe_mean": s["all"]["epe"]["mean"],
         "epe_p90": s["all"]["epe"]["p90"],
@@ -735,6 +773,10 @@ def _flow_row(t: int, method: str, points: str, cam: str, err: dict, seconds: fl
         "speed_median_px": stats(err["speed"])["median"],
         "time_s": seconds,
     }
+    for comp in ("radial", "tangential"):
+        g = s["all"][comp]
+        for key in ("gain", "slope", "mean_signed"):
+            row[f"{comp}_{key}"] = g[key]
     return row
 
 
@@ -809,27 +851,19 @@ def _score_derived(
     mot = point_motion(world, ids, poses_t, poses_t1, robot_poses[t], robot_poses[t + 1])
     dr_est = np.asarray(cols["dr_dt"], np.float64)[has]
     r_est = np.asarray(cols["r"], np.float64)[has]
-    rec: dict[str, Any] = {
-        "frame": t,
-        "dr_err": np.abs(dr_est - mot["dr_dt"]),
-        "dr_true": mot["dr_dt"],
-        "ids": ids,
-    }
     # Time to contact of approaching points (true dr/dt below -0.1 % of r per frame).
     approaching = mot["dr_dt"] < -1e-3 * mot["r0"]
     ttc_est = _time_to_contact(r_est, dr_est)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        rec["ttc_relerr"] = (
-            np.abs(ttc_est[approaching] - mot["ttc"][approaching]) / mot["ttc"][approaching]
-        )
-    rec["ttc_objects"] = {}
-    for oid in np.unique(ids[approaching]):
-        sel = approaching & (ids == oid)
-        rec["ttc_objects"][int(oid)] = (
-            float(np.median(mot["ttc"][sel])),
-            float(np.median(ttc_est[sel])),
-            int(sel.sum()),
-        )
+    rec: dict[str, Any] = {
+        "frame": t,
+        "dr_err": np.abs(dr_est - mot["dr_dt"]),
+        "dr_est": dr_est,
+        "dr_true": mot["dr_dt"],
+        "ids": ids,
+        "approaching": approaching,
+        "ttc_est": ttc_est,
+        "ttc_true": mot["ttc"],
+    }
     # Odometry: robust fit of the robot's yaw rate and velocity to all matched points.
     truth_motion = robot_motion(robot_poses[t], robot_poses[t + 1])
     rec["robot_true"] = truth_motion
@@ -842,14 +876,43 @@ def _score_derived(
                 fit["vx"] - truth_motion["vx"], fit["vy"] - truth_motion["vy"]
             )
     results.derived[name].append(rec)
+    ttc = ttc_scores(ttc_est[approaching], mot["ttc"][approaching])
     out = {
         "drdt_err_median": stats(rec["dr_err"])["median"],
-        "ttc_relerr_median": stats(rec["ttc_relerr"])["median"],
+        "ttc_n": ttc["n"],
+        "ttc_failure_share": ttc["failure_share"],
+        "ttc_relerr_median": ttc["median"],
     }
     for key in ("odo_both_w_err", "odo_both_v_err", "odo_tangential_w_err", "odo_tangential_v_err"):
         if key in rec:
             out[key] = rec[key]
     return out
+
+
+def ttc_scores(est: NDArray, true: NDArray) -> dict[str, float]:
+    """Time to contact of approaching points, failures counted.
+
+    A point that truly approaches but is estimated as keeping its range or
+    receding (``est`` infinite, NaN or not positive) is a **failure**; its
+    relative error counts as infinite, so ``median`` is over ALL approaching
+    points and cannot be improved by giving up on hard points.
+    ``median_of_successes`` is the median over the finite estimates only.
+    """
+    est = np.asarray(est, np.float64)
+    true = np.asarray(true, np.float64)
+    failed = ~(np.isfinite(est) & (est > 0))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rel = np.where(failed, np.inf, np.abs(est - true) / true)
+    n = int(est.size)
+    return {
+        "n": n,
+        "failures": int(failed.sum()),
+        "failure_share": float(failed.mean()) if n else math.nan,
+        "median": float(np.median(rel)) if n else math.nan,
+        "median_of_successes": stats(rel[~failed])["median"],
+        "true_median_frames": float(np.median(true)) if n else math.nan,
+        "est_median_frames": float(np.median(np.where(failed, np.inf, est))) if n else math.nan,
+    }
 
 
 def _time_to_contact(r: NDArray, dr_dt: NDArray) -> NDArray:

@@ -7,6 +7,7 @@ of per-frame medians), so a frame with many points weighs more.
 from __future__ import annotations
 
 import math
+from collections import defaultdict
 from collections.abc import Iterable, Mapping
 from typing import Any
 
@@ -16,7 +17,7 @@ from numpy.typing import NDArray
 from .metrics import flow_summary, stats, stereo_summary
 from .runner import Results
 
-__all__ = ["FORMAT", "flat_table", "jsonable", "summarize"]
+__all__ = ["FORMAT", "flat_table", "headline", "jsonable", "summarize"]
 
 FORMAT = "omnivalidate-summary/1"
 
@@ -29,7 +30,8 @@ def _concat(frames: Iterable[Mapping[str, NDArray]], keys: Iterable[str]) -> dic
     }
 
 
-_FLOW_KEYS = ("epe", "err_dh", "err_hdtheta", "ae", "speed", "noc", "range", "object")
+_FLOW_KEYS = ("epe", "err_dh", "err_hdtheta", "ae", "speed", "noc", "range", "object",
+              "gt_dh", "gt_hdtheta", "est_dh", "est_hdtheta")  # fmt: skip
 _STEREO_KEYS = ("err_h2", "rel_r", "err_h", "range")
 
 
@@ -39,8 +41,19 @@ def pooled_flow(results: Results, method: str, points: str, cam: str) -> dict[st
         return None
     out = _concat(frames, _FLOW_KEYS)
     out["noc"] = out["noc"].astype(bool)
-    out["n_points"] = int(sum(int(f["n_points"]) for f in frames))
+    for key in ("n_points", "n_valid_pixels", "n_stereo_pixels"):
+        out[key] = int(sum(int(f.get(key, 0)) for f in frames))
+    out["n_frames"] = len(frames)
+    pix: dict[int, int] = defaultdict(int)
+    for f in frames:
+        for oid, c in f.get("object_pixels", {}).items():
+            pix[int(oid)] += int(c)
+    out["object_pixels"] = dict(pix)
     return out
+
+
+def _share(n: float, d: float) -> float:
+    return n / d if d else math.nan
 
 
 def _flow_block(results: Results, method: str, points: str) -> dict[str, Any]:
@@ -52,16 +65,28 @@ def _flow_block(results: Results, method: str, points: str) -> dict[str, Any]:
             continue
         s = flow_summary(err, err["noc"])
         s["n_points"] = err["n_points"]
-        # Per object (gt.object, named as in dataset.json), e.g. a mover vs the static room.
+        n = s["all"]["n"]
+        s["density"] = {
+            "points_per_frame": _share(n, err["n_frames"]),
+            "of_valid_pixels": _share(n, err["n_valid_pixels"]),
+            "of_stereo_pixels": _share(n, err["n_stereo_pixels"]),
+            "valid_pixels_per_frame": _share(err["n_valid_pixels"], err["n_frames"]),
+            "stereo_pixels_per_frame": _share(err["n_stereo_pixels"], err["n_frames"]),
+        }
+        # Per object (gt.object, named as in dataset.json), e.g. a mover vs the static room;
+        # every object of the dataset is listed, with n = 0 where the method scored none.
         s["objects"] = {}
         ids = np.rint(err["object"]).astype(np.int64)
         every = {int(k) for k in names} | {int(i) for i in np.unique(ids)}
         for oid in sorted(every):
             sel = ids == oid
             sub = {k: v[sel] for k, v in err.items() if isinstance(v, np.ndarray)}
-            block = flow_summary(sub, sub["noc"])
-            del block["speed"]
-            s["objects"][names.get(str(int(oid)), f"id{int(oid)}")] = block["all"]
+            block = flow_summary(sub, sub["noc"])["all"]
+            pixels = err["object_pixels"].get(oid, 0)
+            block["id"] = oid
+            block["valid_pixels"] = pixels
+            block["density"] = _share(block["n"], pixels)
+            s["objects"][names.get(str(int(oid)), f"id{int(oid)}")] = block
         out[cam] = s
     return out
 
@@ -71,30 +96,38 @@ def _time_block(seconds: list[float]) -> dict[str, Any]:
     return {"frames": s["n"], "median_s": s["median"], "mean_s": s["mean"]}
 
 
-def _derived_block(records: list[dict[str, Any]]) -> dict[str, Any]:
+def _derived_block(
+    records: list[dict[str, Any]], names: Mapping[str, str], moving: Iterable[int]
+) -> dict[str, Any]:
     if not records:
         return {}
-    dr_err = np.concatenate([r["dr_err"] for r in records])
-    dr_true = np.concatenate([r["dr_true"] for r in records])
-    ttc = np.concatenate([r["ttc_relerr"] for r in records])
+    from .runner import ttc_scores
+
+    cat = _concat(records, ("dr_err", "dr_est", "dr_true", "ids", "approaching", "ttc_est",
+                            "ttc_true"))  # fmt: skip
+    appr = cat["approaching"].astype(bool)
+    ids = cat["ids"].astype(np.int64)
     out: dict[str, Any] = {
-        "dr_dt_abs_error_m_per_frame": stats(dr_err),
-        "dr_dt_true_abs_m_per_frame": stats(np.abs(dr_true)),
-        "ttc_relative_error": stats(ttc),
-        "ttc_objects": [],
+        "dr_dt_abs_error_m_per_frame": stats(cat["dr_err"]),
+        "dr_dt_true_abs_m_per_frame": stats(np.abs(cat["dr_true"])),
+        "ttc_relative_error": ttc_scores(cat["ttc_est"][appr], cat["ttc_true"][appr]),
+        "objects": {},
         "odometry": [],
     }
+    # Each moving object's own motion, recovered: mean dr/dt and time to contact of its
+    # points (every moving object listed, n = 0 where the method scored none of it).
+    for oid in sorted(set(int(i) for i in moving)):
+        sel = ids == oid
+        sa = sel & appr
+        out["objects"][names.get(str(oid), f"id{oid}")] = {
+            "id": oid,
+            "n": int(sel.sum()),
+            "dr_dt_est_mean_m_per_frame": stats(cat["dr_est"][sel])["mean"],
+            "dr_dt_true_mean_m_per_frame": stats(cat["dr_true"][sel])["mean"],
+            "dr_dt_abs_error_m_per_frame": stats(cat["dr_err"][sel]),
+            "ttc": ttc_scores(cat["ttc_est"][sa], cat["ttc_true"][sa]),
+        }
     for r in records:
-        for oid, (true, est, n) in r.get("ttc_objects", {}).items():
-            out["ttc_objects"].append(
-                {
-                    "frame": r["frame"],
-                    "object": oid,
-                    "n": n,
-                    "ttc_true_frames": true,
-                    "ttc_est_frames": est,
-                }
-            )
         if "robot_est" in r:
             out["odometry"].append(
                 {"frame": r["frame"], "true": r["robot_true"], "est": r["robot_est"]}
@@ -155,7 +188,11 @@ def summarize(results: Results) -> dict[str, Any]:
                     "stage_seconds_total": dict(results.stages.get(m.name, {})),
                     "flow": _flow_block(results, m.name, "own"),
                     "stereo": stereo,
-                    "derived": _derived_block(results.derived.get(m.name, [])),
+                    "derived": _derived_block(
+                        results.derived.get(m.name, []),
+                        results.dataset.get("objects", {}),
+                        results.dataset.get("moving_objects", []),
+                    ),
                     "baselines_at_same_points": same,
                 }
             )
@@ -174,7 +211,7 @@ def summarize(results: Results) -> dict[str, Any]:
                         "flow": flow,
                     }
                 )
-    return {
+    out = {
         "format": FORMAT,
         "dataset": results.dataset,
         "units": {
@@ -188,6 +225,179 @@ def summarize(results: Results) -> dict[str, Any]:
         "methods": methods,
         "notes": list(results.notes),
     }
+    out["headline"] = headline(jsonable(out))
+    return out
+
+
+#: A method's EPE (mean or median) must be below this share of zero flow's at the same
+#: points to count as "clearly below" it.
+ZERO_FLOW_MARGIN = 0.8
+#: Radial or tangential gain outside [1 - GAIN_BAND, 1 + GAIN_BAND] is called biased.
+GAIN_BAND = 0.2
+#: Two EPEs within this ratio of each other are "comparable", not better or worse.
+TIE = 0.1
+
+
+def _g(d: Any, path: str) -> float:
+    try:
+        return _num(get_path(d, path))
+    except KeyError:
+        return math.nan
+
+
+def _v(x: float | None, digits: int = 3) -> str:
+    x = _num(x)
+    return "n/a" if not math.isfinite(x) else f"{x:.{digits}f}"
+
+
+def _epe_pair(f: Mapping[str, Any]) -> tuple[float, float]:
+    return _g(f, "all.epe.mean"), _g(f, "all.epe.median")
+
+
+def _biased(f: Mapping[str, Any]) -> str:
+    g = _g(f, "all.radial.gain")
+    gt = _g(f, "all.tangential.gain")
+    bad = [f"radial gain {g:.2f}" for _ in [0] if math.isfinite(g) and abs(g - 1) > GAIN_BAND]
+    bad += [f"tangential gain {gt:.2f}" for _ in [0]
+            if math.isfinite(gt) and abs(gt - 1) > GAIN_BAND]  # fmt: skip
+    return "biased (" + ", ".join(bad) + ")" if bad else ""
+
+
+def _verdict(mine: tuple[float, float], other: tuple[float, float]) -> str:
+    if not all(math.isfinite(v) for v in (*mine, *other)):
+        return "not comparable"
+    if mine[0] < (1 - TIE) * other[0] and mine[1] < (1 - TIE) * other[1]:
+        return "better"
+    if mine[0] > (1 + TIE) * other[0] and mine[1] > (1 + TIE) * other[1]:
+        return "worse"
+    return "comparable"
+
+
+def headline(summary: Mapping[str, Any]) -> list[str]:
+    """The answer in words and numbers: one line per comparison, each with its verdict.
+
+    Per camera, the default omniflow variant against each baseline at the same points
+    (mean / median EPE, radial gain, density), then stereo, time to contact, time per
+    frame, and a line for every row whose mean or median EPE is not clearly below
+    zero flow's at the same points (below ``ZERO_FLOW_MARGIN`` x).
+    """
+    lines: list[str] = []
+    methods = summary["methods"]
+    omni = next((m for m in methods if m["kind"] == "omniflow" and m.get("default")), None)
+    if omni is None:
+        omni = next((m for m in methods if m["kind"] == "omniflow"), None)
+    at_pts = {m["name"]: m for m in methods if m["kind"] == "baseline"
+              and m["points"] == "omniflow points"}  # fmt: skip
+    dense = {m["name"]: m for m in methods if m["kind"] == "baseline" and m["points"] == "dense"}
+    if omni is not None:
+        for cam in ("cam1", "cam2"):
+            f = omni["flow"].get(cam)
+            if not f:
+                continue
+            mine = _epe_pair(f)
+            bias = _biased(f)
+            lines.append(
+                f"{cam}: {omni['name']} scored {_g(f, 'all.n'):.0f} points "
+                f"({_v(_g(f, 'density.points_per_frame'), 0)} per frame, "
+                f"{_v(100 * _g(f, 'density.of_valid_pixels'), 2)} % of valid pixels, "
+                f"{_v(100 * _g(f, 'density.of_stereo_pixels'), 2)} % of those the other camera "
+                f"sees): EPE mean {_v(mine[0])} px, median {_v(mine[1])} px; radial gain "
+                f"{_v(_g(f, 'all.radial.gain'), 2)}, tangential gain "
+                f"{_v(_g(f, 'all.tangential.gain'), 2)}"
+                + (f" -> {bias}" if bias else " -> unbiased within +-" + f"{GAIN_BAND:g}")
+            )
+            for name, b in at_pts.items():
+                fb = b["flow"].get(cam)
+                if not fb:
+                    continue
+                other = _epe_pair(fb)
+                verdict = _verdict(mine, other)
+                if name == "zero-flow":
+                    clear = all(math.isfinite(v) for v in (*mine, *other)) and all(
+                        a < ZERO_FLOW_MARGIN * b for a, b in zip(mine, other, strict=True)
+                    )
+                    verdict = (
+                        "clearly below zero flow"
+                        if clear
+                        else f"NOT clearly below zero flow (needs < {ZERO_FLOW_MARGIN:g} x)"
+                    )
+                d = dense.get(name, {}).get("flow", {}).get(cam, {})
+                lines.append(
+                    f"{cam}: vs {name} at the same points: EPE mean {_v(other[0])} / median "
+                    f"{_v(other[1])} px, radial gain {_v(_g(fb, 'all.radial.gain'), 2)}"
+                    + (f" (dense: mean {_v(_epe_pair(d)[0])} / median {_v(_epe_pair(d)[1])} px, "
+                       f"radial gain {_v(_g(d, 'all.radial.gain'), 2)})" if d else "")
+                    + f" -> omniflow {verdict}"
+                )  # fmt: skip
+        st = omni.get("stereo") or {}
+        if st:
+            lines.append(
+                f"stereo: {_v(100 * _g(st, 'all.outliers'), 1)} % of {_g(st, 'all.n'):.0f} "
+                f"matches more than 1 px off; range error median "
+                f"{_v(100 * _g(st, 'all.rel_r.median'), 1)} %, mean "
+                f"{_v(100 * _g(st, 'all.rel_r.mean'), 1)} % of r"
+            )
+        d = omni.get("derived") or {}
+        objs = d.get("objects") or {}
+        for name, o in objs.items():
+            t = o["ttc"]
+            lines.append(
+                f"time to contact, mover {name}: {o['n']} points scored, {t['n']} approaching; "
+                f"true median {_v(t['true_median_frames'], 0)} frames, estimated "
+                f"{_v(t['est_median_frames'], 0)}; "
+                f"{_v(100 * _num(t['failure_share']), 0)} % estimated receding or infinite "
+                "(failures); median relative error over all approaching "
+                f"points {_v(t['median'], 2)}; dr/dt mean "
+                f"{_v(1000 * _num(o['dr_dt_est_mean_m_per_frame']), 1)} vs true "
+                f"{_v(1000 * _num(o['dr_dt_true_mean_m_per_frame']), 1)} mm/frame"
+            )
+        t = d.get("ttc_relative_error")
+        if t:
+            lines.append(
+                f"time to contact, all approaching points: {t['n']}, "
+                f"{_v(100 * _num(t['failure_share']), 0)} % failures (estimated receding or "
+                f"infinite); median relative error {_v(t['median'], 2)} counting failures, "
+                f"{_v(t['median_of_successes'], 2)} without"
+            )
+        times = [f"{omni['name']} {_v(1000 * _g(omni, 'time_per_frame.median_s'), 1)}"]
+        times += [f"{n} {_v(1000 * _g(b, 'time_per_frame.median_s'), 1)}"
+                  for n, b in dense.items()]  # fmt: skip
+        lines.append("ms per frame pair (both cameras, median): " + ", ".join(times))
+    lines += _zero_flow_flags(summary)
+    return lines
+
+
+def _zero_flow_flags(summary: Mapping[str, Any]) -> list[str]:
+    """One line per row and camera whose mean or median EPE is not clearly below zero flow's
+    at the same points."""
+    out = []
+    zero_at: dict[tuple[str, str], Any] = {}
+    for m in summary["methods"]:
+        if m["name"] == "zero-flow":
+            for cam, f in m["flow"].items():
+                zero_at[(m["points"], cam)] = f["all"]["epe"]
+    for m in summary["methods"]:
+        if m["name"] == "zero-flow":
+            continue
+        for cam, f in m["flow"].items():
+            if m["kind"] == "omniflow":
+                z = (m.get("baselines_at_same_points") or {}).get("zero-flow", {}).get(cam)
+            else:
+                z = zero_at.get((m["points"], cam))
+            if not z:
+                continue
+            mine = _epe_pair(f)
+            zero = (_num(z.get("mean")), _num(z.get("median")))
+            if not all(math.isfinite(v) for v in (*mine, *zero)):
+                continue
+            if mine[0] >= ZERO_FLOW_MARGIN * zero[0] or mine[1] >= ZERO_FLOW_MARGIN * zero[1]:
+                pts = "own points" if m["kind"] == "omniflow" else m["points"]
+                out.append(
+                    f"WARNING {m['name']} ({pts}) {cam}: EPE mean {mine[0]:.3f} / median "
+                    f"{mine[1]:.3f} px is not clearly below zero flow's {zero[0]:.3f} / "
+                    f"{zero[1]:.3f} px at the same points (needs < {ZERO_FLOW_MARGIN:g} x)"
+                )
+    return out
 
 
 def find_method(summary: Mapping[str, Any], name: str, points: str | None = None) -> dict:
