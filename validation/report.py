@@ -7,7 +7,10 @@ Layout of ``REPORT_DIR``::
     frames.csv                 one row per frame pair, method, point set, camera
     figures/*.png              inputs, panorama, flow, error maps, plots
 
-Every file is written atomically (temporary name, then rename).
+The set is written into a temporary directory beside ``REPORT_DIR`` and renamed
+into place at the end, so a reader sees the old report or the new one, never a
+mix; an existing ``REPORT_DIR`` is replaced only if it holds nothing but a
+previous report's files (:func:`check_out_dir`).
 """
 
 from __future__ import annotations
@@ -18,6 +21,9 @@ import io
 import itertools
 import json
 import math
+import os
+import shutil
+import tempfile
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -31,7 +37,10 @@ from .metrics import RANGE_BINS, SPEED_BINS, bin_label
 from .runner import Results
 from .summary import flat_table, jsonable, pooled_flow, summarize
 
-__all__ = ["write_report"]
+__all__ = ["OUTPUTS", "check_out_dir", "write_report"]
+
+#: What write_report puts in REPORT_DIR (an existing directory holding only these is replaced).
+OUTPUTS = ("report.md", "report.html", "summary.json", "frames.csv", "figures", "camera_sweep.csv")
 
 
 # -- small document model rendered to both Markdown and HTML ---------------------------
@@ -205,7 +214,7 @@ def _figures(results: Results, summary: Mapping[str, Any], fig_dir: Path) -> dic
         fig, axes = plt.subplots(1, 2, figsize=(9, 4.6))
         for ax, cam in zip(axes, ("cam1", "cam2"), strict=True):
             ax.imshow(snap.images[cam], cmap="gray", vmin=0, vmax=255, interpolation="nearest")
-            ax.set_title(f"{cam}, frame {snap.t} (8-bit input)")
+            ax.set_title(f"{cam}, frame {snap.t} (input to every method)")
             ax.axis("off")
         fig.tight_layout()
         _save(fig, fig_dir / "inputs.png")
@@ -399,6 +408,38 @@ def _figures(results: Results, summary: Mapping[str, Any], fig_dir: Path) -> dic
     plt.close(fig)
     out["accuracy_vs_time"] = "figures/accuracy_vs_time.png"
     return out
+
+
+def _sweep_figure(sweep: Sequence[Mapping[str, Any]], fig_dir: Path) -> dict[str, str]:
+    """Accuracy against the swept camera parameter: mean EPE and radial gain per method."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    key = sweep[0]["parameter"]
+    fig, axes = plt.subplots(2, 2, figsize=(12, 7.5), sharex=True, layout="constrained")
+    names = list(dict.fromkeys(r["method"] for r in sweep))
+    for col, cam in enumerate(("cam1", "cam2")):
+        for name in names:
+            rows = [r for r in sweep if r["method"] == name and r["camera"] == cam]
+            if not rows:
+                continue
+            x = [float(r["value"]) for r in rows]
+            axes[0, col].plot(x, [_nan(r["epe_mean"]) for r in rows], marker="o", label=name)
+            axes[1, col].plot(x, [_nan(r["radial_gain"]) for r in rows], marker="o", label=name)
+        axes[0, col].set_title(f"{cam}: mean EPE at each method's scored points")
+        axes[0, col].set_ylabel("mean EPE (px)")
+        axes[1, col].set_ylabel("radial gain (1 = unbiased)")
+        axes[1, col].axhline(1.0, color="k", lw=0.8)
+        axes[1, col].set_xlabel(f"camera {key}")
+        for ax in axes[:, col]:
+            ax.grid(alpha=0.3)
+    axes[0, 1].legend(fontsize=7, loc="best")
+    fig.suptitle(f"Accuracy vs camera {key} (one render, images re-formed per level)")
+    _save(fig, fig_dir / "camera_sweep.png")
+    plt.close(fig)
+    return {"camera_sweep": "figures/camera_sweep.png"}
 
 
 def _plot_methods(results: Results) -> list[tuple[str, str]]:
@@ -714,7 +755,7 @@ def _document(summary: Mapping[str, Any], figures: Mapping[str, str], command: s
         "**Units.** Flow in pixels per frame interval. omniflow estimates velocities per frame "
         "interval (eq. 16 with t in frames); the ground truth is the displacement of each "
         "material point from frame t to t + 1, and the two are compared directly. Every method "
-        "sees the same 8-bit frames. Times are wall-clock seconds per frame pair for both "
+        "sees the same frames (see Inputs). Times are wall-clock seconds per frame pair for both "
         "cameras, measured in this run. Baselines are dense; they are scored at the points of "
         "the default omniflow variant (`omniflow points`), at every valid pixel (`dense`), and "
         "for each variant at that variant's own points (column `DIS same pts`)."
@@ -732,6 +773,7 @@ def _document(summary: Mapping[str, Any], figures: Mapping[str, str], command: s
     doc.ul(summary.get("headline", []))
     doc.table(*_headline_table(summary))
     doc.h(2, "Inputs")
+    doc.p(f"The images every method saw: {ds.get('images', 'n/a')}.")
     for key, alt in (("inputs", "input frames"), ("panorama", "unwarped panorama of cam1")):
         if key in figures:
             doc.img(figures[key], alt)
@@ -791,6 +833,25 @@ def _document(summary: Mapping[str, Any], figures: Mapping[str, str], command: s
     doc.table(*_derived_table(summary))
     if "accuracy_vs_time" in figures:
         doc.img(figures["accuracy_vs_time"], "accuracy vs time")
+    sweep = summary.get("camera_sweep")
+    if sweep:
+        key = sweep[0]["parameter"]
+        doc.h(2, f"Camera sweep: accuracy vs {key}")
+        doc.p(
+            f"The same render scored with the camera's `{key}` at each level (the images "
+            f"re-formed from the EXR radiance, `camera_sweep.csv`); the sections above are for "
+            f"`{key}={sweep[0]['value']}`. EPE in px at each method's scored points "
+            "(baselines at the default variant's points)."
+        )
+        doc.table(
+            ["method", "camera", key, "n", "EPE mean", "EPE median", "radial gain",
+             "tangential gain"],
+            [[r["method"], r["camera"], str(r["value"]), _f(r["n"]), _f(r["epe_mean"]),
+              _f(r["epe_median"]), _f(r["radial_gain"], 2), _f(r["tangential_gain"], 2)]
+             for r in sweep],
+        )  # fmt: skip
+        if "camera_sweep" in figures:
+            doc.img(figures["camera_sweep"], f"accuracy vs camera {key}")
     for note in summary.get("notes", []):
         doc.p(note)
     return doc
@@ -818,15 +879,78 @@ def _csv_cell(v: Any) -> Any:
     return v
 
 
-def write_report(results: Results, out_dir: str | Path, *, command: str | None = None) -> dict:
-    """Write CSV, JSON, figures, Markdown and HTML into ``out_dir``; return the summary."""
+def check_out_dir(out_dir: str | Path) -> Path:
+    """Raise InputError (one line) unless ``out_dir`` can receive a report.
+
+    It must be a new path, an empty directory, or a previous report (only
+    :data:`OUTPUTS`) in a directory where a sibling can be created.
+    """
+    from .inputs import InputError
+
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    summary = jsonable(summarize(results))
-    atomic_write_text(out / "summary.json", json.dumps(summary, indent=1, allow_nan=False) + "\n")
-    atomic_write_text(out / "frames.csv", _csv_text(results.rows))
-    figures = _figures(results, summary, out / "figures")
-    doc = _document(summary, figures, command)
-    atomic_write_text(out / "report.md", doc.markdown())
-    atomic_write_text(out / "report.html", doc.html(f"omnivalidate: {summary['dataset']['scene']}"))
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out {out}: is a file; expected a directory (new or a report)")
+    if out.is_dir():
+        other = sorted(p.name for p in out.iterdir() if p.name not in OUTPUTS)
+        if other:
+            raise InputError(
+                f"--out {out}: holds files omnivalidate did not write ({', '.join(other[:3])}"
+                f"{' ...' if len(other) > 3 else ''}); choose a new or empty directory"
+            )
+    parent = out.absolute().parent
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+        probe = tempfile.mkdtemp(prefix=f".{out.name}.probe-", dir=parent)
+        os.rmdir(probe)
+    except OSError as exc:
+        raise InputError(f"--out {out}: cannot write there ({exc.strerror or exc})") from exc
+    return out
+
+
+def _install(tmp: Path, out: Path) -> None:
+    """Rename the finished directory ``tmp`` onto ``out`` (replacing a previous report)."""
+    if out.is_dir():
+        old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.absolute().parent))
+        os.replace(out, old / "report")
+        os.replace(tmp, out)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        os.replace(tmp, out)
+
+
+def write_report(
+    results: Results,
+    out_dir: str | Path,
+    *,
+    command: str | None = None,
+    sweep: Sequence[Mapping[str, Any]] | None = None,
+) -> dict:
+    """Write CSV, JSON, figures, Markdown and HTML into ``out_dir``; return the summary.
+
+    The files are written into a temporary directory beside ``out_dir`` and renamed
+    into place together (see :func:`check_out_dir` for what ``out_dir`` may be).
+    """
+    final = check_out_dir(out_dir)
+    out = Path(tempfile.mkdtemp(prefix=f".{final.name}.tmp-", dir=final.absolute().parent))
+    try:
+        summary = jsonable(summarize(results))
+        if sweep:
+            summary["camera_sweep"] = jsonable(sweep)
+        atomic_write_text(
+            out / "summary.json", json.dumps(summary, indent=1, allow_nan=False) + "\n"
+        )
+        atomic_write_text(out / "frames.csv", _csv_text(results.rows))
+        figures = _figures(results, summary, out / "figures")
+        if sweep:
+            atomic_write_text(out / "camera_sweep.csv", _csv_text(sweep))
+            figures.update(_sweep_figure(sweep, out / "figures"))
+        doc = _document(summary, figures, command)
+        atomic_write_text(out / "report.md", doc.markdown())
+        title = f"omnivalidate: {summary['dataset']['scene']}"
+        atomic_write_text(out / "report.html", doc.html(title))
+        os.chmod(out, 0o755)  # mkdtemp makes it 0700
+        _install(out, final)
+    except BaseException:
+        shutil.rmtree(out, ignore_errors=True)
+        raise
     return summary

@@ -32,9 +32,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from omniflow.conventions import LUMA_WEIGHTS
-
 from . import baselines as bl
+from .external import ExternalOutput
+from .inputs import InputError, Inputs, camera_model
 from .metrics import flow_errors, flow_summary, stats, stereo_errors, stereo_summary
 from .motion import point_motion, robot_motion
 from .sampling import sample_truth
@@ -212,10 +212,6 @@ def true_matches(
     )
 
 
-class InputError(ValueError):
-    """The dataset or the request cannot be scored (the message says why)."""
-
-
 #: Columns the harness reads from OmniFlowResult.columns.
 RESULT_COLUMNS = ("x", "y", "theta", "h1", "h2", "r", "h", "dh1_dt", "dtheta_dt", "dr_dt", "dx",
                   "dy", "x2", "y2", "dh2_dt", "dx2", "dy2")  # fmt: skip
@@ -283,45 +279,6 @@ class Results:
 
 
 # -- inputs ---------------------------------------------------------------------------
-
-
-def _grey(chans: dict[str, NDArray]) -> NDArray:
-    wr, wg, wb = LUMA_WEIGHTS
-    return wr * chans["R"] + wg * chans["G"] + wb * chans["B"]
-
-
-class _Frames:
-    """8-bit grey frames of both cameras, read once and cached."""
-
-    def __init__(self, ds: Any):
-        self.ds = ds
-        self.cache: dict[tuple[int, str], NDArray] = {}
-        self.scale: float | None = None
-
-    def _set_scale(self) -> None:
-        vals = []
-        for cam in CAMERAS:
-            ch = self.ds.read_frame(0, cam)
-            g = _grey(ch)
-            ok = (ch["gt.valid"] > 0.5) & np.isfinite(g)
-            vals.append(g[ok] if ok.any() else g[np.isfinite(g)])
-        v = np.concatenate(vals)
-        top = float(np.percentile(v, 99.5)) if v.size else 0.0
-        self.scale = 255.0 / top if top > 0 else 1.0
-
-    def u8(self, k: int, cam: str, chans: dict[str, NDArray] | None = None) -> NDArray:
-        key = (k, cam)
-        if key not in self.cache:
-            if self.scale is None:
-                self._set_scale()
-            g = _grey(chans if chans is not None else self.ds.read_frame(k, cam))
-            g = np.nan_to_num(g, nan=0.0, posinf=0.0, neginf=0.0)
-            self.cache[key] = np.clip(np.rint(g * self.scale), 0, 255).astype(np.uint8)
-        return self.cache[key]
-
-    def drop_before(self, k: int) -> None:
-        for key in [key for key in self.cache if key[0] < k]:
-            del self.cache[key]
 
 
 def _window(t: int, count: int, need: int) -> tuple[int, int]:
@@ -475,6 +432,9 @@ def run_validation(
     frames: Sequence[int] | None = None,
     progress: bool = True,
     estimate: Callable[..., Any] | None = None,
+    external: Sequence[ExternalOutput] = (),
+    camera: Sequence[str] = (),
+    partial: bool = False,
 ) -> Results:
     """Score every omniflow variant and baseline on every frame pair of a dataset.
 
@@ -493,6 +453,13 @@ def run_validation(
     estimate : callable, optional
         Stand-in for :func:`omniflow.pipeline.estimate` with the same signature
         and result (tests use an oracle built from the truth).
+    external : sequence of ExternalOutput
+        Outputs of other methods to score (:mod:`validation.external`).
+    camera : sequence of "KEY=VALUE"
+        Camera-model overrides applied when the images are formed (:mod:`validation.inputs`).
+    partial : bool
+        Score the complete pairs of an incomplete dataset (else refuse it, saying how
+        much is missing).
     """
     from tqdm import tqdm
 
@@ -504,6 +471,14 @@ def run_validation(
     ds = open_dataset(dataset_dir)
     rig = ds.rig
     done = set(ds.frames_done())
+    if len(done) < ds.frame_count and not partial and frames is None:
+        missing = sorted(set(range(ds.frame_count)) - done)
+        shown = ", ".join(str(k) for k in missing[:10]) + (" ..." if len(missing) > 10 else "")
+        raise InputError(
+            f"{dataset_dir}: incomplete dataset: {len(missing)} of {ds.frame_count} frames "
+            f"missing ({shown}); finish the render, or pass --partial to score the "
+            "complete pairs"
+        )
     pairs = [t for t in range(ds.frame_count - 1) if t in done and t + 1 in done]
     if frames is not None:
         wanted = sorted(set(int(t) for t in frames))
@@ -519,7 +494,10 @@ def run_validation(
         if b not in bl.BASELINES:
             raise InputError(f"unknown baseline {b!r}; expected some of {bl.BASELINES}")
 
+    for ext in external:
+        ext.check(pairs)
     meta = ds.meta
+    inputs = Inputs(ds, camera_model(meta, camera))
     scene = meta.get("scene", {}) if isinstance(meta.get("scene"), dict) else {}
     results = Results(
         dataset={
@@ -533,21 +511,35 @@ def run_validation(
             "render": meta.get("render", {}),
             "objects": {str(k): v for k, v in ds.objects.items()},
             "moving_objects": _moving(meta),
+            "camera": None,
         },
         methods=[
             MethodInfo(name, "omniflow", _config_dict(cfg), i == 0, _is_paper_config(cfg))
             for i, (name, cfg) in enumerate(vlist)
         ]
-        + [MethodInfo(b, "baseline") for b in baselines],
+        + [MethodInfo(b, "baseline") for b in baselines]
+        + [
+            MethodInfo(
+                e.name,
+                "baseline" if e.kind == "dense" else "external",
+                {"method_output": str(e.dir), "format": e.kind},
+            )
+            for e in external
+        ],
     )
+    names = [m.name for m in results.methods]
+    if len(set(names)) != len(names):
+        raise InputError(f"two rows share a name in {names}; give --method-name")
+    ext_dense = [e for e in external if e.kind == "dense"]
+    ext_points = [e for e in external if e.kind == "points"]
     default_name = vlist[0][0] if vlist else None
     robot_poses, object_poses = _meta_poses(meta)
-    frames_src = _Frames(ds)
+    frames_src = inputs
     need = 3 if any(getattr(c, "temporal", "") == "dct3d" for _, c in vlist) else 2
     need = min(need, len(done))
     units = {"cam1": rig.cam1, "cam2": rig.cam2}
 
-    steps = len(pairs) * (len(vlist) + len(baselines))
+    steps = len(pairs) * (len(vlist) + len(baselines) + len(external))
     bar = tqdm(
         total=steps,
         desc=f"omnivalidate {results.dataset['scene']}",
@@ -565,23 +557,29 @@ def run_validation(
             if not all(k in done for k in window):
                 window = [t, t + 1]
                 start = t
-            u8 = {
-                cam: [frames_src.u8(k, cam, truth[cam] if k == t else None) for k in window]
+            made = {
+                cam: [frames_src.frame(k, cam, truth[cam] if k == t else None) for k in window]
                 for cam in CAMERAS
             }
             frames_src.drop_before(start)
-            grey = {cam: [f.astype(np.float32) / 255.0 for f in u8[cam]] for cam in CAMERAS}
+            u8 = {cam: [f[0] for f in made[cam]] for cam in CAMERAS}
+            grey = {cam: [f[1] for f in made[cam]] for cam in CAMERAS}
             first = {cam: u8[cam][t - start] for cam in CAMERAS}
             second = {cam: u8[cam][t + 1 - start] for cam in CAMERAS}
 
             # Baselines first: their dense fields are also sampled at every variant's points.
             dense: dict[str, dict[str, Any]] = {}
-            for b in baselines:
+            for b in [*baselines, *ext_dense]:
+                if isinstance(b, ExternalOutput):
+                    shape = truth["cam1"]["gt.valid"].shape
+                    fields = {cam: b.dense(t, cam, units[cam], shape) for cam in CAMERAS}
+                    b = b.name
+                else:
+                    fields = {
+                        cam: bl.dense_baseline(b, first[cam], second[cam], units[cam])
+                        for cam in CAMERAS
+                    }
                 bar.set_postfix_str(f"t={t} {b}")
-                fields = {
-                    cam: bl.dense_baseline(b, first[cam], second[cam], units[cam])
-                    for cam in CAMERAS
-                }
                 dense[b] = fields
                 results.times[b].append(sum(f.seconds for f in fields.values()))
                 for cam in CAMERAS:
@@ -594,7 +592,7 @@ def run_validation(
 
             default_pts: dict[str, tuple[NDArray, NDArray]] = {}
             snap_points: dict[str, dict[str, NDArray]] = {}
-            for vi, (name, cfg) in enumerate(vlist):
+            for vi, (name, cfg) in enumerate([*vlist, *((e.name, e) for e in ext_points)]):
                 bar.set_postfix_str(f"t={t} {name}")
                 g1 = grey["cam1"]
                 g2 = grey["cam2"]
@@ -608,11 +606,15 @@ def run_validation(
                 with warnings.catch_warnings(record=True) as caught:
                     warnings.simplefilter("always")
                     try:
-                        if isinstance(cfg, TrueMatches):
+                        if isinstance(cfg, ExternalOutput):
+                            res = cfg.points(t, rig)
+                        elif isinstance(cfg, TrueMatches):
                             tm = true_matches(first["cam1"], truth["cam1"], rig, cfg.percentile)
                             res = estimate(g1, g2, rig, cfg.config, t=t_rel, matches=tm)
                         else:
                             res = estimate(g1, g2, rig, cfg, t=t_rel)
+                    except InputError:
+                        raise
                     except Exception as exc:
                         res = _FailedResult()
                         msg = str(exc).splitlines()[0] if str(exc) else ""
@@ -620,7 +622,7 @@ def run_validation(
                             f"{name} failed on frame pair {t} -> {t + 1}: "
                             f"{type(exc).__name__}: {msg} (scored as no points)"
                         )
-                seconds = time.perf_counter() - t0
+                seconds = math.nan if isinstance(cfg, ExternalOutput) else time.perf_counter() - t0
                 if caught:
                     w0 = caught[0]
                     results.notes.append(
@@ -638,7 +640,7 @@ def run_validation(
                     results.flow[(name, "own", cam)].append(err)
                     row = _flow_row(t, name, "own", cam, err, seconds)
                     # The baselines at exactly these points, for a like-for-like column.
-                    for b in baselines:
+                    for b in dense:
                         berr = _score_flow(dense[b][cam].at(x, y), x, y, truth[cam])
                         results.flow[(b, f"@{name}", cam)].append(berr)
                         row[f"{b}_epe_median_same_points"] = stats(berr["epe"])["median"]
@@ -665,7 +667,7 @@ def run_validation(
 
             # Baselines at the default variant's points: the like-for-like comparison.
             if default_name is not None:
-                for b in baselines:
+                for b in dense:
                     for cam in CAMERAS:
                         x, y = default_pts[cam]
                         err = _score_flow(dense[b][cam].at(x, y), x, y, truth[cam])
@@ -685,7 +687,7 @@ def run_validation(
                     },
                     dense={
                         b: {cam: _dense_array(dense[b][cam], truth[cam]) for cam in CAMERAS}
-                        for b in baselines
+                        for b in dense
                     },
                     points=snap_points,
                     panorama=pan,
@@ -693,6 +695,8 @@ def run_validation(
     finally:
         bar.close()
     results.notes = _compact_notes(results.notes)
+    results.dataset["camera"] = None if inputs.camera is None else inputs.camera.to_dict()
+    results.dataset["images"] = inputs.describe()
     return results
 
 

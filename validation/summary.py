@@ -17,7 +17,7 @@ from numpy.typing import NDArray
 from .metrics import flow_summary, stats, stereo_summary
 from .runner import Results
 
-__all__ = ["FORMAT", "flat_table", "headline", "jsonable", "summarize"]
+__all__ = ["FORMAT", "flat_table", "headline", "jsonable", "summarize", "sweep_rows"]
 
 FORMAT = "omnivalidate-summary/1"
 
@@ -153,7 +153,7 @@ def summarize(results: Results) -> dict[str, Any]:
     methods = []
     default = next((m.name for m in results.methods if m.kind == "omniflow"), None)
     for m in results.methods:
-        if m.kind == "omniflow":
+        if m.kind in ("omniflow", "external"):
             frames = results.stereo.get(m.name, [])
             counts = results.stereo_counts.get(m.name, {})
             err = _concat(frames, _STEREO_KEYS)
@@ -179,7 +179,7 @@ def summarize(results: Results) -> dict[str, Any]:
             methods.append(
                 {
                     "name": m.name,
-                    "kind": "omniflow",
+                    "kind": m.kind,
                     "default": m.default,
                     "paper": m.paper,
                     "config": m.config,
@@ -367,6 +367,24 @@ def headline(summary: Mapping[str, Any]) -> list[str]:
     return lines
 
 
+def sweep_rows(summary: Mapping[str, Any], key: str, value: Any) -> list[dict[str, Any]]:
+    """Rows of the camera sweep table for one level: every method at its main point set
+    (omniflow rows at their own points, baselines at the default variant's points)."""
+    rows = []
+    for m in summary["methods"]:
+        if m["kind"] == "baseline" and m["points"] != "omniflow points":
+            continue
+        for cam, f in m["flow"].items():
+            rows.append({
+                "parameter": key, "value": value, "method": m["name"], "points": m["points"],
+                "camera": cam, "n": f["all"]["n"], "epe_mean": f["all"]["epe"]["mean"],
+                "epe_median": f["all"]["epe"]["median"],
+                "radial_gain": f["all"]["radial"]["gain"],
+                "tangential_gain": f["all"]["tangential"]["gain"],
+            })  # fmt: skip
+    return rows
+
+
 def _zero_flow_flags(summary: Mapping[str, Any]) -> list[str]:
     """One line per row and camera whose mean or median EPE is not clearly below zero flow's
     at the same points."""
@@ -380,7 +398,7 @@ def _zero_flow_flags(summary: Mapping[str, Any]) -> list[str]:
         if m["name"] == "zero-flow":
             continue
         for cam, f in m["flow"].items():
-            if m["kind"] == "omniflow":
+            if m["kind"] in ("omniflow", "external"):
                 z = (m.get("baselines_at_same_points") or {}).get("zero-flow", {}).get(cam)
             else:
                 z = zero_at.get((m["points"], cam))
@@ -391,7 +409,7 @@ def _zero_flow_flags(summary: Mapping[str, Any]) -> list[str]:
             if not all(math.isfinite(v) for v in (*mine, *zero)):
                 continue
             if mine[0] >= ZERO_FLOW_MARGIN * zero[0] or mine[1] >= ZERO_FLOW_MARGIN * zero[1]:
-                pts = "own points" if m["kind"] == "omniflow" else m["points"]
+                pts = "own points" if m["kind"] in ("omniflow", "external") else m["points"]
                 out.append(
                     f"WARNING {m['name']} ({pts}) {cam}: EPE mean {mine[0]:.3f} / median "
                     f"{mine[1]:.3f} px is not clearly below zero flow's {zero[0]:.3f} / "
