@@ -32,6 +32,7 @@ import math
 import shutil
 import subprocess
 import sys
+import time
 import tomllib
 from collections.abc import Sequence
 from pathlib import Path
@@ -144,7 +145,8 @@ def _render_file(header: str, scenes: dict[str, Any]) -> str:
         out.append("")
         for c in spec["check"]:
             out.append(f"[[scenes.{key}.check]]")
-            for k in ("method", "points", "metric", "min", "max", "measured", "margin", "note"):
+            for k in ("method", "points", "metric", "min", "max", "measured", "margin", "note",
+                      "fixed"):  # fmt: skip
                 if k in c:
                     out.append(f"{k} = {_fmt(c[k])}")
             out.append("")
@@ -183,6 +185,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--write", action="store_true", help="replace the thresholds file")
     args = ap.parse_args(argv)
 
+    start = time.perf_counter()
     path = Path(args.file)
     text = path.read_text()
     data = tomllib.loads(text)
@@ -222,6 +225,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                 )
                 print(f"{key}: dropped {dropped[-1]}", file=sys.stderr)
                 continue
+            if c.get("fixed"):
+                kept.append(c)  # the bound is what the figure means; only `measured` moves
+                continue
             if "max" in c:
                 worst = max(vals)
                 c["max"] = _round_out(worst * UPPER if worst > 0 else 0.01, up=True)
@@ -245,8 +251,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             spec["dropped"] = dropped
     new = _render_file(_header(text), scenes)
     if args.write:
-        path.write_text(new)
-        print(f"wrote {path}", file=sys.stderr)
+        from omniflow.imageio import atomic_write_text
+
+        atomic_write_text(path, new)  # a reader never sees half a file
+        print(f"wrote {path} in {time.perf_counter() - start:.0f} s", file=sys.stderr)
     else:
         print(new)
     return 0

@@ -427,13 +427,24 @@ def find_method(summary: Mapping[str, Any], name: str, points: str | None = None
 
 
 def get_path(entry: Mapping[str, Any], path: str) -> Any:
-    """Value at a dotted path, e.g. ``flow.cam1.noc.epe.median`` (KeyError names it)."""
+    """Value at a dotted path, e.g. ``flow.cam1.noc.epe.median`` (KeyError names it).
+
+    A key that itself holds dots (an object named ``room.floor``) is matched whole:
+    at each level the longest run of parts that is a key wins.
+    """
     cur: Any = entry
-    for part in path.split("."):
-        if isinstance(cur, Mapping) and part in cur:
-            cur = cur[part]
+    parts = path.split(".")
+    i = 0
+    while i < len(parts):
+        if not isinstance(cur, Mapping):
+            raise KeyError(f"{path!r}: no key {parts[i]!r}")
+        for j in range(len(parts), i, -1):
+            key = ".".join(parts[i:j])
+            if key in cur:
+                cur, i = cur[key], j
+                break
         else:
-            raise KeyError(f"{path!r}: no key {part!r}")
+            raise KeyError(f"{path!r}: no key {parts[i]!r}")
     return cur
 
 
