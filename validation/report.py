@@ -214,12 +214,11 @@ def _figures(results: Results, summary: Mapping[str, Any], fig_dir: Path) -> dic
     fig_dir.mkdir(parents=True, exist_ok=True)
     if snap is not None:
         # Inputs.
-        fig, axes = plt.subplots(1, 2, figsize=(9, 4.6))
+        fig, axes = plt.subplots(1, 2, figsize=(9, 4.8), layout="constrained")
         for ax, cam in zip(axes, ("cam1", "cam2"), strict=True):
             ax.imshow(snap.images[cam], cmap="gray", vmin=0, vmax=255, interpolation="nearest")
             ax.set_title(f"{cam}, frame {snap.t} (input to every method)")
             ax.axis("off")
-        fig.tight_layout()
         _save(fig, fig_dir / "inputs.png")
         plt.close(fig)
         out["inputs"] = "figures/inputs.png"
@@ -269,7 +268,7 @@ def _figures(results: Results, summary: Mapping[str, Any], fig_dir: Path) -> dic
                     )
                 )
             ncol = 3
-            nrow = math.ceil(len(panels) / ncol)
+            nrow = math.ceil((len(panels) + 1) / ncol)  # + 1: the colour key, always shown
             fig, axes = plt.subplots(
                 nrow, ncol, figsize=(4 * ncol, 4.3 * nrow + 0.4), layout="constrained"
             )
@@ -278,10 +277,9 @@ def _figures(results: Results, summary: Mapping[str, Any], fig_dir: Path) -> dic
             for ax, (title, img) in zip(np.ravel(axes), panels, strict=False):
                 ax.imshow(img, interpolation="nearest")
                 ax.set_title(title, fontsize=10)
-            key = np.ravel(axes)[-1] if len(panels) < nrow * ncol else None
-            if key is not None:
-                key.imshow(color_wheel(128))
-                key.set_title(f"colour key: saturated at {vmax:.2f} px", fontsize=10)
+            key = np.ravel(axes)[-1]
+            key.imshow(color_wheel(128))
+            key.set_title(f"colour key: full saturation at {vmax:.2f} px", fontsize=10)
             fig.suptitle(f"{cam} flow, frame {snap.t} -> {snap.t + 1} (Middlebury colour coding)")
             _save(fig, fig_dir / f"flow_{cam}.png")
             plt.close(fig)
@@ -587,7 +585,8 @@ def _headline_table(summary: Mapping[str, Any]) -> tuple[list[str], list[list[st
     rows = []
     omni = [m for m in summary["methods"] if m["kind"] == "omniflow"]
     picked = omni[:1] + [m for m in omni[1:] if _is_paper(m)][:1]
-    picked += [m for m in omni if m.get("config", {}).get("match_method") == "truth"][:1]
+    picked += [m for m in omni if m.get("config", {}).get("match_method") == "truth"
+               and m not in picked][:1]  # fmt: skip
     picked += [
         m
         for m in summary["methods"]

@@ -274,22 +274,24 @@ def _verdict(mine: tuple[float, float], other: tuple[float, float]) -> str:
 
 
 def headline(summary: Mapping[str, Any]) -> list[str]:
-    """The answer in words and numbers: one line per comparison, each with its verdict.
+    """The answer in words and numbers: one line per comparison, verdict first.
 
-    Per camera, the default omniflow variant against each baseline at the same points
-    (mean / median EPE, radial gain, density), then stereo, time to contact, time per
-    frame, and a line for every row whose mean or median EPE is not clearly below
-    zero flow's at the same points (below ``ZERO_FLOW_MARGIN`` x).
+    Per camera: the default omniflow variant's own figures (points, density, mean /
+    median EPE, gains, biased or not), then one line per baseline at the same points
+    (better / worse / comparable, and whether omniflow is clearly below zero flow);
+    then stereo, time to contact (per moving object, failures counted), time per frame,
+    and one line per row whose mean or median EPE is not clearly below zero flow's at
+    the same points (below ``ZERO_FLOW_MARGIN`` x).
     """
     lines: list[str] = []
     methods = summary["methods"]
     omni = next((m for m in methods if m["kind"] == "omniflow" and m.get("default")), None)
     if omni is None:
-        omni = next((m for m in methods if m["kind"] == "omniflow"), None)
+        omni = next((m for m in methods if m["kind"] in ("omniflow", "external")), None)
     at_pts = {m["name"]: m for m in methods if m["kind"] == "baseline"
               and m["points"] == "omniflow points"}  # fmt: skip
-    dense = {m["name"]: m for m in methods if m["kind"] == "baseline" and m["points"] == "dense"}
     if omni is not None:
+        me = omni["name"]
         for cam in ("cam1", "cam2"):
             f = omni["flow"].get(cam)
             if not f:
@@ -297,21 +299,19 @@ def headline(summary: Mapping[str, Any]) -> list[str]:
             mine = _epe_pair(f)
             bias = _biased(f)
             lines.append(
-                f"{cam}: {omni['name']} scored {_g(f, 'all.n'):.0f} points "
-                f"({_v(_g(f, 'density.points_per_frame'), 0)} per frame, "
+                f"{cam}, {me}: {bias or 'unbiased'} -- {_g(f, 'all.n'):.0f} points "
+                f"({_v(_g(f, 'density.points_per_frame'), 0)} per frame = "
                 f"{_v(100 * _g(f, 'density.of_valid_pixels'), 2)} % of valid pixels, "
-                f"{_v(100 * _g(f, 'density.of_stereo_pixels'), 2)} % of those the other camera "
-                f"sees): EPE mean {_v(mine[0])} px, median {_v(mine[1])} px; radial gain "
+                f"{_v(100 * _g(f, 'density.of_stereo_pixels'), 2)} % of those both cameras "
+                f"see); EPE mean {_v(mine[0])} px, median {_v(mine[1])} px; radial gain "
                 f"{_v(_g(f, 'all.radial.gain'), 2)}, tangential gain "
                 f"{_v(_g(f, 'all.tangential.gain'), 2)}"
-                + (f" -> {bias}" if bias else " -> unbiased within +-" + f"{GAIN_BAND:g}")
             )
             for name, b in at_pts.items():
                 fb = b["flow"].get(cam)
                 if not fb:
                     continue
                 other = _epe_pair(fb)
-                verdict = _verdict(mine, other)
                 if name == "zero-flow":
                     clear = all(math.isfinite(v) for v in (*mine, *other)) and all(
                         a < ZERO_FLOW_MARGIN * b for a, b in zip(mine, other, strict=True)
@@ -321,47 +321,53 @@ def headline(summary: Mapping[str, Any]) -> list[str]:
                         if clear
                         else f"NOT clearly below zero flow (needs < {ZERO_FLOW_MARGIN:g} x)"
                     )
-                d = dense.get(name, {}).get("flow", {}).get(cam, {})
+                else:
+                    verdict = _verdict(mine, other)
                 lines.append(
-                    f"{cam}: vs {name} at the same points: EPE mean {_v(other[0])} / median "
-                    f"{_v(other[1])} px, radial gain {_v(_g(fb, 'all.radial.gain'), 2)}"
-                    + (f" (dense: mean {_v(_epe_pair(d)[0])} / median {_v(_epe_pair(d)[1])} px, "
-                       f"radial gain {_v(_g(d, 'all.radial.gain'), 2)})" if d else "")
-                    + f" -> omniflow {verdict}"
-                )  # fmt: skip
+                    f"{cam}, omniflow vs {name} at the same points: {verdict} -- EPE mean "
+                    f"{_v(mine[0])} vs {_v(other[0])} px, median {_v(mine[1])} vs "
+                    f"{_v(other[1])} px; radial gain {_v(_g(f, 'all.radial.gain'), 2)} vs "
+                    f"{_v(_g(fb, 'all.radial.gain'), 2)}"
+                )
         st = omni.get("stereo") or {}
         if st:
             lines.append(
-                f"stereo: {_v(100 * _g(st, 'all.outliers'), 1)} % of {_g(st, 'all.n'):.0f} "
-                f"matches more than 1 px off; range error median "
+                f"stereo, {me}: {_v(100 * _g(st, 'all.outliers'), 1)} % of "
+                f"{_g(st, 'all.n'):.0f} matches more than 1 px off; range error median "
                 f"{_v(100 * _g(st, 'all.rel_r.median'), 1)} %, mean "
                 f"{_v(100 * _g(st, 'all.rel_r.mean'), 1)} % of r"
             )
         d = omni.get("derived") or {}
-        objs = d.get("objects") or {}
-        for name, o in objs.items():
+        for name, o in (d.get("objects") or {}).items():
             t = o["ttc"]
+            if not t["n"]:
+                lines.append(
+                    f"time to contact, mover {name}: no approaching point scored "
+                    f"({o['n']} points on it)"
+                )
+                continue
             lines.append(
-                f"time to contact, mover {name}: {o['n']} points scored, {t['n']} approaching; "
-                f"true median {_v(t['true_median_frames'], 0)} frames, estimated "
-                f"{_v(t['est_median_frames'], 0)}; "
-                f"{_v(100 * _num(t['failure_share']), 0)} % estimated receding or infinite "
-                "(failures); median relative error over all approaching "
-                f"points {_v(t['median'], 2)}; dr/dt mean "
+                f"time to contact, mover {name}: {_v(100 * _num(t['failure_share']), 0)} % "
+                f"failures -- {t['n']} approaching points of {o['n']}; true median "
+                f"{_v(t['true_median_frames'], 0)} frames, estimated "
+                f"{_v(t['est_median_frames'], 0)}; median relative error {_v(t['median'], 2)} "
+                f"over all approaching points (failures = estimated receding or infinite, "
+                f"counted as infinite); dr/dt mean "
                 f"{_v(1000 * _num(o['dr_dt_est_mean_m_per_frame']), 1)} vs true "
                 f"{_v(1000 * _num(o['dr_dt_true_mean_m_per_frame']), 1)} mm/frame"
             )
         t = d.get("ttc_relative_error")
-        if t:
+        if t and t["n"]:
             lines.append(
-                f"time to contact, all approaching points: {t['n']}, "
-                f"{_v(100 * _num(t['failure_share']), 0)} % failures (estimated receding or "
-                f"infinite); median relative error {_v(t['median'], 2)} counting failures, "
-                f"{_v(t['median_of_successes'], 2)} without"
+                f"time to contact, all approaching points: {_v(100 * _num(t['failure_share']), 0)}"
+                f" % failures of {t['n']}; median relative error {_v(t['median'], 2)} counting "
+                f"failures, {_v(t['median_of_successes'], 2)} without"
             )
-        times = [f"{omni['name']} {_v(1000 * _g(omni, 'time_per_frame.median_s'), 1)}"]
-        times += [f"{n} {_v(1000 * _g(b, 'time_per_frame.median_s'), 1)}"
-                  for n, b in dense.items()]  # fmt: skip
+        dense = [m for m in methods if m["kind"] == "baseline" and m["points"] == "dense"
+                 and m["name"] != "zero-flow"]  # fmt: skip
+        times = [f"{me} {_v(1000 * _g(omni, 'time_per_frame.median_s'), 1)}"]
+        times += [f"{b['name']} {_v(1000 * _g(b, 'time_per_frame.median_s'), 1)}"
+                  for b in dense]  # fmt: skip
         lines.append("ms per frame pair (both cameras, median): " + ", ".join(times))
     lines += _zero_flow_flags(summary)
     return lines
@@ -386,22 +392,21 @@ def sweep_rows(summary: Mapping[str, Any], key: str, value: Any) -> list[dict[st
 
 
 def _zero_flow_flags(summary: Mapping[str, Any]) -> list[str]:
-    """One line per row and camera whose mean or median EPE is not clearly below zero flow's
-    at the same points."""
+    """One line per row (omniflow rows at their points, baselines at the default's points)
+    whose mean or median EPE is not clearly below zero flow's at the same points."""
     out = []
-    zero_at: dict[tuple[str, str], Any] = {}
+    zero_at = {cam: f["all"]["epe"] for m in summary["methods"]
+               if m["name"] == "zero-flow" and m["points"] == "omniflow points"
+               for cam, f in m["flow"].items()}  # fmt: skip
     for m in summary["methods"]:
-        if m["name"] == "zero-flow":
-            for cam, f in m["flow"].items():
-                zero_at[(m["points"], cam)] = f["all"]["epe"]
-    for m in summary["methods"]:
-        if m["name"] == "zero-flow":
+        if m["name"] == "zero-flow" or m["points"] == "dense":
             continue
+        bad = []
         for cam, f in m["flow"].items():
             if m["kind"] in ("omniflow", "external"):
                 z = (m.get("baselines_at_same_points") or {}).get("zero-flow", {}).get(cam)
             else:
-                z = zero_at.get((m["points"], cam))
+                z = zero_at.get(cam)
             if not z:
                 continue
             mine = _epe_pair(f)
@@ -409,12 +414,14 @@ def _zero_flow_flags(summary: Mapping[str, Any]) -> list[str]:
             if not all(math.isfinite(v) for v in (*mine, *zero)):
                 continue
             if mine[0] >= ZERO_FLOW_MARGIN * zero[0] or mine[1] >= ZERO_FLOW_MARGIN * zero[1]:
-                pts = "own points" if m["kind"] in ("omniflow", "external") else m["points"]
-                out.append(
-                    f"WARNING {m['name']} ({pts}) {cam}: EPE mean {mine[0]:.3f} / median "
-                    f"{mine[1]:.3f} px is not clearly below zero flow's {zero[0]:.3f} / "
-                    f"{zero[1]:.3f} px at the same points (needs < {ZERO_FLOW_MARGIN:g} x)"
-                )
+                bad.append(f"{cam} {mine[0]:.3f} / {mine[1]:.3f} vs {zero[0]:.3f} / {zero[1]:.3f}")
+        if bad:
+            pts = "" if m["kind"] in ("omniflow", "external") else f" ({m['points']})"
+            out.append(
+                f"WARNING {m['name']}{pts} is not clearly below zero flow (mean / median EPE, "
+                f"px, vs zero flow's at the same points; needs < {ZERO_FLOW_MARGIN:g} x): "
+                + "; ".join(bad)
+            )
     return out
 
 
