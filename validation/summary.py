@@ -15,7 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .metrics import flow_summary, stats, stereo_summary
-from .runner import Results
+from .results import Results
 
 __all__ = ["FORMAT", "flat_table", "headline", "jsonable", "summarize", "sweep_rows"]
 
@@ -101,7 +101,7 @@ def _derived_block(
 ) -> dict[str, Any]:
     if not records:
         return {}
-    from .runner import ttc_scores
+    from .scoring_derived import ttc_scores
 
     cat = _concat(records, ("dr_err", "dr_est", "dr_true", "ids", "approaching", "ttc_est",
                             "ttc_true"))  # fmt: skip
