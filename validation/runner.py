@@ -276,7 +276,8 @@ def run_validation(
                         if isinstance(cfg, ExternalOutput):
                             res = cfg.points(t, rig)
                         elif isinstance(cfg, TrueMatches):
-                            tm = true_matches(first["cam1"], truth["cam1"], rig, cfg.percentile)
+                            tm = true_matches(grey["cam1"][t - start], truth["cam1"], rig,
+                                              cfg.percentile, band=cfg.config.band)  # fmt: skip
                             res = estimate(g1, g2, rig, cfg.config, t=t_rel, matches=tm)
                         else:
                             res = estimate(g1, g2, rig, cfg, t=t_rel)
@@ -298,7 +299,7 @@ def run_validation(
                         f"({Path(w0.filename).name}:{w0.lineno})"
                     )
                 results.times[name].append(seconds)
-                for stage, sec in (getattr(res, "timings", None) or {}).items():
+                for stage, sec in res.timings.items():
                     results.stages[name][stage] += float(sec)
                 cols = res.columns
                 for cam in CAMERAS:

@@ -46,15 +46,7 @@ def score_stereo(
     counts = results.stereo_counts[name]
     counts["matched"] += int(x.size)
     counts["valid_pixels"] += int(np.count_nonzero(truth["gt.valid"] > 0.5))
-    sig = n_significant_valid(res)
-    n_sig = None
-    if isinstance(sig, tuple):
-        st = sample_truth(
-            truth, sig[0], sig[1], channels=("gt.valid", "gt.object", "gt.stereo.valid")
-        )
-        n_sig = int(np.count_nonzero(st["gt.stereo.valid"] > 0.5))
-    elif isinstance(sig, int):
-        n_sig = sig
+    n_sig = n_significant_valid(res)
     if n_sig is None:
         counts["significant_unknown"] = 1
     else:
@@ -75,23 +67,7 @@ def score_stereo(
     }
 
 
-def n_significant_valid(result: Any) -> tuple[NDArray, NDArray] | int | None:
-    """The significant points (x, y) of cam1 that matching started from, if exposed."""
-    for name in ("significant", "significant_points"):
-        sig = getattr(result, name, None)
-        if sig is not None:
-            if isinstance(sig, dict):
-                return np.asarray(sig["x"]), np.asarray(sig["y"])
-            if isinstance(sig, tuple | list) and len(sig) == 2:
-                return np.asarray(sig[0]), np.asarray(sig[1])
-    for source in (
-        getattr(result, "stats", None),
-        getattr(result, "counts", None),
-        getattr(result, "info", None),
-    ):
-        if isinstance(source, dict):
-            for key in ("n_significant", "significant"):
-                if key in source and np.isscalar(source[key]):
-                    return int(source[key])
-    n = getattr(result, "n_significant", None)
-    return int(n) if n is not None else None
+def n_significant_valid(result: Any) -> int | None:
+    """The number of significant points matching started from (``n_significant``)."""
+    n = result.n_significant
+    return None if n is None else int(n)

@@ -117,30 +117,38 @@ def omniflow_variants(mode: str = "all", *, true_matches: bool = True) -> list[t
                 configs.append(cfg)
     elif mode != "default":
         raise InputError(f"variants = {mode!r}: expected 'default', 'oat' or 'all'")
-    paper = OmniFlowConfig.paper() if hasattr(OmniFlowConfig, "paper") else base
+    paper = OmniFlowConfig.paper()
     if mode != "default" and paper not in configs:  # the paper's exact configuration
         configs.append(paper)
     if true_matches and mode != "default":
         configs.append(TrueMatches(base))
-        paper = OmniFlowConfig.paper() if hasattr(OmniFlowConfig, "paper") else base
         if paper != base:
             configs.append(TrueMatches(paper))
     return [(variant_name(c), c) for c in configs]
 
 
 def true_matches(
-    image: NDArray, truth: dict[str, NDArray], rig: Any, percentile: float = 80.0
+    image: NDArray,
+    truth: dict[str, NDArray],
+    rig: Any,
+    percentile: float = 80.0,
+    *,
+    band: float = 0.25,
 ) -> Any:
-    """The true stereo matches at cam1's significant pixels (see :class:`TrueMatches`)."""
+    """The true stereo matches at cam1's significant pixels (see :class:`TrueMatches`).
+
+    ``image`` is cam1's grey float frame; its radial gradient comes from the DCT fit
+    (``band`` as the variant's) through :func:`omniflow.edges.polar_gradient_grid`,
+    the same eq. (19) the pipeline uses.
+    """
+    from omniflow.dct import fit_dct
+    from omniflow.edges import polar_gradient_grid
     from omniflow.matching import Matches
 
     unit = rig.cam1
-    g = image.astype(np.float64)
-    gy, gx = np.gradient(g)
     x, y = unit.pixel_centres()
     h1, theta = unit.polar_of_pixel(x, y)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        f_h = np.abs((x - unit.x_c) * gx + (y - unit.y_c) * gy) / h1
+    f_h = np.abs(polar_gradient_grid(fit_dct(np.asarray(image, np.float32), band=band), unit)[0])
     seen = (truth["gt.valid"] > 0.5) & (truth["gt.stereo.valid"] > 0.5) & (h1 >= 6.0)
     seen &= h1 <= unit.r_m - 4.0
     seen &= np.isfinite(truth["gt.stereo.h_other"]) & np.isfinite(f_h)
@@ -162,12 +170,10 @@ def true_matches(
 
 
 def is_paper_config(cfg: Any) -> bool:
-    try:
-        from omniflow.pipeline import OmniFlowConfig
+    """Whether ``cfg`` is ``OmniFlowConfig.paper()`` (a stand-in config never is)."""
+    from omniflow.pipeline import OmniFlowConfig
 
-        return bool(cfg == OmniFlowConfig.paper())
-    except (ImportError, AttributeError, TypeError):
-        return False
+    return bool(cfg == OmniFlowConfig.paper())
 
 
 def config_dict(cfg: Any) -> dict[str, Any]:
