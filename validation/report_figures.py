@@ -226,6 +226,12 @@ def draw_figures(results: Results, summary: Mapping[str, Any], fig_dir: Path) ->
     return out
 
 
+#: Units of the camera parameters (omnisim.camera), for the sweep's axis label.
+_UNITS = {"read_noise": "electrons rms", "full_well": "electrons", "bits": "bits",
+          "defocus": "px, Gaussian sigma", "vignetting": "fraction lost at the rim",
+          "exposure": "fraction of full well per unit radiance", "gain": "unitless"}  # fmt: skip
+
+
 def sweep_figure(sweep: Sequence[Mapping[str, Any]], fig_dir: Path) -> dict[str, str]:
     """Accuracy against the swept camera parameter: mean EPE and radial gain per method."""
     import matplotlib
@@ -248,7 +254,7 @@ def sweep_figure(sweep: Sequence[Mapping[str, Any]], fig_dir: Path) -> dict[str,
         axes[0, col].set_ylabel("mean EPE (px)")
         axes[1, col].set_ylabel("radial gain (1 = unbiased)")
         axes[1, col].axhline(1.0, color="k", lw=0.8)
-        axes[1, col].set_xlabel(f"camera {key}")
+        axes[1, col].set_xlabel(f"camera {key}" + (f" ({_UNITS[key]})" if key in _UNITS else ""))
         for ax in axes[:, col]:
             ax.grid(alpha=0.3)
     axes[0, 1].legend(fontsize=7, loc="best")

@@ -25,9 +25,10 @@ __all__ = [
 
 
 def method_table(summary: Mapping[str, Any]) -> tuple[list[str], list[list[str]]]:
-    header = ["method", "points", "n cam1", "EPE med", "EPE mean", "EPE p90", "noc EPE",
-              "occ EPE", ">1px", ">3px", "EPE cam2", "DIS same pts", "stereo >1px",
-              "r rel err", "match rate", "ms / frame"]  # fmt: skip
+    header = ["method", "points", "n cam1", "cam1 EPE median (px)", "cam1 EPE mean (px)",
+              "cam1 EPE p90 (px)", "noc EPE median (px)", "occ EPE median (px)", ">1px", ">3px",
+              "cam2 EPE median (px)", "DIS same pts EPE median (px)", "stereo >1px",
+              "r rel err median", "match rate", "ms / frame pair"]  # fmt: skip
     rows = []
     for m, r in zip(summary["methods"], flat_table(summary), strict=True):
         f = m["flow"].get("cam1", {})
@@ -75,7 +76,7 @@ def headline_table(summary: Mapping[str, Any]) -> tuple[list[str], list[list[str
         ">1px cam1",
         "r rel err median",
         "stereo >1px",
-        "ms / frame",
+        "ms / frame pair",
     ]
     rows = []
     omni = [m for m in summary["methods"] if m["kind"] == "omniflow"]
