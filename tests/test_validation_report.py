@@ -286,3 +286,18 @@ def test_calibrate_rounds_bounds_outward():
     assert _round_out(0.043212, up=False) == 0.0432
     assert _round_out(1234.5, up=True) == 1240.0
     assert _round_out(0.0, up=True) == 0.0
+
+
+def test_calibrate_keeps_unmeasurable_checks_pending(tmp_path):
+    from validation.calibrate import _render_file
+
+    check = {"method": "default", "metric": "flow.cam1.all.epe.mean", "max": 0.2,
+             "measured": 0.1, "margin": "m"}  # fmt: skip
+    waiting = {"method": "default", "metric": "derived.objects.box.ttc.median",
+               "max": math.nan, "measured": math.nan, "margin": "not measurable"}  # fmt: skip
+    text = _render_file("# header", {"s": {"scene": "x", "check": [check], "pending": [waiting]}})
+    path = tmp_path / "t.toml"
+    path.write_text(text)
+    data = load_thresholds(path)
+    assert data["scenes"]["s"]["pending"][0]["metric"] == waiting["metric"]
+    assert [c["metric"] for c in data["scenes"]["s"]["check"]] == [check["metric"]]

@@ -17,6 +17,10 @@ File layout (TOML)::
                                       # radial gain in [0.8, 1.2] for an unbiased method),
                                       # which calibration keeps; it updates only `measured`
 
+    [[scenes.KEY.pending]]            # a check the current method cannot be measured on
+    ...                               # (no points at this seed): not checked, re-tried by
+                                      # every `python -m validation.calibrate`
+
 A check passes when the value is finite and within [min, max]. A figure that
 improves beyond its threshold's margin should tighten the threshold (see
 docs/validation.md).
@@ -56,6 +60,7 @@ SCENE_KEYS = {
     "dataset",
     "check",
     "dropped",
+    "pending",
 }
 
 
