@@ -74,6 +74,20 @@ def test_truth_has_gain_one_and_zero_flow_gain_zero(oracle_summary):
     assert zero["epe"]["median"] > 0.05  # the demo moves: zero flow is wrong
     # The perfect method is clearly below zero flow: no warning about it in the headline.
     assert not [line for line in summary["headline"] if line.startswith("WARNING truth-oracle")]
+    assert summary["headline"][0].startswith("cam1, truth-oracle: unbiased")
+
+
+def test_bias_verdict_needs_true_motion():
+    from validation.summary import _biased
+
+    def block(gain, rms):
+        g = {"gain": gain, "true_rms": rms}
+        return {"all": {"radial": g, "tangential": {"gain": 1.0, "true_rms": rms}}}
+
+    assert _biased(block(0.6, 0.3)) == "biased (radial gain 0.60)"
+    assert _biased(block(0.9, 0.3)) == "unbiased"
+    # A static scene: the truth barely moves, the gain is noise over nothing.
+    assert _biased(block(-0.02, 0.01)).startswith("bias not judged")
 
 
 def test_density_and_objects_with_no_points(oracle_summary):

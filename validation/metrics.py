@@ -124,7 +124,9 @@ def gain(est: ArrayLike, true: ArrayLike) -> dict[str, float]:
     motion); ``slope`` and ``intercept`` of the straight-line fit of est
     against true (NaN with fewer than 3 points or no spread of the truth);
     ``mean_signed`` and ``median_signed`` of ``est - true``; ``mean_est``
-    and ``mean_true`` (the region's mean motion, e.g. an object's).
+    and ``mean_true`` (the region's mean motion, e.g. an object's);
+    ``true_rms``, the root mean square of the truth (a gain over points that
+    barely move, e.g. a static scene, says little).
     """
     e = np.asarray(est, dtype=np.float64).ravel()
     g = np.asarray(true, dtype=np.float64).ravel()
@@ -132,12 +134,13 @@ def gain(est: ArrayLike, true: ArrayLike) -> dict[str, float]:
     e, g = e[ok], g[ok]
     nan = math.nan
     out = {"n": int(e.size), "gain": nan, "slope": nan, "intercept": nan, "mean_signed": nan,
-           "median_signed": nan, "mean_est": nan, "mean_true": nan}  # fmt: skip
+           "median_signed": nan, "mean_est": nan, "mean_true": nan, "true_rms": nan}  # fmt: skip
     if e.size == 0:
         return out
     d = e - g
     out.update(mean_signed=float(d.mean()), median_signed=float(np.median(d)),
-               mean_est=float(e.mean()), mean_true=float(g.mean()))  # fmt: skip
+               mean_est=float(e.mean()), mean_true=float(g.mean()),
+               true_rms=float(np.sqrt(np.mean(g * g))))  # fmt: skip
     gg = float(np.dot(g, g))
     if gg > 0:
         out["gain"] = float(np.dot(e, g) / gg)

@@ -82,7 +82,8 @@ def _document(summary: Mapping[str, Any], figures: Mapping[str, str], command: s
         "Verdicts: better / worse = both mean and median EPE more than 10 % lower / higher, "
         "else comparable; biased = radial or tangential gain (least-squares slope of the "
         "estimated against the true component, through the origin; 1 = unbiased) outside "
-        "1 +- 0.2; a method must be below 0.8 x zero flow's mean and median EPE to be "
+        "1 +- 0.2, judged only where that component's true rms is at least 0.05 px; a "
+        "method must be below 0.8 x zero flow's mean and median EPE to be "
         "clearly below it. Time to contact counts points that truly approach but are "
         "estimated as receding or infinite as failures (infinite error)."
     )
