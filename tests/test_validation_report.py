@@ -249,7 +249,9 @@ def _cli(*args):
 def test_cli_help():
     p = _cli("--help")
     assert p.returncode == 0
-    for word in ("--out", "--variants", "--baselines", "--check", "report.html", "summary.json"):
+    for word in ("--out", "--variants", "--baselines", "--check", "report.html", "summary.json",
+                 "frames.csv", "--method-output", "cam1.flo", "flow.csv", "--camera",
+                 "--camera-sweep", "--partial", "zero-flow"):  # fmt: skip
         assert word in p.stdout
 
 
