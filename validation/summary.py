@@ -250,7 +250,9 @@ def _g(d: Any, path: str) -> float:
 
 def _v(x: float | None, digits: int = 3) -> str:
     x = _num(x)
-    return "n/a" if not math.isfinite(x) else f"{x:.{digits}f}"
+    if math.isnan(x):
+        return "n/a"
+    return ("-" if x < 0 else "") + "inf" if math.isinf(x) else f"{x:.{digits}f}"
 
 
 def _epe_pair(f: Mapping[str, Any]) -> tuple[float, float]:
