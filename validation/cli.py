@@ -237,6 +237,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return fail(str(exc).splitlines()[0])
     except OSError as exc:
         return fail(f"{exc.filename or args.out}: {exc.strerror or exc}")
+    print("\n".join(summary.get("headline", [])))
     print(
         f"omnivalidate: {len(summary['methods'])} rows, {len(results.dataset['pairs'])} frame "
         f"pair(s) in {time.perf_counter() - start:.1f} s; report: "
