@@ -134,6 +134,8 @@ def test_cli_refuses_bad_out_and_scene_key(synth, tmp_path):
         "--scene-key 'nosuch'",
     )  # fmt: skip
     assert not (tmp_path / "o").exists()
+    _one_line_exit_2(_cli(*base, "--out", str(tmp_path / "o"), "--scene-key", "default"),
+                     "only with --check")  # fmt: skip
     _one_line_exit_2(_cli(*base, "--out", str(tmp_path / "o"), "--camera-sweep", "bits"),
                      "--camera-sweep 'bits'")  # fmt: skip
     assert not (tmp_path / "o").exists()

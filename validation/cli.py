@@ -187,6 +187,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return fail(str(exc))
     if not Path(args.dataset).is_dir():
         return fail(f"{args.dataset}: no such dataset directory")
+    if args.scene_key is not None and thresholds is None:
+        return fail("--scene-key: only with --check THRESHOLDS_TOML")
     if args.scene_key is not None and thresholds is not None:
         if args.scene_key not in thresholds["scenes"]:
             return fail(
