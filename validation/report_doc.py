@@ -140,6 +140,8 @@ def fmt(v: Any, digits: int = 3) -> str:
     if isinstance(v, int | np.integer) and not isinstance(v, bool):
         return str(int(v))
     v = float(v)
+    if math.isinf(v):
+        return "inf" if v > 0 else "-inf"
     if not math.isfinite(v):
         return "–"
     if v != 0 and (abs(v) < 10**-(digits) or abs(v) >= 1e5):

@@ -242,8 +242,11 @@ def objects_table(summary: Mapping[str, Any]) -> tuple[list[str], list[list[str]
         for name in names:
             b = o.get(name, {"n": 0})
             epe = b.get("epe", {})
-            cells.append(f"{b['n']} ({pct(b.get('density'))}), EPE {fmt(epe.get('mean'))} / "
-                         f"{fmt(epe.get('median'))}" if b["n"] else "0")  # fmt: skip
+            if b["n"]:
+                cells.append(f"{b['n']} ({pct(b.get('density'))}), EPE {fmt(epe.get('mean'))} / "
+                             f"{fmt(epe.get('median'))}")  # fmt: skip
+            else:
+                cells.append("0" if b.get("valid_pixels", 1) else "0 (not in view)")
         rows.append([m["name"], m["points"], *cells])
     return header, rows
 
