@@ -125,7 +125,7 @@ def _document(summary: Mapping[str, Any], figures: Mapping[str, str], command: s
     doc.p(
         "Per object (`gt.object`, named from dataset.json): points scored over all frame "
         "pairs, their share of the object's valid pixels, and EPE mean / median (px). "
-        "0 = the method scored no point on it."
+        "0 = the method scored no point on it; not in view = the camera sees none of it."
     )
     doc.table(*objects_table(summary))
     movers = movers_table(summary)
