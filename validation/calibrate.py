@@ -239,7 +239,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 bound = worst + (UPPER - 1) * abs(worst) if worst != 0 else 0.01
                 c["max"] = _round_out(bound, up=True)
                 c["margin"] = (
-                    f"{UPPER} x the worst of seeds {seeds} ({shown}), rounded up; "
+                    f"the worst of seeds {seeds} ({shown}) + {UPPER - 1:g} x its size, rounded up; "
                     "covers render noise and platform differences"
                 )
                 if c["metric"].rsplit(".", 1)[-1] in FRACTIONS and c["max"] > 1.0:
@@ -248,8 +248,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             if "min" in c:
                 low = min(vals)
                 c["min"] = _round_out(low - (1 - LOWER) * abs(low), up=False)
-                c["margin"] = (
-                    f"{LOWER} x the lowest of seeds {seeds} ({shown}), rounded down; "
+                upper = c["margin"] + "; " if "max" in c else ""
+                c["margin"] = upper + (
+                    f"the lowest of seeds {seeds} ({shown}) - {1 - LOWER:.2g} x its size, rounded "
+                    "down; "
                     "covers render noise and platform differences"
                 )
             kept.append(c)
