@@ -40,8 +40,12 @@ def camera_model(meta: dict[str, Any], overrides: Sequence[str] = ()) -> Any:
     """The camera the methods' images come from, or None for the plain 8-bit luminance.
 
     ``meta`` is dataset.json; its ``camera`` section (if any) is the base, and
-    ``overrides`` (``"read_noise=5"``, ...) change it. Raises :class:`InputError`
-    (one line naming the key and the expected range) on a bad parameter.
+    ``overrides`` (``"read_noise=5"``, ...) change it. A dataset without a camera
+    section gets the camera model's defaults, except that :class:`Inputs` sets the
+    exposure as the plain path scales (the 99.5th percentile of frame 0's valid
+    pixels fills the well) unless ``exposure`` is given. Raises
+    :class:`InputError` (one line naming the key and the expected range) on a bad
+    parameter.
     """
     section = meta.get("camera")
     if not isinstance(section, dict) and not overrides:
@@ -73,11 +77,16 @@ class Inputs:
         See the module docstring; :func:`camera_model` picks it.
     """
 
-    def __init__(self, ds: Any, camera: Any = None):
+    def __init__(self, ds: Any, camera: Any = None, *, auto_exposure: bool = False):
         self.ds = ds
         self.camera = camera
         self.cache: dict[tuple[int, str], tuple[NDArray, NDArray]] = {}
         self.scale: float | None = None
+        if camera is not None and auto_exposure:
+            # No recorded camera: expose like the plain path, the 99.5th percentile of
+            # frame 0's valid luminance at a full well.
+            self._set_scale()
+            self.camera = camera.with_overrides({"exposure": float(self.scale) / 255.0})
 
     def describe(self) -> str:
         """One sentence for the report: where the images come from."""
@@ -86,7 +95,8 @@ class Inputs:
                 "Rec. 709 luminance of the EXR radiance, scaled so that the 99.5th percentile "
                 f"of frame 0's valid pixels is 255 (x {self.scale or 0:.4g}), rounded to 8 bits"
             )
-        params = ", ".join(f"{k}={v}" for k, v in self.camera.to_dict().items())
+        params = ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
+                           for k, v in self.camera.to_dict().items())  # fmt: skip
         return f"camera model (omnisim.camera) applied to the EXR radiance: {params}"
 
     def _set_scale(self) -> None:

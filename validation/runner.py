@@ -164,7 +164,10 @@ def run_validation(
     for ext in external:
         ext.check(pairs)
     meta = ds.meta
-    inputs = Inputs(ds, camera_model(meta, camera))
+    auto = not isinstance(meta.get("camera"), dict) and not any(
+        str(c).split("=", 1)[0].strip().removeprefix("camera.") == "exposure" for c in camera
+    )
+    inputs = Inputs(ds, camera_model(meta, camera), auto_exposure=auto)
     scene = meta.get("scene", {}) if isinstance(meta.get("scene"), dict) else {}
     results = Results(
         dataset={

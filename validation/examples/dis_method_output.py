@@ -34,7 +34,8 @@ def write_dis_outputs(
     from validation.inputs import CAMERAS, Inputs, camera_model
 
     ds = open_dataset(dataset)
-    images = Inputs(ds, camera_model(ds.meta, camera))
+    auto = "camera" not in ds.meta and not any(c.startswith("exposure") for c in camera)
+    images = Inputs(ds, camera_model(ds.meta, camera), auto_exposure=auto)
     done = set(ds.frames_done())
     pairs = [t for t in range(ds.frame_count - 1) if t in done and t + 1 in done]
     for t in pairs:
