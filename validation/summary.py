@@ -383,7 +383,7 @@ def headline(summary: Mapping[str, Any]) -> list[str]:
             if not t["n"]:
                 lines.append(
                     f"time to contact, mover {name}: no approaching point scored "
-                    f"({o['n']} points on it)"
+                    f"({o['n']} points with a dr/dt on it)"
                 )
                 continue
             lines.append(
