@@ -1,32 +1,52 @@
 """The ``omniflow`` command: coaxial omni flow of a stereo frame pair, to CSV and pictures.
 
 See ``docs/omniflow_cli.md`` and ``omniflow --help``. Exit status: 0 on
-success, 2 on bad input (a missing or unreadable file, images of different
-sizes, a rig file with a missing or impossible field, NaN pixels, a bad
-option), with a one-line message naming the problem on standard error.
+success (also when no point matched: the outputs are then empty and one
+warning line says so), 2 on bad input (a missing or unreadable file, images of
+different sizes, a rig file with a missing or impossible field, NaN pixels, an
+option out of range, an ``--out`` that is a file), 1 when the machine refuses
+(permission denied, read-only or full file system, out of memory) or on an
+internal error. Every failure is one line on standard error naming the path,
+option or value and what was expected; ``--debug`` shows the traceback
+instead. The outputs are staged and moved into ``--out`` as a set
+(:class:`omniflow.imageio.OutputSet`), so a failed run changes nothing there.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import errno
 import json
 import math
 import re
 import sys
 import textwrap
 import time
+import traceback
 import types
 import typing
+import warnings
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from omniflow.imageio import ImageError, atomic_write_text, read_image, to_grey, write_png
+from omniflow.imageio import (
+    ImageError,
+    OutputError,
+    OutputSet,
+    atomic_write_text,
+    read_image,
+    to_grey,
+    write_png,
+)
 from omniflow.rig import Rig, RigError, Unit, load_rig, unwarp
 
 PROG = "omniflow"
+
+#: Every file the command writes in --out; flow.json (the manifest) is moved last.
+OUTPUTS = ("flow.csv", "flow_arrows.png", "flow_color.png", "unwarp_cam1.png", "flow.json")
 
 
 class CLIError(ValueError):
@@ -127,6 +147,76 @@ def _none_or(conv):
 
     parse.__name__ = getattr(conv, "__name__", "value")
     return parse
+
+
+#: Allowed range of every numeric OmniFlowConfig knob: (low, high, low included,
+#: high included); None is always allowed where the field's default is None. A new
+#: numeric knob needs an entry (tests/test_omniflow_bad_input.py checks the table).
+KNOB_LIMITS: dict[str, tuple[float, float, bool, bool]] = {
+    "band": (0.0, 1.0, False, True),
+    "match_band": (0.0, 1.0, False, True),
+    "threshold_percentile": (0.0, 100.0, True, False),
+    "min_gradient": (0.0, math.inf, True, False),
+    "r_min": (0.0, math.inf, True, False),
+    "r_max": (0.0, math.inf, False, False),
+    "n_theta": (8, math.inf, True, False),
+    "h_step": (0.0, math.inf, False, False),
+    "h_min": (0.0, math.inf, True, False),
+    "rim_margin": (0.0, math.inf, True, False),
+    "patch_radius": (0.0, math.inf, False, False),
+    "patch_lines": (0, math.inf, True, False),
+    "profile_step": (0.0, math.inf, False, False),
+    "min_score": (-1.0, 1.0, True, True),  # a normalised cross-correlation
+    "uniqueness": (0.0, 1.0, False, True),
+    "candidate_fraction": (0.0, 1.0, False, True),
+    # radians of Gaussian blur across the radial lines; 1 rad already averages a third of
+    # the circle, and above ~3 rad the matcher's table is empty (measured: 1.6 runs, 3.2 fails)
+    "tangential_blur": (0.0, 1.0, True, True),
+    "consistency": (0.0, math.inf, True, False),
+    "consistency_support": (1, math.inf, True, False),
+    "temporal_frames": (3, math.inf, True, False),
+    "pool_radius": (0.0, math.inf, False, False),
+    "pool_k": (1, math.inf, True, False),
+    "pool_range_tol": (0.0, math.inf, False, False),
+    "min_conditioning": (0.0, 1.0, True, True),  # lambda_min / lambda_max
+    "iterations": (0, math.inf, True, False),
+}
+
+
+def _flag(name: str) -> str:
+    return "--" + name.replace("_", "-")
+
+
+def _range_text(lo: float, hi: float, lo_in: bool, hi_in: bool) -> str:
+    if math.isinf(hi):
+        return f"{'>=' if lo_in else '>'} {lo:g}"
+    return f"in {'[' if lo_in else '('}{lo:g}, {hi:g}{']' if hi_in else ')'}"
+
+
+def check_knobs(values: Any) -> None:
+    """Raise :class:`CLIError` naming the option if a numeric knob is out of its range.
+
+    ``values`` is an OmniFlowConfig or a mapping of field name to value. Each
+    float knob must be finite; the ranges are :data:`KNOB_LIMITS`.
+    """
+    if dataclasses.is_dataclass(values):
+        values = {f.name: getattr(values, f.name) for f in dataclasses.fields(values)}
+    for name, value in values.items():
+        if value is None or isinstance(value, bool) or not isinstance(value, int | float):
+            continue
+        limits = KNOB_LIMITS.get(name)
+        kind = "an integer" if isinstance(value, int) else "a number"
+        if not math.isfinite(value):
+            expected = _range_text(*limits) if limits else ""
+            raise CLIError(f"{_flag(name)} {value}: expected a finite number {expected}".strip())
+        if limits is None:
+            continue
+        lo, hi, lo_in, hi_in = limits
+        inside = (lo < value or (lo_in and value == lo)) and (value < hi or (hi_in and value == hi))
+        if not inside:
+            raise CLIError(
+                f"{_flag(name)} {value:g}: expected {kind} {_range_text(lo, hi, lo_in, hi_in)}"
+            )
 
 
 def _add_config_options(parser: argparse.ArgumentParser) -> list[str]:
@@ -248,7 +338,9 @@ def build_parser() -> argparse.ArgumentParser:
               omniflow c1_0.exr c2_0.exr c1_1.exr c2_1.exr --calibrate --d 0.1 --R 0.05 --s 0.3 \\
                   --out result
 
-            exit status: 0 success; 2 bad input (one line on stderr names the problem).
+            exit status: 0 success (no matched point is a success: empty outputs, one warning);
+              2 bad input; 1 the machine refused (permission, read-only or full disk) or an
+              internal error. One line on stderr names the path, option or value.
             """
         ),
     )
@@ -305,6 +397,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="draw arrows K times their length (default: automatic, shown in the picture)",
     )
     output.add_argument(
+        "--debug",
+        action="store_true",
+        help="on an error, show the Python traceback instead of the one-line message",
+    )
+    output.add_argument(
         "--odometry",
         action="store_true",
         help="also fit the robot's yaw rate and velocity to the flow (omniflow.applications)",
@@ -353,6 +450,7 @@ def _read_dataset(directory: str, k: int, window: int):
     """
     from omnisim.dataset import DatasetError, open_dataset
 
+    meta = Path(directory) / "dataset.json"
     try:
         ds = open_dataset(directory)
         n = ds.frame_count
@@ -369,6 +467,8 @@ def _read_dataset(directory: str, k: int, window: int):
         f2 = [ds.read_grey(j, "cam2") for j in frames]
     except DatasetError as exc:
         raise CLIError(str(exc)) from exc
+    except UnicodeDecodeError as exc:  # omnisim reads dataset.json as UTF-8 text
+        raise CLIError(f"{meta}: not UTF-8 text ({_one_line(exc)}); expected JSON") from exc
     for j, a, b in zip(frames, f1, f2, strict=True):
         for cam, img in (("cam1", a), ("cam2", b)):
             bad = ~np.isfinite(img)
@@ -414,12 +514,29 @@ def _make_config(args, config_fields: list[str]):
         name: getattr(args, f"cfg_{name}") for name in config_fields if hasattr(args, f"cfg_{name}")
     }
     overrides = {k: tuple(v) if isinstance(v, list) else v for k, v in overrides.items()}
+    check_knobs(overrides)  # before the config's own checks, so the message names the option
     try:
-        if args.paper:
-            return cls.paper(**overrides)
-        return cls(**overrides)
+        config = cls.paper(**overrides) if args.paper else cls(**overrides)
     except (TypeError, ValueError) as exc:
         raise CLIError(f"bad algorithm option: {_one_line(exc)}") from exc
+    check_knobs(config)
+    return config
+
+
+def _check_options(args) -> None:
+    """Options of the command itself (not of OmniFlowConfig) that argparse cannot range-check."""
+    if args.arrow_scale is not None and not (
+        math.isfinite(args.arrow_scale) and args.arrow_scale > 0
+    ):
+        raise CLIError(f"--arrow-scale {args.arrow_scale}: expected a finite number > 0")
+    for name in ("d", "R", "s"):
+        value = getattr(args, name)
+        if value is not None and not (math.isfinite(value) and value > 0):
+            raise CLIError(f"--{name} {value}: expected a finite length in metres > 0")
+    if args.t is not None and args.t < 0:
+        raise CLIError(f"--t {args.t}: expected a time step >= 0")
+    if args.frame < 0:
+        raise CLIError(f"--frame {args.frame}: expected a frame index >= 0")
 
 
 def _load_inputs(args, config):
@@ -533,52 +650,67 @@ def _odometry_summary(cols) -> dict:
 
 
 def run(args: argparse.Namespace, config_fields: list[str], argv: list[str]) -> dict:
-    """Do the work of one ``omniflow`` invocation; return the summary written to flow.json."""
+    """Do the work of one ``omniflow`` invocation; return the summary written to flow.json.
+
+    Inputs and options are checked before anything is computed; the outputs are
+    staged and moved into ``--out`` together (:class:`omniflow.imageio.OutputSet`).
+    """
     from omniflow.applications import time_to_contact
     from omniflow.pipeline import estimate
 
     config = _make_config(args, config_fields)
+    _check_options(args)
     t0 = time.perf_counter()
     f1, f2, t, rig, rig_source, info = _load_inputs(args, config)
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise CLIError(f"--out {out}: exists and is not a folder")
     t_read = time.perf_counter() - t0
+    out = Path(args.out)
+    written = OUTPUTS if not args.no_pictures else ("flow.csv", "flow.json")
+    with OutputSet(out, owned=OUTPUTS, manifest="flow.json") as stage:
+        t1 = time.perf_counter()
+        try:
+            result = estimate(f1, f2, rig, config, t=t)
+        except ValueError as exc:  # inputs and single knobs are checked: a combination is not
+            given = ", ".join(
+                f"{_flag(name)} {getattr(args, f'cfg_{name}')}"
+                for name in config_fields
+                if hasattr(args, f"cfg_{name}")
+            )
+            given = given or "the default options"
+            raise CLIError(
+                f"the algorithm options do not fit these images ({given}): {_one_line(exc)}"
+            ) from exc
+        t_estimate = time.perf_counter() - t1
 
-    t1 = time.perf_counter()
-    result = estimate(f1, f2, rig, config, t=t)  # inputs checked above: errors here are bugs
-    t_estimate = time.perf_counter() - t1
+        t2 = time.perf_counter()
+        cols = result.columns
+        cols["time_to_contact"] = time_to_contact(cols["r"], cols["dr_dt"])
+        result.to_csv(stage / "flow.csv")
+        if not args.no_pictures:
+            _pictures(stage, f1[t], rig.cam1, cols, args.arrow_scale)
+        t_write = time.perf_counter() - t2
 
-    t2 = time.perf_counter()
-    out.mkdir(parents=True, exist_ok=True)
-    cols = result.columns
-    cols["time_to_contact"] = time_to_contact(cols["r"], cols["dr_dt"])
-    result.to_csv(out / "flow.csv")
-    pictures = [] if args.no_pictures else _pictures(out, f1[t], rig.cam1, cols, args.arrow_scale)
-    t_write = time.perf_counter() - t2
-
-    n = len(cols["x"])
-    units = _column_units()
-    summary: dict[str, Any] = {
-        "command": [PROG, *argv],
-        "inputs": info,
-        "rig_source": rig_source,
-        "rig": rig.to_dict(),
-        "config": _jsonable(config),
-        "points": n,
-        "columns": {c: units.get(c, "") for c in cols},
-        "timings_s": {
-            "read": t_read,
-            "estimate": t_estimate,
-            "write": t_write,
-            "pipeline_stages": _jsonable(result.timings),
-        },
-        "outputs": ["flow.csv", "flow.json", *(p.name for p in pictures)],
-        "median_flow_px": float(np.median(np.hypot(cols["dx"], cols["dy"]))) if n else None,
-    }
-    if args.odometry:
-        summary["odometry"] = _odometry_summary(cols)
-    atomic_write_text(out / "flow.json", json.dumps(_jsonable(summary), indent=2) + "\n")
+        n = len(cols["x"])
+        units = _column_units()
+        summary: dict[str, Any] = {
+            "command": [PROG, *argv],
+            "inputs": info,
+            "rig_source": rig_source,
+            "rig": rig.to_dict(),
+            "config": _jsonable(config),
+            "points": n,
+            "columns": {c: units.get(c, "") for c in cols},
+            "timings_s": {
+                "read": t_read,
+                "estimate": t_estimate,
+                "write": t_write,
+                "pipeline_stages": _jsonable(result.timings),
+            },
+            "outputs": list(written),
+            "median_flow_px": float(np.median(np.hypot(cols["dx"], cols["dy"]))) if n else None,
+        }
+        if args.odometry:
+            summary["odometry"] = _odometry_summary(cols)
+        atomic_write_text(stage / "flow.json", json.dumps(_jsonable(summary), indent=2) + "\n")
     return summary
 
 
@@ -586,18 +718,77 @@ def _one_line(exc: BaseException) -> str:
     return " ".join(str(exc).split()) or type(exc).__name__
 
 
+#: errno values that mean the path given is wrong (exit 2), not that the machine refused.
+_BAD_PATH_ERRNOS = {
+    errno.ENOENT: "no such file or folder",
+    errno.ENOTDIR: "a part of the path is a file, not a folder",
+    errno.EISDIR: "is a folder; expected a file",
+    errno.EEXIST: "already exists",
+    errno.ENAMETOOLONG: "name too long",
+    errno.ELOOP: "too many symbolic links",
+}
+
+
+def explain_error(exc: BaseException, out: str | None = None) -> tuple[int, str]:
+    """(exit status, one-line message) for an exception that ended a run.
+
+    Bad input (2): the command's own checks, image, rig and dataset errors, a
+    file that is not text, a path of the wrong kind. The environment (1):
+    permission denied, a read-only or full file system, memory. Anything
+    else is a bug in omniflow (1), reported as such.
+    """
+    # Only modules this run imported can have raised their errors (and importing
+    # scikit-image here just to name a class would cost a second).
+    if isinstance(exc, OutputError):
+        return 2, f"--out {_one_line(exc)}"
+    known: tuple[type, ...] = (CLIError, ImageError, RigError)
+    for module, name in (("omniflow.calibration", "RimError"), ("omnisim.dataset", "DatasetError")):
+        if module in sys.modules:
+            known += (getattr(sys.modules[module], name),)
+    if isinstance(exc, known):
+        return 2, _one_line(exc)
+    if isinstance(exc, UnicodeDecodeError):
+        return 2, f"a file that should be text is not UTF-8 ({_one_line(exc)})"
+    if isinstance(exc, OSError):
+        path = exc.filename if exc.filename is not None else "?"
+        under_out = out is not None and (
+            str(path).startswith(str(out)) or str(out).startswith(str(path))
+        )
+        need = "; --out needs a folder this command can write" if under_out else ""
+        if exc.errno in _BAD_PATH_ERRNOS:
+            return 2, f"{path}: {_BAD_PATH_ERRNOS[exc.errno]}{need}"
+        reason = exc.strerror or _one_line(exc)
+        return 1, f"{path}: {reason}{need}"
+    if isinstance(exc, MemoryError):
+        return 1, "out of memory (try smaller images or fewer --n-theta lines)"
+    text = f"{type(exc).__name__}: {_one_line(exc)}"
+    return 1, f"internal error ({text}); rerun with --debug for the traceback and report it"
+
+
+def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """warnings.showwarning for the command: ``omniflow: warning: ...`` on one line."""
+    print(f"{PROG}: warning: {_one_line(message)}", file=sys.stderr if file is None else file)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``omniflow`` command; returns the exit status."""
-    from omnisim.dataset import DatasetError
-
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser()
     args = parser.parse_args(argv)
-    try:
-        summary = run(args, parser._config_fields, argv)  # type: ignore[attr-defined]
-    except (CLIError, ImageError, RigError, DatasetError) as exc:
-        print(f"{PROG}: error: {_one_line(exc)}", file=sys.stderr)
-        return 2
+    with warnings.catch_warnings():
+        warnings.simplefilter("default")  # shown, once per place, as one line each
+        warnings.showwarning = _one_line_warning
+        try:
+            summary = run(args, parser._config_fields, argv)  # type: ignore[attr-defined]
+        except KeyboardInterrupt:
+            print(f"{PROG}: interrupted; nothing was written", file=sys.stderr)
+            return 130
+        except Exception as exc:  # every failure becomes one line (or, with --debug, a trace)
+            if args.debug:
+                traceback.print_exc()
+            status, message = explain_error(exc, args.out)
+            print(f"{PROG}: error: {message}", file=sys.stderr)
+            return status
     stages = summary["timings_s"]["pipeline_stages"]
     stage_text = ", ".join(
         f"{k} {1e3 * v:.1f} ms" for k, v in stages.items() if isinstance(v, int | float)

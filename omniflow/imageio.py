@@ -12,16 +12,22 @@ file and the problem in one line, so a command-line tool can print it as is.
 
 Writers go through :func:`atomic_output`: the data is written under a temporary
 name in the destination folder and moved into place with :func:`os.replace`, so
-a reader never sees a half-written file.
+a reader never sees a half-written file. A command that writes several files
+that belong together stages them with :class:`OutputSet` and moves them into
+place as a set, so a failed run never leaves a new file beside an old one.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import secrets
-from collections.abc import Iterator, Mapping
+import shutil
+import tempfile
+from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
+from types import TracebackType
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -30,6 +36,8 @@ from omniflow.conventions import LUMA_WEIGHTS
 
 __all__ = [
     "ImageError",
+    "OutputError",
+    "OutputSet",
     "atomic_output",
     "atomic_write_bytes",
     "atomic_write_text",
@@ -48,6 +56,10 @@ RASTER_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".pgm", ".p
 
 class ImageError(ValueError):
     """An image file is missing, unreadable, or holds unusable pixels."""
+
+
+class OutputError(ValueError):
+    """An output location is unusable as given (a file where a folder is expected)."""
 
 
 # -- atomic writes -------------------------------------------------------------
@@ -91,6 +103,200 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
 def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
     """Write UTF-8 ``text`` to ``path`` atomically; return the path."""
     return atomic_write_bytes(path, text.encode("utf-8"))
+
+
+# -- a set of outputs, moved into place together ------------------------------------
+
+#: Name prefix of the staging folders of :class:`OutputSet` (followed by the pid).
+STAGING_PREFIX = ".omniflow-staging-"
+
+
+class OutputSet:
+    """Stage a command's output files, then move them into ``dest`` together.
+
+    Files are written into a staging folder on the same file system as
+    ``dest`` (inside ``dest`` if it exists, else in its nearest existing
+    ancestor); nothing under ``dest`` changes until :meth:`commit`. If ``dest``
+    did not exist, the commit is one :func:`os.rename` of the staging folder.
+    If it did, each staged file replaces its namesake (:func:`os.replace`),
+    files in ``owned`` that this run did not write are removed (so outputs of
+    an earlier run with other options do not linger), and ``manifest`` is
+    moved last, so it always describes the files beside it. Other files in
+    ``dest`` are left alone. Leaving the ``with`` block by an exception
+    removes the staging folder and leaves ``dest`` as it was.
+
+    Parameters
+    ----------
+    dest : path-like
+        The output folder.
+    owned : iterable of str
+        Every file name this command may write in ``dest``.
+    manifest : str, optional
+        The file moved into place last (it names the others).
+
+    Raises
+    ------
+    OutputError
+        ``dest``, an ancestor or one of the ``owned`` names is of the wrong
+        kind (a file where a folder belongs or the reverse).
+    OSError
+        The file system refuses (permission, read-only, full); file names in
+        the error are those under ``dest``, not the staging folder's.
+
+    Examples
+    --------
+    >>> folder = Path(tempfile.mkdtemp()) / "result"
+    >>> with OutputSet(folder, owned=["a.txt", "b.txt"], manifest="b.txt") as stage:
+    ...     _ = (stage / "a.txt").write_text("1")
+    ...     _ = (stage / "b.txt").write_text("2")
+    >>> sorted(p.name for p in folder.iterdir())
+    ['a.txt', 'b.txt']
+    """
+
+    def __init__(
+        self, dest: str | os.PathLike, *, owned: Iterable[str], manifest: str | None = None
+    ) -> None:
+        self.dest = Path(dest)
+        self.owned = tuple(owned)
+        self.manifest = manifest
+        self.staging: Path | None = None
+
+    def __enter__(self) -> Path:
+        return self.open()
+
+    def __exit__(
+        self,
+        kind: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        try:
+            if exc is None:
+                try:
+                    self.commit()
+                except OSError as err:
+                    raise self._renamed(err) from err
+            elif isinstance(exc, OSError) and self._renamed(exc) is not exc:
+                raise self._renamed(exc) from exc
+        finally:
+            self.discard()
+
+    def open(self) -> Path:
+        """Create the staging folder (this also proves the location writable)."""
+        dest = self.dest
+        if dest.exists() or dest.is_symlink():
+            if not dest.is_dir():
+                raise OutputError(f"{dest}: exists and is not a folder; expected a folder")
+            for name in self.owned:
+                target = dest / name
+                if target.exists() and not target.is_file():
+                    raise OutputError(
+                        f"{target}: is a folder (or not a regular file); expected a file "
+                        "this command can replace"
+                    )
+            parent = dest
+        else:
+            parent = dest.parent
+            while not (parent.exists() or parent.is_symlink()):
+                parent = parent.parent
+            if not parent.is_dir():
+                raise OutputError(f"{dest}: {parent} is a file, not a folder")
+        _remove_orphans(parent)
+        try:
+            staging = tempfile.mkdtemp(prefix=f"{STAGING_PREFIX}{os.getpid()}-", dir=parent)
+        except OSError as exc:  # name the folder that refused, not the staging name tried
+            raise type(exc)(exc.errno, exc.strerror, str(parent)) from exc
+        self.staging = Path(staging)
+        return self.staging
+
+    def commit(self) -> list[Path]:
+        """Move the staged files into ``dest``; return their final paths."""
+        if self.staging is None:
+            raise RuntimeError("OutputSet.commit before open")
+        staged = sorted(p.name for p in self.staging.iterdir() if p.is_file())
+        if self.manifest in staged:  # moved last: it describes the files beside it
+            staged.remove(self.manifest)
+            staged.append(self.manifest)
+        if self.staging.parent != self.dest:
+            created = _make_parents(self.dest.parent)
+            try:
+                os.chmod(self.staging, 0o777 & ~_umask())  # mkdtemp made it 0700
+                os.rename(self.staging, self.dest)
+            except OSError:
+                for folder in reversed(created):
+                    with contextlib.suppress(OSError):
+                        folder.rmdir()
+                raise
+            self.staging = None
+            return [self.dest / name for name in staged]
+        for name in staged:  # checked again: the folder may have changed while we ran
+            target = self.dest / name
+            if target.exists() and not target.is_file():
+                raise OutputError(f"{target}: is a folder; expected a file")
+        data = [name for name in staged if name != self.manifest]
+        for name in data:
+            os.replace(self.staging / name, self.dest / name)
+        for stale in sorted(set(self.owned) - set(staged)):  # an earlier run's, not this one's
+            with contextlib.suppress(FileNotFoundError):
+                (self.dest / stale).unlink()
+        if self.manifest in staged:
+            os.replace(self.staging / self.manifest, self.dest / self.manifest)
+        return [self.dest / name for name in staged]
+
+    def discard(self) -> None:
+        """Remove the staging folder and whatever is left in it."""
+        if self.staging is not None:
+            shutil.rmtree(self.staging, ignore_errors=True)
+            self.staging = None
+
+    def _renamed(self, err: OSError) -> OSError:
+        """``err`` naming the path under ``dest`` (not the staging folder), or ``dest``."""
+        name = getattr(err, "filename", None)
+        staging = self.staging
+        if name is None and err.errno is not None:  # a failed write() names no file
+            return type(err)(err.errno, err.strerror, str(self.dest))
+        if staging is None or not isinstance(name, str) or not name.startswith(str(staging)):
+            return err
+        shown = self.dest / Path(name).relative_to(staging)
+        return type(err)(err.errno, err.strerror, str(shown))
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def _make_parents(folder: Path) -> list[Path]:
+    """Create ``folder`` and missing ancestors; return those created, outermost first."""
+    missing = []
+    while not (folder.exists() or folder.is_symlink()):
+        missing.append(folder)
+        folder = folder.parent
+    created = []
+    for path in reversed(missing):
+        path.mkdir()
+        created.append(path)
+    return created
+
+
+def _remove_orphans(parent: Path) -> None:
+    """Remove staging folders in ``parent`` left by processes that no longer run (kill -9)."""
+    with contextlib.suppress(OSError):
+        for entry in parent.glob(f"{STAGING_PREFIX}*"):
+            pid_text = entry.name[len(STAGING_PREFIX) :].split("-", 1)[0]
+            if pid_text.isdigit() and not _alive(int(pid_text)):
+                shutil.rmtree(entry, ignore_errors=True)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's live process
+        return True
+    return True
 
 
 # -- checks and conversions ----------------------------------------------------
@@ -219,6 +425,8 @@ def _require_file(path: Path) -> None:
         raise ImageError(f"{path}: image file not found")
     if not path.is_file():
         raise ImageError(f"{path}: not a file")
+    if not os.access(path, os.R_OK):  # OpenCV would only say "cannot be read"
+        raise PermissionError(errno.EACCES, os.strerror(errno.EACCES), str(path))
 
 
 def _read_exr_image(path: Path, channel: str | None) -> NDArray[np.float32]:
@@ -239,7 +447,10 @@ def _read_exr_image(path: Path, channel: str | None) -> NDArray[np.float32]:
 def _read_raster(path: Path) -> NDArray[np.float32]:
     import cv2
 
-    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    try:
+        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    except cv2.error as exc:  # e.g. a header claiming more than OpenCV's 2^30-pixel limit
+        raise ImageError(f"{path}: cannot be decoded: {_cv2_reason(exc)}") from exc
     if raw is None:
         raise ImageError(
             f"{path}: cannot be read as an image (expected PNG, 16-bit PNG, JPEG or EXR)"
@@ -282,10 +493,10 @@ def write_png(path: str | os.PathLike, image: ArrayLike, *, bits: int = 16) -> P
         raise ValueError(f"write_png: {arr.dtype} data with bits={bits}")
     if arr.ndim == 3:
         arr = cv2.cvtColor(arr, cv2.COLOR_RGB2BGR)
-    with atomic_output(Path(path).with_suffix(".png")) as tmp:
-        if not cv2.imwrite(str(tmp), arr):
-            raise ImageError(f"{path}: OpenCV could not write the PNG")
-    return Path(path).with_suffix(".png")
+    ok, encoded = cv2.imencode(".png", arr)  # encoded in memory: a full disk is an OSError
+    if not ok:
+        raise ImageError(f"{path}: OpenCV could not encode a PNG of shape {arr.shape}")
+    return atomic_write_bytes(Path(path).with_suffix(".png"), encoded.tobytes())
 
 
 def write_exr(path: str | os.PathLike, channels: Mapping[str, ArrayLike] | ArrayLike) -> Path:
@@ -312,6 +523,12 @@ def write_exr(path: str | os.PathLike, channels: Mapping[str, ArrayLike] | Array
     with atomic_output(path) as tmp:
         OpenEXR.File(header, data).write(str(tmp))
     return Path(path)
+
+
+def _cv2_reason(exc: BaseException) -> str:
+    """The assertion of an OpenCV error without its source location."""
+    text = _one_line(exc)
+    return text.split("error: ", 1)[-1] if "error: " in text else text
 
 
 def _one_line(exc: BaseException) -> str:

@@ -48,6 +48,7 @@ benchmarks/bench_omniflow.py compares the whole step with OpenCV DIS.
 from __future__ import annotations
 
 import time
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field, fields, replace
 from functools import lru_cache
@@ -73,6 +74,7 @@ from omniflow.rig import Rig, Unit
 
 __all__ = [
     "COLUMNS",
+    "NoMatchesWarning",
     "OmniFlowConfig",
     "OmniFlowResult",
     "estimate",
@@ -577,6 +579,28 @@ def _check_inputs(frames1, frames2, rig: Rig, t: int) -> None:
             )
 
 
+class NoMatchesWarning(UserWarning):
+    """:func:`estimate` found no stereo match, so its result has no points.
+
+    Zero matches is an answer, not an error: a dark or lens-capped frame, a
+    constant image, or a rig whose units share no range in the searched window
+    leave nothing to measure. The result then has every column, each of length 0.
+    """
+
+
+def _no_points(timings: dict, t_start: float, config, n_sig: int) -> OmniFlowResult:
+    """The empty result (every column of :data:`COLUMNS`, length 0) with a warning."""
+    warnings.warn(
+        f"no stereo matches ({n_sig} significant points in cam1 tried): the result is empty "
+        "(is the image dark, constant, or outside the units' common view?)",
+        NoMatchesWarning,
+        stacklevel=3,
+    )
+    timings.update(sample=0.0, solve=0.0, total=time.perf_counter() - t_start)
+    columns = {name: np.zeros(0) for name in COLUMNS}
+    return OmniFlowResult(columns=columns, timings=timings, config=config, n_significant=n_sig)
+
+
 def estimate(
     frames1: Sequence[NDArray],
     frames2: Sequence[NDArray],
@@ -604,6 +628,8 @@ def estimate(
     Returns
     -------
     OmniFlowResult
+        With no stereo match (a dark or constant image, no common view) every
+        column has length 0 and a :class:`NoMatchesWarning` is issued.
     """
     config = OmniFlowConfig() if config is None else config
     _check_inputs(frames1, frames2, rig, t)
@@ -658,6 +684,8 @@ def estimate(
     else:
         timings["grids"] = 0.0
         timings["match"] = 0.0
+    if len(matches.theta) == 0:
+        return _no_points(timings, t_start, config, n_sig)
 
     t_s = time.perf_counter()
     result = flow_at_matches(matches, rig, cam1, cam2, config)

@@ -354,6 +354,15 @@ def rig_from_dict(data: dict[str, Any], where: str = "rig") -> Rig:
             name=name,
         )
         unit.validate(where)  # an impossible d, R or r_m is named before v is compared
+        corner = math.hypot(
+            max(unit.x_c, unit.width - unit.x_c), max(unit.y_c, unit.height - unit.y_c)
+        )
+        if unit.r_m > corner:  # the whole image lies inside the mirror: no rim to see
+            raise RigError(
+                f"{label} ({name}).r_m = {unit.r_m:g}: the rim circle lies outside the "
+                f"{unit.width}x{unit.height} image; expected r_m <= {corner:.1f} px (the "
+                "distance from the centre to the farthest image corner)"
+            )
         if "v" in cam:
             v = _number(cam["v"], f"{label}.v")
             if abs(v - unit.v) > 1e-6 * unit.v:
@@ -369,9 +378,16 @@ def rig_from_dict(data: dict[str, Any], where: str = "rig") -> Rig:
 def load_rig(path: str | Path) -> Rig:
     """Read a rig file (``.toml`` or ``.json``, including an omnisim ``dataset.json``)."""
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise RigError(f"{path}: rig file not found")
-    text = path.read_text()
+    if not path.is_file():
+        raise RigError(f"{path}: not a file; expected a rig file (.toml or .json)")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise RigError(
+            f"{path}: not UTF-8 text (byte {exc.start}); expected a TOML or JSON rig file"
+        ) from exc
     try:
         data = json.loads(text) if path.suffix.lower() == ".json" else tomllib.loads(text)
     except (json.JSONDecodeError, tomllib.TOMLDecodeError) as exc:

@@ -20,10 +20,17 @@ Checks (names as printed):
     where gt.stereo.valid, gt.stereo.h_other equals eq. (3)/(4) of the other camera
     at (gt.r, gt.h): max |difference|, px.
 ``flow_polar``
-    gt.flow.dh, gt.flow.hdtheta agree with gt.flow.dx, dy (conventions.py): max px.
+    gt.flow.dh, gt.flow.hdtheta agree with gt.flow.dx, dy (conventions.py): max px
+    (format version 2: the same for gt.bflow).
 ``flo_file``
-    the .flo files hold gt.flow.dx, dy where gt.flow.valid and the unknown value
-    elsewhere: max |difference|, px, and no validity disagreement.
+    the .flo files hold gt.flow.dx, dy where the flow is known (version 1: where
+    gt.flow.valid; version 2: where the next position is defined, gt.flow.valid +
+    occluded + outside) and the unknown value elsewhere: max |difference|, px, and no
+    validity disagreement; version 2's mask PNGs must equal gt.flow.occluded, outside.
+``flow_masks``
+    format version 2: gt.flow.valid, .occluded, .outside (and the gt.bflow ones) are
+    0/1, disjoint and 0 where gt.valid is 0; frame 0's backward flow is all 0. Figure:
+    pixels that break this (threshold 0).
 ``static_world``
     on static objects (same pose in frames t and t+1), away from object boundaries
     (object-id mask eroded by one pixel in both frames), the world point at pixel p in
@@ -182,6 +189,28 @@ def _is_lambertian(material) -> bool:
     return "diffuse" in str(material).lower()
 
 
+def _mask_consistency(ch: dict[str, NDArray], k: int) -> tuple[int, int]:
+    """Version 2 flow masks: (pixels where they break the contract, pixels looked at).
+
+    Per direction (``gt.flow``, ``gt.bflow``): valid, occluded, outside are 0/1, disjoint
+    and 0 where ``gt.valid`` is 0; frame 0's backward masks and flow are all 0.
+    """
+    valid = ch["gt.valid"] > 0.5
+    bad = np.zeros(valid.shape, bool)
+    for key in ("gt.flow", "gt.bflow"):
+        masks = [ch[f"{key}.{m}"] for m in ("valid", "occluded", "outside")]
+        total = np.zeros(valid.shape)
+        for m in masks:
+            bad |= (m != 0) & (m != 1)
+            total += m
+        bad |= (total > 1) | ((total > 0) & ~valid)
+        if key == "gt.bflow" and k == 0:
+            for c in ("dx", "dy", "dh", "hdtheta"):
+                bad |= ch[f"{key}.{c}"] != 0
+            bad |= total != 0
+    return int(bad.sum()), bad.size
+
+
 def run_checks(
     ds: Dataset,
     *,
@@ -207,6 +236,7 @@ def run_checks(
     unknown_ids: set[int] = set()
     flo_mismatch = 0
     n_valid = 0
+    mask_bad, mask_n = 0, 0  # version 2: flow mask consistency
 
     cache: dict[tuple[int, str], dict[str, NDArray]] = {}
 
@@ -262,11 +292,24 @@ def run_checks(
             e_dh = np.abs((h2 - h_i) - ch["gt.flow.dh"])
             e_ht = np.abs(h_i * _wrap(th2 - th_i) - ch["gt.flow.hdtheta"])
             acc["flow_polar"].add(np.maximum(e_dh, e_ht)[fv])
+            if ds.version >= 2:  # the backward flow, wherever it is seen at t - 1
+                bv = (ch["gt.bflow.valid"] > 0.5) & valid
+                h2, th2 = unit.polar_of_pixel(x + ch["gt.bflow.dx"], y + ch["gt.bflow.dy"])
+                e_dh = np.abs((h2 - h_i) - ch["gt.bflow.dh"])
+                e_ht = np.abs(h_i * _wrap(th2 - th_i) - ch["gt.bflow.hdtheta"])
+                acc["flow_polar"].add(np.maximum(e_dh, e_ht)[bv])
 
             # the .flo file
             flow, flo_ok = ds.read_flo(k, cam)
-            flo_mismatch += int((flo_ok != (ch["gt.flow.valid"] > 0.5)).sum())
-            both = flo_ok & (ch["gt.flow.valid"] > 0.5)
+            known = ds.flo_known(ch)  # version 1: gt.flow.valid; 2: every defined flow
+            flo_mismatch += int((flo_ok != known).sum())
+            for name, mask in ds.read_flow_masks(k, cam).items():  # version 2's PNGs
+                flo_mismatch += int((mask != (ch[name] > 0.5)).sum())
+            both = flo_ok & known
+            if ds.version >= 2:
+                bad, n = _mask_consistency(ch, k)
+                mask_bad += bad
+                mask_n += n
             e = np.maximum(np.abs(flow[..., 0] - ch["gt.flow.dx"]), np.abs(flow[..., 1] - dy))
             acc["flo_file"].add(e[both])
 
@@ -371,6 +414,18 @@ def run_checks(
         acc["flow_polar"],
         tol.geometry_px,
         "px",
+    )
+    results.append(
+        CheckResult(
+            "flow_masks",
+            "gt.flow/bflow valid, occluded, outside: 0/1, disjoint, inside gt.valid",
+            float(mask_bad) if mask_n else math.nan,
+            0.0,
+            "px",
+            mask_n,
+            (mask_bad == 0) if mask_n else None,
+            "" if mask_n else "format version 1: no masks",
+        )
     )
     r_flo = acc["flo_file"]
     results.append(

@@ -1,18 +1,27 @@
-"""The ``omnisim`` command: ``omnisim render SCENE --out DIR`` and ``omnisim check DIR``.
+"""The ``omnisim`` command: ``omnisim render SCENE --out DIR``, ``omnisim check DIR`` and
+``omnisim export DIR --format sintel|kitti|png --out OUT``.
 
-Exit status: 0 success; 1 a self-check failed (``check``, or ``render --check``);
-2 a bad scene file, bad option, or an output directory that holds another dataset
+Exit status: 0 success; 1 a self-check failed (``check``, or ``render --check``),
+or the environment failed (a renderer package not installed, a Dask scheduler that
+does not answer, a disk error); 2 bad input: a bad scene file, option, input image or
+dataset, an output directory that holds another dataset or is being written by
+another render, a request this machine cannot hold, an incomplete dataset to check
 (reported as one line before any rendering starts); 130 interrupted (the frames
 finished so far are kept; run the same command again to resume).
+
+Every error is one line on stderr, ``omnisim: error: ...``, naming the file, key,
+value or address and what was expected; ``--debug`` adds the Python traceback.
 """
 
 from __future__ import annotations
 
 import argparse
+import errno
 import re
 import signal
 import sys
 import tomllib
+import traceback
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +32,26 @@ PROG = "omnisim"
 
 class _UsageError(Exception):
     pass
+
+
+class _IncompleteError(Exception):
+    """A dataset to check has frames missing (and --partial was not given)."""
+
+
+#: Modules of the ``sim`` extra (``pip install "omniflow-testbed[sim]"``).
+SIM_MODULES = ("mitsuba", "drjit", "trimesh", "dask", "distributed", "psutil")
+#: errno values that mean "the path you gave is wrong" (exit 2) rather than the machine.
+_BAD_PATH_ERRNOS = {
+    errno.ENOENT,
+    errno.ENOTDIR,
+    errno.EISDIR,
+    errno.EEXIST,
+    errno.EACCES,
+    errno.EPERM,
+    errno.EROFS,
+    errno.ENAMETOOLONG,
+    errno.ELOOP,
+}
 
 
 def _one_line(msg: object) -> str:
@@ -70,8 +99,15 @@ def _nonneg(text: str) -> int:
     return v
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with a one-line error (no usage block): ``PROG CMD: error: ...``, exit 2."""
+
+    def error(self, message: str):  # type: ignore[override]
+        self.exit(2, f"{self.prog}: error: {_one_line(message)} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = _Parser(
         prog=PROG,
         description="Render coaxial conical-mirror stereo sequences with exact ground truth "
         "(Mitsuba 3) and check datasets.",
@@ -106,10 +142,28 @@ def build_parser() -> argparse.ArgumentParser:
         help="override any scene key (dotted, TOML value), e.g. render.max_depth=3; repeatable",
     )
     r.add_argument(
+        "--camera",
+        dest="camera_sets",
+        type=_parse_set,
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a camera-model parameter (the scene's [camera] table), e.g. "
+        "read_noise=10, bits=12, response=srgb; repeatable; see docs/scene_format.md",
+    )
+    r.add_argument(
         "--scheduler",
         metavar="ADDRESS",
         help="render frames as tasks on this Dask scheduler (tcp://host:8786); the "
         "workers need the scene file at the same path",
+    )
+    r.add_argument(
+        "--scheduler-timeout",
+        type=float,
+        default=10.0,
+        metavar="S",
+        help="with --scheduler: seconds to wait for the scheduler to answer and for a "
+        "worker to be there (default 10)",
     )
     r.add_argument(
         "--write-on",
@@ -119,6 +173,11 @@ def build_parser() -> argparse.ArgumentParser:
         "shared file system; default: client)",
     )
     r.add_argument("--check", action="store_true", help="run omnisim check on DIR afterwards")
+    r.add_argument(
+        "--no-resource-check",
+        action="store_true",
+        help="skip the pre-flight estimate of memory and disk against this machine",
+    )
     r.add_argument("--no-progress", action="store_true", help="no progress bar")
     r.add_argument(
         "--renderer", default=None, metavar="MODULE:FUNCTION", help=argparse.SUPPRESS
@@ -137,6 +196,18 @@ def build_parser() -> argparse.ArgumentParser:
         "--json", dest="json_out", type=Path, metavar="FILE", help="also write the results as JSON"
     )
     c.add_argument("--progress", action="store_true", help="progress bar")
+    c.add_argument(
+        "--partial",
+        action="store_true",
+        help="check the frames that are there even if some are missing (says how many)",
+    )
+    from omnisim.export import add_export_parser
+
+    e = add_export_parser(sub)
+    for sp in (r, c, e):
+        sp.add_argument(
+            "--debug", action="store_true", help="show the Python traceback of an error"
+        )
     return p
 
 
@@ -144,6 +215,8 @@ def _overrides(args: argparse.Namespace) -> dict[str, Any]:
     ov: dict[str, Any] = {}
     for key, value in args.sets:
         ov[key] = value
+    for key, value in getattr(args, "camera_sets", []):
+        ov[f"camera.{key.removeprefix('camera.')}"] = value
     if args.frames is not None:
         ov["frames"] = args.frames
     if args.resolution is not None:
@@ -173,9 +246,21 @@ def _cmd_check(args: argparse.Namespace) -> int:
     ds = open_dataset(args.dir)
     frames = _frame_slice(args.frames, ds.frame_count)
     done = ds.frames_done()
+    wanted = list(range(ds.frame_count)) if frames is None else frames
+    missing = sorted(set(wanted) - set(done))
+    if not wanted:
+        raise _UsageError(f"--frames {args.frames!r}: selects no frame of 0..{ds.frame_count - 1}")
+    if missing and not getattr(args, "partial", False):
+        shown = ", ".join(map(str, missing[:5])) + (", ..." if len(missing) > 5 else "")
+        raise _IncompleteError(
+            f"{args.dir}: incomplete dataset: {len(missing)} of {len(wanted)} frames to check "
+            f"are missing (frame {shown}); render it to the end (run the same omnisim render "
+            "again) or pass --partial to check the frames that are there"
+        )
     print(
         f"{args.dir}: {len(done)} of {ds.frame_count} frames rendered; "
-        f"checking {len(done) if frames is None else len(set(frames) & set(done))}"
+        f"checking {len(set(wanted) & set(done))}"
+        + (f" ({len(missing)} missing, not checked)" if missing else "")
     )
     results = run_checks(ds, frames=frames, progress=args.progress)
     print(format_results(results))
@@ -205,13 +290,17 @@ def _cmd_render(args: argparse.Namespace) -> int:
         scheduler=args.scheduler,
         write_on=args.write_on,
         progress=not args.no_progress,
+        resource_check=not args.no_resource_check,
+        scheduler_timeout=args.scheduler_timeout,
     )
     print(
         f"{args.out}: {res.frames} frames ({len(res.rendered)} rendered now, "
         f"{len(res.skipped)} already done) in {res.seconds:.1f} s"
     )
     if args.check:
-        ns = argparse.Namespace(dir=args.out, frames=None, json_out=None, progress=False)
+        ns = argparse.Namespace(
+            dir=args.out, frames=None, json_out=None, progress=False, partial=False
+        )
         return _cmd_check(ns)
     return 0
 
@@ -220,15 +309,46 @@ def _sigterm(signum, frame):  # let finally/except blocks clean temporaries up
     raise KeyboardInterrupt(f"signal {signum}")
 
 
+def _error(msg: object) -> None:
+    print(f"{PROG}: error: {_one_line(msg)}", file=sys.stderr)
+
+
+def _describe_exception(exc: BaseException) -> tuple[str, int] | None:
+    """(one-line message, exit status) for an exception the handler knows, else None."""
+    from omnisim.dataset import DatasetError
+    from omnisim.distributed import ClusterError
+
+    if isinstance(exc, DatasetError | _UsageError | _IncompleteError):
+        return str(exc), 2
+    if isinstance(exc, ClusterError):
+        return str(exc), exc.exit_status
+    if isinstance(exc, ModuleNotFoundError) and (exc.name or "").split(".")[0] in SIM_MODULES:
+        return (
+            f"the renderer needs the module {exc.name!r}, which is not installed; install "
+            "the renderer with: pip install 'omniflow-testbed[sim]' (from a checkout: "
+            "pip install '.[sim]')",
+            1,
+        )
+    if isinstance(exc, UnicodeDecodeError):
+        return f"a file is not UTF-8 text ({exc.reason} at byte {exc.start}); expected text", 2
+    if isinstance(exc, MemoryError):
+        return "out of memory; render fewer frames or smaller images", 1
+    if isinstance(exc, OSError):
+        path = exc.filename
+        what = exc.strerror or str(exc)
+        if path is None:
+            return f"{what} (errno {exc.errno})", 1
+        if exc.errno in _BAD_PATH_ERRNOS:
+            return f"{path}: {what}; expected a path this user can read and write", 2
+        return f"{path}: {what}", 1
+    return None
+
+
 def main(argv: list[str] | None = None) -> int:
+    """Run the command; the exit status (module docstring). Errors are one line."""
     parser = build_parser()
     args = parser.parse_args(argv)
-    from omnisim.dataset import DatasetError
-
-    try:
-        from omnisim.scene import SceneError
-    except ImportError:  # pragma: no cover - the scene model is part of the package
-        SceneError = ValueError
+    debug = bool(getattr(args, "debug", False))
 
     old = signal.getsignal(signal.SIGTERM)
     try:
@@ -236,21 +356,43 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError:  # not the main thread
         old = None
     try:
-        if args.command == "render":
-            return _cmd_render(args)
-        return _cmd_check(args)
-    except SceneError as exc:
-        print(f"{PROG}: error: {_one_line(exc)}", file=sys.stderr)
-        return 2
-    except (DatasetError, _UsageError) as exc:
-        print(f"{PROG}: error: {_one_line(exc)}", file=sys.stderr)
-        return 2
+        from omnisim.job import ResourceError
+
+        try:
+            from omnisim.scene import SceneError
+        except ImportError:  # the sim extra is missing: reported when the scene is loaded
+            SceneError = _IncompleteError
+        try:
+            if args.command == "render":
+                return _cmd_render(args)
+            if args.command == "export":
+                from omnisim.export import run_cli
+
+                return run_cli(args)
+            return _cmd_check(args)
+        except (SceneError, ResourceError) as exc:
+            if debug:
+                traceback.print_exc()
+            _error(exc)
+            return 2
     except KeyboardInterrupt:
         print(
             f"{PROG}: interrupted; finished frames are kept, run the same command again to resume",
             file=sys.stderr,
         )
         return 130
+    except Exception as exc:
+        if debug:
+            traceback.print_exc()
+        known = _describe_exception(exc)
+        if known is None:
+            _error(
+                f"internal error: {type(exc).__name__}: {exc} (run again with --debug for the "
+                "traceback, and please report it)"
+            )
+            return 1
+        _error(known[0])
+        return known[1]
     finally:
         if old is not None:
             signal.signal(signal.SIGTERM, old)

@@ -5,6 +5,10 @@ Layout (see ``docs/dataset_format.md`` for every key and channel)::
     DIR/dataset.json                 metadata: format, scene, rig, cameras, poses, ...
     DIR/frames/000000/cam1.exr       one multi-channel float32 EXR per camera and frame
     DIR/frames/000000/cam1.flo       Middlebury optical flow (dx, dy) of that camera
+    DIR/frames/000000/cam1.occluded.png  (version 2) 0/255: the point is hidden at t + 1
+    DIR/frames/000000/cam1.outside.png   (version 2) 0/255: the point leaves the mirror
+    DIR/frames/000000/cam1.png       the camera model's image of the radiance (when
+                                     dataset.json has a "camera" section; 8 or 16 bit)
     DIR/frames/000000/cam2.exr
     DIR/frames/000000/cam2.flo
     DIR/frames/000001/...
@@ -16,6 +20,14 @@ its final directory exists with all its files; no partial file is ever visible
 under a final name. ``dataset.json`` is written the same way (temporary name,
 fsync, rename) before any frame.
 
+One writer at a time: :class:`DatasetWriter` holds an exclusive ``fcntl`` lock on
+``DIR/.omnisim.lock`` while it writes, so a second render into the same directory
+is refused with one line (:class:`DatasetLockedError`) instead of racing the first.
+Every temporary name starts with a dot and contains ``.tmp.`` (frame directories,
+``dataset.json``, the EXR encoder's scratch directories ``frames/.exr.tmp.XXXX``);
+the writer removes them, under the lock, when it opens the directory, together
+with the ``frames/tmpXXXXXXXX/`` scratch directories of older versions.
+
 This module imports neither Mitsuba nor the scene model, so readers (validation,
 the omniflow command) need only numpy and OpenEXR.
 """
@@ -23,11 +35,13 @@ the omniflow command) need only numpy and OpenEXR.
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import json
 import math
 import os
 import re
 import shutil
+import threading
 import uuid
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
@@ -41,36 +55,50 @@ from omniflow.rig import Rig, RigError, rig_from_dict
 
 __all__ = [
     "CHANNELS",
+    "CHANNELS_V1",
+    "CHANNEL_INFO",
     "FLO_MAGIC",
     "FLO_UNKNOWN",
     "FLO_UNKNOWN_THRESH",
     "FORMAT_NAME",
     "FORMAT_VERSION",
     "GT_CHANNELS",
+    "GT_CHANNELS_V1",
+    "MASK_FILES",
+    "READ_VERSIONS",
     "Dataset",
     "DatasetError",
+    "DatasetLockedError",
     "DatasetMismatchError",
     "DatasetWriter",
     "atomic_write_bytes",
     "atomic_write_json",
+    "camera_from_meta",
+    "channels_for",
     "compare_meta",
     "encode_frame",
     "exr_bytes",
+    "exr_header",
     "flo_bytes",
+    "flo_known",
     "frame_name",
     "open_dataset",
     "read_exr",
     "read_flo",
+    "read_mask_png",
     "write_exr",
     "write_flo",
 ]
 
 #: ``dataset.json["format"]`` and ``["format_version"]``.
 FORMAT_NAME = "omnisim-dataset"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+#: Format versions this module reads (and writes: a frame of version 1 channels is
+#: written as version 1, e.g. by ``omniflow.synthetic``, which has no backward flow).
+READ_VERSIONS = (1, 2)
 
-#: Ground-truth channel names, exactly as the contract spells them.
-GT_CHANNELS: tuple[str, ...] = (
+#: Ground-truth channel names of format version 1.
+GT_CHANNELS_V1: tuple[str, ...] = (
     "gt.valid",
     "gt.r",
     "gt.theta",
@@ -87,8 +115,78 @@ GT_CHANNELS: tuple[str, ...] = (
     "gt.stereo.h_other",
     "gt.stereo.valid",
 )
+#: Channels format version 2 adds: why forward flow is not visible at t + 1, and the
+#: backward flow (t to t - 1) with the same three masks.
+_V2_ADDED: tuple[str, ...] = (
+    "gt.flow.occluded",
+    "gt.flow.outside",
+    "gt.bflow.dx",
+    "gt.bflow.dy",
+    "gt.bflow.dh",
+    "gt.bflow.hdtheta",
+    "gt.bflow.valid",
+    "gt.bflow.occluded",
+    "gt.bflow.outside",
+)
+#: Ground-truth channel names (the current version), exactly as the contract spells them:
+#: version 1's with the added ones after ``gt.flow.valid``.
+GT_CHANNELS: tuple[str, ...] = (
+    *GT_CHANNELS_V1[: GT_CHANNELS_V1.index("gt.flow.valid") + 1],
+    *_V2_ADDED,
+    *GT_CHANNELS_V1[GT_CHANNELS_V1.index("gt.flow.valid") + 1 :],
+)
 #: Every channel of a camera's EXR: linear radiance R, G, B, then the ground truth.
 CHANNELS: tuple[str, ...] = ("R", "G", "B", *GT_CHANNELS)
+#: The channels of a version 1 EXR.
+CHANNELS_V1: tuple[str, ...] = ("R", "G", "B", *GT_CHANNELS_V1)
+
+#: Unit and one-line meaning of every channel; written into each version 2 EXR's header
+#: (``omnisim.channel.<name>``) so one file is understood without dataset.json.
+CHANNEL_INFO: dict[str, tuple[str, str]] = {
+    "R": ("radiance", "linear red radiance (Mitsuba, no tone mapping); 0 outside the rim"),
+    "G": ("radiance", "linear green radiance"),
+    "B": ("radiance", "linear blue radiance"),
+    "gt.valid": ("0/1", "1 where the pixel centre sees a scene object through the mirror"),
+    "gt.r": ("m", "range of the seen point: distance from the rig axis"),
+    "gt.theta": ("rad", "azimuth of the seen point in the rig frame, atan2(Y, X), [-pi, pi)"),
+    "gt.h": ("m", "height of the seen point in the rig frame, above cam2's cone tip"),
+    "gt.X": ("m", "world X of the seen point"),
+    "gt.Y": ("m", "world Y of the seen point"),
+    "gt.Z": ("m", "world Z (height) of the seen point; NOT a depth or distance"),
+    "gt.object": ("id", "object id of dataset.json objects[], 0 where nothing is hit"),
+    "gt.flow.dx": ("px", "flow t -> t+1, x (right); 0 where the next position is undefined"),
+    "gt.flow.dy": ("px", "flow t -> t+1, y (down); 0 where the next position is undefined"),
+    "gt.flow.dh": ("px", "flow t -> t+1, radial: image radius at t+1 minus at t"),
+    "gt.flow.hdtheta": ("px", "flow t -> t+1, tangential: h_i(t) wrap(theta_i(t+1) - theta_i)"),
+    "gt.flow.valid": ("0/1", "1 where the point is seen at t+1 (on the mirror, unoccluded)"),
+    "gt.flow.occluded": ("0/1", "1 where the point is on the mirror at t+1 but hidden"),
+    "gt.flow.outside": ("0/1", "1 where the point's image at t+1 is off the mirror"),
+    "gt.bflow.dx": ("px", "flow t -> t-1, x; 0 where undefined (all of frame 0)"),
+    "gt.bflow.dy": ("px", "flow t -> t-1, y; 0 where undefined (all of frame 0)"),
+    "gt.bflow.dh": ("px", "flow t -> t-1, radial"),
+    "gt.bflow.hdtheta": ("px", "flow t -> t-1, tangential"),
+    "gt.bflow.valid": ("0/1", "1 where the point was seen at t-1; 0 on frame 0"),
+    "gt.bflow.occluded": ("0/1", "1 where the point was on the mirror at t-1 but hidden"),
+    "gt.bflow.outside": ("0/1", "1 where the point's image at t-1 was off the mirror"),
+    "gt.stereo.h_other": ("px", "image radius of the point in the other unit, eq. (3)/(4)"),
+    "gt.stereo.valid": ("0/1", "1 where the other unit sees the point"),
+}
+
+#: Version 2 mask images beside each camera's .flo: file suffix -> channel (0 or 255).
+MASK_FILES: dict[str, str] = {
+    "occluded.png": "gt.flow.occluded",
+    "outside.png": "gt.flow.outside",
+}
+
+
+def channels_for(version: int) -> tuple[str, ...]:
+    """The EXR channels of a dataset of format ``version`` (1 or 2)."""
+    if version == 1:
+        return CHANNELS_V1
+    if version == 2:
+        return CHANNELS
+    raise DatasetError(f"format_version {version!r}: this omnisim reads {list(READ_VERSIONS)}")
+
 
 #: Middlebury .flo magic number (the float32 whose bytes read "PIEH").
 FLO_MAGIC = 202021.25
@@ -101,7 +199,11 @@ FLO_UNKNOWN_THRESH = 1e9
 META_NAME = "dataset.json"
 FRAMES_DIR = "frames"
 _FRAME_RE = re.compile(r"^\d{6}$")
-_TMP_RE = re.compile(r"^\.(\d{6}|dataset\.json)\.tmp\.")
+LOCK_NAME = ".omnisim.lock"
+_TMP_RE = re.compile(r"^\.(\d{6}|dataset\.json|exr)\.tmp\.")
+#: Scratch directories of the EXR encoder before it used ``.exr.tmp.`` names
+#: (``tempfile``'s default ``tmpXXXXXXXX``), removed when they hold nothing but ``x.exr``.
+_OLD_SCRATCH_RE = re.compile(r"^tmp[a-z0-9_]{8}$")
 
 
 class DatasetError(ValueError):
@@ -110,6 +212,60 @@ class DatasetError(ValueError):
 
 class DatasetMismatchError(DatasetError):
     """A render would resume into a directory made from a different scene or settings."""
+
+
+class DatasetLockedError(DatasetError):
+    """Another process holds the dataset directory's write lock."""
+
+
+#: Locks this process holds: real path of the directory -> [descriptor, users]. A
+#: process may open several writers on one directory (tests, a threaded Dask worker);
+#: they share the lock, which is released when the last one closes.
+_HELD: dict[str, list[int]] = {}
+_HELD_GUARD = threading.Lock()
+
+
+def _lock_dir(d: Path) -> str:
+    """Take the exclusive write lock of dataset directory ``d``; return its key.
+
+    Raises :class:`DatasetLockedError` at once (no waiting) when another process
+    holds it. The lock file stays; the lock itself ends with the descriptor
+    (:func:`_unlock_dir`, or the process's end, ``kill -9`` included).
+    """
+    key = os.path.realpath(d)
+    with _HELD_GUARD:
+        if key in _HELD:
+            _HELD[key][1] += 1
+            return key
+        path = d / LOCK_NAME
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 64, 0).decode("ascii", "replace").strip() or "?"
+            os.close(fd)
+            raise DatasetLockedError(
+                f"{d}: another omnisim process (pid {holder}) is writing this dataset; wait "
+                "for it to finish (then run again to resume) or use another --out directory"
+            ) from None
+        except BaseException:
+            os.close(fd)
+            raise
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        _HELD[key] = [fd, 1]
+        return key
+
+
+def _unlock_dir(key: str) -> None:
+    with _HELD_GUARD:
+        held = _HELD.get(key)
+        if held is None:
+            return
+        held[1] -= 1
+        if held[1] <= 0:
+            del _HELD[key]
+            os.close(held[0])
 
 
 def frame_name(k: int) -> str:
@@ -171,14 +327,16 @@ def atomic_write_json(path: str | Path, obj: Any) -> None:
 
 def _check_channels(channels: Mapping[str, NDArray], where: str) -> tuple[int, int]:
     names = list(channels)
-    if set(names) != set(CHANNELS) or len(names) != len(CHANNELS):
+    expected = CHANNELS_V1 if set(names) == set(CHANNELS_V1) else CHANNELS
+    if set(names) != set(expected) or len(names) != len(expected):
         missing = [c for c in CHANNELS if c not in channels]
         extra = [c for c in names if c not in CHANNELS]
         raise DatasetError(
-            f"{where}: channels must be exactly {list(CHANNELS)}; missing {missing}, extra {extra}"
+            f"{where}: channels must be exactly {list(CHANNELS)} (or version 1's "
+            f"{list(CHANNELS_V1)}); missing {missing}, extra {extra}"
         )
     shape = None
-    for name in CHANNELS:
+    for name in expected:
         arr = np.asarray(channels[name])
         if arr.ndim != 2:
             raise DatasetError(f"{where}: channel {name} has shape {arr.shape}: expected (H, W)")
@@ -241,10 +399,83 @@ def exr_bytes(
     """The bytes :func:`write_exr` would write (via a scratch file; OpenEXR writes to paths)."""
     import tempfile
 
-    with tempfile.TemporaryDirectory(dir=scratch_dir) as tmp:
+    with tempfile.TemporaryDirectory(dir=scratch_dir, prefix=".exr.tmp.") as tmp:
         p = Path(tmp) / "x.exr"
         write_exr(p, channels, attributes=attributes)
         return p.read_bytes()
+
+
+def _channels_version(channels: Mapping[str, NDArray]) -> int:
+    """Format version of a frame's channel set (checked by :func:`_check_channels`)."""
+    return 1 if "gt.flow.occluded" not in channels else 2
+
+
+def exr_header(meta: Mapping[str, Any], cam: str) -> dict[str, str]:
+    """Version 2 EXR header attributes that make one file self-describing.
+
+    The rig (``omnisim.rig.d``, ``.R``, ``.s``), the camera (``omnisim.cam.tip_h``,
+    ``.x_c``, ``.y_c``, ``.r_m``, ``.v``), units and each channel's unit and meaning
+    (``omnisim.channel.<name>``), all as strings: numbers are Python's shortest
+    round-trip decimal of the float64 in dataset.json (an EXR ``float`` attribute is
+    float32 and would lose the digits eq. (1) needs).
+    """
+    rig = meta.get("rig", {})
+    unit = next((c for c in meta.get("cameras", []) if c.get("name") == cam), None)
+    if unit is None:
+        raise DatasetError(f"dataset.json: camera {cam!r} not in cameras")
+    attrs = {
+        "omnisim.format": f"{FORMAT_NAME} {FORMAT_VERSION}",
+        "omnisim.units": "lengths m (rig, gt.r, gt.h, gt.X/Y/Z), angles rad, image "
+        "quantities px; pixel centre of column j at x = j + 0.5, y down; rig frame: "
+        "h up the axis from cam2's cone tip; world = dataset.json robot.poses[k] x rig",
+        "omnisim.note": "gt.Z is the world height of the seen point, not depth "
+        "(OpenImageIO takes a channel named *Z as depth)",
+    }
+    for key in ("d", "R", "s"):
+        attrs[f"omnisim.rig.{key}"] = repr(float(rig[key]))
+    for key in ("tip_h", "x_c", "y_c", "r_m", "v"):
+        attrs[f"omnisim.cam.{key}"] = repr(float(unit[key]))
+    if "frame_interval" in meta:
+        attrs["omnisim.frame_interval"] = repr(float(meta["frame_interval"]))
+    for name in CHANNELS:
+        u, text = CHANNEL_INFO[name]
+        attrs[f"omnisim.channel.{name}"] = f"[{u}] {text}"
+    return attrs
+
+
+def flo_known(channels: Mapping[str, NDArray], version: int = FORMAT_VERSION) -> NDArray:
+    """Where a dataset's .flo holds a flow (elsewhere Middlebury's unknown, 1e10).
+
+    Version 1: where ``gt.flow.valid`` is 1. Version 2: wherever the point's position
+    at t + 1 is defined, ``gt.flow.valid`` + ``gt.flow.occluded`` + ``gt.flow.outside``
+    (disjoint 0/1 masks).
+    """
+    if version == 1:
+        return np.asarray(channels["gt.flow.valid"]) > 0.5
+    known = sum(
+        np.asarray(channels[f"gt.flow.{m}"], np.float64) for m in ("valid", "occluded", "outside")
+    )
+    return (known > 0.5) & (np.asarray(channels["gt.valid"]) > 0.5)
+
+
+def _mask_png(mask: NDArray) -> bytes:
+    """An 8-bit greyscale PNG, 255 where ``mask`` > 0.5, else 0 (Sintel's mask style)."""
+    import cv2
+
+    ok, buf = cv2.imencode(".png", np.where(np.asarray(mask) > 0.5, 255, 0).astype(np.uint8))
+    if not ok:
+        raise DatasetError("cannot encode a mask PNG")
+    return buf.tobytes()
+
+
+def read_mask_png(path: str | Path) -> NDArray[np.bool_]:
+    """A mask PNG (:data:`MASK_FILES`) as bool (H, W): True where the pixel is > 127."""
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None or img.ndim != 2:
+        raise DatasetError(f"{path}: cannot read as a greyscale mask PNG")
+    return img > 127
 
 
 # -- Middlebury .flo ---------------------------------------------------------------
@@ -307,30 +538,77 @@ def encode_frame(
     *,
     k: int | None = None,
     scratch_dir: str | Path | None = None,
+    meta: Mapping[str, Any] | None = None,
 ) -> dict[str, bytes]:
     """Encode one rendered frame into file bytes ``{"cam1.exr": ..., "cam1.flo": ..., ...}``.
 
-    ``frame`` maps camera name to its channels (exactly :data:`CHANNELS`). The bytes are
-    what :meth:`DatasetWriter.write_frame` writes, so local and distributed runs agree.
+    ``frame`` maps camera name to its channels (exactly :data:`CHANNELS`, or
+    :data:`CHANNELS_V1` for a version 1 dataset). The bytes are what
+    :meth:`DatasetWriter.write_frame` writes, so local and distributed runs agree.
+    Version 2 adds the mask PNGs (:data:`MASK_FILES`) and, given ``meta``
+    (dataset.json), the header attributes of :func:`exr_header`.
+    When ``meta`` (dataset.json) has a ``camera`` section, its camera model
+    (:mod:`omnisim.camera`) is applied to each camera's radiance and ``cam1.png``, ...
+    are added (``k`` is then required: it seeds the noise).
     """
+    camera, rig = camera_from_meta(meta) if meta is not None else (None, None)
+    if camera is not None and k is None:
+        raise DatasetError("encode_frame: the frame index k is needed to apply the camera model")
     files: dict[str, bytes] = {}
     for cam in cameras:
         if cam not in frame:
             raise DatasetError(f"frame {k}: camera {cam!r} missing (got {sorted(frame)})")
         chans = frame[cam]
         _check_channels(chans, f"frame {k} {cam}")
+        version = _channels_version(chans)
+        if meta is not None and meta.get("format_version") != version:
+            raise DatasetError(
+                f"frame {k} {cam}: channels of format version {version}, but dataset.json "
+                f"says format_version {meta.get('format_version')!r}"
+            )
         attrs = {"omnisim.camera": cam}
         if k is not None:
             attrs["omnisim.frame"] = str(int(k))
+        if version >= 2 and meta is not None:
+            attrs.update(exr_header(meta, cam))
         files[f"{cam}.exr"] = exr_bytes(chans, attributes=attrs, scratch_dir=scratch_dir)
         files[f"{cam}.flo"] = flo_bytes(
-            chans["gt.flow.dx"], chans["gt.flow.dy"], chans["gt.flow.valid"]
+            chans["gt.flow.dx"], chans["gt.flow.dy"], flo_known(chans, version)
         )
+        if camera is not None:
+            unit = getattr(rig, cam)
+            rgb = np.stack([chans["R"], chans["G"], chans["B"]], axis=-1)
+            dn = camera.apply(rgb, frame=int(k), cam=cam, centre=(unit.x_c, unit.y_c), r_m=unit.r_m)
+            files[f"{cam}.png"] = camera.png_bytes(dn)
+        if version >= 2:
+            for suffix, name in MASK_FILES.items():
+                files[f"{cam}.{suffix}"] = _mask_png(chans[name])
     return files
 
 
-def _expected_files(cameras: Iterable[str]) -> list[str]:
-    return [f"{cam}.{ext}" for cam in cameras for ext in ("exr", "flo")]
+def camera_from_meta(meta: Mapping[str, Any]) -> tuple[Any, Rig | None]:
+    """``(CameraModel, Rig)`` of a dataset.json with a ``camera`` section, else ``(None, None)``.
+
+    Raises :class:`DatasetError` when the section or the rig is malformed.
+    """
+    section = meta.get("camera")
+    if section is None:
+        return None, None
+    from omnisim.camera import CameraError, CameraModel
+
+    try:
+        model = CameraModel.from_mapping(section, where="dataset.json")
+        rig = rig_from_dict(meta, where="dataset.json")
+    except (CameraError, RigError) as exc:
+        raise DatasetError(str(exc)) from exc
+    return model, rig
+
+
+def _expected_files(
+    cameras: Iterable[str], images: bool = False, version: int = FORMAT_VERSION
+) -> list[str]:
+    exts = ("exr", "flo", *(MASK_FILES if version >= 2 else ()), *(("png",) if images else ()))
+    return [f"{cam}.{ext}" for cam in cameras for ext in exts]
 
 
 def _camera_names(meta: Mapping[str, Any]) -> list[str]:
@@ -393,7 +671,14 @@ class DatasetWriter:
     frame directories of an interrupted run are removed.
     """
 
-    def __init__(self, dir: str | Path, meta: Mapping[str, Any], *, cleanup: bool = True):
+    def __init__(
+        self,
+        dir: str | Path,
+        meta: Mapping[str, Any],
+        *,
+        cleanup: bool = True,
+        lock: bool = True,
+    ):
         self.dir = Path(dir)
         self.meta = _canonical(meta)
         if self.meta.get("format") != FORMAT_NAME:
@@ -401,38 +686,117 @@ class DatasetWriter:
         self.cameras = _camera_names(self.meta)
         if not self.cameras:
             raise DatasetError("meta['cameras'] lists no camera")
+        self.version = self.meta.get("format_version")
+        if self.version not in READ_VERSIONS:
+            raise DatasetError(
+                f"meta['format_version'] = {self.version!r}: expected one of {list(READ_VERSIONS)}"
+            )
+        self.expected_files = _expected_files(self.cameras, "camera" in self.meta, self.version)
         self.frame_count = int(self.meta["frames"])
-        if self.dir.exists() and not self.dir.is_dir():
-            raise DatasetError(f"{self.dir}: exists and is not a directory")
+        self._lock_key: str | None = None
+        self._made: list[Path] = []  # what this writer created, newest last (see abandon)
+        existed = self.dir.exists()
+        if existed and not self.dir.is_dir():
+            raise DatasetError(f"{self.dir}: exists and is not a directory; expected a directory")
         meta_path = self.dir / META_NAME
-        if meta_path.exists():
-            old = _load_meta(meta_path)
-            diffs = _diff_paths(old, self.meta)
-            if diffs:
-                shown = "; ".join(
-                    f"{'.'.join(k)}: {_describe(old, k)} in the directory vs "
-                    f"{_describe(self.meta, k)} now"
-                    for k in diffs[:3]
-                )
-                more = f" and {len(diffs) - 3} more" if len(diffs) > 3 else ""
-                raise DatasetMismatchError(
-                    f"{self.dir}: refusing to resume: it holds a dataset made from a different "
-                    f"scene or settings ({shown}{more}); use another --out directory or delete it"
-                )
-        else:
-            if self.dir.exists() and any(
-                p.name != FRAMES_DIR for p in self.dir.iterdir() if not p.name.startswith(".")
-            ):
-                raise DatasetError(
-                    f"{self.dir}: not empty and has no {META_NAME}: refusing to write a "
-                    "dataset into it; use an empty or new --out directory"
-                )
+        if existed and not meta_path.exists():
+            self._refuse_foreign()
+        if not existed:
+            missing = [p for p in (self.dir, *self.dir.parents) if not p.exists()]
             self.dir.mkdir(parents=True, exist_ok=True)
-            atomic_write_json(meta_path, self.meta)
-        self.frames_dir.mkdir(exist_ok=True)
-        _fsync_dir(self.dir)
-        if cleanup:
+            self._made.extend(reversed(missing))
+        try:
+            if lock:
+                had_lock = (self.dir / LOCK_NAME).exists()
+                self._lock_key = _lock_dir(self.dir)
+                if not had_lock:
+                    self._made.append(self.dir / LOCK_NAME)
+            if meta_path.exists():
+                old = _load_meta(meta_path)
+                self._check_resume(old)
+            else:
+                self._refuse_foreign()
+                atomic_write_json(meta_path, self.meta)
+                self._made.append(meta_path)
+            if not self.frames_dir.exists():
+                self.frames_dir.mkdir()
+                self._made.append(self.frames_dir)
+            _fsync_dir(self.dir)
+            if cleanup:
+                self.remove_temporaries()
+        except BaseException:
+            self.abandon()
+            raise
+
+    def _refuse_foreign(self) -> None:
+        if self.dir.exists() and any(
+            p.name != FRAMES_DIR for p in self.dir.iterdir() if not p.name.startswith(".")
+        ):
+            raise DatasetError(
+                f"{self.dir}: not empty and has no {META_NAME}: refusing to write a "
+                "dataset into it; use an empty or new --out directory"
+            )
+
+    def _check_resume(self, old: Mapping[str, Any]) -> None:
+        diffs = _diff_paths(old, self.meta)
+        if not diffs:
+            return
+        changed = [k for k in diffs if k[:2] == ("inputs", "files") and len(k) > 2]
+        if changed:
+            name = changed[0][2]
+            scene_dir = Path(str(self.meta.get("scene", {}).get("path", "."))).parent
+            raise DatasetMismatchError(
+                f"{scene_dir / name}: changed since the dataset in {self.dir} was started "
+                f"(sha256 {_describe(old, ('inputs', 'files', name, 'sha256'))[1:13]}... "
+                f"then, {_describe(self.meta, ('inputs', 'files', name, 'sha256'))[1:13]}... "
+                "now); restore the file or render into another --out directory"
+            )
+        shown = "; ".join(
+            f"{'.'.join(k)}: {_describe(old, k)} in the directory vs {_describe(self.meta, k)} now"
+            for k in diffs[:3]
+        )
+        more = f" and {len(diffs) - 3} more" if len(diffs) > 3 else ""
+        raise DatasetMismatchError(
+            f"{self.dir}: refusing to resume: it holds a dataset made from a different "
+            f"scene or settings ({shown}{more}); use another --out directory or delete it"
+        )
+
+    def close(self) -> None:
+        """Release the directory's write lock (also done when the process ends)."""
+        if self._lock_key is not None:
+            _unlock_dir(self._lock_key)
+            self._lock_key = None
+
+    def __del__(self) -> None:
+        with contextlib.suppress(Exception):
+            self.close()
+
+    def __enter__(self) -> DatasetWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def abandon(self) -> None:
+        """Undo this writer's start when no frame was written: remove the dataset.json,
+        frames/, lock file and directories it created (nothing that existed before),
+        then release the lock. A failure before the first frame (a renderer that cannot
+        start, say) thus leaves no half-made dataset to block the corrected rerun."""
+        if self.frames_dir.is_dir() and any(
+            _FRAME_RE.match(p.name) for p in self.frames_dir.iterdir()
+        ):
+            self.close()
+            return
+        if self.frames_dir in self._made:
             self.remove_temporaries()
+        for p in reversed(self._made):
+            with contextlib.suppress(OSError):
+                if p.is_dir():
+                    p.rmdir()  # only when empty
+                else:
+                    p.unlink()
+        self._made.clear()
+        self.close()
 
     @property
     def frames_dir(self) -> Path:
@@ -448,7 +812,13 @@ class DatasetWriter:
             if not parent.is_dir():
                 continue
             for p in parent.iterdir():
-                if _TMP_RE.match(p.name):
+                old = (
+                    parent == self.frames_dir
+                    and _OLD_SCRATCH_RE.match(p.name)
+                    and p.is_dir()
+                    and {c.name for c in p.iterdir()} <= {"x.exr"}
+                )
+                if _TMP_RE.match(p.name) or old:
                     if p.is_dir():
                         shutil.rmtree(p, ignore_errors=True)
                     else:
@@ -460,7 +830,7 @@ class DatasetWriter:
     def is_done(self, k: int) -> bool:
         """True when frame ``k``'s final directory exists with every expected file."""
         d = self.frame_dir(k)
-        return d.is_dir() and all((d / f).is_file() for f in _expected_files(self.cameras))
+        return d.is_dir() and all((d / f).is_file() for f in self.expected_files)
 
     def done_frames(self) -> list[int]:
         return [k for k in range(self.frame_count) if self.is_done(k)]
@@ -471,7 +841,7 @@ class DatasetWriter:
     def write_frame(self, k: int, frame: Mapping[str, Mapping[str, NDArray]]) -> Path:
         """Encode and write frame ``k`` (camera -> channels) atomically; returns its directory."""
         return self.write_frame_files(
-            k, encode_frame(frame, self.cameras, k=k, scratch_dir=self.frames_dir)
+            k, encode_frame(frame, self.cameras, k=k, scratch_dir=self.frames_dir, meta=self.meta)
         )
 
     def write_frame_files(self, k: int, files: Mapping[str, bytes]) -> Path:
@@ -483,7 +853,7 @@ class DatasetWriter:
         """
         if not 0 <= k < self.frame_count:
             raise DatasetError(f"frame {k} outside 0..{self.frame_count - 1}")
-        expected = _expected_files(self.cameras)
+        expected = self.expected_files
         if sorted(files) != sorted(expected):
             raise DatasetError(f"frame {k}: files {sorted(files)}; expected {sorted(expected)}")
         final = self.frame_dir(k)
@@ -516,22 +886,60 @@ class DatasetWriter:
 
 def _load_meta(path: Path) -> dict[str, Any]:
     try:
-        meta = json.loads(path.read_text())
+        meta = json.loads(path.read_text(encoding="utf-8"))
     except OSError as exc:
-        raise DatasetError(f"{path}: cannot read: {exc}") from exc
+        raise DatasetError(f"{path}: cannot read: {exc.strerror or exc}") from exc
+    except UnicodeDecodeError:
+        raise DatasetError(f"{path}: not UTF-8 text; expected the dataset's JSON") from None
     except json.JSONDecodeError as exc:
         raise DatasetError(f"{path}: not valid JSON: {exc}") from exc
     if not isinstance(meta, dict) or meta.get("format") != FORMAT_NAME:
         raise DatasetError(f"{path}: 'format' is not {FORMAT_NAME!r}: not an omnisim dataset")
     ver = meta.get("format_version")
-    if not isinstance(ver, int) or ver > FORMAT_VERSION:
+    if isinstance(ver, bool) or ver not in READ_VERSIONS:
         raise DatasetError(
-            f"{path}: format_version {ver!r}: this omnisim reads versions <= {FORMAT_VERSION}"
+            f"{path}: format_version = {ver!r}: this omnisim reads versions {list(READ_VERSIONS)}"
         )
     for key in ("rig", "cameras", "frames"):
         if key not in meta:
             raise DatasetError(f"{path}: key {key!r} missing")
     return meta
+
+
+def _check_poses(meta: Mapping[str, Any], where: Path, frames: int) -> None:
+    """Raise DatasetError unless robot.poses and every objects[].poses hold ``frames``
+    4x4 matrices (the readers index them by frame)."""
+    lists = [
+        (
+            "robot.poses",
+            meta.get("robot", {}).get("poses") if isinstance(meta.get("robot"), dict) else None,
+        )
+    ]
+    objs = meta.get("objects", [])
+    if not isinstance(objs, list):
+        raise DatasetError(f"{where}: objects = {_describe(meta, ('objects',))}: expected a list")
+    for i, o in enumerate(objs):
+        if not isinstance(o, dict) or "id" not in o:
+            raise DatasetError(f"{where}: objects[{i}]: expected a table with id, name, poses")
+        lists.append((f"objects[{i}].poses", o.get("poses")))
+    for key, poses in lists:
+        if key == "robot.poses" and poses is None:
+            continue  # a dataset of images without robot motion (e.g. from a real rig)
+        if not isinstance(poses, list) or len(poses) != frames:
+            n = len(poses) if isinstance(poses, list) else poses
+            raise DatasetError(
+                f"{where}: {key} has {n!r} entries; expected one 4x4 matrix per frame "
+                f"(frames = {frames})"
+            )
+        try:
+            arr = np.asarray(poses, dtype=float)
+        except (TypeError, ValueError):
+            arr = np.zeros(0)
+        if arr.shape != (frames, 4, 4) or not np.isfinite(arr).all():
+            raise DatasetError(
+                f"{where}: {key}: expected {frames} finite 4x4 matrices (shape "
+                f"({frames}, 4, 4)), got shape {arr.shape}"
+            )
 
 
 @dataclass
@@ -558,6 +966,16 @@ class Dataset:
         """gt.object id -> object name (0 means no object / background)."""
         return {int(o["id"]): str(o["name"]) for o in self.meta.get("objects", [])}
 
+    @property
+    def version(self) -> int:
+        """``format_version`` of the dataset (1 or 2)."""
+        return int(self.meta["format_version"])
+
+    @property
+    def channels(self) -> tuple[str, ...]:
+        """The EXR channels of this dataset's format version."""
+        return channels_for(self.version)
+
     def unit(self, cam: str):
         """The :class:`omniflow.rig.Unit` of camera ``cam``."""
         if cam not in ("cam1", "cam2"):
@@ -570,12 +988,16 @@ class Dataset:
         return self.dir / FRAMES_DIR / frame_name(k)
 
     def path(self, k: int, cam: str, ext: str = "exr") -> Path:
-        """Path of frame ``k``'s file for camera ``cam`` (``ext`` "exr" or "flo")."""
+        """Path of frame ``k``'s file for camera ``cam`` (``ext`` "exr", "flo", "png",
+        "occluded.png" or "outside.png")."""
         return self.frame_dir(k) / f"{cam}.{ext}"
 
     def is_done(self, k: int) -> bool:
         d = self.frame_dir(k)
-        return d.is_dir() and all((d / f).is_file() for f in _expected_files(self.cameras))
+        images = "camera" in self.meta
+        return d.is_dir() and all(
+            (d / f).is_file() for f in _expected_files(self.cameras, images, self.version)
+        )
 
     def frames_done(self) -> list[int]:
         """Indices of frames whose directory is complete."""
@@ -600,7 +1022,7 @@ class Dataset:
         self._check(k, cam)
         path = self.path(k, cam, "exr")
         chans = read_exr(path)
-        missing = [c for c in CHANNELS if c not in chans]
+        missing = [c for c in self.channels if c not in chans]
         if missing:
             raise DatasetError(f"{path}: channels {missing} missing")
         unit = self.unit(cam)
@@ -625,10 +1047,61 @@ class Dataset:
         wr, wg, wb = LUMA_WEIGHTS
         return (wr * c["R"] + wg * c["G"] + wb * c["B"]).astype(np.float32)
 
+    @property
+    def camera(self):
+        """The dataset's :class:`omnisim.camera.CameraModel` (dataset.json ``camera``), or
+        None for a dataset written without one (no PNGs)."""
+        return camera_from_meta(self.meta)[0]
+
+    def read_camera_dn(self, k: int, cam: str) -> NDArray[np.unsignedinteger]:
+        """Digital numbers (H, W, 3) of the camera image ``cam.png`` of frame ``k``:
+        ``uint8`` for 8 bits, else ``uint16`` in ``[0, 2^bits - 1]``."""
+        import cv2
+
+        self._check(k, cam)
+        model = self.camera
+        path = self.path(k, cam, "png")
+        if model is None:
+            raise DatasetError(f"{self.dir}: dataset.json has no camera section: no camera images")
+        pixels = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if pixels is None:
+            raise DatasetError(f"{path}: cannot read the camera image")
+        if pixels.ndim == 3:
+            pixels = pixels[..., ::-1]  # OpenCV's BGR -> RGB
+        unit = self.unit(cam)
+        if pixels.shape[:2] != (unit.height, unit.width):
+            raise DatasetError(
+                f"{path}: image is {pixels.shape[1]}x{pixels.shape[0]}, dataset.json says "
+                f"{unit.width}x{unit.height}"
+            )
+        try:
+            return model.dn_from_png(pixels)
+        except ValueError as exc:
+            raise DatasetError(f"{path}: {exc}") from exc
+
+    def read_camera_image(self, k: int, cam: str, *, grey: bool = False) -> NDArray[np.float32]:
+        """The stored camera image of frame ``k`` as float32 in [0, 1]: RGB (H, W, 3), or
+        with ``grey=True`` its Rec. 709 luma (H, W), as omniflow reads it."""
+        model = self.camera
+        dn = self.read_camera_dn(k, cam)
+        return model.grey(dn) if grey else model.to_float(dn)
+
     def read_flo(self, k: int, cam: str) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
         """The .flo of frame ``k``, camera ``cam``: (flow (H, W, 2), valid (H, W))."""
         self._check(k, cam)
         return read_flo(self.path(k, cam, "flo"))
+
+    def read_flow_masks(self, k: int, cam: str) -> dict[str, NDArray[np.bool_]]:
+        """The mask PNGs beside frame ``k``'s .flo: ``{"gt.flow.occluded": (H, W) bool,
+        "gt.flow.outside": ...}`` (version 2; a version 1 dataset has none: {})."""
+        self._check(k, cam)
+        if self.version < 2:
+            return {}
+        return {name: read_mask_png(self.path(k, cam, sfx)) for sfx, name in MASK_FILES.items()}
+
+    def flo_known(self, channels: Mapping[str, NDArray]) -> NDArray[np.bool_]:
+        """Where this dataset's .flo holds a flow, from the frame's channels (:func:`flo_known`)."""
+        return flo_known(channels, self.version)
 
 
 def open_dataset(dir: str | Path) -> Dataset:
@@ -642,10 +1115,18 @@ def open_dataset(dir: str | Path) -> Dataset:
         rig = rig_from_dict(meta, where=str(meta_path))
     except RigError as exc:
         raise DatasetError(str(exc)) from exc
+    for i, unit in enumerate((rig.cam1, rig.cam2)):
+        if unit.r_m > max(unit.width, unit.height):
+            raise DatasetError(
+                f"{meta_path}: cameras[{i}] ({unit.name}).r_m = {unit.r_m:g} px: larger than "
+                f"the {unit.width}x{unit.height} image; expected the rim radius in pixels, "
+                "inside the image"
+            )
     frames = meta["frames"]
     if isinstance(frames, bool) or not isinstance(frames, int) or frames < 1:
         raise DatasetError(f"{meta_path}: frames = {frames!r}: expected a positive integer")
     fi = meta.get("frame_interval")
     if not isinstance(fi, int | float) or not math.isfinite(fi) or fi <= 0:
         raise DatasetError(f"{meta_path}: frame_interval = {fi!r}: expected seconds > 0")
+    _check_poses(meta, meta_path, frames)
     return Dataset(dir=d, meta=meta, rig=rig, cameras=_camera_names(meta))

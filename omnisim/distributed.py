@@ -19,17 +19,37 @@ Writing, atomic either way:
 
 At most ``2 x (worker threads)`` frames are in flight, so a long sequence does not pile
 finished frames up in worker memory.
+
+Failures of the cluster are :class:`ClusterError` with one line naming the address: a
+scheduler that does not answer within ``timeout`` seconds, a scheduler without workers
+(or whose workers all left) for ``timeout`` seconds, a lost connection, a frame whose
+task failed on a worker.
 """
 
 from __future__ import annotations
 
 import functools
 import json
+import time
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
-__all__ = ["render_on_cluster", "render_task"]
+__all__ = ["SCHEDULER_TIMEOUT", "ClusterError", "render_on_cluster", "render_task"]
+
+#: Seconds to wait for the scheduler to answer, and for at least one worker to be there.
+SCHEDULER_TIMEOUT = 10.0
+#: Seconds between checks that the cluster still has workers while frames are pending.
+POLL = 1.0
+
+
+class ClusterError(RuntimeError):
+    """The Dask cluster failed (address, what happened); ``exit_status`` 1 (environment)
+    or 2 (a malformed address)."""
+
+    def __init__(self, msg: str, exit_status: int = 1):
+        super().__init__(msg)
+        self.exit_status = exit_status
 
 
 @functools.lru_cache(maxsize=4)
@@ -64,11 +84,39 @@ def render_task(
         )
     frame = render_fn(scene, k)
     if out is None:
-        return k, encode_frame(frame, [c["name"] for c in meta["cameras"]], k=k)
-    writer = DatasetWriter(out, meta, cleanup=False)
+        return k, encode_frame(frame, [c["name"] for c in meta["cameras"]], k=k, meta=meta)
+    writer = DatasetWriter(out, meta, cleanup=False, lock=False)  # the client holds the lock
     assert not compare_meta(writer.meta, meta)
     writer.write_frame(k, frame)
     return k, None
+
+
+def _connect(scheduler: str, timeout: float):
+    from distributed import Client
+    from distributed.comm.addressing import parse_address
+    from distributed.comm.registry import get_backend
+
+    try:  # a malformed address is refused before a Client exists (its __del__ complains)
+        get_backend(parse_address(scheduler)[0])
+    except (ValueError, TypeError) as exc:
+        raise ClusterError(
+            f"--scheduler {scheduler!r}: not a scheduler address ({exc}); expected e.g. "
+            "tcp://host:8786",
+            exit_status=2,
+        ) from None
+    try:
+        return Client(scheduler, timeout=timeout, set_as_default=False)
+    except (OSError, TimeoutError) as exc:
+        raise ClusterError(
+            f"--scheduler {scheduler}: no Dask scheduler answered within {timeout:g} s; "
+            "expected a running scheduler at that address (start one with: dask scheduler)"
+        ) from exc
+    except (ValueError, TypeError) as exc:
+        raise ClusterError(
+            f"--scheduler {scheduler!r}: not a scheduler address ({exc}); expected e.g. "
+            "tcp://host:8786",
+            exit_status=2,
+        ) from exc
 
 
 def render_on_cluster(
@@ -80,10 +128,12 @@ def render_on_cluster(
     meta: Mapping[str, Any],
     renderer: str,
     write_on: str = "client",
+    timeout: float = SCHEDULER_TIMEOUT,
 ) -> Iterator[int]:
     """Run the frames ``todo`` as tasks on ``scheduler``; yield each frame index once it is
-    on disk. ``scheduler`` is an address or a ``distributed.Client``."""
-    from distributed import Client, as_completed
+    on disk. ``scheduler`` is an address or a ``distributed.Client``. Raises
+    :class:`ClusterError` when the cluster fails (module docstring)."""
+    from distributed import Client, wait
 
     from omnisim.job import meta_digest
 
@@ -92,8 +142,16 @@ def render_on_cluster(
     if not todo:
         return
     own = not isinstance(scheduler, Client)
-    client = Client(scheduler) if own else scheduler
+    client = _connect(str(scheduler), timeout) if own else scheduler
+    where = f"--scheduler {scheduler}" if own else "the Dask cluster"
     try:
+        try:
+            client.wait_for_workers(1, timeout=timeout)
+        except (TimeoutError, OSError) as exc:
+            raise ClusterError(
+                f"{where}: the scheduler has no workers (waited {timeout:g} s); expected at "
+                "least one (start one with: dask worker ADDRESS)"
+            ) from exc
         digest = meta_digest(meta)
         ov_json = json.dumps(dict(overrides), sort_keys=True)
         out = str(Path(writer.dir).resolve()) if write_on == "worker" else None
@@ -115,17 +173,54 @@ def render_on_cluster(
                 retries=1,
             )
 
-        ac = as_completed([submit(pending.pop(0)) for _ in range(min(window, len(pending)))])
-        for fut in ac:
-            k, files = fut.result()
-            fut.release()
-            if files is not None:
-                writer.write_frame_files(k, files)
-            elif not writer.is_done(k):
-                raise RuntimeError(f"worker reported frame {k} written but it is not in {out}")
-            if pending:
-                ac.add(submit(pending.pop(0)))
-            yield k
+        running = {submit(pending.pop(0)): None for _ in range(min(window, len(pending)))}
+        lonely_since = None
+        while running:
+            try:
+                done, _ = wait(list(running), timeout=POLL, return_when="FIRST_COMPLETED")
+            except TimeoutError:
+                done = set()
+            except OSError as exc:
+                raise ClusterError(f"{where}: lost the connection to the scheduler: {exc}") from exc
+            if not done:
+                if client.scheduler_info().get("workers"):
+                    lonely_since = None
+                elif lonely_since is None:
+                    lonely_since = time.monotonic()
+                elif time.monotonic() - lonely_since > timeout:
+                    raise ClusterError(
+                        f"{where}: all Dask workers are gone ({len(running)} frames pending for "
+                        f"{timeout:g} s); restart the workers and run the same command again "
+                        "to resume"
+                    )
+                continue
+            for fut in done:
+                running.pop(fut)
+                k, files = _result(fut, where)
+                fut.release()
+                if files is not None:
+                    writer.write_frame_files(k, files)
+                elif not writer.is_done(k):
+                    raise ClusterError(f"worker reported frame {k} written but it is not in {out}")
+                if pending:
+                    running[submit(pending.pop(0))] = None
+                yield k
     finally:
         if own:
             client.close()
+
+
+def _result(fut, where: str):
+    """The future's result; a failure of the task or its workers as ClusterError."""
+    from omnisim.dataset import DatasetError
+
+    try:
+        return fut.result()
+    except DatasetError:
+        raise
+    except Exception as exc:
+        name = str(fut.key).rsplit("-", 1)[-1]
+        raise ClusterError(
+            f"{where}: frame {name.lstrip('0') or '0'} failed on a worker: "
+            f"{type(exc).__name__}: {' '.join(str(exc).split())[:300]}"
+        ) from exc

@@ -29,6 +29,15 @@
     at frame + 1, traced through the scene of frame + 1, hits the same
     object at the same point, within ``TRACE_TOL_REL * distance +
     TRACE_TOL_ABS`` along the ray.
+``gt.flow.occluded``, ``gt.flow.outside`` (format version 2)
+    Where ``gt.flow.valid`` is 0 but the position at frame + 1 is defined
+    (h_i > 0): ``occluded`` when that position is on the mirror and in the
+    image but the trace hits something else first, ``outside`` when it is
+    off the mirror or the image. The three masks are disjoint; where none is
+    1 on a ``gt.valid`` pixel the next position does not exist (flow 0).
+``gt.bflow.*`` (format version 2)
+    The same seven channels from this frame to frame - 1 (backward flow),
+    traced in the scene of frame - 1; all 0 on frame 0.
 ``gt.stereo.h_other``
     h_i of the same point in the other camera at this frame, eq. (3)/(4).
 ``gt.stereo.valid``
@@ -103,21 +112,69 @@ def trace(ms, fr: MitsubaFrame, origin: NDArray, direction: NDArray) -> tuple[ND
     f64 = mi.Float64
     o = [f64(np.ascontiguousarray(origin[:, k])) for k in range(3)]
     d = [f64(np.ascontiguousarray(direction[:, k])) for k in range(3)]
-    ray = mi.Ray3f(mi.Point3f(*(mi.Float(c) for c in o)), mi.Vector3f(*(mi.Float(c) for c in d)))
-    pi = fr.scene.ray_intersect_preliminary(ray)
-    hit = pi.is_valid()
-    sid = dr.select(hit, dr.reinterpret_array(mi.UInt32, pi.shape), 0)
+    t32, prim, sid, hit = _first_hit(mi, dr, fr, o, d, dr.full(mi.Bool, True, n))
     obj = dr.gather(mi.UInt32, tables["obj"], sid)
     is_obj = hit & (obj > 0)
-    face = dr.gather(mi.UInt32, tables["base"], sid) + pi.prim_index
+    face = dr.gather(mi.UInt32, tables["base"], sid) + prim
     nx, ny, nz, c = (dr.gather(f64, tables[k], face, is_obj) for k in ("nx", "ny", "nz", "c"))
     den = nx * d[0] + ny * d[1] + nz * d[2]
     t64 = (c - (nx * o[0] + ny * o[1] + nz * o[2])) / den
-    t32 = f64(pi.t)
     close = dr.abs(t64 - t32) <= 1e-3 * t32 + 1e-4  # False for NaN / inf
     t = dr.select(hit, dr.select(is_obj & close, t64, t32), dr.inf)
     dr.eval(t, obj)
     return np.array(t.numpy(), dtype=np.float64), np.array(obj.numpy(), dtype=np.int32)
+
+
+#: Relative size of the two nudges of a ray's direction tried when it misses everything
+#: (radians): a ray through the shared edge of two triangles can slip between them in
+#: Embree's float32 test; the nudged ray finds one of the two triangles, and the hit is
+#: then re-intersected in float64 with the EXACT ray on that triangle's plane, which
+#: contains the edge, so the point is exact. 1e-5 rad is about 100 float32 ulps of a
+#: direction, far above the slip (measured: every hole of the open_field fence closed at
+#: 1e-6 and 1e-5, tests/test_groundtruth.py::test_no_holes_in_any_scene).
+EDGE_NUDGE = 1e-5
+# A fixed direction that no axis-aligned or diagonal mesh edge of the scenes follows.
+_NUDGE_AXIS = (0.2672612419124244, 0.5345224838248488, 0.8017837257372732)
+
+
+def _first_hit(mi, dr, fr: MitsubaFrame, o, d, active):
+    """Embree's first hit of the float64 rays (o, d) where ``active``.
+
+    Returns ``(t, prim_index, shape id, hit)`` (t float64, inf where no hit). A ray that
+    misses is traced again with its direction nudged by :data:`EDGE_NUDGE` towards two
+    directions perpendicular to it (see there): a genuine miss (sky) stays a miss, a ray
+    that slipped through a mesh edge finds the triangle it grazes.
+    """
+    f64 = mi.Float64
+
+    def shoot(dirs, mask):
+        ray = mi.Ray3f(
+            mi.Point3f(*(mi.Float(c) for c in o)), mi.Vector3f(*(mi.Float(c) for c in dirs))
+        )
+        pi = fr.scene.ray_intersect_preliminary(ray, active=mask)
+        ok = mask & pi.is_valid()
+        return (
+            f64(pi.t),
+            pi.prim_index,
+            dr.select(ok, dr.reinterpret_array(mi.UInt32, pi.shape), 0),
+            ok,
+        )
+
+    t, prim, sid, hit = shoot(d, active)
+    # Two unit vectors perpendicular to d: e1 = d x a / |d x a|, e2 = d x e1.
+    a = _NUDGE_AXIS
+    e1 = [d[1] * a[2] - d[2] * a[1], d[2] * a[0] - d[0] * a[2], d[0] * a[1] - d[1] * a[0]]
+    n1 = dr.sqrt(e1[0] * e1[0] + e1[1] * e1[1] + e1[2] * e1[2])
+    e1 = [dr.select(n1 > 1e-9, c / n1, 1.0 if i == 0 else 0.0) for i, c in enumerate(e1)]
+    e2 = [d[1] * e1[2] - d[2] * e1[1], d[2] * e1[0] - d[0] * e1[2], d[0] * e1[1] - d[1] * e1[0]]
+    for e in (e1, e2):
+        miss = active & ~hit
+        t2, prim2, sid2, hit2 = shoot([d[k] + EDGE_NUDGE * e[k] for k in range(3)], miss)
+        t = dr.select(hit2, t2, t)
+        prim = dr.select(hit2, prim2, prim)
+        sid = dr.select(hit2, sid2, sid)
+        hit |= hit2
+    return t, prim, sid, hit
 
 
 def _tables(ms, fr: MitsubaFrame) -> dict:
@@ -214,7 +271,8 @@ def _same_point_batch(ms, fr: MitsubaFrame, jobs) -> list[NDArray]:
 
 def ground_truth_reference(scene, frame: int, cams=CAMERAS) -> dict[str, dict[str, NDArray]]:
     """:func:`ground_truth_frame` computed step by step in numpy (slower; the tests'
-    reference for the fused Dr.Jit path). Three batched traces per frame."""
+    reference for the fused Dr.Jit path). Four batched traces per frame (three on
+    frame 0): this frame, frame + 1, frame - 1, the other unit."""
     ms = get_mitsuba_scene(scene)
     fr = ms.frame(frame)
     inv_robot = _inv(fr.robot_pose)
@@ -250,24 +308,28 @@ def ground_truth_reference(scene, frame: int, cams=CAMERAS) -> dict[str, dict[st
             h_i0=rays.h_i[idx],
             theta0=np.arctan2(rays.dy[idx], rays.dx[idx]),
         )
-    # -- 2. flow: the material points at frame + 1 --------------------------------
-    fr1 = ms.frame(frame + 1)
-    inv_robot1 = _inv(fr1.robot_pose)
-    moves = {oid: fr1.object_poses[oid] @ _inv(fr.object_poses[oid]) for oid in fr.object_poses}
-    jobs = []
-    for cam in cams:
-        st = state[cam]
-        obj, p = st["obj"], st["p"]
-        p1 = np.empty_like(p)
-        for oid in np.unique(obj):
-            m = obj == oid
-            p1[m] = apply_affine(moves[int(oid)], p[m])
-        x1, y1, h_i1, theta1, seen = _project(st["unit"], apply_affine(inv_robot1, p1))
-        st.update(x1=x1, y1=y1, h_i1=h_i1, theta1=theta1, seen1=seen)
-        k = np.nonzero(seen)[0]
-        st["k1"] = k
-        jobs.append((st["unit"], x1[k], y1[k], p1[k], obj[k]))
-    ok1 = _same_point_batch(ms, fr1, jobs)
+    # -- 2. flow: the material points at frame + 1 (gt.flow) and frame - 1 (gt.bflow) ----
+    poses0 = dict(fr.object_poses)
+    for key, step in (("gt.flow", 1), ("gt.bflow", -1)):
+        if frame + step < 0:
+            continue  # frame 0 has no backward flow: its channels stay 0
+        frn = ms.frame(frame + step)
+        inv_robot_n = _inv(frn.robot_pose)
+        moves = {oid: frn.object_poses[oid] @ _inv(pose) for oid, pose in poses0.items()}
+        jobs = []
+        for cam in cams:
+            st = state[cam]
+            obj, p = st["obj"], st["p"]
+            p1 = np.empty_like(p)
+            for oid in np.unique(obj):
+                m = obj == oid
+                p1[m] = apply_affine(moves[int(oid)], p[m])
+            x1, y1, h_i1, theta1, seen = _project(st["unit"], apply_affine(inv_robot_n, p1))
+            k = np.nonzero(seen)[0]
+            st[key] = dict(x1=x1, y1=y1, h_i1=h_i1, theta1=theta1, seen1=seen, k1=k)
+            jobs.append((st["unit"], x1[k], y1[k], p1[k], obj[k]))
+        for cam, ok in zip(cams, _same_point_batch(ms, frn, jobs), strict=True):
+            state[cam][key]["ok"] = ok
     # -- 3. stereo: the same points in the other camera at this frame --------------
     fr = ms.frame(frame)
     jobs = []
@@ -281,7 +343,7 @@ def ground_truth_reference(scene, frame: int, cams=CAMERAS) -> dict[str, dict[st
     ok_o = _same_point_batch(ms, fr, jobs)
     # -- channels ----------------------------------------------------------------
     result = {}
-    for cam, flow_ok, stereo_ok in zip(cams, ok1, ok_o, strict=True):
+    for cam, stereo_ok in zip(cams, ok_o, strict=True):
         st = state[cam]
         unit, idx = st["unit"], st["idx"]
         H, W = unit.height, unit.width
@@ -294,18 +356,10 @@ def ground_truth_reference(scene, frame: int, cams=CAMERAS) -> dict[str, dict[st
         p = st["p"]
         out["gt.X"][idx], out["gt.Y"][idx], out["gt.Z"][idx] = p[:, 0], p[:, 1], p[:, 2]
         out["gt.object"][idx] = st["obj"]
-        x1, y1, h_i1 = st["x1"], st["y1"], st["h_i1"]
-        fin = np.isfinite(x1) & np.isfinite(y1) & (h_i1 > 0)
-        with np.errstate(invalid="ignore"):
-            out["gt.flow.dx"][idx] = np.where(fin, x1 - st["x0"], 0.0)
-            out["gt.flow.dy"][idx] = np.where(fin, y1 - st["y0"], 0.0)
-            out["gt.flow.dh"][idx] = np.where(fin, h_i1 - st["h_i0"], 0.0)
-            out["gt.flow.hdtheta"][idx] = np.where(
-                fin, st["h_i0"] * _wrap(st["theta1"] - st["theta0"]), 0.0
-            )
-        fv = np.zeros(len(idx), dtype=bool)
-        fv[st["k1"]] = flow_ok
-        out["gt.flow.valid"][idx] = fv
+        for key in ("gt.flow", "gt.bflow"):
+            if key in st:
+                for name, values in _reference_flow(st, st[key]).items():
+                    out[f"{key}.{name}"][idx] = values
         h_o = st["h_o"]
         out["gt.stereo.h_other"][idx] = np.where(np.isfinite(h_o), h_o, 0.0)
         sv = np.zeros(len(idx), dtype=bool)
@@ -313,6 +367,27 @@ def ground_truth_reference(scene, frame: int, cams=CAMERAS) -> dict[str, dict[st
         out["gt.stereo.valid"][idx] = sv
         result[cam] = {name: arr.reshape(H, W) for name, arr in out.items()}
     return result
+
+
+def _reference_flow(st: dict, fl: dict) -> dict[str, NDArray]:
+    """The flow channels (without the ``gt.flow.`` prefix) of the hit pixels, from the
+    pixel state ``st`` and one direction's projection and trace ``fl`` (numpy path)."""
+    x1, y1, h_i1 = fl["x1"], fl["y1"], fl["h_i1"]
+    fin = np.isfinite(x1) & np.isfinite(y1) & (h_i1 > 0)
+    seen = np.zeros(len(x1), dtype=bool)
+    seen[fl["k1"]] = True
+    ok = np.zeros(len(x1), dtype=bool)
+    ok[fl["k1"]] = fl["ok"]
+    with np.errstate(invalid="ignore"):
+        return {
+            "dx": np.where(fin, x1 - st["x0"], 0.0),
+            "dy": np.where(fin, y1 - st["y0"], 0.0),
+            "dh": np.where(fin, h_i1 - st["h_i0"], 0.0),
+            "hdtheta": np.where(fin, st["h_i0"] * _wrap(fl["theta1"] - st["theta0"]), 0.0),
+            "valid": ok,
+            "occluded": seen & ~ok,
+            "outside": fin & ~seen,
+        }
 
 
 # ----------------------------------------------------------------------------
@@ -364,16 +439,12 @@ def _dr_rays(dr, u: _Consts, x, y, pose):
 def _dr_trace(mi, dr, fr: MitsubaFrame, tables: dict, o, d, active):
     """First hit (float64 distance refined on the hit triangle's plane, object id)."""
     f64 = mi.Float64
-    ray = mi.Ray3f(mi.Point3f(*(mi.Float(c) for c in o)), mi.Vector3f(*(mi.Float(c) for c in d)))
-    pi = fr.scene.ray_intersect_preliminary(ray, active=active)
-    hit = active & pi.is_valid()
-    sid = dr.select(hit, dr.reinterpret_array(mi.UInt32, pi.shape), 0)
+    t32, prim, sid, hit = _first_hit(mi, dr, fr, o, d, active)
     obj = dr.gather(mi.UInt32, tables["obj"], sid)
     is_obj = hit & (obj > 0)
-    face = dr.gather(mi.UInt32, tables["base"], sid) + pi.prim_index
+    face = dr.gather(mi.UInt32, tables["base"], sid) + prim
     nx, ny, nz, c = (dr.gather(f64, tables[k], face, is_obj) for k in ("nx", "ny", "nz", "c"))
     t64 = (c - (nx * o[0] + ny * o[1] + nz * o[2])) / (nx * d[0] + ny * d[1] + nz * d[2])
-    t32 = f64(pi.t)
     close = dr.abs(t64 - t32) <= 1e-3 * t32 + 1e-4  # False for NaN / inf
     t = dr.select(is_obj & close, t64, t32)
     return t, dr.select(is_obj, obj, 0), is_obj
@@ -402,30 +473,39 @@ def _move_table(mi, fr0: MitsubaFrame, fr1: MitsubaFrame):
     return [mi.Float64(np.ascontiguousarray(row)) for row in tab]
 
 
-def _dr_camera(mi, dr, ms, scene, fr, fr1, cam: str) -> dict[str, NDArray]:
-    unit = _unit(scene, cam)
-    other = _unit(scene, CAMERAS[1 - CAMERAS.index(cam)])
-    u, uo = _Consts(mi, unit), _Consts(mi, other)
+def _dr_primary(mi, dr, ms, unit, fr):
+    """Step 1 of every camera: the pixel centres' reflected rays at frame ``fr`` and the
+    points they hit. Returns (u, x, y, h_i, p world, q rig, obj, valid)."""
+    u = _Consts(mi, unit)
     f64 = mi.Float64
-    tab0, tab1 = _tables(ms, fr), _tables(ms, fr1)
-    pose0, pose1 = _mat(mi, fr.robot_pose), _mat(mi, fr1.robot_pose)
-    inv0, inv1 = _mat(mi, _inv(fr.robot_pose)), _mat(mi, _inv(fr1.robot_pose))
     idx = dr.arange(mi.UInt32, unit.width * unit.height)
     x = f64(idx % unit.width) + 0.5
     y = f64(idx // unit.width) + 0.5
-    # 1. the pixel centre's reflected ray at this frame
-    o, d, h_i = _dr_rays(dr, u, x, y, pose0)
-    t, obj, valid = _dr_trace(mi, dr, fr, tab0, o, d, h_i <= u.r_m)
+    o, d, h_i = _dr_rays(dr, u, x, y, _mat(mi, fr.robot_pose))
+    t, obj, valid = _dr_trace(mi, dr, fr, _tables(ms, fr), o, d, h_i <= u.r_m)
     p = [o[k] + t * d[k] for k in range(3)]
-    q = _xf(inv0, p)
-    # 2. flow: the material point at frame + 1, its image, and the visibility trace
-    mv = [dr.gather(f64, row, obj, valid) for row in _move_table(mi, fr, fr1)]
+    q = _xf(_mat(mi, _inv(fr.robot_pose)), p)
+    return u, x, y, h_i, p, q, obj, valid
+
+
+def _dr_flow(mi, dr, ms, u: _Consts, x, y, h_i, p, obj, valid, fr, frn, key: str) -> dict:
+    """Flow of the material points p (seen at frame ``fr``) to frame ``frn`` (t + 1 for
+    ``key`` "gt.flow", t - 1 for "gt.bflow"): the point moved with its object, seen from
+    the rig at ``frn``, projected with eq. (1) and traced there for visibility.
+
+    The three masks split the pixels where the new position is defined (``gt.valid``
+    and h_i > 0 at ``frn``): ``valid`` seen there, ``occluded`` on the mirror but
+    another surface (or another point of the same one) is hit first, ``outside`` off
+    the mirror or the image. The flow is kept wherever the position is defined.
+    """
+    f64 = mi.Float64
+    mv = [dr.gather(f64, row, obj, valid) for row in _move_table(mi, fr, frn)]
     mvm = [mv[0:4], mv[4:8], mv[8:12]]
     p1 = _xf(mvm, p)
-    q1 = _xf(inv1, p1)
+    q1 = _xf(_mat(mi, _inv(frn.robot_pose)), p1)
     x1, y1, h_i1, seen1 = _dr_project(dr, u, q1)
-    o1, d1, _ = _dr_rays(dr, u, x1, y1, pose1)
-    t1, obj1, _ = _dr_trace(mi, dr, fr1, tab1, o1, d1, valid & seen1)
+    o1, d1, _ = _dr_rays(dr, u, x1, y1, _mat(mi, frn.robot_pose))
+    t1, obj1, _ = _dr_trace(mi, dr, frn, _tables(ms, frn), o1, d1, valid & seen1)
     t1_exp = dr.norm(mi.Vector3d(*(p1[k] - o1[k] for k in range(3))))
     flow_ok = valid & seen1 & (obj1 == obj)
     flow_ok &= dr.abs(t1 - t1_exp) <= TRACE_TOL_REL * t1_exp + TRACE_TOL_ABS
@@ -433,6 +513,42 @@ def _dr_camera(mi, dr, ms, scene, fr, fr1, cam: str) -> dict[str, NDArray]:
     # dtheta = angle from the pixel's azimuth (dx, dy) to q1's, wrapped to [-pi, pi)
     dxp, dyp = x - u.x_c, y - u.y_c
     dtheta = dr.atan2(dxp * q1[1] - dyp * q1[0], dxp * q1[0] + dyp * q1[1])
+    f32 = mi.Float
+
+    def ch(value, mask=fin1):
+        return f32(dr.select(mask, value, 0.0))
+
+    return {
+        f"{key}.dx": ch(x1 - x),
+        f"{key}.dy": ch(y1 - y),
+        f"{key}.dh": ch(h_i1 - h_i),
+        f"{key}.hdtheta": ch(h_i * dtheta),
+        f"{key}.valid": ch(1.0, flow_ok & fin1),
+        f"{key}.occluded": ch(1.0, valid & seen1 & ~flow_ok),
+        f"{key}.outside": ch(1.0, fin1 & ~seen1),
+    }
+
+
+def _dr_backward(mi, dr, ms, scene, fr, frp, cam: str) -> dict[str, NDArray]:
+    """The ``gt.bflow.*`` channels of ``cam``: flow from frame ``fr`` to ``frp`` (t - 1)."""
+    unit = _unit(scene, cam)
+    u, x, y, h_i, p, _, obj, valid = _dr_primary(mi, dr, ms, unit, fr)
+    out = _dr_flow(mi, dr, ms, u, x, y, h_i, p, obj, valid, fr, frp, "gt.bflow")
+    dr.eval(*out.values())
+    shape = (unit.height, unit.width)
+    return {name: np.array(a.numpy(), dtype=np.float32).reshape(shape) for name, a in out.items()}
+
+
+def _dr_camera(mi, dr, ms, scene, fr, fr1, cam: str) -> dict[str, NDArray]:
+    unit = _unit(scene, cam)
+    other = _unit(scene, CAMERAS[1 - CAMERAS.index(cam)])
+    uo = _Consts(mi, other)
+    tab0 = _tables(ms, fr)
+    pose0 = _mat(mi, fr.robot_pose)
+    # 1. the pixel centre's reflected ray at this frame
+    u, x, y, h_i, p, q, obj, valid = _dr_primary(mi, dr, ms, unit, fr)
+    # 2. flow: the material point at frame + 1, its image, and the visibility trace
+    flow = _dr_flow(mi, dr, ms, u, x, y, h_i, p, obj, valid, fr, fr1, "gt.flow")
     # 3. stereo: the same point in the other unit at this frame
     xo, yo, h_o, seen_o = _dr_project(dr, uo, q)
     oo, do, _ = _dr_rays(dr, uo, xo, yo, pose0)
@@ -456,11 +572,7 @@ def _dr_camera(mi, dr, ms, scene, fr, fr1, cam: str) -> dict[str, NDArray]:
         "gt.Y": ch(p[1]),
         "gt.Z": ch(p[2]),
         "gt.object": f32(obj),
-        "gt.flow.dx": ch(x1 - x, fin1),
-        "gt.flow.dy": ch(y1 - y, fin1),
-        "gt.flow.dh": ch(h_i1 - h_i, fin1),
-        "gt.flow.hdtheta": ch(h_i * dtheta, fin1),
-        "gt.flow.valid": f32(dr.select(flow_ok & fin1, 1.0, 0.0)),
+        **flow,
         "gt.stereo.h_other": ch(h_o, valid & dr.isfinite(h_o)),
         "gt.stereo.valid": f32(dr.select(stereo_ok, 1.0, 0.0)),
     }
@@ -474,8 +586,9 @@ def _dr_camera(mi, dr, ms, scene, fr, fr1, cam: str) -> dict[str, NDArray]:
 def ground_truth_frame(scene, frame: int, cams=CAMERAS) -> dict[str, dict[str, NDArray]]:
     """The ``gt.*`` channels of several cameras at ``frame`` (module docstring).
 
-    Everything per pixel (rays, the three traces per camera: this frame,
-    the flow check at frame + 1 and the stereo check, the projections) runs
+    Everything per pixel (rays, the traces per camera: this frame, the flow
+    check at frame + 1, the stereo check, and for the backward flow this frame
+    again and the check at frame - 1; the projections) runs
     as float64 Dr.Jit kernels; every per-frame number is an opaque JIT
     scalar or an array, so the kernels compile once per process.
     """
@@ -483,11 +596,28 @@ def ground_truth_frame(scene, frame: int, cams=CAMERAS) -> dict[str, dict[str, N
     import drjit as dr
 
     ms = get_mitsuba_scene(scene)
-    fr = ms.frame(frame)
-    fr1 = ms.frame(frame + 1)
     for cam in cams:
         _unit(scene, cam)
-    return {cam: _dr_camera(mi, dr, ms, scene, fr, fr1, cam) for cam in cams}
+    back = {cam: _no_backward(_unit(scene, cam)) for cam in cams}
+    if frame > 0:
+        # Frame t - 1 first: the render of frame t leaves t - 1 and t in the two slots,
+        # so only the forward pass below re-poses one (t - 1 -> t + 1), as before.
+        fr = ms.frame(frame)
+        frp = ms.frame(frame - 1)
+        back = {cam: _dr_backward(mi, dr, ms, scene, fr, frp, cam) for cam in cams}
+    fr = ms.frame(frame)
+    fr1 = ms.frame(frame + 1)
+    out = {cam: {**_dr_camera(mi, dr, ms, scene, fr, fr1, cam), **back[cam]} for cam in cams}
+    return {cam: {name: out[cam][name] for name in GT_CHANNELS} for cam in cams}
+
+
+def _no_backward(unit) -> dict[str, NDArray]:
+    """The ``gt.bflow.*`` channels of frame 0: no frame t - 1, all zero (masks 0)."""
+    return {
+        name: np.zeros((unit.height, unit.width), np.float32)
+        for name in GT_CHANNELS
+        if name.startswith("gt.bflow.")
+    }
 
 
 def ground_truth(scene, frame: int, cam: str) -> dict[str, NDArray[np.float32]]:

@@ -51,6 +51,7 @@ from scipy.spatial.transform import Rotation
 
 from omniflow.rig import Rig, RigError, rig_from_dict
 from omnisim import geometry, textures
+from omnisim.camera import CameraError, CameraModel
 from omnisim.motion import (
     ConstantMotion,
     KeyframeMotion,
@@ -234,6 +235,7 @@ class Scene:
     lights: tuple[Light, ...] = field(repr=False)
     rooms: tuple[RoomInfo, ...] = ()
     overrides: dict[str, Any] = field(default_factory=dict)
+    camera: CameraModel = field(default_factory=CameraModel)
 
     def object_by_id(self, object_id: int) -> SceneObject:
         for obj in self.objects:
@@ -466,7 +468,7 @@ def _range_text(what: str, lo, hi, lo_open) -> str:
 # ---------------------------------------------------------------------------
 
 TOP_KEYS = frozenset(
-    "name description frames frame_interval render rig robot objects lights".split()
+    "name description frames frame_interval render rig robot objects lights camera".split()
 )
 RENDER_KEYS = frozenset({"width", "height", "spp", "max_depth", "seed", "integrator", "variant"})
 RIG_KEYS = frozenset({"d", "R", "s", "x_c", "y_c", "r_m", "margin"})
@@ -502,6 +504,9 @@ LIGHT_KEYS = {
     "directional": frozenset({"type", "direction", "irradiance"}),
 }
 INTEGRATORS = ("path", "direct")
+#: Most frames a scene may have (dataset.json holds a pose per frame and object; 100000
+#: frames of a scene with 8 objects are about 360 MB of it).
+MAX_FRAMES = 100_000
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr", ".hdr", ".tif", ".tiff", ".bmp")
 
 
@@ -530,7 +535,7 @@ def load_scene(path: str | Path, overrides: Mapping[str, Any] | None = None) -> 
     path = Path(path)
     if not path.is_file():
         raise SceneError(f"{path}: scene file not found")
-    source = path.read_text(encoding="utf-8")
+    source = _read_text(path)
     try:
         raw = tomllib.loads(source)
     except tomllib.TOMLDecodeError as exc:
@@ -542,11 +547,25 @@ def load_scene(path: str | Path, overrides: Mapping[str, Any] | None = None) -> 
     return _build(chk, path, source, data, overrides)
 
 
+def _read_text(path: Path) -> str:
+    """The scene file's text; SceneError for a binary or unreadable file."""
+    try:
+        return path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise SceneError(
+            f"{path}: not a text file (byte {exc.start} is not UTF-8); expected a TOML scene"
+        ) from None
+    except OSError as exc:
+        raise SceneError(f"{path}: cannot read: {exc.strerror or exc}") from None
+
+
 def _build(chk: _Checker, path: Path, source: str, data: dict, overrides: dict) -> Scene:
     chk.table(data, "", TOP_KEYS)
     name = chk.string(data, "name", "", path.stem)
     description = chk.string(data, "description", "", "")
     frames = chk.integer(data, "frames", "", 8, lo=1)
+    if frames > MAX_FRAMES:
+        raise chk.bad("frames", frames, f"at most {MAX_FRAMES} (render a longer run in parts)")
     dt = chk.number(data, "frame_interval", "", 0.1, lo=0.0, lo_open=True)
 
     render = _render_settings(chk, data.get("render", {}))
@@ -554,6 +573,7 @@ def _build(chk: _Checker, path: Path, source: str, data: dict, overrides: dict) 
     robot = _robot(chk, data.get("robot", {}), dt)
     objects, rooms = _objects(chk, data.get("objects", []), dt, path.parent)
     lights = _lights(chk, data.get("lights", _REQUIRED), path.parent)
+    camera = _camera(chk, data.get("camera", {}))
 
     scene = Scene(
         name=name,
@@ -570,8 +590,10 @@ def _build(chk: _Checker, path: Path, source: str, data: dict, overrides: dict) 
         lights=tuple(lights),
         rooms=tuple(rooms),
         overrides=overrides,
+        camera=camera,
     )
     _check_rig_in_scene(chk, scene)
+    _check_not_enclosed(chk, scene)
     return scene
 
 
@@ -591,6 +613,21 @@ def _render_settings(chk: _Checker, tbl: Any) -> RenderSettings:
         integrator=chk.string(tbl, "integrator", w, d.integrator, choices=INTEGRATORS),
         variant=variant,
     )
+
+
+def _camera(chk: _Checker, tbl: Any) -> CameraModel:
+    """The ``[camera]`` table (:class:`omnisim.camera.CameraModel`; defaults for missing keys)."""
+    if not isinstance(tbl, dict):
+        raise chk.bad("camera", tbl, "a table of camera parameters ([camera])")
+    try:
+        return CameraModel.from_mapping(tbl, where=str(chk.scene_file))
+    except CameraError as exc:
+        if f"camera.{exc.key}" in chk.overridden:
+            raise SceneError(
+                f"{exc.where}: camera.{exc.key} (set by an override) = {exc.value!r}: "
+                f"expected {exc.expected}"
+            ) from exc
+        raise SceneError(str(exc)) from exc
 
 
 def _rig(chk: _Checker, tbl: Any, render: RenderSettings, path: Path) -> Rig:
@@ -1044,4 +1081,58 @@ def _check_rig_in_scene(chk: _Checker, scene: Scene) -> None:
                 f"at {where_k} no surface lies in the region both cameras see (r > "
                 f"{rig.min_common_range:.3g} m, above cam1's tip, below cam2's upper limit); "
                 "expected a room or objects there",
+            )
+
+
+def _winding_numbers(mesh: trimesh.Trimesh, points: NDArray) -> NDArray[np.float64]:
+    """Generalised winding number of a triangle mesh at each point (N, 3): the summed
+    signed solid angle of its triangles over 4 pi (van Oosterom and Strackee's formula).
+    About +-1 inside a closed mesh, 0 outside; between for open surfaces."""
+    tri = np.asarray(mesh.triangles, dtype=np.float64)
+    out = np.zeros(len(points))
+    for i, p in enumerate(points):
+        a, b, c = (tri[:, k] - p for k in range(3))
+        la, lb, lc = (np.linalg.norm(v, axis=1) for v in (a, b, c))
+        num = np.einsum("ij,ij->i", a, np.cross(b, c))
+        den = (
+            la * lb * lc
+            + np.einsum("ij,ij->i", a, b) * lc
+            + np.einsum("ij,ij->i", b, c) * la
+            + np.einsum("ij,ij->i", c, a) * lb
+        )
+        out[i] = 2.0 * np.arctan2(num, den).sum() / (4.0 * np.pi)
+    return out
+
+
+def _check_not_enclosed(chk: _Checker, scene: Scene) -> None:
+    """Raise SceneError when an object (not a room) encloses a camera's mirror tip at a
+    checked frame: the cameras would see nothing but its inside (no stereo).
+
+    Inside means a generalised winding number above 0.5 at the tip (a closed mesh:
+    about 1; an open fence ring around the rig stays well below).
+    """
+    tips = np.array([[0.0, 0.0, 0.0, 1.0], [0.0, 0.0, scene.rig.s, 1.0]])
+    frames = _checked_frames(scene.frames)
+    for obj in scene.objects:
+        if obj.kind == "room":
+            continue
+        lo, hi = obj.mesh.bounds
+        pts, at = [], []
+        for k in frames:
+            m = np.linalg.solve(obj.pose(k), scene.robot.pose(k))  # object from rig
+            p = (tips @ m.T)[:, :3]
+            keep = np.all((p >= lo) & (p <= hi), axis=1)
+            pts.extend(p[keep])
+            at.extend([k] * int(keep.sum()))
+        if not pts:
+            continue
+        w = np.abs(_winding_numbers(obj.mesh, np.asarray(pts)))
+        if (w > 0.5).any():
+            k = at[int(np.argmax(w > 0.5))]
+            key = f"objects[{obj.index}].position"
+            raise chk.error(
+                key,
+                f"object {obj.name!r} encloses the rig at frame {k:g} (winding number "
+                f"{w.max():.2f} at a mirror tip): the cameras would see only its inside; "
+                "expected the rig outside every object but a room",
             )

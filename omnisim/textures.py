@@ -48,6 +48,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 __all__ = [
+    "MAX_IMAGE_PIXELS",
     "checker_texture",
     "grating_texture",
     "load_image_texture",
@@ -174,31 +175,100 @@ def srgb_to_linear(x: ArrayLike) -> NDArray:
     return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
 
 
+#: Largest image file accepted as a texture or environment map, in pixels (8192 x 8192,
+#: the largest procedural texture; 768 MiB as float32 RGB): the size is read from the
+#: file's header before decoding, so a file that claims 100000 x 100000 pixels is
+#: refused without allocating it.
+MAX_IMAGE_PIXELS = 8192 * 8192
+
+
+def _read_exr_rgb(path: Path) -> NDArray[np.float32]:
+    """An EXR's R, G, B (or Y, or its single channel) as float32 (H, W, 3), via OpenEXR."""
+    import OpenEXR
+
+    try:
+        with OpenEXR.File(str(path), separate_channels=True) as exr:
+            header = exr.header()
+            (x0, y0), (x1, y1) = header["dataWindow"]
+            w, h = int(x1) - int(x0) + 1, int(y1) - int(y0) + 1
+            if w * h > MAX_IMAGE_PIXELS:
+                raise ValueError(
+                    f"{path}: the EXR claims {w}x{h} pixels; expected at most "
+                    f"{MAX_IMAGE_PIXELS} pixels (e.g. 8192x8192)"
+                )
+            chans = exr.channels()
+            names = {n.rsplit(".", 1)[-1]: n for n in chans}
+            if all(c in names for c in "RGB"):
+                planes = [chans[names[c]].pixels for c in "RGB"]
+            elif "Y" in names or len(chans) == 1:
+                plane = chans[names["Y"] if "Y" in names else next(iter(chans))].pixels
+                planes = [plane] * 3
+            else:
+                raise ValueError(
+                    f"{path}: EXR channels {sorted(chans)}; expected R, G, B (or Y, or one)"
+                )
+            return np.stack([np.asarray(p, dtype=np.float32) for p in planes], axis=-1)
+    except ValueError:
+        raise
+    except Exception as exc:  # OpenEXR raises RuntimeError / OSError on a bad file
+        raise ValueError(f"{path}: not a readable EXR ({' '.join(str(exc).split())})") from exc
+
+
+def _check_image_size(path: Path) -> None:
+    """Refuse an image whose header claims more than MAX_IMAGE_PIXELS, before decoding."""
+    from PIL import Image, UnidentifiedImageError
+
+    bound = Image.MAX_IMAGE_PIXELS
+    Image.MAX_IMAGE_PIXELS = None  # Pillow's own bomb check off: the bound is ours
+    try:
+        with Image.open(path) as im:  # reads the header only
+            w, h = im.size
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError):
+        return  # not a format Pillow knows (HDR, say): OpenCV decides
+    finally:
+        Image.MAX_IMAGE_PIXELS = bound
+    if w * h > MAX_IMAGE_PIXELS:
+        raise ValueError(
+            f"{path}: the image claims {w}x{h} pixels; expected at most {MAX_IMAGE_PIXELS} "
+            "pixels (e.g. 8192x8192)"
+        )
+
+
 def load_image_texture(path: str | Path, *, srgb: bool = True) -> NDArray[np.float32]:
     """Read an image file as a float32 (H, W, 3) linear RGB texture.
 
-    Integer images are scaled to [0, 1] and, with ``srgb``, decoded from sRGB;
-    floating-point images (EXR, HDR) are used as they are. Raises ValueError
-    if the file cannot be read.
+    EXR files are read with the OpenEXR package (linear, float); other formats with
+    OpenCV. Integer images are scaled to [0, 1] and, with ``srgb``, decoded from sRGB;
+    floating-point images (EXR, HDR) are used as they are. Raises ValueError, naming
+    the file, if it cannot be read, is larger than :data:`MAX_IMAGE_PIXELS`, or holds
+    NaN or infinite values.
     """
-    import os
-
     path = Path(path)
-    os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")
-    import cv2
-
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED | cv2.IMREAD_ANYDEPTH)
-    if img is None:
-        raise ValueError(f"{path}: not a readable image")
-    if img.ndim == 2:
-        img = np.repeat(img[..., None], 3, axis=2)
-    img = img[..., :3][..., ::-1]  # OpenCV is BGR(A)
-    if np.issubdtype(img.dtype, np.integer):
-        out = img.astype(np.float64) / np.iinfo(img.dtype).max
-        if srgb:
-            out = srgb_to_linear(out)
+    if path.suffix.lower() == ".exr":
+        out = _read_exr_rgb(path)
     else:
-        out = img.astype(np.float64)
+        _check_image_size(path)
+        import cv2
+
+        try:
+            img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED | cv2.IMREAD_ANYDEPTH)
+        except cv2.error as exc:
+            raise ValueError(f"{path}: not a readable image ({exc.err})") from exc
+        if img is None or img.size == 0:
+            raise ValueError(f"{path}: not a readable image")
+        if img.ndim == 2:
+            img = np.repeat(img[..., None], 3, axis=2)
+        img = img[..., :3][..., ::-1]  # OpenCV is BGR(A)
+        if img.shape[2] < 3:
+            img = np.repeat(img[..., :1], 3, axis=2)
+        if np.issubdtype(img.dtype, np.integer):
+            out = img.astype(np.float64) / np.iinfo(img.dtype).max
+            if srgb:
+                out = srgb_to_linear(out)
+        else:
+            out = img.astype(np.float64)
+    if not np.isfinite(out).all():
+        raise ValueError(f"{path}: the image holds NaN or infinite values; expected finite ones")
     return np.ascontiguousarray(out, dtype=np.float32)
 
 

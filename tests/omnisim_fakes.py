@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from omniflow.rig import Rig
-from omnisim.dataset import CHANNELS, FORMAT_NAME, FORMAT_VERSION, DatasetWriter
+from omnisim.dataset import CHANNELS, CHANNELS_V1, FORMAT_NAME, DatasetWriter
 
 
 def render_frame(scene, frame: int) -> dict[str, dict[str, np.ndarray]]:
@@ -30,8 +30,11 @@ def render_frame(scene, frame: int) -> dict[str, dict[str, np.ndarray]]:
         rng = np.random.default_rng([seed, int(frame), ci])
         shape = (unit.height, unit.width)
         ch = {name: rng.random(shape, dtype=np.float32) for name in CHANNELS}
-        for name in ("gt.valid", "gt.flow.valid", "gt.stereo.valid"):
+        for name in ("gt.valid", "gt.flow.valid", "gt.bflow.valid", "gt.stereo.valid"):
             ch[name] = (ch[name] > 0.2).astype(np.float32)
+        for name in ("occluded", "outside"):  # 0/1 like the real masks (not disjoint here)
+            for key in ("gt.flow", "gt.bflow"):
+                ch[f"{key}.{name}"] = (ch[f"{key}.{name}"] > 0.9).astype(np.float32)
         out[unit.name] = ch
     return out
 
@@ -78,7 +81,11 @@ def write_synthetic_dataset(
     supersample: int = 1,
     moving_pillar: bool = True,
 ) -> Path:
-    """A complete dataset from omniflow.synthetic: exact truth, images with Gaussian noise."""
+    """A complete dataset from omniflow.synthetic: exact truth, images with Gaussian noise.
+
+    Format version 1 (omniflow.synthetic gives forward flow without the occlusion /
+    outside split): the tests' version 1 fixture.
+    """
     sc = synthetic_scene(size, moving_pillar=moving_pillar)
     robot = []
     for k in range(frames):
@@ -93,7 +100,7 @@ def write_synthetic_dataset(
         objects.append({"id": b.id, "name": b.name, "material": "diffuse", "poses": poses})
     meta = {
         "format": FORMAT_NAME,
-        "format_version": FORMAT_VERSION,
+        "format_version": 1,
         "scene": {"name": "synthetic", "path": "synthetic", "source": "", "overrides": {}},
         **sc.rig.to_dict(),
         "frames": frames,
@@ -112,6 +119,6 @@ def write_synthetic_dataset(
             ch = {key: v.astype(np.float32) for key, v in sc.truth(cam, k).items()}
             for c in ("R", "G", "B"):
                 ch[c] = img.astype(np.float32)
-            fr[cam] = {name: ch[name] for name in CHANNELS}
+            fr[cam] = {name: ch[name] for name in CHANNELS_V1}
         w.write_frame(k, fr)
     return Path(out)

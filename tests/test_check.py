@@ -146,3 +146,87 @@ def test_real_render_corrupted_fails(real, tmp_path, capsys):
     assert not res["eq1"].passed and not res["static_world"].passed
     assert main(["check", str(d)]) == 1
     assert "FAILED" in capsys.readouterr().out
+
+
+# -- format versions ------------------------------------------------------------------------
+
+
+def test_version_1_dataset_still_validates(synth):
+    """The synthetic fixture is written as format version 1 (no masks, no backward flow)."""
+    d = open_dataset(synth)
+    assert d.version == 1 and d.meta["format_version"] == 1
+    assert "gt.bflow.dx" not in d.read_frame(0, "cam1") and d.read_flow_masks(0, "cam1") == {}
+    assert not list((synth / "frames" / "000000").glob("*.png"))
+    res = run_checks(d)
+    assert all(r.passed for r in res if r.name != "flow_masks")  # flow_masks: skipped
+
+
+@pytest.mark.render
+def test_real_render_is_version_2_and_its_flo_and_masks_are_checked(real, tmp_path):
+    """A rendered dataset is version 2; ``flo_file`` catches a .flo written the version-1
+    way (unknown where merely occluded / outside), a wrong mask PNG; ``flow_polar`` a
+    wrong backward polar flow."""
+    import shutil
+
+    import cv2
+
+    from omnisim.dataset import flo_bytes
+
+    d = open_dataset(real)
+    assert d.version == 2
+    ch = d.read_frame(1, "cam1")
+    hidden = (ch["gt.flow.occluded"] + ch["gt.flow.outside"]) > 0.5
+    assert hidden.sum() > 0  # measured: a few dozen pixels per camera at 64 px
+    flow, known = d.read_flo(1, "cam1")
+    assert known[hidden].all() and (np.abs(flow[hidden]) < 1e3).all()
+    assert (known == d.flo_known(ch)).all()
+
+    frame1 = "frames/000001"
+    bad_flo = tmp_path / "flo"
+    shutil.copytree(real, bad_flo)
+    (bad_flo / frame1 / "cam1.flo").write_bytes(
+        flo_bytes(ch["gt.flow.dx"], ch["gt.flow.dy"], ch["gt.flow.valid"])
+    )
+    res = _by_name(run_checks(open_dataset(bad_flo)))
+    assert not res["flo_file"].passed
+    assert res["flo_file"].detail == f"{hidden.sum()} validity disagreements"
+
+    bad_mask = tmp_path / "mask"
+    shutil.copytree(real, bad_mask)
+    p = bad_mask / frame1 / "cam2.occluded.png"
+    m = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+    m[:3, :3] = 255 - m[:3, :3]
+    cv2.imwrite(str(p), m)
+    res = _by_name(run_checks(open_dataset(bad_mask)))
+    assert not res["flo_file"].passed and res["flo_file"].detail == "9 validity disagreements"
+
+    def bad_bflow(c):
+        c["gt.bflow.dh"] = c["gt.bflow.dh"] + np.float32(0.5)
+
+    res = _by_name(run_checks(open_dataset(_corrupt(real, tmp_path / "bflow", bad_bflow))))
+    assert not res["flow_polar"].passed and res["flow_polar"].figure > 0.4
+
+
+@pytest.mark.render
+def test_flow_masks_check_catches_overlapping_masks(real, tmp_path):
+    """``flow_masks`` passes on a render, is skipped on version 1, and fails when a mask
+    overlaps another or frame 0 gets a backward flow."""
+    res = _by_name(run_checks(open_dataset(real)))
+    assert res["flow_masks"].passed and res["flow_masks"].n == 3 * 2 * 64 * 64
+
+    def overlap(c):
+        c["gt.flow.occluded"][30:32, :] = c["gt.flow.valid"][30:32, :]  # occluded and seen
+
+    res = _by_name(run_checks(open_dataset(_corrupt(real, tmp_path / "ov", overlap))))
+    assert not res["flow_masks"].passed and res["flow_masks"].figure > 0
+
+    def bflow0(c):
+        c["gt.bflow.dx"][32, 32] = np.float32(0.5)
+
+    res = _by_name(run_checks(open_dataset(_corrupt(real, tmp_path / "b0", bflow0, frames=(0,)))))
+    assert not res["flow_masks"].passed and res["flow_masks"].figure == 2  # cam1 and cam2
+
+
+def test_flow_masks_check_skipped_on_version_1(synth):
+    res = _by_name(run_checks(open_dataset(synth)))
+    assert res["flow_masks"].passed is None and "version 1" in res["flow_masks"].detail

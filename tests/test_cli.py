@@ -24,10 +24,11 @@ import cv2
 import numpy as np
 import pytest
 from scipy.ndimage import map_coordinates
+from test_calibration import surround_texture
 
 from omniflow.imageio import read_image, to_grey, to_uint8, write_exr, write_png
 from omniflow.rig import Rig
-from omniflow.synthetic import Motion, SyntheticScene
+from omniflow.synthetic import Motion, SyntheticScene, rim_coverage
 
 SIZE = 192
 W = 0.01  # robot yaw rate, rad/frame
@@ -214,17 +215,22 @@ def test_dataset_mode(case, tmp_path):
     assert json.loads((out / "flow.json").read_text())["inputs"]["frames_read"] == [0, 1, 2]
 
 
-def test_calibrate_finds_the_rims(tmp_path):
-    # omniflow.calibration on the antialiased rims of 256 px closed-form frames:
-    # measured centre and radius within 0.002 px of the truth.
+@pytest.mark.parametrize("surround", ["black", "lit texture"])
+def test_calibrate_finds_the_rims(tmp_path, surround):
+    # omniflow.calibration on the antialiased rims of 256 px closed-form frames, black
+    # outside the mirror or a lit texture (mean 0.75, amplitude 0.12) pasted there:
+    # measured centre and radius within 0.002 px (black) and 0.016 px (texture).
     rig = Rig.symmetric(d=0.10, R=0.05, s=0.30, size=256)
     scene = SyntheticScene.room(
         rig, wall_radius=WALL, ceiling=None, robot=Motion(yaw_rate=W), wavelengths=(0.2, 1.0)
     )
+    lit = surround == "lit texture"
+    outside = surround_texture((256, 256), mean=0.75, amplitude=0.12, seed=5) if lit else 0.0
     files = []
     for k in range(2):
-        for cam in ("cam1", "cam2"):
-            files.append(write_png(tmp_path / f"{cam}_{k}.png", scene.render(cam, k), bits=16))
+        for cam, unit in (("cam1", rig.cam1), ("cam2", rig.cam2)):
+            img = np.clip(scene.render(cam, k) + (1 - rim_coverage(unit)) * outside, 0, 1)
+            files.append(write_png(tmp_path / f"{cam}_{k}.png", img, bits=16))
     out = tmp_path / "out"
     proc = run_cli(*files, "--calibrate", "--d", 0.1, "--R", 0.05, "--s", 0.3,
                    "--out", out, "--no-pictures")  # fmt: skip
@@ -232,10 +238,11 @@ def test_calibrate_finds_the_rims(tmp_path):
     meta = json.loads((out / "flow.json").read_text())
     assert meta["rig_source"].startswith("--calibrate")
     assert meta["rig"]["rig"] == {"d": 0.1, "R": 0.05, "s": 0.3}
+    tol = 0.1 if lit else 0.02  # lit: the 0.1 px requirement (measured 0.016)
     for cam in meta["rig"]["cameras"]:
-        assert cam["x_c"] == pytest.approx(128.0, abs=0.02)
-        assert cam["y_c"] == pytest.approx(128.0, abs=0.02)
-        assert cam["r_m"] == pytest.approx(rig.cam1.r_m, abs=0.02)
+        assert cam["x_c"] == pytest.approx(128.0, abs=tol)
+        assert cam["y_c"] == pytest.approx(128.0, abs=tol)
+        assert cam["r_m"] == pytest.approx(rig.cam1.r_m, abs=tol)
     r = read_csv(out / "flow.csv")["r"]
     assert np.median(np.abs(r / WALL - 1)) < 0.06  # measured 0.025
 

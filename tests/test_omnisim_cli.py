@@ -31,16 +31,16 @@ def tree_bytes(d: Path) -> dict[str, bytes]:
 
 
 def final_frames_complete(d: Path) -> list[str]:
-    """Names under frames/: each final frame directory must hold all four files."""
+    """Names under frames/: each final frame directory must hold all its files (format
+    version 2: per camera the EXR, the .flo, its two mask PNGs and the camera image)."""
     names = []
     for p in sorted((d / "frames").iterdir()):
         names.append(p.name)
         if not p.name.startswith("."):
             assert sorted(f.name for f in p.iterdir()) == [
-                "cam1.exr",
-                "cam1.flo",
-                "cam2.exr",
-                "cam2.flo",
+                f"{cam}.{ext}"
+                for cam in ("cam1", "cam2")
+                for ext in ("exr", "flo", "occluded.png", "outside.png", "png")
             ], p
     return names
 
@@ -213,7 +213,7 @@ count = [0]
 def dying(path, data):
     if path.parent.name.startswith(".000002.tmp"):
         count[0] += 1
-        if count[0] == 3:  # two of frame 2's four files are on disk, in the temporary dir
+        if count[0] == 3:  # two of frame 2's six files are on disk, in the temporary dir
             os.kill(os.getpid(), signal.SIGKILL)
     real(path, data)
 dataset._write_synced = dying

@@ -51,7 +51,7 @@ def scene_meta(
     supersample: int = 2,
 ) -> dict[str, Any]:
     """``dataset.json`` content for a closed-form scene (contract layout)."""
-    from omnisim.dataset import FORMAT_NAME, FORMAT_VERSION
+    from omnisim.dataset import FORMAT_NAME
 
     robot = []
     for k in range(frames):
@@ -66,7 +66,9 @@ def scene_meta(
         objects.append({"id": int(body.id), "name": body.name or f"body{body.id}", "poses": poses})
     return {
         "format": FORMAT_NAME,
-        "format_version": FORMAT_VERSION,
+        # version 1: omniflow.synthetic gives forward flow only, without the occluded /
+        # outside split and the backward flow of version 2
+        "format_version": 1,
         "scene": {
             "name": name,
             "path": "",
@@ -100,7 +102,7 @@ def write_synthetic_dataset(
     noise: float = 0.0,
 ) -> Path:
     """Render ``frames`` frames of both units with their exact truth into ``out_dir``."""
-    from omnisim.dataset import CHANNELS, DatasetWriter
+    from omnisim.dataset import CHANNELS_V1, DatasetWriter
 
     writer = DatasetWriter(
         out_dir,
@@ -116,7 +118,7 @@ def write_synthetic_dataset(
             ).astype(np.float32)
             chans = {"R": img, "G": img, "B": img}
             chans.update({key: val.astype(np.float32) for key, val in scene.truth(cam, k).items()})
-            frame[cam] = {c: chans[c] for c in CHANNELS}
+            frame[cam] = {c: chans[c] for c in CHANNELS_V1}
         writer.write_frame(k, frame)
     return Path(out_dir)
 
