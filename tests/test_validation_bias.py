@@ -36,6 +36,9 @@ def test_gain_hand_values():
     g = gain([1.0, np.nan, 2.0], [1.0, 1.0, np.inf])
     assert g["n"] == 1 and math.isnan(g["slope"]) and g["gain"] == 1.0
     assert gain([], [])["n"] == 0
+    # No motion in that direction (rms below 0.01 px): no gain, not 1e12.
+    g = gain([0.01, -0.02, 0.03], [1e-9, -2e-9, 1e-9])
+    assert math.isnan(g["gain"]) and math.isnan(g["slope"]) and g["mean_signed"] > 0
 
 
 def test_ttc_failures_count_as_infinite_error():

@@ -108,6 +108,12 @@ def polar_components(
     return dh, h0 * dth
 
 
+#: Below this rms of the true component (px) the gain and slope are not defined (NaN):
+#: over points that do not move in that direction (a pure rotation radially, a static
+#: scene) the ratio is noise over nothing and reaches 1e12.
+MIN_TRUE_RMS = 0.01
+
+
 def gain(est: ArrayLike, true: ArrayLike) -> dict[str, float]:
     """How much of the true component a method recovers, and its signed error.
 
@@ -125,8 +131,8 @@ def gain(est: ArrayLike, true: ArrayLike) -> dict[str, float]:
     against true (NaN with fewer than 3 points or no spread of the truth);
     ``mean_signed`` and ``median_signed`` of ``est - true``; ``mean_est``
     and ``mean_true`` (the region's mean motion, e.g. an object's);
-    ``true_rms``, the root mean square of the truth (a gain over points that
-    barely move, e.g. a static scene, says little).
+    ``true_rms``, the root mean square of the truth. ``gain``, ``slope`` and
+    ``intercept`` are NaN where ``true_rms`` is below :data:`MIN_TRUE_RMS`.
     """
     e = np.asarray(est, dtype=np.float64).ravel()
     g = np.asarray(true, dtype=np.float64).ravel()
@@ -141,6 +147,8 @@ def gain(est: ArrayLike, true: ArrayLike) -> dict[str, float]:
     out.update(mean_signed=float(d.mean()), median_signed=float(np.median(d)),
                mean_est=float(e.mean()), mean_true=float(g.mean()),
                true_rms=float(np.sqrt(np.mean(g * g))))  # fmt: skip
+    if out["true_rms"] < MIN_TRUE_RMS:
+        return out
     gg = float(np.dot(g, g))
     if gg > 0:
         out["gain"] = float(np.dot(e, g) / gg)
