@@ -42,7 +42,7 @@ scoring another method (--method-output DIR, repeatable; format in docs/validati
   omnivalidate runs/default --out runs/r --method-output runs/dis-out
 
 examples:
-  omnisim render scenes/default.toml --out runs/default --width 128 --spp 4 --frames 3
+  omnisim render scenes/default.toml --out runs/default --resolution 128 --spp 4 --frames 3
   omnivalidate runs/default --out runs/default-report
   omnivalidate runs/default --out runs/r --variants oat --check validation/thresholds.toml
   omnivalidate runs/default --out runs/r --variants default --camera-sweep read_noise=0,5,20,50
