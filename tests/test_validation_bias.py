@@ -88,7 +88,8 @@ def test_bias_verdict_needs_true_motion():
         return {"all": {"radial": g, "tangential": {"gain": 1.0, "true_rms": rms}}}
 
     assert _biased(block(0.6, 0.3)) == "biased (radial gain 0.60)"
-    assert _biased(block(0.9, 0.3)) == "unbiased"
+    assert _biased(block(0.9, 0.3)) == "biased (radial gain 0.90)"  # outside 1 +- 0.05
+    assert _biased(block(0.97, 0.3)) == "unbiased"
     # A static scene: the truth barely moves, the gain is noise over nothing.
     assert _biased(block(-0.02, 0.01)).startswith("bias not judged")
 

@@ -232,8 +232,10 @@ def summarize(results: Results) -> dict[str, Any]:
 #: A method's EPE (mean or median) must be below this share of zero flow's at the same
 #: points to count as "clearly below" it.
 ZERO_FLOW_MARGIN = 0.8
-#: Radial or tangential gain outside [1 - GAIN_BAND, 1 + GAIN_BAND] is called biased.
-GAIN_BAND = 0.2
+#: Radial or tangential gain outside [1 - GAIN_BAND, 1 + GAIN_BAND] is called biased: the
+#: band issue 9 sets as omniflow's target (0.95-1.05), so a method that loses a tenth of
+#: the radial motion is named biased in the headline, not passed as accurate.
+GAIN_BAND = 0.05
 #: A gain is judged only where the truth's rms of that component is at least this (px):
 #: over points that barely move (a static scene) the gain is noise over nothing.
 GAIN_MIN_SIGNAL = 0.05
