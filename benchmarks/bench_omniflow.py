@@ -57,7 +57,7 @@ def synthetic_frames(size: int, count: int) -> tuple[list, list, Rig, str]:
 
 def dataset_frames(directory: str, k: int, count: int) -> tuple[list, list, Rig, str]:
     """Rendered frames k .. k + count - 1 of an omnisim dataset."""
-    from omnisim.dataset import open_dataset
+    from omniflow.dataset import open_dataset
 
     ds = open_dataset(directory)
     f1 = [ds.read_grey(j, "cam1") for j in range(k, k + count)]

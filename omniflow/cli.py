@@ -448,7 +448,7 @@ def _read_dataset(directory: str, k: int, window: int):
     ``window`` time steps are read, placed so that K .. K + 1 sits in the middle
     where the dataset allows; ``t`` is K's index in the returned lists.
     """
-    from omnisim.dataset import DatasetError, open_dataset
+    from omniflow.dataset import DatasetError, open_dataset
 
     meta = Path(directory) / "dataset.json"
     try:
@@ -742,7 +742,10 @@ def explain_error(exc: BaseException, out: str | None = None) -> tuple[int, str]
     if isinstance(exc, OutputError):
         return 2, f"--out {_one_line(exc)}"
     known: tuple[type, ...] = (CLIError, ImageError, RigError)
-    for module, name in (("omniflow.calibration", "RimError"), ("omnisim.dataset", "DatasetError")):
+    for module, name in (
+        ("omniflow.calibration", "RimError"),
+        ("omniflow.dataset", "DatasetError"),
+    ):
         if module in sys.modules:
             known += (getattr(sys.modules[module], name),)
     if isinstance(exc, known):

@@ -240,8 +240,8 @@ def _frame_slice(text: str | None, count: int) -> list[int] | None:
 
 
 def _cmd_check(args: argparse.Namespace) -> int:
+    from omniflow.dataset import open_dataset
     from omnisim.check import format_results, run_checks
-    from omnisim.dataset import open_dataset
 
     ds = open_dataset(args.dir)
     frames = _frame_slice(args.frames, ds.frame_count)
@@ -315,7 +315,7 @@ def _error(msg: object) -> None:
 
 def _describe_exception(exc: BaseException) -> tuple[str, int] | None:
     """(one-line message, exit status) for an exception the handler knows, else None."""
-    from omnisim.dataset import DatasetError
+    from omniflow.dataset import DatasetError
     from omnisim.distributed import ClusterError
 
     if isinstance(exc, DatasetError | _UsageError | _IncompleteError):

@@ -212,7 +212,7 @@ def render_on_cluster(
 
 def _result(fut, where: str):
     """The future's result; a failure of the task or its workers as ClusterError."""
-    from omnisim.dataset import DatasetError
+    from omniflow.dataset import DatasetError
 
     try:
         return fut.result()

@@ -73,7 +73,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from omnisim.dataset import GT_CHANNELS
+from omniflow.dataset import GT_CHANNELS
 from omnisim.render import CAMERAS, MitsubaFrame, _unit, get_mitsuba_scene
 from omnisim.sensor import apply_affine, ensure_mitsuba, mirror_rays, transform_rays
 
@@ -86,7 +86,7 @@ __all__ = [
     "trace",
 ]
 
-# The contract's channel names live in omnisim.dataset, the one place that defines them.
+# The contract's channel names live in omniflow.dataset, the one place that defines them.
 
 #: Same-point test of the visibility traces: |t_hit - t_expected| <= REL * t + ABS.
 TRACE_TOL_REL = 1e-4

@@ -43,14 +43,14 @@ from typing import Any
 
 import numpy as np
 
-from omnisim.dataset import (
+from omniflow.dataset import (
     CHANNELS,
     FLO_UNKNOWN,
     FLO_UNKNOWN_THRESH,
     FORMAT_NAME,
     FORMAT_VERSION,
-    DatasetWriter,
 )
+from omnisim.dataset import DatasetWriter
 
 __all__ = [
     "DEFAULT_RENDERER",

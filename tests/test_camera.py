@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from omnisim.camera import CameraError, CameraModel, camera_image, srgb_encode
-from omnisim.dataset import open_dataset
+from omniflow.camera import CameraError, CameraModel, camera_image, srgb_encode
+from omniflow.dataset import open_dataset
 from omnisim.job import render_dataset
 
 ROOT = Path(__file__).resolve().parents[1]

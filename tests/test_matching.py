@@ -285,7 +285,7 @@ def test_rendered_frame_fewer_outliers_than_earlier_defaults(tmp_path):
     from pathlib import Path
 
     from omniflow.conventions import LUMA_WEIGHTS
-    from omnisim.dataset import open_dataset
+    from omniflow.dataset import open_dataset
     from validation.sampling import sample_truth
 
     scene_file = Path(__file__).resolve().parents[1] / "scenes" / "default.toml"

@@ -101,8 +101,8 @@ def _frames(text: str | None) -> list[int] | None:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = _parser().parse_args(argv)
+    from omniflow.dataset import DatasetError
     from omniflow.rig import RigError
-    from omnisim.dataset import DatasetError
 
     from . import baselines as bl
     from .report import write_report

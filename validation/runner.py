@@ -1,6 +1,6 @@
 """Run omniflow's variants and the OpenCV baselines over a dataset and score them.
 
-The harness reads the dataset only through :func:`omnisim.dataset.open_dataset`
+The harness reads the dataset only through :func:`omniflow.dataset.open_dataset`
 (``dataset.json`` and the EXR channels), so any generator that writes that
 contract is scored the same way.
 
@@ -465,7 +465,7 @@ def run_validation(
     """
     from tqdm import tqdm
 
-    from omnisim.dataset import open_dataset
+    from omniflow.dataset import open_dataset
 
     if estimate is None:
         from omniflow.pipeline import estimate
