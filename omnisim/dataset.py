@@ -74,6 +74,9 @@ from omniflow.dataset import (
     show_key,
 )
 
+# The one atomic, fsynced file writer (re-exported for old imports).
+from omniflow.imageio import atomic_write_bytes, fsync_dir
+
 __all__ = [
     "CHANNELS",
     "CHANNELS_V1",
@@ -179,39 +182,11 @@ def _unlock_dir(key: str) -> None:
 # -- atomic file helpers ----------------------------------------------------------
 
 
-def _fsync_dir(path: Path) -> None:
-    """fsync a directory so a rename inside it is durable (no-op where unsupported)."""
-    try:
-        fd = os.open(path, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
-
-
 def _write_synced(path: Path, data: bytes) -> None:
     with open(path, "wb") as fh:
         fh.write(data)
         fh.flush()
         os.fsync(fh.fileno())
-
-
-def atomic_write_bytes(path: str | Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` via a temporary name in the same directory, fsync, rename."""
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp.{os.getpid()}.{uuid.uuid4().hex[:8]}")
-    try:
-        _write_synced(tmp, data)
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            tmp.unlink()
-        raise
-    _fsync_dir(path.parent)
 
 
 def _json_text(obj: Any) -> str:
@@ -517,7 +492,7 @@ class DatasetWriter:
             if not self.frames_dir.exists():
                 self.frames_dir.mkdir()
                 self._made.append(self.frames_dir)
-            _fsync_dir(self.dir)
+            fsync_dir(self.dir)
             if cleanup:
                 self.remove_temporaries()
         except BaseException:
@@ -658,7 +633,7 @@ class DatasetWriter:
         try:
             for name in expected:
                 _write_synced(tmp / name, files[name])
-            _fsync_dir(tmp)
+            fsync_dir(tmp)
             if final.exists() and not self.is_done(k):
                 # An incomplete final directory (someone deleted a file): move it aside.
                 trash = self.frames_dir / f".{frame_name(k)}.tmp.stale.{uuid.uuid4().hex[:8]}"
@@ -673,5 +648,5 @@ class DatasetWriter:
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
             raise
-        _fsync_dir(self.frames_dir)
+        fsync_dir(self.frames_dir)
         return final
