@@ -41,6 +41,7 @@ from omniflow.imageio import (
     to_grey,
     write_png,
 )
+from omniflow.jsonio import json_text, jsonable
 from omniflow.rig import Rig, RigError, Unit, load_rig, unwarp
 
 PROG = "omniflow"
@@ -590,22 +591,6 @@ def _column_units() -> dict[str, str]:
     return {**COLUMNS, "time_to_contact": "frames, -r / (dr/dt) where approaching, else inf"}
 
 
-def _jsonable(obj: Any) -> Any:
-    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        return {f.name: _jsonable(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, np.generic):
-        obj = obj.item()
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None if math.isnan(obj) else ("inf" if obj > 0 else "-inf")
-    if isinstance(obj, int | float | str | bool) or obj is None:
-        return obj
-    return str(obj)
-
-
 def _pictures(out: Path, image: np.ndarray, unit: Unit, cols, arrow_scale) -> list[Path]:
     from omniflow.draw import draw_flow_arrows, draw_flow_points
 
@@ -696,21 +681,21 @@ def run(args: argparse.Namespace, config_fields: list[str], argv: list[str]) -> 
             "inputs": info,
             "rig_source": rig_source,
             "rig": rig.to_dict(),
-            "config": _jsonable(config),
+            "config": jsonable(config),
             "points": n,
             "columns": {c: units.get(c, "") for c in cols},
             "timings_s": {
                 "read": t_read,
                 "estimate": t_estimate,
                 "write": t_write,
-                "pipeline_stages": _jsonable(result.timings),
+                "pipeline_stages": jsonable(result.timings),
             },
             "outputs": list(written),
             "median_flow_px": float(np.median(np.hypot(cols["dx"], cols["dy"]))) if n else None,
         }
         if args.odometry:
             summary["odometry"] = _odometry_summary(cols)
-        atomic_write_text(stage / "flow.json", json.dumps(_jsonable(summary), indent=2) + "\n")
+        atomic_write_text(stage / "flow.json", json_text(summary))
     return summary
 
 

@@ -265,15 +265,12 @@ def _cmd_check(args: argparse.Namespace) -> int:
     results = run_checks(ds, frames=frames, progress=args.progress)
     print(format_results(results))
     if args.json_out:
+        from omniflow.jsonio import jsonable
         from omnisim.dataset import atomic_write_json
 
         atomic_write_json(
             args.json_out,
-            [
-                {k: (None if isinstance(v, float) and v != v else v) for k, v in vars(r).items()}
-                | {"status": r.status}
-                for r in results
-            ],
+            jsonable([vars(r) | {"status": r.status} for r in results]),
         )
     return 1 if any(r.passed is False for r in results) else 0
 

@@ -12,11 +12,9 @@ This module imports neither Mitsuba nor the scene model at import time.
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import importlib
 import json
-import math
 import os
 import platform
 from collections.abc import Callable, Mapping
@@ -33,6 +31,7 @@ from omniflow.dataset import (
     FORMAT_NAME,
     FORMAT_VERSION,
 )
+from omniflow.jsonio import jsonable
 
 __all__ = [
     "DEFAULT_RENDERER",
@@ -119,26 +118,9 @@ def load_scene_for_job(path: str | Path, overrides: Mapping[str, Any] | None = N
 
 
 def _jsonable(obj: Any) -> Any:
-    """A JSON-safe copy: dataclasses -> dicts, arrays -> lists, paths -> str, floats finite."""
-    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        return {f.name: _jsonable(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
-    if isinstance(obj, Mapping):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        if obj.size > 64:  # an image (environment map, texture): too big for the metadata
-            return f"<array {obj.dtype} {list(obj.shape)}>"
-        return _jsonable(obj.tolist())
-    if isinstance(obj, np.generic):
-        return _jsonable(obj.item())
-    if isinstance(obj, bool | int | str) or obj is None:
-        return obj
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else str(obj)
-    if isinstance(obj, Path):
-        return str(obj)
-    return repr(obj) if not hasattr(obj, "isoformat") else obj.isoformat()
+    """:func:`omniflow.jsonio.jsonable`, arrays of more than 64 elements (an environment
+    map, a texture) as a short description: too big for the metadata."""
+    return jsonable(obj, max_array=64)
 
 
 def versions() -> dict[str, str]:

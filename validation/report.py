@@ -26,10 +26,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from omniflow.imageio import atomic_output, atomic_write_text
+from omniflow.jsonio import jsonable
 
 from .metrics import RANGE_BINS, SPEED_BINS, bin_label
 from .runner import Results
-from .summary import flat_table, jsonable, pooled_flow, summarize
+from .summary import flat_table, pooled_flow, summarize
 
 __all__ = ["write_report"]
 
