@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from omniflow.imageio import to_grey
 from omniflow.rig import Rig, RigError, rig_from_dict
 
 __all__ = [
@@ -63,6 +64,7 @@ __all__ = [
     "expected_files",
     "flo_known",
     "frame_name",
+    "grey_of",
     "load_meta",
     "open_dataset",
     "read_exr",
@@ -265,6 +267,12 @@ def read_flo(path: str | Path) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
     with np.errstate(invalid="ignore"):
         valid = np.all(np.isfinite(flow) & (np.abs(flow) < FLO_UNKNOWN_THRESH), axis=-1)
     return flow, valid
+
+
+def grey_of(channels: Mapping[str, NDArray]) -> NDArray[np.float32]:
+    """Rec. 709 luminance (H, W) float32 of a frame's linear ``R``, ``G``, ``B`` channels
+    (:func:`omniflow.imageio.to_grey`, the project's one luma)."""
+    return to_grey(np.stack([channels["R"], channels["G"], channels["B"]], axis=-1))
 
 
 # -- dataset.json ------------------------------------------------------------------
@@ -472,12 +480,8 @@ class Dataset:
         return np.stack([c["R"], c["G"], c["B"]], axis=-1)
 
     def read_grey(self, k: int, cam: str) -> NDArray[np.float32]:
-        """Rec. 709 luminance (H, W) of frame ``k``, camera ``cam``."""
-        from omniflow.conventions import LUMA_WEIGHTS
-
-        c = self.read_frame(k, cam)
-        wr, wg, wb = LUMA_WEIGHTS
-        return (wr * c["R"] + wg * c["G"] + wb * c["B"]).astype(np.float32)
+        """Rec. 709 luminance (H, W) of frame ``k``, camera ``cam`` (:func:`grey_of`)."""
+        return grey_of(self.read_frame(k, cam))
 
     @property
     def camera(self):

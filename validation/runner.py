@@ -33,6 +33,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from omniflow.conventions import LUMA_WEIGHTS
+from omniflow.dataset import grey_of
 
 from . import baselines as bl
 from .metrics import flow_errors, flow_summary, stats, stereo_errors, stereo_summary
@@ -301,7 +302,7 @@ class _Frames:
         vals = []
         for cam in CAMERAS:
             ch = self.ds.read_frame(0, cam)
-            g = _grey(ch)
+            g = grey_of(ch)
             ok = (ch["gt.valid"] > 0.5) & np.isfinite(g)
             vals.append(g[ok] if ok.any() else g[np.isfinite(g)])
         v = np.concatenate(vals)
@@ -313,7 +314,7 @@ class _Frames:
         if key not in self.cache:
             if self.scale is None:
                 self._set_scale()
-            g = _grey(chans if chans is not None else self.ds.read_frame(k, cam))
+            g = grey_of(chans if chans is not None else self.ds.read_frame(k, cam))
             g = np.nan_to_num(g, nan=0.0, posinf=0.0, neginf=0.0)
             self.cache[key] = np.clip(np.rint(g * self.scale), 0, 255).astype(np.uint8)
         return self.cache[key]
