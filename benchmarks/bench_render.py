@@ -1,7 +1,7 @@
 """Speed and noise of the Mitsuba renderer and of the exact ground truth.
 
-For a scene (default ``scenes/default.toml``) at its resolution and spp
-(512 x 512, 16 spp by default), reports:
+For a scene (default ``scenes/default.toml``) at its render settings
+(512 x 512, direct light, 64 spp, Open Image Denoise by default), reports:
 
 - seconds per stereo frame (both cameras) for the render and, separately,
   for the ground truth (median over ``--frames`` frames after one warm-up
@@ -12,6 +12,13 @@ For a scene (default ``scenes/default.toml``) at its resolution and spp
 - the departure of the rendered geometry from eq. (1): each pixel centre's
   float32 sensor ray traced through the Mitsuba scene, its hit's (r, h)
   put through eq. (1), compared with the pixel's h_i (max and RMS, pixels);
+- with ``--candidates``, render settings side by side on frame 0 (seconds
+  and CPU seconds per stereo frame: render, denoise, ground truth; the
+  residual against converged path and direct references, cached in
+  /tmp/omnisim_render_ref, in % of the mean luminance over the common
+  annulus; the error of the image gradient; with ``--epe`` OpenCV DIS's
+  end-point error against gt.flow);
+- with ``--sizes``, the scene's render at other image sizes (time, noise);
 - with ``--integrators``, the same render figures for other integrators;
 - with ``--updates``, moving objects re-posed in place through
   ``mi.traverse`` versus a new Mitsuba scene per frame (on a scene with
@@ -23,6 +30,7 @@ wall-clock times grow with the load while CPU times do not. Run::
     python benchmarks/bench_render.py
     python benchmarks/bench_render.py --frames 3 --integrators --updates --json out.json
     python benchmarks/bench_render.py --scene scenes/crossing.toml --set render.spp=4
+    python benchmarks/bench_render.py --skip-default --candidates --epe --sizes 128 192 256
 """
 
 from __future__ import annotations
@@ -73,14 +81,16 @@ def time_frames(scene, frames: int) -> dict:
     rows = []
     for f in range(frames + 1):
         t = _clock()
-        imgs = {cam: render.render_camera(scene, f, cam) for cam in render.CAMERAS}
+        tm: dict = {}
+        imgs = {cam: render.render_camera(scene, f, cam, timings=tm) for cam in render.CAMERAS}
         r_wall, r_cpu = _since(t)
         t = _clock()
         ground_truth_frame(scene, f)
         g_wall, g_cpu = _since(t)
-        rows.append((r_wall, r_cpu, g_wall, g_cpu))
+        rows.append((r_wall, r_cpu, g_wall, g_cpu, tm.get("denoise", 0.0)))
         print(
-            f"  frame {f}: render {r_wall:.2f} s (cpu {r_cpu:.2f}), "
+            f"  frame {f}: render {r_wall:.2f} s (cpu {r_cpu:.2f}; of which denoise "
+            f"{tm.get('denoise', 0.0):.2f} s), "
             f"ground truth {g_wall:.3f} s (cpu {g_cpu:.3f})" + ("  [warm-up]" if f == 0 else ""),
             flush=True,
         )
@@ -91,6 +101,7 @@ def time_frames(scene, frames: int) -> dict:
         "render_cpu_s": med[1],
         "groundtruth_s": med[2],
         "groundtruth_cpu_s": med[3],
+        "denoise_s": med[4],
         "first_frame_s": rows[0][0] + rows[0][2],
         "images": imgs,
     }
@@ -230,6 +241,254 @@ def updates(scene, frames: int) -> dict:
     return out
 
 
+# ----------------------------------------------------------------------------
+# Candidates against a converged reference
+# ----------------------------------------------------------------------------
+#: Render settings compared by ``--candidates``: "integrator:spp" or "integrator:spp+oidn".
+CANDIDATES = (
+    "path:16",
+    "path:4+oidn",
+    "path:8+oidn",
+    "path:16+oidn",
+    "direct:16",
+    "direct:64",
+    "direct:4+oidn",
+    "direct:16+oidn",
+)
+#: Samples per pixel of one reference pass (the reference is a mean of passes).
+REF_PASS_SPP = 16
+
+
+def _spec(spec: str) -> dict:
+    integrator, rest = spec.split(":")
+    spp, _, den = rest.partition("+")
+    return {
+        "render.integrator": integrator,
+        "render.spp": int(spp),
+        "render.denoise": den or "none",
+    }
+
+
+def reference(scene, kind: str, half_spp: int, cache: Path, frame: int = 0) -> dict:
+    """Two independent half references per camera, (H, W, 3) each, cached as .npy.
+
+    ``kind`` "path" is the scene's path tracer (its max_depth: direct and
+    indirect light); "direct" samples the emitters only (direct light). Each
+    half is the mean of ``half_spp / REF_PASS_SPP`` renders of
+    ``REF_PASS_SPP`` spp with their own seeds; the difference of the halves
+    measures the noise left in their mean, which :func:`residual` removes.
+    """
+    mi = ensure_mitsuba()
+    ms = render.get_mitsuba_scene(scene)
+    fr = ms.frame(frame)
+    integ = mi.load_dict(
+        {
+            "path": {"type": "path", "max_depth": scene.render.max_depth, "hide_emitters": False},
+            "direct": {"type": "direct", "emitter_samples": 1, "bsdf_samples": 0},
+        }[kind]
+    )
+    r = scene.render
+    out: dict = {}
+    for cam in render.CAMERAS:
+        sensor = make_sensor(getattr(scene.rig, cam), fr.robot_pose, spp=REF_PASS_SPP)
+        for half, base in (("A", 100000), ("B", 200000)):
+            name = f"{scene.name}_f{frame}_{r.width}_{kind}_{half_spp}_{cam}_{half}.npy"
+            path = cache / name
+            if not path.exists():
+                t = time.perf_counter()
+                acc = np.zeros((r.height, r.width, 3))
+                passes = half_spp // REF_PASS_SPP
+                for i in range(passes):
+                    seed = base + i + (0 if cam == "cam1" else 50000)
+                    acc += np.array(
+                        mi.render(
+                            fr.scene, sensor=sensor, integrator=integ, spp=REF_PASS_SPP, seed=seed
+                        )
+                    )
+                cache.mkdir(parents=True, exist_ok=True)
+                np.save(path, (acc / passes).astype(np.float32))
+                print(f"  reference {name}: {time.perf_counter() - t:.0f} s", flush=True)
+            out[cam, half] = np.load(path)
+    return out
+
+
+def _common(gt: dict) -> np.ndarray:
+    """Pixels of the common annulus: valid, seen by the other camera, 1 px inside it."""
+    from scipy import ndimage
+
+    m = (gt["gt.valid"] > 0.5) & (gt["gt.stereo.valid"] > 0.5)
+    return ndimage.binary_erosion(m, np.ones((3, 3)), border_value=0)
+
+
+def residual(imgs: dict, ref: dict, masks: dict) -> dict:
+    """Residual of ``imgs`` against the reference, % of the mean reference luminance.
+
+    ``rms``: RMS of the luminance difference over the common annulus of both
+    cameras, with the reference's own remaining noise removed in quadrature
+    (E|x - (A+B)/2|^2 = E|x - truth|^2 + E|(A-B)/2|^2 for independent seeds).
+    ``grad``: the same for the image gradient (np.gradient, both axes), as a
+    % of the RMS reference gradient: texture lost or added.
+    """
+    se = sg = nr = ng = gref = mean = 0.0
+    n = 0
+    for cam, x in imgs.items():
+        m = masks[cam]
+        a, b = _luma(ref[cam, "A"]), _luma(ref[cam, "B"])
+        r = (a + b) / 2
+        half = (a - b) / 2
+        y = _luma(x)
+        d = y - r
+        se += float((d[m] ** 2).sum())
+        nr += float((half[m] ** 2).sum())
+        gx = np.stack(np.gradient(d), -1)[m]
+        gh = np.stack(np.gradient(half), -1)[m]
+        gr = np.stack(np.gradient(r), -1)[m]
+        sg += float((gx**2).sum())
+        ng += float((gh**2).sum())
+        gref += float((gr**2).sum())
+        mean += float(r[m].sum())
+        n += int(m.sum())
+    mean /= n
+    return {
+        "rms_pct": 100 * np.sqrt(max(se - nr, 0.0) / n) / mean,
+        "grad_pct": 100 * np.sqrt(max(sg - ng, 0.0) / gref),
+        "ref_noise_pct": 100 * np.sqrt(nr / n) / mean,
+        "mean": mean,
+        "pixels": n,
+    }
+
+
+def dis_epe(scene, imgs0: dict, gts: dict, frame: int = 0) -> dict:
+    """OpenCV DIS (medium) flow from frame to frame + 1 against gt.flow, common annulus.
+
+    Images go to 8 bits through the same linear scale (frame's 99.5th
+    percentile luminance -> 255). The figure is the mean end-point error (px).
+    """
+    import cv2
+
+    out = {}
+    for cam in render.CAMERAS:
+        a = _luma(imgs0[cam])
+        b = _luma(render.render_camera(scene, frame + 1, cam))
+        scale = 255.0 / np.percentile(a[a > 0], 99.5)
+        a8 = np.clip(a * scale, 0, 255).astype(np.uint8)
+        b8 = np.clip(b * scale, 0, 255).astype(np.uint8)
+        dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+        flow = dis.calc(a8, b8, None)
+        gt = gts[cam]
+        m = _common(gt) & (gt["gt.flow.valid"] > 0.5)
+        e = np.hypot(flow[..., 0] - gt["gt.flow.dx"], flow[..., 1] - gt["gt.flow.dy"])[m]
+        out[cam] = float(e.mean())
+    return out
+
+
+def candidates(
+    path: str, overrides: dict, specs, reps: int, cache: Path, half_spp: dict, epe: bool
+) -> dict:
+    """Time and residual of each candidate render on frame 0 (see ``--candidates``)."""
+    base = load_scene(path, overrides)
+    print(f"  references (cached in {cache}):", flush=True)
+    refs = {k: reference(base, k, n, cache) for k, n in half_spp.items()}
+    gts = ground_truth_frame(base, 0)
+    masks = {cam: _common(gts[cam]) for cam in render.CAMERAS}
+    for k, ref in refs.items():
+        res = residual({c: (ref[c, "A"] + ref[c, "B"]) / 2 for c in render.CAMERAS}, ref, masks)
+        print(
+            f"  reference {k}: {2 * half_spp[k]} spp, remaining noise "
+            f"{res['ref_noise_pct']:.2f} % of the mean {res['mean']:.4f} "
+            f"({res['pixels']} pixels)",
+            flush=True,
+        )
+    res = residual(
+        {c: (refs["direct"][c, "A"] + refs["direct"][c, "B"]) / 2 for c in render.CAMERAS},
+        refs["path"],
+        masks,
+    )
+    print(
+        f"  converged direct vs converged path (the indirect light): {res['rms_pct']:.2f} %",
+        flush=True,
+    )
+    out = {"indirect_pct": res["rms_pct"]}
+    print(
+        f"  {'candidate':16s} {'render':>7s} {'denoise':>7s} {'gt':>6s} {'total':>6s} "
+        f"{'cpu':>6s} | {'vs path':>7s} {'grad':>6s} | {'vs direct':>9s} {'grad':>6s}"
+        + ("  | DIS EPE cam1/cam2" if epe else ""),
+        flush=True,
+    )
+    for spec in specs:
+        render.clear_cache()
+        sc = load_scene(path, {**overrides, **_spec(spec)})
+        rows = []
+        for k in range(reps + 1):  # the first is the warm-up (JIT compilation)
+            tm: dict = {}
+            c0 = time.process_time()
+            imgs = {cam: render.render_camera(sc, 0, cam, timings=tm) for cam in render.CAMERAS}
+            t = time.perf_counter()
+            ground_truth_frame(sc, 0)
+            tm["groundtruth"] = time.perf_counter() - t
+            tm["cpu"] = time.process_time() - c0
+            if k:
+                rows.append(tm)
+        med = {
+            key: statistics.median(r.get(key, 0.0) for r in rows)
+            for key in ("render", "denoise", "groundtruth", "cpu")
+        }
+        med["total"] = med["render"] + med["denoise"] + med["groundtruth"]
+        rp = residual(imgs, refs["path"], masks)
+        rd = residual(imgs, refs["direct"], masks)
+        row = {**med, "vs_path": rp, "vs_direct": rd}
+        line = (
+            f"  {spec:16s} {med['render']:7.2f} {med['denoise']:7.2f} "
+            f"{med['groundtruth']:6.2f} {med['total']:6.2f} {med['cpu']:6.2f} | "
+            f"{rp['rms_pct']:6.2f}% {rp['grad_pct']:5.1f}% | {rd['rms_pct']:8.2f}% "
+            f"{rd['grad_pct']:5.1f}%"
+        )
+        if epe:
+            row["dis_epe"] = dis_epe(sc, imgs, gts)
+            line += f"  | {row['dis_epe']['cam1']:.3f} / {row['dis_epe']['cam2']:.3f}"
+        print(line + f"   (load {os.getloadavg()[0]:.1f})", flush=True)
+        out[spec] = row
+    render.clear_cache()
+    return out
+
+
+def sizes(path: str, overrides: dict, widths, reps: int) -> dict:
+    """Seconds per stereo frame and two-seed noise of the scene's render at other sizes."""
+    out = {}
+    for w in widths:
+        render.clear_cache()
+        sc = load_scene(path, {**overrides, "render.width": w, "render.height": w})
+        rows = []
+        for k in range(reps + 1):
+            tm: dict = {}
+            c0 = time.process_time()
+            for cam in render.CAMERAS:
+                render.render_camera(sc, k, cam, timings=tm)
+            t = time.perf_counter()
+            ground_truth_frame(sc, k)
+            tm["groundtruth"] = time.perf_counter() - t
+            tm["cpu"] = time.process_time() - c0
+            if k:
+                rows.append(tm)
+        med = {
+            key: statistics.median(r.get(key, 0.0) for r in rows)
+            for key in ("render", "denoise", "groundtruth")
+        }
+        cpu = statistics.median(r["cpu"] for r in rows)
+        nz = noise(sc)
+        rel = float(np.mean([v["relative"] for v in nz.values()]))
+        total = sum(med.values())
+        out[w] = {**med, "total": total, "cpu": cpu, "noise": rel}
+        print(
+            f"  {w:4d} px: render {med['render']:.2f} s, denoise {med['denoise']:.2f} s, "
+            f"ground truth {med['groundtruth']:.2f} s = {total:.2f} s per stereo frame; "
+            f"two-seed noise {100 * rel:.2f} % of the mean  (load {os.getloadavg()[0]:.1f})",
+            flush=True,
+        )
+    render.clear_cache()
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", default=str(ROOT / "scenes" / "default.toml"))
@@ -243,6 +502,32 @@ def main(argv=None) -> int:
     ap.add_argument("--frames", type=int, default=3, help="timed frames after the warm-up")
     ap.add_argument("--integrators", action="store_true", help="compare integrators")
     ap.add_argument("--updates", action="store_true", help="traverse update vs rebuild")
+    ap.add_argument(
+        "--candidates",
+        nargs="*",
+        metavar="SPEC",
+        help="compare render settings against a converged reference: integrator:spp or "
+        f"integrator:spp+oidn (no SPEC: {' '.join(CANDIDATES)})",
+    )
+    ap.add_argument("--reps", type=int, default=3, help="timed stereo frames per candidate")
+    ap.add_argument(
+        "--ref-spp",
+        type=int,
+        nargs=2,
+        default=[1024, 2048],
+        metavar=("PATH", "DIRECT"),
+        help="spp of the path and the direct reference (two halves of half as many)",
+    )
+    ap.add_argument(
+        "--ref-cache", type=Path, default=Path("/tmp/omnisim_render_ref"), help="reference cache"
+    )
+    ap.add_argument("--epe", action="store_true", help="with --candidates: DIS flow EPE too")
+    ap.add_argument(
+        "--sizes", type=int, nargs="*", metavar="PX", help="time and noise at these sizes too"
+    )
+    ap.add_argument(
+        "--skip-default", action="store_true", help="skip the scene's own timing and noise"
+    )
     ap.add_argument("--json", type=Path, help="also write the figures here")
     args = ap.parse_args(argv)
 
@@ -268,30 +553,48 @@ def main(argv=None) -> int:
         "cpus": os.cpu_count(),
         "machine": platform.processor() or platform.machine(),
     }
-    print("per stereo frame (both cameras):")
-    t = time_frames(scene, args.frames)
-    t.pop("images")
-    res.update(t)
-    total = t["render_s"] + t["groundtruth_s"]
-    print(
-        f"render {t['render_s']:.2f} s (cpu {t['render_cpu_s']:.2f}), ground truth "
-        f"{t['groundtruth_s']:.3f} s (cpu {t['groundtruth_cpu_s']:.3f}) = "
-        f"{100 * t['groundtruth_s'] / total:.1f} % of {total:.2f} s per frame "
-        f"(target <= 4 s, ground truth < 10 %)"
-    )
-    nz = noise(scene)
-    res["noise"] = nz
-    for cam, v in nz.items():
+    if not args.skip_default:
+        print("per stereo frame (both cameras):")
+        t = time_frames(scene, args.frames)
+        t.pop("images")
+        res.update(t)
+        total = t["render_s"] + t["groundtruth_s"]
         print(
-            f"noise {cam} at {r.spp} spp: sigma {v['sigma']:.5f} on mean {v['mean']:.4f} "
-            f"= {100 * v['relative']:.2f} % of the mean radiance"
+            f"render {t['render_s']:.2f} s (cpu {t['render_cpu_s']:.2f}), ground truth "
+            f"{t['groundtruth_s']:.3f} s (cpu {t['groundtruth_cpu_s']:.3f}) = "
+            f"{100 * t['groundtruth_s'] / total:.1f} % of {total:.2f} s per frame "
+            f"(target <= 4 s, ground truth < 10 %)"
         )
-    geo = geometry_departure(scene)
-    res["eq1_departure"] = geo
-    print(
-        f"rendered geometry vs eq. (1) at the pixel centres: max {geo['max_px']:.2e} px, "
-        f"rms {geo['rms_px']:.2e} px over {geo['pixels']} pixels (target < 0.02 px)"
-    )
+        nz = noise(scene)
+        res["noise"] = nz
+        for cam, v in nz.items():
+            print(
+                f"noise {cam} at {r.spp} spp: sigma {v['sigma']:.5f} on mean {v['mean']:.4f} "
+                f"= {100 * v['relative']:.2f} % of the mean radiance"
+            )
+        geo = geometry_departure(scene)
+        res["eq1_departure"] = geo
+        print(
+            f"rendered geometry vs eq. (1) at the pixel centres: max {geo['max_px']:.2e} px, "
+            f"rms {geo['rms_px']:.2e} px over {geo['pixels']} pixels (target < 0.02 px)"
+        )
+    if args.sizes:
+        print(f"sizes, scene render settings ({r.integrator}, {r.spp} spp, denoise {r.denoise}):")
+        res["sizes"] = sizes(args.scene, overrides, args.sizes, args.reps)
+    if args.candidates is not None:
+        print(
+            "candidates, frame 0, seconds per stereo frame (median of --reps), residual "
+            "vs converged references (% of the mean luminance, common annulus):"
+        )
+        res["candidates"] = candidates(
+            args.scene,
+            overrides,
+            args.candidates or CANDIDATES,
+            args.reps,
+            args.ref_cache,
+            {"path": args.ref_spp[0] // 2, "direct": args.ref_spp[1] // 2},
+            args.epe,
+        )
     if args.integrators:
         print("integrators (stereo render at frame 0, best of 2):")
         res["integrators"] = integrators(scene)

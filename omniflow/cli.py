@@ -181,6 +181,12 @@ KNOB_LIMITS: dict[str, tuple[float, float, bool, bool]] = {
     "pool_range_tol": (0.0, math.inf, False, False),
     "min_conditioning": (0.0, 1.0, True, True),  # lambda_min / lambda_max
     "iterations": (0, math.inf, True, False),
+    "flow_band": (0.0, 1.0, False, True),
+    "flow_band_tolerance": (1.0, math.inf, True, False),
+    "flow_band_gain": (0.0, 1.0, False, False),
+    "noise_sigma": (0.0, math.inf, True, False),  # grey levels of the [0, 1] image
+    "self_similarity": (0.0, 1.0, False, True),  # a factor on 1 - NCC; 1 = off
+    "pool_flow_tol": (0.0, math.inf, False, False),
 }
 
 

@@ -260,6 +260,9 @@ def pooled_solution(
     scale: float = 4.0,
     relative: bool = True,
     min_conditioning: float = 0.0,
+    noise1: float = 0.0,
+    noise2: float = 0.0,
+    residual_noise: bool = False,
 ) -> tuple[NDArray, NDArray, NDArray]:
     """Eq. (9) and (15) of neighbouring matches pooled in weighted least squares.
 
@@ -282,6 +285,22 @@ def pooled_solution(
     Unknowns are scaled to pixels per frame, (a, h_1,i b, ...). Solved per
     point from the small normal equations.
 
+    Errors in the variables. Noise in the gradients adds its variance to the
+    diagonal of the normal matrix A^T A (but, being uncorrelated with the
+    temporal derivative at the same point, nothing to A^T b on average), so
+    plain least squares shrinks the flow towards zero by roughly
+    signal / (signal + noise) power. With ``noise1``, ``noise2`` (the
+    variance of each unit's gradient components f_h and f_theta / h_i) that
+    expected contribution is subtracted (bias-compensated least squares):
+    row j of unit 1 adds noise1 rel_j^2 to the (a, a) entry and
+    noise1 (h_1,j / h_1,i)^2 to the (h_1 b, h_1 b) entry, unit 2 likewise
+    with k_j^2 rel_j^2 and (h_2,j / h_1,i)^2; the neighbours' ratios are
+    taken as the point's own (1, 1, k_i), the pool being small against h_1.
+    Where a diagonal entry is less than twice its noise share (the texture's
+    gradient power does not outweigh the noise's) the plain solution is
+    kept: there the corrected one divides small noisy quantities and is
+    heavy-tailed.
+
     Parameters
     ----------
     f1_h ... h2 : array_like, shape (N,)
@@ -297,6 +316,15 @@ def pooled_solution(
         Pool dh_1/dt / h_1 (True) or dh_1/dt itself (False).
     min_conditioning : float
         NaN where the confidence is below this.
+    noise1, noise2 : float
+        Variance of unit 1's and unit 2's gradient components, (grey / px)^2;
+        0 (the default) solves the plain least squares. With
+        ``residual_noise``: that variance per unit variance of the fitted
+        image's noise.
+    residual_noise : bool
+        Measure each unit's image noise from the residuals of eq. (9) and (15)
+        at the plain solution (noise in the band the flow step uses, whatever
+        its spectrum) and scale ``noise1``, ``noise2`` by it.
 
     Returns
     -------
@@ -330,21 +358,67 @@ def pooled_solution(
     p1, p2 = f1_h[idx] * rel, (k * f2_h)[idx] * rel
     q1, q2 = f1_theta[idx] / hi, f2_theta[idx] / hi
     t1, t2 = f1_t[idx], f2_t[idx]
-    prods = np.stack(
-        [
-            p1 * p1 + p2 * p2,
-            p1 * q1 + p2 * q2,
-            q1 * q1 + q2 * q2,
-            p1 * t1 + p2 * t2,
-            q1 * t1 + q2 * t2,
-        ],
-        axis=-1,
-    )  # (N, K, 5)
+    cols = [p1 * p1 + p2 * p2, p1 * q1 + p2 * q2, q1 * q1 + q2 * q2,
+            p1 * t1 + p2 * t2, q1 * t1 + q2 * t2]  # fmt: skip
+    prods = np.stack(cols, axis=-1)  # (N, K, 5)
     if model == "constant":
         powers = w[:, None, :]  # (N, 1, K)
     else:
         powers = np.stack([w, w * u, w * u * u], axis=1)  # (N, 3, K)
     sums = powers @ prods  # (N, 1 or 3, 5): sum_j w u^m (pp, pq, qq, pf, qf)
+    a, c, conf = _solve_sums(sums, model, min_conditioning)
+    if noise1 > 0 or noise2 > 0:
+        if residual_noise:
+            derivs = (f1_h, f1_theta, f1_t, f2_h, f2_theta, f2_t)
+            n1, n2 = _residual_variance(derivs, k, a, c / h1[:n], n)
+            noise1, noise2 = noise1 * n1, noise2 * n2
+        # expected gradient-noise power on the pp and qq entries, with the
+        # neighbours' rel, h_1,j / h_1,i and k_j taken as the point's own
+        # (1, 1, k_i): the pool is small against h_1
+        per_row = (noise1 + noise2 * k[:n] ** 2)[:, None] * powers.sum(axis=-1)  # (N, m)
+        noise = np.zeros_like(sums)
+        noise[..., 0] = per_row
+        noise[..., 2] = per_row
+        ac, cc, confc = _solve_sums(sums - noise, model, min_conditioning, positive=True)
+        # only where the signal outweighs the noise on both components (each
+        # diagonal entry at least twice its noise share): elsewhere the
+        # corrected solution is a ratio of small noisy quantities, heavy-tailed
+        strong = (sums[:, 0, 0] > 2.0 * per_row[:, 0]) & (sums[:, 0, 2] > 2.0 * per_row[:, 0])
+        use = strong & np.isfinite(ac) & np.isfinite(cc)
+        a, c, conf = np.where(use, ac, a), np.where(use, cc, c), np.where(use, confc, conf)
+    return a, c / h1[:n], conf
+
+
+def _residual_variance(
+    derivs: tuple, k: NDArray, a: NDArray, b: NDArray, n: int
+) -> tuple[float, float]:
+    """Noise variance of each unit's fitted image from the residuals of eq. (9) and (15).
+
+    At the plain solution (a, c = h_1 b) the residual of a point is the noise
+    of its f_t (the difference of two fits: twice the fitted value's noise
+    variance) plus terms of second order; the median of a squared normal
+    variable is 0.455 of its variance.
+    """
+    f1_h, f1_theta, f1_t, f2_h, f2_theta, f2_t = derivs  # with a sentinel at index n
+    ok = np.isfinite(a) & np.isfinite(b)
+    if ok.sum() < 10:
+        return 0.0, 0.0
+    out = []
+    for f_h, f_th, f_t, kk in ((f1_h, f1_theta, f1_t, 1.0), (f2_h, f2_theta, f2_t, k[:n])):
+        res = kk * f_h[:n] * a + f_th[:n] * b + f_t[:n]  # eq. (9), (15)
+        out.append(float(np.median(res[ok] ** 2)) / 0.455 / 2.0)
+    return out[0], out[1]
+
+
+def _solve_sums(
+    sums: NDArray, model: str, min_conditioning: float, *, positive: bool = False
+) -> tuple[NDArray, NDArray, NDArray]:
+    """Solve the pooled normal equations from their weighted sums.
+
+    ``sums`` (N, 1 or 3, 5): sum_j w u^m (pp, pq, qq, pf, qf). Returns
+    (a, h_1 b, confidence); NaN where singular, below ``min_conditioning`` or,
+    with ``positive``, where the matrix is not positive definite.
+    """
     pp, pq, qq, pf, qf = (sums[:, :, c] for c in range(5))
     if model == "constant":
         M = np.stack([np.stack([pp[:, 0], pq[:, 0]], -1), np.stack([pq[:, 0], qq[:, 0]], -1)], 1)
@@ -360,11 +434,13 @@ def pooled_solution(
             axis=1,
         )
         v = -np.stack([pf[:, 0], qf[:, 0], pf[:, 1], qf[:, 1]], -1)
+    pd = np.ones(M.shape[0], bool)
     if model == "constant":
         S = M
     else:  # Schur complement on (a, c): the two slopes solved out
         B = M[:, 2:, 2:]
         det_b = B[:, 0, 0] * B[:, 1, 1] - B[:, 0, 1] * B[:, 1, 0]
+        pd &= (det_b > 0) & (B[:, 0, 0] > 0)
         with np.errstate(invalid="ignore", divide="ignore"):
             inv_b = (
                 np.stack(
@@ -383,10 +459,12 @@ def pooled_solution(
     det = m11 * m22 - m12 * m12
     conf = np.nan_to_num(_eig_ratio(m11, m12, m22))
     ok = (det > 0) & (conf >= min_conditioning) & (conf > 0)
+    if positive:
+        ok &= pd & (m11 > 0)
     with np.errstate(divide="ignore", invalid="ignore"):
         a = np.where(ok, (m22 * v[:, 0] - m12 * v[:, 1]) / det, np.nan)
         c = np.where(ok, (m11 * v[:, 1] - m12 * v[:, 0]) / det, np.nan)
-    return a, c / h1[:n], conf
+    return a, c, conf
 
 
 def axial_motion_violation(

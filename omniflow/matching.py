@@ -484,6 +484,7 @@ def match_radial(
     tangential_blur: float = 0.03,
     consistency: float = 1.0,
     consistency_support: int = 2,
+    self_similarity: float = 1.0,
     grids: tuple[PolarGrids, PolarGrids] | None = None,
 ) -> Matches:
     """Match cam1's significant points along radial lines in cam2 (section 5.2).
@@ -542,6 +543,16 @@ def match_radial(
     candidate_fraction : float
         ``robust``: edges of either image count as candidates down to this
         fraction of the significance threshold.
+    self_similarity : float
+        ``robust``: uniqueness against image 1's own line: accept a match
+        only when (1 - NCC_best) <= self_similarity (1 - NCC_self), NCC_self
+        being the best NCC of the edge's radial profile with another edge of
+        its own line at a lag between the profile's length and the disparity
+        window's width. On a periodic texture the profile recurs a period
+        away, and so does an alias in image 2 that can score as well as the
+        truth (the uniqueness test, the left-right check and the consistency
+        vote then all confirm a consistent alias); the stereo match must be
+        clearly better than the texture's own recurrence. 1 disables it.
     tangential_blur : float
         ``robust``: Gaussian blur (sigma, radians) across the radial lines of
         both polar tables before matching. cam1 resolves the scene h_2 / h_1
@@ -653,6 +664,7 @@ def match_radial(
             uniqueness=uniqueness,
             left_right=left_right,
             candidate_fraction=candidate_fraction,
+            self_similarity=self_similarity,
         )
     k1, j1, c2, score, n_sig = res
     theta = -np.pi + (2.0 * np.pi / n_theta) * (k1 + 0.5)
@@ -723,6 +735,7 @@ def _match_robust(
     uniqueness,
     left_right,
     candidate_fraction,
+    self_similarity=1.0,
 ):
     """NCC of radial profiles between the edges of both images, line by line.
 
@@ -782,6 +795,16 @@ def _match_robust(
         np.put_along_axis(S, best_c[..., None], -np.inf, axis=2)
         second = np.maximum(S.max(axis=2), -1.0)
         ok &= (1.0 - best) <= uniqueness * (1.0 - second)
+    if self_similarity < 1.0 and ok.any():
+        # periodic aliases: image 1's own profile recurs on its line within a
+        # window's width (at a lag of at least half the profile), so an
+        # equally good match sits a period away in image 2 whatever it scores
+        A = np.matmul(D1s, D1.transpose(0, 2, 1))  # (n_theta, cs, c1)
+        lag = np.abs(c1[:, None, :] - j1[:, :, None])
+        far = (lag < (w * stride) // 2) | (lag > hi - lo) | ~e1[:, None, :]
+        A[far] = -np.inf
+        self_best = np.maximum(A.max(axis=2), -1.0)
+        ok &= (1.0 - best) <= self_similarity * (1.0 - self_best)
     if left_right and ok.any():
         # the best image-1 edge of each chosen image-2 edge, in its window
         oslot, eo, _ = _per_line(ok)

@@ -70,6 +70,7 @@ from omniflow.matching import (
     polar_gradient_fast,
     sample_xy,
 )
+from omniflow.noise import BAND_CANDIDATES, choose_band, gradient_noise_variance, immerkaer_sigma
 from omniflow.rig import Rig, Unit
 
 __all__ = [
@@ -118,6 +119,8 @@ SOLVERS = ("direct", "pooled")
 SAMPLINGS = ("cubic", "linear", "exact")
 RIM_FILLS = ("reflect", "none")
 POOL_MODELS = ("linear", "constant")
+EIVS = ("correct", "residual", "none")
+BAND_RULES = ("gain", "variance")
 
 
 @dataclass(frozen=True)
@@ -131,11 +134,47 @@ class OmniFlowConfig:
     Attributes
     ----------
     band : float
-        DCT band: P = band * W, Q = band * H coefficients (eq. 17). Paper:
-        0.25; 0.5 keeps the gradients of finer texture and measured 2-6 times
-        more accurate flow (tests/test_flow.py).
+        DCT band of the image matched on: P = band * W, Q = band * H
+        coefficients (eq. 17). Paper: 0.25 (for matching and flow alike).
     match_band : float or None
-        Band of the image matched on (frame t's series truncated); None: band.
+        Narrower band for the matched image (frame t's series truncated);
+        None: band.
+    flow_band : float or None
+        DCT band of the series the flow step differentiates (gradients and
+        f_t of eq. 9 and 15). None: chosen per frame pair from the images
+        by ``flow_band_rule`` (omniflow.noise.choose_band, with the noise
+        measured by Immerkaer's estimator on each unit's annulus; the
+        narrower of the two units' choices). The band trades noise (in f_t,
+        and in the gradients, which shrinks the flow: an errors-in-variables
+        bias) against texture detail; docs/measurements.md, "omniflow
+        accuracy", has the figures.
+    flow_band_rule : {"gain", "variance"}
+        With ``flow_band=None``: the widest band whose fitted gradient keeps
+        ``flow_band_gain`` of its power as signal
+        (omniflow.noise.predicted_gain), or the widest whose predicted flow
+        variance (omniflow.noise.predicted_variance) is within
+        ``flow_band_tolerance`` of the least. "variance" measured better on
+        rendered frames (1 % noise: it picks 1/4 on the default scene, cam2
+        EPE 0.55x DIS instead of 0.77x) but picks too narrow a band for
+        texture whose detail runs along one direction only (closed-form
+        striped wall: 0.075 px instead of 0.0025); docs/measurements.md.
+    flow_band_tolerance : float
+        ``flow_band_rule="variance"``: the factor over the least variance allowed.
+    flow_band_gain : float
+        ``flow_band_rule="gain"``: the least predicted signal share of the
+        gradient power the chosen band keeps.
+    noise_sigma : float or None
+        Standard deviation of the image noise, grey levels (images in
+        [0, 1]); None: Immerkaer's estimate on each unit's frame t
+        (omniflow.noise.immerkaer_sigma; it also counts fine texture, so it
+        errs high). Used by ``flow_band=None`` and ``eiv="correct"``.
+    eiv : {"correct", "none"}
+        Errors-in-variables correction of the pooled solver: the expected
+        contribution of gradient noise (omniflow.noise.gradient_noise_variance
+        at the flow band, halved for averaged gradients) is subtracted from
+        the normal matrix (bias-compensated least squares), where that leaves
+        it positive definite; "none" solves the plain least squares. The
+        direct solver (eq. 16) is never corrected.
     match_method : {"robust", "paper"}
         Radial matching rule (omniflow.matching.match_radial): NCC of radial
         profiles with left-right and uniqueness checks, or the paper's most
@@ -189,6 +228,14 @@ class OmniFlowConfig:
     consistency_support : int
         Robust matcher: how many agreeing neighbours the vote needs (and at
         least half of them).
+    self_similarity : float
+        Robust matcher: periodic-alias test (omniflow.matching.match_radial):
+        accept a match only when (1 - NCC_best) <= self_similarity
+        (1 - NCC_self), NCC_self the best NCC of the point's profile with
+        another edge of its own line within the window's width; 1 disables
+        (the default: 0.5 cut the wrong matches on periodic closed-form walls
+        15-30 times but changed nothing on the rendered default scene and
+        costs ~45 % of the matching time; docs/measurements.md).
     gradients : {"first", "average"}
         Spatial gradient of frame t (paper) or the mean of frames t and t + 1.
     temporal : {"difference", "dct3d"}
@@ -214,6 +261,11 @@ class OmniFlowConfig:
     pool_range_tol : float or None
         Pooled solver: neighbours whose range differs by more than this
         fraction (another surface) are left out; None keeps them.
+    pool_flow_tol : float or None
+        Pooled solver: solve twice, and in the second pass leave out the
+        neighbours whose first-pass flow differs from the point's by more
+        than this, cam1 pixels per frame (a mover keeps its own motion where
+        its range does not set it apart from the background); None: one pass.
     pool_model : {"linear", "constant"}
         Pooled solver: local flow model (omniflow.flow.pooled_solution),
         varying linearly with theta or constant.
@@ -249,6 +301,12 @@ class OmniFlowConfig:
 
     band: float = 0.5
     match_band: float | None = None
+    flow_band: float | None = None
+    flow_band_rule: str = "gain"
+    flow_band_tolerance: float = 1.35
+    flow_band_gain: float = 0.99
+    noise_sigma: float | None = None
+    eiv: str = "residual"
     match_method: str = "robust"
     threshold_percentile: float = 80.0
     min_gradient: float = 1e-4
@@ -268,6 +326,7 @@ class OmniFlowConfig:
     tangential_blur: float = 0.03
     consistency: float = 1.0
     consistency_support: int = 2
+    self_similarity: float = 1.0
     gradients: str = "average"
     temporal: str = "difference"
     temporal_frames: int = 3
@@ -276,6 +335,7 @@ class OmniFlowConfig:
     pool_k: int = 48
     pool_range_tol: float | None = 0.1
     pool_model: str = "linear"
+    pool_flow_tol: float | None = None
     min_conditioning: float = 0.0
     sampling: str = "cubic"
     iterations: int = 0
@@ -290,12 +350,29 @@ class OmniFlowConfig:
             "sampling": (self.sampling, SAMPLINGS),
             "rim_fill": (self.rim_fill, RIM_FILLS),
             "pool_model": (self.pool_model, POOL_MODELS),
+            "eiv": (self.eiv, EIVS),
+            "flow_band_rule": (self.flow_band_rule, BAND_RULES),
         }
         for name, (val, allowed) in checks.items():
             if val not in allowed:
                 raise ValueError(f"OmniFlowConfig.{name} = {val!r}: expected one of {allowed}")
-        if not (0 < self.band <= 1):
-            raise ValueError(f"OmniFlowConfig.band = {self.band!r}: expected a fraction in (0, 1]")
+        for name in ("band", "flow_band", "match_band"):
+            val = getattr(self, name)
+            if val is not None and not (0 < val <= 1):
+                raise ValueError(f"OmniFlowConfig.{name} = {val!r}: expected a fraction in (0, 1]")
+        if not self.flow_band_tolerance >= 1:
+            raise ValueError(
+                f"OmniFlowConfig.flow_band_tolerance = {self.flow_band_tolerance!r}: expected >= 1"
+            )
+        if not (0 < self.flow_band_gain < 1):
+            raise ValueError(
+                f"OmniFlowConfig.flow_band_gain = {self.flow_band_gain!r}: "
+                "expected a fraction in (0, 1)"
+            )
+        if self.noise_sigma is not None and not self.noise_sigma >= 0:
+            raise ValueError(
+                f"OmniFlowConfig.noise_sigma = {self.noise_sigma!r}: expected >= 0 or None"
+            )
         if self.temporal_frames < 3:
             raise ValueError("OmniFlowConfig.temporal_frames must be >= 3")
         if not (isinstance(self.iterations, int) and self.iterations >= 0):
@@ -312,14 +389,35 @@ class OmniFlowConfig:
 
     @classmethod
     def paper(cls, **overrides) -> OmniFlowConfig:
-        """The paper's choices: gradient-similarity matching, first-frame
-        gradients, frame differences, the direct solution, P = X/4."""
+        """The paper's choices, as written.
+
+        Gradient-similarity matching (section 5.2), P = X/4 for the matching
+        and the flow step alike, the image as it is (no rim fill), the series
+        and its analytic derivatives evaluated exactly at the points (eq.
+        18-20), first-frame gradients, the frame difference of the fitted
+        images for f_t and the direct solution of eq. (16) at each point;
+        no noise correction. tests/test_flow.py checks that this reproduces
+        eq. (16), (19) and (20) computed independently to rounding.
+
+        Why it fails under noise: eq. (9) and (15) at one point are nearly
+        dependent, because both units see nearly the same patch at the same
+        scale (f2_h ~ f1_h, f2_theta ~ f1_theta), so D of eq. (16) is
+        ~ f_h f_theta (1 - h_2/h_1) and the radial flow rests on the small
+        difference f2_t - f1_t divided by it. Noise in the temporal
+        derivatives and in the gradients is divided by that small D: the
+        2x2 solve is ill-conditioned, and its error grows as its conditioning
+        falls (tests/test_flow.py measures this on noisy closed-form frames).
+        """
         base = dict(
             band=0.25,
+            flow_band=0.25,
+            eiv="none",
             match_method="paper",
             gradients="first",
             temporal="difference",
             solver="direct",
+            rim_fill="none",
+            sampling="exact",
         )
         base.update(overrides)
         return cls(**base)
@@ -346,12 +444,17 @@ class OmniFlowResult:
     config : OmniFlowConfig
     n_significant : int
         Significant points of image 1 that the matcher tried.
+    diagnostics : dict[str, float]
+        ``flow_band`` (the flow step's DCT band, chosen or given),
+        ``noise_sigma1``, ``noise_sigma2`` (the image noise used per unit,
+        grey levels; 0 when not needed).
     """
 
     columns: dict[str, NDArray]
     timings: dict[str, float] = field(default_factory=dict)
     config: OmniFlowConfig | None = None
     n_significant: int = 0
+    diagnostics: dict[str, float] = field(default_factory=dict)
 
     def __len__(self) -> int:
         return int(next(iter(self.columns.values())).size) if self.columns else 0
@@ -504,8 +607,10 @@ def _sample_fine(frame: _Frame, x: NDArray, y: NDArray, sampling: str) -> NDArra
     return out.reshape(np.shape(x))
 
 
-def _fits(frames: Sequence, t: int, unit: Unit, config: OmniFlowConfig, what: str) -> dict:
-    """The series one unit needs, each a :class:`_Frame` with lazy grids.
+def _fits(
+    frames: Sequence, t: int, unit: Unit, config: OmniFlowConfig, what: str, band: float
+) -> dict[str, DCTFit]:
+    """The series one unit needs, fitted at ``band`` (truncated later by :func:`_frames`).
 
     ``a``: the image at frame t (matched on); ``b``: the image at frame
     t + 1 (read at the displaced points by ``iterations``); ``g``: the series whose
@@ -524,41 +629,91 @@ def _fits(frames: Sequence, t: int, unit: Unit, config: OmniFlowConfig, what: st
         stack = np.stack(
             [_grey(frames[k], f"{what}[{k}]", unit, config) for k in range(t0, t0 + T)]
         )
-        f3 = fit_dct3(stack, band=config.band)
+        f3 = fit_dct3(stack, band=band)
         tw = t - t0  # frame t in the window's time
-        a = _Frame(_as32(f3.at_time(tw)), unit)
-        g = a if config.gradients == "first" else _Frame(_as32(f3.at_time(tw + 0.5)), unit)
+        a = _as32(f3.at_time(tw))
         return {
             "a": a,
-            "b": _Frame(_as32(f3.at_time(tw + 1)), unit),
-            "g": g,
-            "t": _Frame(_as32(f3.time_derivative_at(tw + 0.5)), unit),
+            "b": _as32(f3.at_time(tw + 1)),
+            "g": a if config.gradients == "first" else _as32(f3.at_time(tw + 0.5)),
+            "t": _as32(f3.time_derivative_at(tw + 0.5)),
         }
     fa, fb = (
-        fit_dct(_grey(frames[k], f"{what}[{k}]", unit, config), band=config.band)
-        for k in (t, t + 1)
+        fit_dct(_grey(frames[k], f"{what}[{k}]", unit, config), band=band) for k in (t, t + 1)
     )
-    a = _Frame(fa, unit)
-    if config.gradients == "first":
-        g = a
-    else:
-        g = _Frame(replace(fa, coeffs=0.5 * (fa.coeffs + fb.coeffs)), unit)
-    return {
-        "a": a,
-        "b": _Frame(fb, unit),
-        "g": g,
-        "t": _Frame(replace(fa, coeffs=fb.coeffs - fa.coeffs), unit),
-    }
+    g = fa if config.gradients == "first" else replace(fa, coeffs=0.5 * (fa.coeffs + fb.coeffs))
+    return {"a": fa, "b": fb, "g": g, "t": replace(fa, coeffs=fb.coeffs - fa.coeffs)}
+
+
+def _truncate(fit: DCTFit, band: float) -> DCTFit:
+    """The series with only the coefficients of ``band`` kept (eq. 18 truncated further)."""
+    q = max(1, round(band * fit.height))
+    p = max(1, round(band * fit.width))
+    if q >= fit.Q and p >= fit.P:
+        return fit
+    return replace(fit, coeffs=fit.coeffs[:q, :p])
+
+
+def _frames(fits: dict[str, DCTFit], unit: Unit, config: OmniFlowConfig, flow_band: float) -> dict:
+    """Lazy-grid :class:`_Frame` s: ``a`` at the matching band, the others at ``flow_band``."""
+    out = {"a": _Frame(_truncate(fits["a"], config.band), unit)}
+    for key in ("b", "g", "t"):
+        out[key] = _Frame(_truncate(fits[key], flow_band), unit)
+    return out
+
+
+@lru_cache(maxsize=8)
+def _annulus(unit: Unit, h_min: float, margin: float) -> NDArray:
+    """Pixels of the unit's annulus h_min + 1 <= h_i <= r_m - margin - 1 (read-only).
+
+    One pixel inside the searched annulus, so the 3x3 noise kernel sees only its pixels.
+    """
+    x, y = unit.pixel_centres()
+    h_i, _ = unit.polar_of_pixel(x, y)
+    m = (h_i >= h_min + 1.5) & (h_i <= unit.r_m - margin - 1.5)
+    m.setflags(write=False)
+    return m
+
+
+def _noise_sigma(frame, unit: Unit, config: OmniFlowConfig) -> float:
+    """The image noise of one unit's frame: ``config.noise_sigma`` or Immerkaer's estimate."""
+    if config.noise_sigma is not None:
+        return float(config.noise_sigma)
+    mask = _annulus(unit, float(config.h_min), float(config.rim_margin))
+    s = immerkaer_sigma(np.asarray(frame, dtype=np.float32), mask, erode=False)
+    return 0.0 if not np.isfinite(s) else s
+
+
+def _flow_band(fits: Sequence[dict], sigmas: Sequence[float], config: OmniFlowConfig) -> float:
+    """The flow step's band: ``config.flow_band``, or the narrower of the units' choices."""
+    if config.flow_band is not None:
+        return float(config.flow_band)
+    averaged = 1 if config.gradients == "first" else 2
+    return min(
+        choose_band(
+            f["a"],
+            s,
+            rule=config.flow_band_rule,
+            min_gain=config.flow_band_gain,
+            tolerance=config.flow_band_tolerance,
+            frames=averaged,
+        )
+        for f, s in zip(fits, sigmas, strict=True)
+    )
+
+
+def _gradient_noise(sigma: float, fit: DCTFit, config: OmniFlowConfig) -> float:
+    """Variance of the gradient series' f_h (and f_theta / h_i) from pixel noise ``sigma``."""
+    v = gradient_noise_variance(sigma, fit.P, fit.Q, fit.width, fit.height)
+    # the mean of two frames' fits with independent noise has half the variance
+    return v if config.gradients == "first" else 0.5 * v
 
 
 def _match_frame(frame: _Frame, config: OmniFlowConfig) -> _Frame:
     """The image matched on: frame t's series truncated to ``match_band``."""
     if config.match_band is None or config.match_band >= config.band:
         return frame
-    fit = frame.fit
-    q = max(1, round(config.match_band * fit.height))
-    p = max(1, round(config.match_band * fit.width))
-    return _Frame(replace(fit, coeffs=fit.coeffs[:q, :p]), frame.unit)
+    return _Frame(_truncate(frame.fit, config.match_band), frame.unit)
 
 
 def _as32(fit: DCTFit) -> DCTFit:
@@ -636,8 +791,31 @@ def estimate(
     timings: dict[str, float] = {}
     t_start = time.perf_counter()
 
-    cam1 = _fits(frames1, t, rig.cam1, config, "frames1")
-    cam2 = _fits(frames2, t, rig.cam2, config, "frames2")
+    need_sigma = config.flow_band is None or (config.eiv == "correct" and config.solver == "pooled")
+    sigmas = (
+        (_noise_sigma(frames1[t], rig.cam1, config), _noise_sigma(frames2[t], rig.cam2, config))
+        if need_sigma
+        else (0.0, 0.0)
+    )
+    fit_band = max(config.band, config.flow_band or max(BAND_CANDIDATES))
+    fits = (
+        _fits(frames1, t, rig.cam1, config, "frames1", fit_band),
+        _fits(frames2, t, rig.cam2, config, "frames2", fit_band),
+    )
+    flow_band = _flow_band(fits, sigmas, config)
+    cam1 = _frames(fits[0], rig.cam1, config, flow_band)
+    cam2 = _frames(fits[1], rig.cam2, config, flow_band)
+    for cam, s in zip((cam1, cam2), sigmas, strict=True):
+        if config.eiv == "correct":
+            cam["noise_var"] = _gradient_noise(s, cam["g"].fit, config)
+        elif config.eiv == "residual":  # per unit of the fitted value's noise variance
+            fit = cam["g"].fit
+            cam["noise_var"] = _gradient_noise(1.0, fit, config) / (
+                fit.P * fit.Q / (fit.width * fit.height)
+            )
+        else:
+            cam["noise_var"] = 0.0
+    diagnostics = {"flow_band": flow_band, "noise_sigma1": sigmas[0], "noise_sigma2": sigmas[1]}
     t_fit = time.perf_counter()
     timings["fit"] = t_fit - t_start
 
@@ -677,6 +855,7 @@ def estimate(
             tangential_blur=config.tangential_blur,
             consistency=config.consistency,
             consistency_support=config.consistency_support,
+            self_similarity=config.self_similarity,
             grids=grids,
         )
         n_sig = matches.n_significant
@@ -692,7 +871,13 @@ def estimate(
     timings["sample"] = result.pop("_t_sample")
     timings["solve"] = time.perf_counter() - t_s - timings["sample"]
     timings["total"] = time.perf_counter() - t_start
-    return OmniFlowResult(columns=result, timings=timings, config=config, n_significant=n_sig)
+    return OmniFlowResult(
+        columns=result,
+        timings=timings,
+        config=config,
+        n_significant=n_sig,
+        diagnostics=diagnostics,
+    )
 
 
 def flow_at_matches(
@@ -716,7 +901,8 @@ def flow_at_matches(
     (f1_h, f1_th, f1_t), (f2_h, f2_th, f2_t) = derivs
     t1 = time.perf_counter()
     r, h = rig.triangulate(h1, h2)
-    solve = _solver(rig, config, x1, y1, theta, h1, h2, r)
+    noise = (cam1.get("noise_var", 0.0), cam2.get("noise_var", 0.0))
+    solve = _solver(rig, config, x1, y1, theta, h1, h2, r, noise)
     a, b, conf = solve(f1_h, f1_th, f1_t, f2_h, f2_th, f2_t)
     D = f1_h * f2_th - (h2 / h1) * f2_h * f1_th  # eq. (16)
     k = h2 / h1  # eq. (14)
@@ -801,9 +987,13 @@ def _solver(
     h1: NDArray,
     h2: NDArray,
     r: NDArray,
+    noise: tuple[float, float] = (0.0, 0.0),
 ):
     """The configured solver of eq. (9) and (15) at these matches, as a function
-    of the six derivatives returning (dh1_dt, dtheta_dt, confidence)."""
+    of the six derivatives returning (dh1_dt, dtheta_dt, confidence).
+
+    ``noise``: the variance of each unit's gradient components, subtracted by
+    the pooled solver (``eiv="correct"``)."""
     if config.solver == "direct":
 
         def solve(f1_h, f1_th, f1_t, f2_h, f2_th, f2_t):
@@ -826,25 +1016,46 @@ def _solver(
         x1, y1, k=config.pool_k, radius=pool_radius, r=r, range_tol=config.pool_range_tol
     )
 
-    def solve(f1_h, f1_th, f1_t, f2_h, f2_th, f2_t):
+    kw = dict(theta=theta, model=config.pool_model, scale=pool_radius,
+              min_conditioning=config.min_conditioning)  # fmt: skip
+
+    def solve_w(derivs, weights):
         return pooled_solution(
-            f1_h,
-            f1_th,
-            f1_t,
-            f2_h,
-            f2_th,
-            f2_t,
-            h1,
-            h2,
-            idx,
-            w,
-            theta=theta,
-            model=config.pool_model,
-            scale=pool_radius,
-            min_conditioning=config.min_conditioning,
-        )
+            *derivs, h1, h2, idx, weights, **kw, noise1=noise[0], noise2=noise[1],
+            residual_noise=config.eiv == "residual",
+        )  # fmt: skip
+
+    def solve(f1_h, f1_th, f1_t, f2_h, f2_th, f2_t):
+        derivs = (f1_h, f1_th, f1_t, f2_h, f2_th, f2_t)
+        a, b, conf = solve_w(derivs, w)
+        if config.pool_flow_tol is None:
+            return a, b, conf
+        return solve_w(derivs, _same_motion(w, idx, a, b, h1, config.pool_flow_tol))
 
     return solve
+
+
+def _same_motion(
+    w: NDArray, idx: NDArray, a: NDArray, b: NDArray, h1: NDArray, tol: float
+) -> NDArray:
+    """Pool weights with the neighbours whose first-pass flow differs by more than ``tol`` removed.
+
+    Flows are compared in cam1 pixels per frame at the point's own radius:
+    (a_j h_1,i / h_1,j, h_1,i b_j) against (a_i, h_1,i b_i) (the radial flow
+    scales with h_1 on one surface, as in the pooled model). A point without a
+    first-pass flow keeps its neighbours; a neighbour without one is dropped.
+    """
+    n = a.size
+    ext = lambda v: np.append(v, np.nan)  # noqa: E731  (index n: no neighbour)
+    hi = h1[:, None]
+    da = ext(a / h1)[idx] * hi - a[:, None]
+    dc = (ext(b)[idx] - b[:, None]) * hi
+    with np.errstate(invalid="ignore"):
+        same = np.hypot(da, dc) <= tol
+    same[:, 0] = True
+    same |= ~(np.isfinite(a) & np.isfinite(b))[:, None]
+    same &= idx < n
+    return np.where(same, w, 0.0)
 
 
 def _displacement(

@@ -132,6 +132,36 @@ class Texture:
         return cls(fu=fu, fv=fv, amp=amp, phase=phase, mean=mean)
 
     @classmethod
+    def periodic(
+        cls,
+        seed: int,
+        *,
+        period: float = 0.1,
+        contrast: float = 0.3,
+        detail: float = 0.1,
+        mean: float = 0.5,
+        period_u: float | None = None,
+    ) -> Texture:
+        """A strongly periodic texture: horizontal stripes plus weak random detail.
+
+        A sinusoid of ``period`` metres up the surface (along v: the radial
+        lines of a vertical wall) of amplitude ``contrast``, and
+        :meth:`random` detail (wavelengths 0.05-0.4 m) of total amplitude
+        ``detail``. Along a radial line the stripes repeat every
+        v period / (d + r) pixels, so a stereo matcher that compares short
+        profiles finds an equally good match one or more periods away: the
+        case that periodic-alias rejection must handle.
+        """
+        rest = cls.random(seed, contrast=detail, mean=mean, period_u=period_u)
+        return cls(
+            fu=np.append(0.0, rest.fu),
+            fv=np.append(1.0 / period, rest.fv),
+            amp=np.append(contrast, rest.amp),
+            phase=np.append(0.0, rest.phase),
+            mean=mean,
+        )
+
+    @classmethod
     def constant(cls, value: float) -> Texture:
         """A uniform (textureless) surface."""
         z = np.zeros(0)

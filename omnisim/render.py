@@ -24,8 +24,13 @@ latitude-longitude image with row 0 at the zenith), ``directional``.
 The cone mirrors are not shapes: the sensor (``omnisim.sensor``) traces them
 analytically, as perfect conductors (reflectance 1).
 
-Integrator, spp, resolution, seed and variant come from ``scene.render``
-(:func:`_integrator_dict` says what ``path`` and ``direct`` mean here).
+Integrator, spp, resolution, seed, variant and denoiser come from
+``scene.render`` (:func:`_integrator_dict` says what ``path`` and ``direct``
+mean here). ``render.denoise = "oidn"`` renders the albedo and shading normal
+of the first hit through the same film samples (Mitsuba's ``aov``
+integrator, same seed) and denoises the colour with Intel Open Image Denoise
+guided by them (:mod:`omnisim.denoise`); ``docs/measurements.md`` ("Render:
+converged radiance") has the residual error and the time of each choice.
 
 Moving objects: every Scene keeps ``FRAME_SLOTS`` (2) Mitsuba scenes; a
 frame not in a slot re-poses the least recently used one in place (the
@@ -43,6 +48,8 @@ Determinism: the sampler seed of (frame, camera) is derived from the scene
 seed (:func:`frame_seed`); with the same scene, seed and versions the images
 are bit-identical, also across Dr.Jit thread counts (checked for 7, 9 and 16
 spp with 1, 2 and 5 threads; ``tests/test_render.py`` checks repeat renders).
+The denoiser keeps it: Open Image Denoise on the CPU gave the same bytes in
+two processes and with one Dr.Jit thread (default scene, 96 px, frame 1).
 """
 
 from __future__ import annotations
@@ -63,6 +70,7 @@ __all__ = [
     "MitsubaScene",
     "frame_seed",
     "get_mitsuba_scene",
+    "outside_rim",
     "render_camera",
     "render_frame",
 ]
@@ -131,6 +139,8 @@ class MitsubaScene:
     slots: list[MitsubaFrame] = field(default_factory=list)
     sensors: dict[str, Any] = field(default_factory=dict)
     integrator: Any = None
+    #: Mitsuba ``aov`` integrator of the denoiser's guides (None: no denoiser).
+    guides: Any = None
     #: "traverse": re-pose the moving meshes of a kept scene in place (the default:
     #: no JIT recompilation); "rebuild": load a new Mitsuba scene for every new frame.
     update: str = "traverse"
@@ -148,6 +158,10 @@ class MitsubaScene:
         self.integrator = mi.load_dict(
             _integrator_dict(_get(r, "integrator", "path"), _get(r, "max_depth", 3), all_diffuse)
         )
+        if _get(r, "denoise", "none") != "none":
+            from omnisim.denoise import guide_integrator_dict
+
+            self.guides = mi.load_dict(guide_integrator_dict())
 
     # -- frames -------------------------------------------------------------
     def frame(self, frame: int) -> MitsubaFrame:
@@ -533,19 +547,33 @@ def clear_cache() -> None:
 # Rendering
 # ----------------------------------------------------------------------------
 def render_camera(
-    scene, frame: int, cam: str, *, spp: int | None = None, seed: int | None = None
+    scene,
+    frame: int,
+    cam: str,
+    *,
+    spp: int | None = None,
+    seed: int | None = None,
+    timings: dict[str, float] | None = None,
 ) -> NDArray[np.float32]:
     """Linear RGB radiance (H, W, 3) float32 of camera ``cam`` at ``frame``.
 
     ``spp`` and ``seed`` default to the scene's render settings; the sampler
     seed is :func:`frame_seed` of the scene seed, the frame and the camera.
+    With ``render.denoise = "oidn"`` the guides (albedo, shading normal) are
+    rendered with the same seed at ``min(spp, GUIDE_SPP)`` (then through the
+    same film positions when spp <= GUIDE_SPP: the film sample is the
+    sampler's first draw in both integrators) and the image is denoised
+    (:func:`omnisim.denoise.oidn_denoise`). ``timings``, if given, receives
+    the seconds spent in ``render`` and ``denoise`` (guides included).
     """
     mi = ensure_mitsuba()
     ms = get_mitsuba_scene(scene)
     fr = ms.frame(frame)
     sensor = ms.sensor(cam, fr.robot_pose)
+    unit = _unit(scene, cam)
     spp = int(_get(scene.render, "spp", 16)) if spp is None else int(spp)
     base = int(_get(scene.render, "seed", 0)) if seed is None else int(seed)
+    t0 = time.perf_counter()
     img = mi.render(
         fr.scene,
         sensor=sensor,
@@ -553,9 +581,34 @@ def render_camera(
         spp=spp,
         seed=frame_seed(base, frame, cam),
     )
-    return np.array(img, dtype=np.float32).reshape(
-        _unit(scene, cam).height, _unit(scene, cam).width, 3
-    )
+    img = np.array(img, dtype=np.float32).reshape(unit.height, unit.width, 3)
+    t1 = time.perf_counter()
+    if ms.guides is not None:
+        from omnisim.denoise import GUIDE_SPP, oidn_denoise
+
+        guides = mi.render(
+            fr.scene,
+            sensor=sensor,
+            integrator=ms.guides,
+            spp=min(spp, GUIDE_SPP),
+            seed=frame_seed(base, frame, cam),
+        )
+        guides = np.array(guides, dtype=np.float32).reshape(unit.height, unit.width, 6)
+        img = oidn_denoise(img, guides, outside_rim(unit))
+    if timings is not None:
+        timings["render"] = timings.get("render", 0.0) + t1 - t0
+        if ms.guides is not None:
+            timings["denoise"] = timings.get("denoise", 0.0) + time.perf_counter() - t1
+    return img
+
+
+def outside_rim(unit) -> NDArray[np.bool_]:
+    """(H, W) pixels whose whole square lies outside the rim: no sample reaches the mirror."""
+    x, y = unit.pixel_centres()
+    # nearest point of the pixel square [x - 0.5, x + 0.5] x [y - 0.5, y + 0.5] to the centre
+    nx = np.clip(unit.x_c, x - 0.5, x + 0.5) - unit.x_c
+    ny = np.clip(unit.y_c, y - 0.5, y + 0.5) - unit.y_c
+    return np.hypot(nx, ny) > unit.r_m
 
 
 def render_frame(
@@ -563,23 +616,21 @@ def render_frame(
 ) -> dict[str, dict[str, NDArray[np.float32]]]:
     """Both cameras' ``R``, ``G``, ``B`` and ``gt.*`` channels at ``frame``.
 
-    ``timings``, if given, receives the seconds spent in ``render`` and
-    ``groundtruth`` (summed over both cameras).
+    ``timings``, if given, receives the seconds spent in ``render``,
+    ``denoise`` (when the scene asks for a denoiser) and ``groundtruth``
+    (summed over both cameras).
     """
     from omnisim.groundtruth import ground_truth_frame
 
-    t0 = time.perf_counter()
-    rgb = {cam: render_camera(scene, frame, cam) for cam in CAMERAS}
+    rgb = {cam: render_camera(scene, frame, cam, timings=timings) for cam in CAMERAS}
     t1 = time.perf_counter()
     gt = ground_truth_frame(scene, frame, CAMERAS)
-    t2 = time.perf_counter()
-    t_render, t_gt = t1 - t0, t2 - t1
+    t_gt = time.perf_counter() - t1
     out: dict[str, dict[str, NDArray[np.float32]]] = {}
     for cam in CAMERAS:
         chans = {c: np.ascontiguousarray(rgb[cam][..., i]) for i, c in enumerate("RGB")}
         chans.update(gt[cam])
         out[cam] = chans
     if timings is not None:
-        timings["render"] = timings.get("render", 0.0) + t_render
         timings["groundtruth"] = timings.get("groundtruth", 0.0) + t_gt
     return out

@@ -94,11 +94,12 @@ class RenderSettings:
 
     width: int = 512
     height: int = 512
-    spp: int = 16
+    spp: int = 64
     max_depth: int = 4
     seed: int = 0
-    integrator: str = "path"
+    integrator: str = "direct"
     variant: str = "llvm_ad_rgb"
+    denoise: str = "oidn"
 
 
 @dataclass(frozen=True)
@@ -470,7 +471,9 @@ def _range_text(what: str, lo, hi, lo_open) -> str:
 TOP_KEYS = frozenset(
     "name description frames frame_interval render rig robot objects lights camera".split()
 )
-RENDER_KEYS = frozenset({"width", "height", "spp", "max_depth", "seed", "integrator", "variant"})
+RENDER_KEYS = frozenset(
+    {"width", "height", "spp", "max_depth", "seed", "integrator", "variant", "denoise"}
+)
 RIG_KEYS = frozenset({"d", "R", "s", "x_c", "y_c", "r_m", "margin"})
 ROBOT_KEYS = frozenset({"position", "rotation", "motion"})
 MOTION_KEYS = frozenset({"type", "velocity", "angular_velocity", "interpolation", "keys"})
@@ -504,6 +507,8 @@ LIGHT_KEYS = {
     "directional": frozenset({"type", "direction", "irradiance"}),
 }
 INTEGRATORS = ("path", "direct")
+#: ``render.denoise``: none, or Intel Open Image Denoise (``omnisim.denoise``).
+DENOISERS = ("none", "oidn")
 #: Most frames a scene may have (dataset.json holds a pose per frame and object; 100000
 #: frames of a scene with 8 objects are about 360 MB of it).
 MAX_FRAMES = 100_000
@@ -612,6 +617,7 @@ def _render_settings(chk: _Checker, tbl: Any) -> RenderSettings:
         seed=chk.integer(tbl, "seed", w, d.seed, lo=0, hi=2**31 - 1),
         integrator=chk.string(tbl, "integrator", w, d.integrator, choices=INTEGRATORS),
         variant=variant,
+        denoise=chk.string(tbl, "denoise", w, d.denoise, choices=DENOISERS),
     )
 
 

@@ -22,6 +22,7 @@ spp = {spp}
 max_depth = 2
 seed = 5
 integrator = "direct"
+denoise = "none"   # the warp test measures against the render noise itself
 
 [rig]
 d = 0.10

@@ -14,6 +14,11 @@ the pipeline uses them, with ``python -m pytest tests/test_matching.py -s``
     synthetic room texture 2 m / 3 m    0 %   / 0 %       673/3830, 1505/5080    85 % / 80 %
     room texture seed 3, 3 m (periodic) 0.5 %             190/3789               86 %
 
+With the periodic-alias test (``self_similarity`` 0.5; off by default: it costs
+~45 % of the matching time, 38 -> 56 ms at 512 px, and changed nothing on the rendered
+default scene) the robust column reads
+1.0 / 0 / 0 / 0 / 0 / 0 / 0 / 0 / 0 % with 600 / 957 / 1133 / 1736 / 1887 /
+1301 / 665 / 1413 / 163 matches (the periodic room: 0 % instead of 0.5 %).
 (Defaults since the rendered-frame study below: tangential_blur 0.03,
 profile_step patch_radius / 16 and the disparity consistency vote of 1 px;
 with the earlier 0.06, patch_radius / 8 and no vote the robust column read
@@ -47,7 +52,7 @@ from omniflow.dct import fit_dct
 from omniflow.edges import polar_gradient_grid
 from omniflow.matching import Matches, match_radial, polar_gradient_fast, sample_xy
 from omniflow.pipeline import fill_outside_rim
-from omniflow.synthetic import SyntheticScene, Texture
+from omniflow.synthetic import Cylinder, SyntheticScene, Texture
 
 
 def _fits(scene: SyntheticScene, band: float = 0.5, **render_kw):
@@ -114,8 +119,8 @@ def test_robust_outliers_under_5_percent(match_table):
 
 def test_periodic_texture_is_the_documented_hard_case(match_table):
     """A room texture with a strong period along the radial lines (seed 3):
-    measured 0.5 % outliers in 190 matches (3.3 % in 336 with the earlier
-    defaults); bounded loosely so a change shows."""
+    measured 0.5 % outliers in 190 matches (0 % in 163 with self_similarity 0.5,
+    3.3 % in 336 with the earlier defaults); bounded loosely so a change shows."""
     row = match_table["room 3 m periodic"]
     assert row["robust"] < 0.12 and row["n"] > 150  # measured 0.5 %, 190 matches
 
@@ -341,3 +346,32 @@ def test_consistency_vote_removes_isolated_disparities():
     g1, g2 = _fits(wall)
     n_off = len(match_radial(g1, g2, rig, consistency=0.0))
     assert len(match_radial(g1, g2, rig)) > 0.9 * n_off
+
+
+def _periodic_wall(rig, period: float, radius: float) -> SyntheticScene:
+    texture = Texture.periodic(5, period=period, period_u=2 * np.pi * radius)
+    return SyntheticScene(rig=rig, bodies=(Cylinder(radius=radius, id=1, texture=texture),))
+
+
+def test_self_similarity_rejects_most_periodic_aliases():
+    """A wall with strong horizontal stripes (omniflow.synthetic.Texture.periodic) whose
+    period fits the baseline a whole number of times (0.1 m at 3 m: disparity 36 px, image
+    period 12 px): every alias matches as well as the truth. Measured (256 px, h_step 1):
+    without the self-similarity test 100 % of 1912 matches wrong; with 0.5
+    66 matches, all wrong; stripes of 0.15 m at 2 m: 12.8 % of 859 -> 5.2 % of 762 (the
+    test is off by default: OmniFlowConfig.self_similarity). The
+    issue's target (<= 2 % outliers) is NOT met on these walls; the test pins the reduction
+    (bounds: 10x fewer wrong matches at 3 m, 2x at 2 m)."""
+    rig = paper_rig()
+    for (period, radius), factor in (((0.1, 3.0), 10.0), ((0.15, 2.0), 2.0)):
+        scene = _periodic_wall(rig, period, radius)
+        f1, f2 = _fits(scene)
+        wrong = []
+        for ss in (1.0, 0.5):
+            m = match_radial(f1, f2, rig, self_similarity=ss)
+            wrong.append(_outlier_rate(scene, m) * len(m))
+        assert wrong[1] * factor <= wrong[0], (period, radius, wrong)
+    # textures without a period keep their matches: measured 1505 -> 1413 (room 3 m)
+    f1, f2 = _fits(SCENES["room 3 m"](rig))
+    with_test = match_radial(f1, f2, rig, self_similarity=0.5)
+    assert len(with_test) > 0.9 * len(match_radial(f1, f2, rig))

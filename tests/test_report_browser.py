@@ -56,13 +56,13 @@ def _screenshot(page: Path, out: Path, profile: Path) -> np.ndarray:
         "--disable-sync",
         f"--user-data-dir={profile}",
         f"--screenshot={out}",
-        "--window-size=1280,2000",
+        "--window-size=1280,4000",
         page.resolve().as_uri(),
     ]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
     assert out.is_file(), f"no screenshot (chromium exit {proc.returncode}): {proc.stderr[-2000:]}"
     img = cv2.imread(str(out), cv2.IMREAD_COLOR)
-    assert img is not None and img.shape[:2] == (2000, 1280), None if img is None else img.shape
+    assert img is not None and img.shape[:2] == (4000, 1280), None if img is None else img.shape
     return img
 
 

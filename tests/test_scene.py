@@ -109,7 +109,7 @@ def test_every_library_scene_loads_and_validates(path):
 def test_default_scene_keeps_moderate_defaults():
     scene = load_scene(SCENES[[p.stem for p in SCENES].index("default")])
     assert scene.render.width <= 512 and scene.render.height <= 512
-    assert scene.render.spp <= 16 and scene.frames <= 16
+    assert scene.render.spp <= 64 and scene.frames <= 16
 
 
 def test_scene_loads_deterministically():
@@ -127,7 +127,8 @@ def test_base_scene_model(tmp_path):
     scene = load_scene(write(tmp_path, BASE))
     assert scene.name == "t" and scene.frames == 3 and scene.frame_interval == 0.1
     assert (scene.render.width, scene.render.height, scene.render.spp) == (64, 64, 2)
-    assert scene.render.integrator == "path" and scene.render.seed == 0
+    assert scene.render.integrator == "direct" and scene.render.denoise == "oidn"
+    assert scene.render.seed == 0
     assert [o.name for o in scene.objects] == [f"room.{p}" for p in geometry.ROOM_PARTS]
     assert [o.id for o in scene.objects] == [1, 2, 3, 4, 5, 6]
     assert scene.object_names[3] == "room.wall_xp"

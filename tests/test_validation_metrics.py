@@ -119,9 +119,16 @@ def test_flow_summary_splits_and_outlier_rates():
         "err_hdtheta": epe,
         "ae": epe,
         "speed": np.array([0.2, 0.7, 2.0, 4.0, 0.1]),
+        "gt_dh": np.array([0.1, -0.5, 1.0, 2.0, 0.3]),
+        "gt_hdtheta": np.array([1.0, 0.5, -1.0, 0.2, 0.3]),
     }
+    err["est_dh"] = 2.0 * err["gt_dh"]  # radial gain 2
+    err["est_hdtheta"] = err["gt_hdtheta"] + 0.1  # tangential offset 0.1
     noc = np.array([True, True, True, False, True])
     s = flow_summary(err, noc)
+    assert s["all"]["radial"]["gain"] == pytest.approx(2.0)
+    assert s["all"]["tangential"]["intercept"] == pytest.approx(0.1)
+    assert s["speed"]["0-0.25px"]["radial"]["gain"] == pytest.approx(2.0)
     assert s["all"]["n"] == 5 and s["noc"]["n"] == 4 and s["occ"]["n"] == 1
     assert s["all"]["out1"] == pytest.approx(2 / 5)
     assert s["all"]["out3"] == pytest.approx(1 / 5)

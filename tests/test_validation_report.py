@@ -108,7 +108,9 @@ def test_report_files(oracle_report):
         "DIS-medium",
         "Farneback",
         "DIS-medium-panorama",
+        "zero-flow",
     }
+    assert {"radial_gain", "tangential_gain", "radial_mean_signed", "density_valid"} <= set(rows[0])
     md = (out / "report.md").read_text()
     html = (out / "report.html").read_text()
     md_imgs = re.findall(r"!\[[^\]]*\]\(([^)]+)\)", md)
@@ -247,7 +249,9 @@ def _cli(*args):
 def test_cli_help():
     p = _cli("--help")
     assert p.returncode == 0
-    for word in ("--out", "--variants", "--baselines", "--check", "report.html", "summary.json"):
+    for word in ("--out", "--variants", "--baselines", "--check", "report.html", "summary.json",
+                 "frames.csv", "--method-output", "cam1.flo", "flow.csv", "--camera",
+                 "--camera-sweep", "--partial", "zero-flow"):  # fmt: skip
         assert word in p.stdout
 
 
@@ -284,3 +288,18 @@ def test_calibrate_rounds_bounds_outward():
     assert _round_out(0.043212, up=False) == 0.0432
     assert _round_out(1234.5, up=True) == 1240.0
     assert _round_out(0.0, up=True) == 0.0
+
+
+def test_calibrate_keeps_unmeasurable_checks_pending(tmp_path):
+    from validation.calibrate import _render_file
+
+    check = {"method": "default", "metric": "flow.cam1.all.epe.mean", "max": 0.2,
+             "measured": 0.1, "margin": "m"}  # fmt: skip
+    waiting = {"method": "default", "metric": "derived.objects.box.ttc.median",
+               "max": math.nan, "measured": math.nan, "margin": "not measurable"}  # fmt: skip
+    text = _render_file("# header", {"s": {"scene": "x", "check": [check], "pending": [waiting]}})
+    path = tmp_path / "t.toml"
+    path.write_text(text)
+    data = load_thresholds(path)
+    assert data["scenes"]["s"]["pending"][0]["metric"] == waiting["metric"]
+    assert [c["metric"] for c in data["scenes"]["s"]["check"]] == [check["metric"]]

@@ -7,7 +7,10 @@
 * ``DIS-medium-panorama``: DIS on the unwarped panoramas
   (:func:`omniflow.rig.unwarp`), the panorama flow mapped back to an
   image-plane displacement at each point. The paper's method avoids unwarping;
-  this row measures what unwarping costs and buys.
+  this row measures what unwarping costs and buys;
+* ``zero-flow``: predicts no motion anywhere. Not a method but the floor a
+  method must clearly beat: a method that shrinks its flow towards zero has a
+  small median error at sub-pixel motion, and this row shows how small.
 
 Each baseline gives a dense field per camera; :class:`DenseFlow` evaluates it
 at arbitrary sub-pixel points (bilinear), so baselines are scored at exactly
@@ -31,6 +34,7 @@ from .sampling import bilinear
 
 __all__ = [
     "BASELINES",
+    "ZERO_FLOW",
     "DenseFlow",
     "PanoramaFlow",
     "dis_flow",
@@ -40,7 +44,9 @@ __all__ = [
 ]
 
 #: Names of the baselines, in report order.
-BASELINES = ("DIS-medium", "Farneback", "DIS-medium-panorama")
+BASELINES = ("DIS-medium", "Farneback", "DIS-medium-panorama", "zero-flow")
+#: The row that predicts no motion (the floor every method is compared with).
+ZERO_FLOW = "zero-flow"
 
 #: Columns of circular padding on each side of a panorama, so DIS sees the
 #: seam at theta = 0 as continuous image.
@@ -149,7 +155,11 @@ def dense_baseline(name: str, img0: NDArray, img1: NDArray, unit: Unit) -> Dense
     """Run the baseline ``name`` on one camera's frame pair."""
     if name == "DIS-medium-panorama":
         return panorama_flow(img0, img1, unit)
-    fn = {"DIS-medium": dis_flow, "Farneback": farneback_flow}.get(name)
+    fn = {
+        "DIS-medium": dis_flow,
+        "Farneback": farneback_flow,
+        ZERO_FLOW: lambda a, b: np.zeros((*a.shape[:2], 2), np.float32),
+    }.get(name)
     if fn is None:
         raise ValueError(f"unknown baseline {name!r}; expected one of {BASELINES}")
     t0 = time.perf_counter()

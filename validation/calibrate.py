@@ -32,6 +32,7 @@ import math
 import shutil
 import subprocess
 import sys
+import time
 import tomllib
 from collections.abc import Sequence
 from pathlib import Path
@@ -142,9 +143,11 @@ def _render_file(header: str, scenes: dict[str, Any]) -> str:
             out.extend(f"    {_fmt(d)}," for d in spec["dropped"])
             out.append("]")
         out.append("")
-        for c in spec["check"]:
-            out.append(f"[[scenes.{key}.check]]")
-            for k in ("method", "points", "metric", "min", "max", "measured", "margin", "note"):
+        for c in spec["check"] + [dict(c, _pending=True) for c in spec.get("pending", [])]:
+            kind = "pending" if c.pop("_pending", False) else "check"
+            out.append(f"[[scenes.{key}.{kind}]]")
+            for k in ("method", "points", "metric", "min", "max", "measured", "margin", "note",
+                      "fixed"):  # fmt: skip
                 if k in c:
                     out.append(f"{k} = {_fmt(c[k])}")
             out.append("")
@@ -183,6 +186,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--write", action="store_true", help="replace the thresholds file")
     args = ap.parse_args(argv)
 
+    start = time.perf_counter()
     path = Path(args.file)
     text = path.read_text()
     data = tomllib.loads(text)
@@ -192,6 +196,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.scenes and key not in args.scenes:
             continue
         seeds = sorted(set(args.seeds) | {int(spec.get("seed", 0))})
+        # Checks that could not be measured last time are tried again (a better render may
+        # give them points); those still unmeasurable stay pending, not lost.
+        spec["check"] = list(spec.get("check", [])) + list(spec.pop("pending", []))
         values: dict[int, list[float]] = {i: [] for i in range(len(spec["check"]))}
         own: dict[int, float] = {}
         for seed in seeds:
@@ -208,25 +215,31 @@ def main(argv: Sequence[str] | None = None) -> int:
                 if seed == int(spec.get("seed", 0)):
                     own[i] = v
             print(f"{key} seed {seed}: done", file=sys.stderr)
-        kept, dropped = [], list(spec.get("dropped", []))
+        kept, pending = [], []
         for i, c in enumerate(spec["check"]):
             vals = [v for v in values[i] if math.isfinite(v)]
             shown = ", ".join(f"{v:.4g}" for v in values[i])
             c["measured"] = own[i]
             if not math.isfinite(own[i]):
-                # CI would see this NaN: a check that cannot be measured is dropped, and said so.
-                pts = f" @{c['points']}" if c.get("points") else ""
-                dropped.append(
-                    f"{c['method']}{pts} {c['metric']}: not measurable at seed "
-                    f"{spec.get('seed', 0)} (seeds {seeds}: {shown})"
+                # CI would see this NaN: the check waits in [[scenes.KEY.pending]], said so.
+                c["margin"] = (
+                    f"not measurable at seed {spec.get('seed', 0)} (seeds {seeds}: {shown}); "
+                    "re-tried by every calibration"
                 )
-                print(f"{key}: dropped {dropped[-1]}", file=sys.stderr)
+                pending.append(c)
+                pts = f" @{c['points']}" if c.get("points") else ""
+                print(f"{key}: pending {c['method']}{pts} {c['metric']}", file=sys.stderr)
+                continue
+            if c.get("fixed"):
+                kept.append(c)  # the bound is what the figure means; only `measured` moves
                 continue
             if "max" in c:
                 worst = max(vals)
-                c["max"] = _round_out(worst * UPPER if worst > 0 else 0.01, up=True)
+                # 25 % of the value's size above it (also for negative values, e.g. a gain).
+                bound = worst + (UPPER - 1) * abs(worst) if worst != 0 else 0.01
+                c["max"] = _round_out(bound, up=True)
                 c["margin"] = (
-                    f"{UPPER} x the worst of seeds {seeds} ({shown}), rounded up; "
+                    f"the worst of seeds {seeds} ({shown}) + {UPPER - 1:g} x its size, rounded up; "
                     "covers render noise and platform differences"
                 )
                 if c["metric"].rsplit(".", 1)[-1] in FRACTIONS and c["max"] > 1.0:
@@ -234,19 +247,23 @@ def main(argv: Sequence[str] | None = None) -> int:
                     c["margin"] += " (a fraction: capped at 1)"
             if "min" in c:
                 low = min(vals)
-                c["min"] = _round_out(low * LOWER, up=False)
-                c["margin"] = (
-                    f"{LOWER} x the lowest of seeds {seeds} ({shown}), rounded down; "
+                c["min"] = _round_out(low - (1 - LOWER) * abs(low), up=False)
+                upper = c["margin"] + "; " if "max" in c else ""
+                c["margin"] = upper + (
+                    f"the lowest of seeds {seeds} ({shown}) - {1 - LOWER:.2g} x its size, rounded "
+                    "down; "
                     "covers render noise and platform differences"
                 )
             kept.append(c)
         spec["check"] = kept
-        if dropped:
-            spec["dropped"] = dropped
+        if pending:
+            spec["pending"] = pending
     new = _render_file(_header(text), scenes)
     if args.write:
-        path.write_text(new)
-        print(f"wrote {path}", file=sys.stderr)
+        from omniflow.imageio import atomic_write_text
+
+        atomic_write_text(path, new)  # a reader never sees half a file
+        print(f"wrote {path} in {time.perf_counter() - start:.0f} s", file=sys.stderr)
     else:
         print(new)
     return 0

@@ -21,17 +21,31 @@ outputs in REPORT_DIR:
                            error vs range / speed, the table of methods (accuracy, time)
   summary.json             pooled statistics per method (the thresholds read this)
   frames.csv               one row per frame pair, method, point set and camera
+                           (EPE mean/median, radial/tangential gain and signed error,
+                           density, stereo, time to contact)
+  camera_sweep.csv         with --camera-sweep: accuracy per method at each level
   figures/                 the pictures
+  (written into a temporary directory beside REPORT_DIR, renamed into place at the end)
 
 methods: every omniflow variant (matching rule robust|paper, gradients first|average,
 temporal difference|dct3d, solver direct|pooled), OpenCV DIS (medium) and Farneback
-on the raw omni images, and DIS on the unwarped panoramas, all on the same 8-bit frames.
+on the raw omni images, DIS on the unwarped panoramas, and zero flow (the floor), all on
+the same frames (the dataset's camera model, with --camera overrides, else 8-bit luminance).
 Flow is compared per frame interval: omniflow's velocities vs the true displacement.
 
+scoring another method (--method-output DIR, repeatable; format in docs/validation.md):
+  DIR/frames/NNNNNN/cam1.flo, cam2.flo   dense Middlebury flow (dx, dy) from frame NNNNNN to
+                                         the next, scored like a baseline, or
+  DIR/frames/NNNNNN/flow.csv             per-point CSV with omniflow's columns (x, y, dx, dy
+                                         required; x2 y2 dx2 dy2 h2 r h dr_dt ... optional)
+  python -m validation.examples.dis_method_output runs/default runs/dis-out
+  omnivalidate runs/default --out runs/r --method-output runs/dis-out
+
 examples:
-  omnisim render scenes/default.toml --out runs/default --width 128 --spp 4 --frames 3
+  omnisim render scenes/default.toml --out runs/default --resolution 128 --spp 4 --frames 3
   omnivalidate runs/default --out runs/default-report
   omnivalidate runs/default --out runs/r --variants oat --check validation/thresholds.toml
+  omnivalidate runs/default --out runs/r --variants default --camera-sweep read_noise=0,5,20,50
 """
 
 
@@ -57,8 +71,9 @@ def _parser() -> argparse.ArgumentParser:
     )
     ap.add_argument(
         "--baselines",
-        default="DIS-medium,Farneback,DIS-medium-panorama",
-        help="comma-separated baselines, or 'none' (default: %(default)s)",
+        default="DIS-medium,Farneback,DIS-medium-panorama,zero-flow",
+        help="comma-separated baselines, or 'none'; zero-flow predicts no motion, the floor "
+        "every method must clearly beat (default: %(default)s)",
     )
     ap.add_argument(
         "--frames",
@@ -78,6 +93,43 @@ def _parser() -> argparse.ArgumentParser:
         default=None,
         help="which [scenes.KEY] of the thresholds file applies (default: the "
         "dataset's scene name)",
+    )
+    ap.add_argument(
+        "--method-output",
+        action="append",
+        default=[],
+        metavar="DIR",
+        help="score another method's outputs in DIR (dense .flo or per-point flow.csv per "
+        "frame, laid out like the dataset; see below); repeatable",
+    )
+    ap.add_argument(
+        "--method-name",
+        action="append",
+        default=[],
+        metavar="NAME",
+        help="row name of each --method-output, in order (default: the directory's name)",
+    )
+    ap.add_argument(
+        "--camera",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="camera-model parameter (omniflow.camera: exposure, full_well, read_noise, gain, "
+        "bits, response, vignetting, defocus, seed) applied to the radiance when the images "
+        "are formed, over the dataset's own camera; repeatable",
+    )
+    ap.add_argument(
+        "--camera-sweep",
+        default=None,
+        metavar="KEY=V1,V2,...",
+        help="score the same render at each level of one camera parameter and write an "
+        "accuracy-vs-level table and plot (camera_sweep.csv); the rest of the report is "
+        "for the first level",
+    )
+    ap.add_argument(
+        "--partial",
+        action="store_true",
+        help="score the complete pairs of an incomplete dataset (default: refuse it)",
     )
     ap.add_argument("--no-progress", action="store_true", help="no progress bar")
     return ap
@@ -105,8 +157,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     from omniflow.rig import RigError
 
     from . import baselines as bl
-    from .report import write_report
+    from .external import ExternalOutput
+    from .report import check_out_dir, write_report
     from .runner import InputError, run_validation
+    from .summary import sweep_rows
     from .thresholds import ThresholdError, check_summary, format_checks, load_thresholds
 
     def fail(msg: str) -> int:
@@ -133,22 +187,61 @@ def main(argv: Sequence[str] | None = None) -> int:
             return fail(str(exc))
     if not Path(args.dataset).is_dir():
         return fail(f"{args.dataset}: no such dataset directory")
+    if args.scene_key is not None and thresholds is None:
+        return fail("--scene-key: only with --check THRESHOLDS_TOML")
+    if args.scene_key is not None and thresholds is not None:
+        if args.scene_key not in thresholds["scenes"]:
+            return fail(
+                f"--scene-key {args.scene_key!r}: not in {args.check}; expected one of "
+                f"{sorted(thresholds['scenes'])}"
+            )
+    if len(args.method_name) > len(args.method_output):
+        return fail("--method-name: more names than --method-output directories")
+    levels: list[list[str]] = [[]]
+    if args.camera_sweep is not None:
+        key, sep, vals = args.camera_sweep.partition("=")
+        values = [v.strip() for v in vals.split(",") if v.strip()]
+        if not sep or not key.strip() or not values:
+            return fail(f"--camera-sweep {args.camera_sweep!r}: expected KEY=V1,V2,...")
+        levels = [[f"{key.strip()}={v}"] for v in values]
 
     start = time.perf_counter()
     try:
-        results = run_validation(
-            args.dataset,
-            variants=args.variants,
-            baselines=names,
-            frames=frames,
-            progress=not args.no_progress,
+        check_out_dir(args.out)
+        external = [
+            ExternalOutput(d, args.method_name[i] if i < len(args.method_name) else None)
+            for i, d in enumerate(args.method_output)
+        ]
+        sweep: list[dict] = []
+        results = None
+        for level in levels:
+            res = run_validation(
+                args.dataset,
+                variants=args.variants,
+                baselines=names,
+                frames=frames,
+                progress=not args.no_progress,
+                external=external,
+                camera=[*args.camera, *level],
+                partial=args.partial,
+            )
+            if level:
+                from omniflow.jsonio import jsonable
+
+                from .summary import summarize
+
+                key, value = level[0].split("=", 1)
+                sweep += sweep_rows(jsonable(summarize(res)), key, value)
+            results = results or res
+        command = "omnivalidate " + " ".join(
+            shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:])
         )
+        summary = write_report(results, args.out, command=command, sweep=sweep or None)
     except (DatasetError, RigError, InputError) as exc:
         return fail(str(exc).splitlines()[0])
-    command = "omnivalidate " + " ".join(
-        shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:])
-    )
-    summary = write_report(results, args.out, command=command)
+    except OSError as exc:
+        return fail(f"{exc.filename or args.out}: {exc.strerror or exc}")
+    print("\n".join(summary.get("headline", [])))
     print(
         f"omnivalidate: {len(summary['methods'])} rows, {len(results.dataset['pairs'])} frame "
         f"pair(s) in {time.perf_counter() - start:.1f} s; report: "

@@ -15,7 +15,12 @@ Flow metrics follow the optical-flow benchmarks (Middlebury, KITTI, Sintel):
   ``(dx, dy, 1)`` and ``(dx_gt, dy_gt, 1)``, degrees;
 * 1 px and 3 px outlier rates: the fraction of points with EPE above 1 and 3 px;
 * each split into non-occluded (``gt.flow.valid`` = 1), occluded, and by the
-  true speed ``hypot(dx_gt, dy_gt)`` in bins.
+  true speed ``hypot(dx_gt, dy_gt)`` in bins;
+* bias (:func:`gain`): the estimated radial (``dh``) and tangential
+  (``h dtheta``) components against the true ones, as the least-squares gain
+  through the origin, the slope and intercept of a straight-line fit, and the
+  mean and median signed error. A method that shrinks its answers towards zero
+  has a small median EPE at sub-pixel motion but a gain well below 1.
 
 Stereo metrics: matched ``h_2`` more than 1 px from ``gt.stereo.h_other`` is an
 outlier; relative error of ``r`` (``|r - r_gt| / r_gt``) and absolute error of
@@ -29,6 +34,7 @@ import math
 from collections.abc import Mapping, Sequence
 
 import numpy as np
+import scipy.stats
 from numpy.typing import ArrayLike, NDArray
 
 __all__ = [
@@ -37,6 +43,7 @@ __all__ = [
     "bin_label",
     "flow_errors",
     "flow_summary",
+    "gain",
     "polar_components",
     "rate",
     "stats",
@@ -101,6 +108,56 @@ def polar_components(
     return dh, h0 * dth
 
 
+#: Below this rms of the true component (px) the gain and slope are not defined (NaN):
+#: over points that do not move in that direction (a pure rotation radially, a static
+#: scene) the ratio is noise over nothing and reaches 1e12.
+MIN_TRUE_RMS = 0.01
+
+
+def gain(est: ArrayLike, true: ArrayLike) -> dict[str, float]:
+    """How much of the true component a method recovers, and its signed error.
+
+    Parameters
+    ----------
+    est, true : array_like, shape (N,)
+        Estimated and true values of one flow component (px per frame);
+        non-finite pairs are left out.
+
+    Returns
+    -------
+    dict with ``n``; ``gain`` = sum(est * true) / sum(true**2), the
+    least-squares slope through the origin (1 = unbiased, 0 = predicts no
+    motion); ``slope`` and ``intercept`` of the straight-line fit of est
+    against true (NaN with fewer than 3 points or no spread of the truth);
+    ``mean_signed`` and ``median_signed`` of ``est - true``; ``mean_est``
+    and ``mean_true`` (the region's mean motion, e.g. an object's);
+    ``true_rms``, the root mean square of the truth. ``gain``, ``slope`` and
+    ``intercept`` are NaN where ``true_rms`` is below :data:`MIN_TRUE_RMS`.
+    """
+    e = np.asarray(est, dtype=np.float64).ravel()
+    g = np.asarray(true, dtype=np.float64).ravel()
+    ok = np.isfinite(e) & np.isfinite(g)
+    e, g = e[ok], g[ok]
+    nan = math.nan
+    out = {"n": int(e.size), "gain": nan, "slope": nan, "intercept": nan, "mean_signed": nan,
+           "median_signed": nan, "mean_est": nan, "mean_true": nan, "true_rms": nan}  # fmt: skip
+    if e.size == 0:
+        return out
+    d = e - g
+    out.update(mean_signed=float(d.mean()), median_signed=float(np.median(d)),
+               mean_est=float(e.mean()), mean_true=float(g.mean()),
+               true_rms=float(np.sqrt(np.mean(g * g))))  # fmt: skip
+    if out["true_rms"] < MIN_TRUE_RMS:
+        return out
+    gg = float(np.dot(g, g))
+    if gg > 0:
+        out["gain"] = float(np.dot(e, g) / gg)
+    if e.size >= 3 and np.ptp(g) > 0:
+        fit = scipy.stats.linregress(g, e)
+        out["slope"], out["intercept"] = float(fit.slope), float(fit.intercept)
+    return out
+
+
 def flow_errors(est: Mapping[str, ArrayLike], gt: Mapping[str, ArrayLike]) -> dict[str, NDArray]:
     """Per-point flow errors.
 
@@ -114,7 +171,9 @@ def flow_errors(est: Mapping[str, ArrayLike], gt: Mapping[str, ArrayLike]) -> di
     Returns
     -------
     dict with ``epe``, ``err_dh``, ``err_hdtheta`` (absolute errors, px),
-    ``ae`` (degrees) and ``speed`` (true displacement magnitude, px).
+    ``ae`` (degrees), ``speed`` (true displacement magnitude, px), and for
+    :func:`gain` the true components ``gt_dh``, ``gt_hdtheta`` and the
+    estimated ones ``est_dh``, ``est_hdtheta`` (px).
     """
     edx, edy = (np.asarray(est[k], dtype=np.float64) for k in ("dx", "dy"))
     gdx, gdy = (np.asarray(gt[k], dtype=np.float64) for k in ("dx", "dy"))
@@ -130,6 +189,10 @@ def flow_errors(est: Mapping[str, ArrayLike], gt: Mapping[str, ArrayLike]) -> di
         ),
         "ae": ae,
         "speed": np.hypot(gdx, gdy),
+        "gt_dh": np.asarray(gt["dh"], dtype=np.float64),
+        "gt_hdtheta": np.asarray(gt["hdtheta"], dtype=np.float64),
+        "est_dh": np.asarray(est["dh"], dtype=np.float64),
+        "est_hdtheta": np.asarray(est["hdtheta"], dtype=np.float64),
     }
 
 
@@ -143,6 +206,8 @@ def _flow_block(err: Mapping[str, NDArray], sel: NDArray) -> dict:
         "ae": stats(err["ae"][sel]),
         "out1": rate(epe > 1.0),
         "out3": rate(epe > 3.0),
+        "radial": gain(err["est_dh"][sel], err["gt_dh"][sel]),
+        "tangential": gain(err["est_hdtheta"][sel], err["gt_hdtheta"][sel]),
     }
 
 

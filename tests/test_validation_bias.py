@@ -1,0 +1,137 @@
+"""validation: bias (gain), zero flow, time to contact with failures, objects and density.
+
+Each figure is checked on hand values and on the truth oracle, where the
+answers are known exactly (gain 1 for the truth, 0 for zero flow).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from validation.metrics import gain
+from validation.oracle import OracleConfig, TruthOracle
+from validation.report import write_report
+from validation.runner import run_validation, ttc_scores
+from validation.summary import find_method
+from validation.synthdata import demo_scene, write_synthetic_dataset
+
+
+def test_gain_hand_values():
+    true = np.array([-1.0, 0.5, 1.0, 2.0])
+    g = gain(0.5 * true, true)
+    assert g["gain"] == pytest.approx(0.5) and g["slope"] == pytest.approx(0.5)
+    assert g["intercept"] == pytest.approx(0.0, abs=1e-12)
+    assert g["mean_signed"] == pytest.approx(-0.5 * true.mean())
+    # A constant offset: the straight line finds it, the gain through the origin mixes it in.
+    g = gain(true + 0.3, true)
+    assert g["slope"] == pytest.approx(1.0) and g["intercept"] == pytest.approx(0.3)
+    assert g["mean_signed"] == pytest.approx(0.3) and g["median_signed"] == pytest.approx(0.3)
+    assert g["gain"] == pytest.approx(1.0 + 0.3 * true.sum() / (true**2).sum())
+    g = gain(np.zeros(4), true)
+    assert g["gain"] == 0.0 and g["slope"] == 0.0
+    # Non-finite pairs are left out; no truth spread: no slope, no warning.
+    g = gain([1.0, np.nan, 2.0], [1.0, 1.0, np.inf])
+    assert g["n"] == 1 and math.isnan(g["slope"]) and g["gain"] == 1.0
+    assert gain([], [])["n"] == 0
+    # No motion in that direction (rms below 0.01 px): no gain, not 1e12.
+    g = gain([0.01, -0.02, 0.03], [1e-9, -2e-9, 1e-9])
+    assert math.isnan(g["gain"]) and math.isnan(g["slope"]) and g["mean_signed"] > 0
+
+
+def test_ttc_failures_count_as_infinite_error():
+    true = np.array([10.0, 10.0, 10.0, 10.0])
+    est = np.array([11.0, 9.0, np.inf, -5.0])  # two estimated right, one receding, one negative
+    s = ttc_scores(est, true)
+    assert s["n"] == 4 and s["failures"] == 2 and s["failure_share"] == 0.5
+    assert s["median_of_successes"] == pytest.approx(0.1)
+    assert math.isinf(s["median"])  # half the points failed: the median is infinite
+    s = ttc_scores(np.array([11.0, 9.0, 10.0]), true[:3])
+    assert s["failures"] == 0 and s["median"] == pytest.approx(0.1)
+
+
+@pytest.fixture(scope="module")
+def oracle_summary(tmp_path_factory):
+    d = tmp_path_factory.mktemp("synth") / "ds"
+    write_synthetic_dataset(d, demo_scene(64), 3, name="synthetic-demo", supersample=1)
+    res = run_validation(
+        d,
+        variants=[("truth-oracle", OracleConfig())],
+        estimate=TruthOracle(d),
+        baselines=["zero-flow"],
+        progress=False,
+    )
+    return res, write_report(res, tmp_path_factory.mktemp("r"))
+
+
+def test_truth_has_gain_one_and_zero_flow_gain_zero(oracle_summary):
+    _, summary = oracle_summary
+    oracle = find_method(summary, "truth-oracle")["flow"]["cam1"]["all"]
+    zero = find_method(summary, "zero-flow", "omniflow points")["flow"]["cam1"]["all"]
+    for comp in ("radial", "tangential"):
+        assert oracle[comp]["gain"] == pytest.approx(1.0, abs=1e-9)
+        assert oracle[comp]["slope"] == pytest.approx(1.0, abs=1e-9)
+        assert zero[comp]["gain"] == 0.0
+    assert zero["epe"]["median"] > 0.05  # the demo moves: zero flow is wrong
+    # The perfect method is clearly below zero flow: no warning about it in the headline.
+    assert not [line for line in summary["headline"] if line.startswith("WARNING truth-oracle")]
+    assert summary["headline"][0].startswith("cam1, truth-oracle: unbiased")
+
+
+def test_bias_verdict_needs_true_motion():
+    from validation.summary import _biased
+
+    def block(gain, rms):
+        g = {"gain": gain, "true_rms": rms}
+        return {"all": {"radial": g, "tangential": {"gain": 1.0, "true_rms": rms}}}
+
+    assert _biased(block(0.6, 0.3)) == "biased (radial gain 0.60)"
+    assert _biased(block(0.9, 0.3)) == "biased (radial gain 0.90)"  # outside 1 +- 0.05
+    assert _biased(block(0.97, 0.3)) == "unbiased"
+    # A static scene: the truth barely moves, the gain is noise over nothing.
+    assert _biased(block(-0.02, 0.01)).startswith("bias not judged")
+
+
+def test_density_and_objects_with_no_points(oracle_summary):
+    res, summary = oracle_summary
+    f = find_method(summary, "truth-oracle")["flow"]["cam1"]
+    d = f["density"]
+    # The oracle answers at every 3rd pixel the other camera sees (OracleConfig.step = 3),
+    # less the few without bilinear truth: about a third of the stereo pixels.
+    assert 0.25 < d["of_stereo_pixels"] <= 1 / 3 + 1e-9
+    assert d["of_valid_pixels"] < d["of_stereo_pixels"]
+    assert d["points_per_frame"] == pytest.approx(f["all"]["n"] / 2)
+    # Every object of the dataset is listed, with n and its pixel share.
+    names = set(res.dataset["objects"].values())
+    assert names <= set(f["objects"])
+    dense_zero = find_method(summary, "zero-flow", "dense")["flow"]["cam1"]["objects"]
+    for name in names:
+        assert dense_zero[name]["n"] == dense_zero[name]["valid_pixels"]
+
+
+def test_an_object_never_scored_shows_zero(tmp_path):
+    d = tmp_path / "ds"
+    write_synthetic_dataset(d, demo_scene(64), 3, name="synthetic-demo", supersample=1)
+    oracle = TruthOracle(d)
+
+    def skip_object_1(*args, **kwargs):
+        res = oracle(*args, **kwargs)
+        from validation.sampling import sample_truth
+
+        g1 = oracle.ds.read_frame(oracle.pairs[(oracle.calls - 1) % len(oracle.pairs)], "cam1")
+        ids = sample_truth(g1, res.columns["x"], res.columns["y"])["gt.object"]
+        keep = np.rint(ids) != 1
+        res.columns = {k: v[keep] for k, v in res.columns.items()}
+        return res
+
+    res = run_validation(d, variants=[("o", OracleConfig())], estimate=skip_object_1,
+                         baselines=[], progress=False)  # fmt: skip
+    summary = write_report(res, tmp_path / "r")
+    name = res.dataset["objects"]["1"]
+    block = find_method(summary, "o")["flow"]["cam1"]["objects"][name]
+    assert block["n"] == 0 and block["valid_pixels"] > 0 and block["density"] == 0.0
+    md = (tmp_path / "r" / "report.md").read_text()
+    objects_table = md.split("## Objects")[1].split("\n## ")[0]
+    assert name in objects_table

@@ -1,0 +1,177 @@
+"""validation: scoring a method we did not write (--method-output), and the CLI's input checks.
+
+The dense path is proven by feeding DIS's own output (written by the example
+script through the harness's image function) back in: its rows must equal the
+built-in DIS-medium rows exactly (same float32 flow, same points). The
+per-point path is proven with the truth oracle's columns written as CSV.
+"""
+
+from __future__ import annotations
+
+import csv
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from validation.examples.dis_method_output import write_dis_outputs
+from validation.external import ExternalOutput
+from validation.inputs import InputError
+from validation.oracle import OracleConfig, TruthOracle
+from validation.report import write_report
+from validation.runner import run_validation
+from validation.summary import find_method
+from validation.synthdata import demo_scene, write_synthetic_dataset
+
+
+@pytest.fixture(scope="module")
+def synth(tmp_path_factory) -> Path:
+    d = tmp_path_factory.mktemp("synth") / "ds"
+    write_synthetic_dataset(d, demo_scene(64), 3, name="synthetic-demo", supersample=1)
+    return d
+
+
+def _strip_times(block):
+    return {k: v for k, v in block.items() if k != "time_per_frame"}
+
+
+def test_dis_output_scores_exactly_as_the_builtin_dis_row(synth, tmp_path):
+    assert write_dis_outputs(synth, tmp_path / "dis") == 2
+    res = run_validation(
+        synth,
+        variants=[("truth-oracle", OracleConfig())],
+        estimate=TruthOracle(synth),
+        baselines=["DIS-medium"],
+        external=[ExternalOutput(tmp_path / "dis", "my-DIS")],
+        progress=False,
+    )
+    summary = write_report(res, tmp_path / "r")
+    for points in ("omniflow points", "dense"):
+        builtin = find_method(summary, "DIS-medium", points)
+        ours = find_method(summary, "my-DIS", points)
+        assert ours["flow"] == builtin["flow"], points
+        assert ours["flow"]["cam1"]["all"]["n"] > 50
+    same = find_method(summary, "truth-oracle")["baselines_at_same_points"]
+    assert same["my-DIS"] == same["DIS-medium"]
+    assert "my-DIS" in (tmp_path / "r" / "report.md").read_text()
+
+
+def test_per_point_csv_scores_as_the_method_that_wrote_it(synth, tmp_path):
+    oracle = TruthOracle(synth)
+    rig = oracle.ds.rig
+    out = tmp_path / "pts"
+    for t in (0, 1):
+        cols = oracle(None, None, rig, OracleConfig(), t=0).columns
+        keys = list(cols)
+        path = out / "frames" / f"{t:06d}" / "flow.csv"
+        path.parent.mkdir(parents=True)
+        with path.open("w", newline="") as fh:
+            fh.write("# units line, skipped\n")
+            w = csv.writer(fh)
+            w.writerow(keys)
+            w.writerows(zip(*(np.asarray(cols[k]).tolist() for k in keys), strict=True))
+    res = run_validation(
+        synth,
+        variants=[("truth-oracle", OracleConfig())],
+        estimate=TruthOracle(synth),
+        baselines=[],
+        external=[ExternalOutput(out, "oracle-csv")],
+        progress=False,
+    )
+    summary = write_report(res, tmp_path / "r")
+    a, b = find_method(summary, "truth-oracle"), find_method(summary, "oracle-csv")
+    assert b["kind"] == "external"
+    for cam in ("cam1", "cam2"):
+        fa, fb = a["flow"][cam]["all"], b["flow"][cam]["all"]
+        assert fb["n"] == fa["n"] > 50
+        # CSV text round-trips floats exactly (repr), so the errors are the oracle's own.
+        assert fb["epe"] == pytest.approx(fa["epe"], abs=1e-12)
+    assert b["stereo"]["all"]["outliers"] == 0.0
+
+
+def test_missing_outputs_are_named(synth, tmp_path):
+    write_dis_outputs(synth, tmp_path / "dis")
+    (tmp_path / "dis" / "frames" / "000001" / "cam2.flo").unlink()
+    with pytest.raises(InputError, match=r"missing .*000001/cam2\.flo \(1 of 4 files\)"):
+        run_validation(synth, variants="default", baselines=[],
+                       external=[ExternalOutput(tmp_path / "dis")], progress=False)  # fmt: skip
+    with pytest.raises(InputError, match="found neither"):
+        ExternalOutput(tmp_path)
+
+
+# -- the command line refuses bad input in one line, exit 2, nothing written ------------------
+
+
+def _cli(*args):
+    return subprocess.run(
+        [sys.executable, "-m", "validation.cli", *args], capture_output=True, text=True, timeout=300
+    )
+
+
+def _one_line_exit_2(p, needle):
+    assert p.returncode == 2, p.stderr
+    lines = p.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("omnivalidate: error:"), p.stderr
+    assert needle in lines[0], lines[0]
+
+
+def test_cli_refuses_bad_out_and_scene_key(synth, tmp_path):
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    base = [str(synth), "--variants", "default", "--baselines", "none", "--no-progress"]
+    _one_line_exit_2(_cli(*base, "--out", str(afile)), "is a file")
+    _one_line_exit_2(_cli(*base, "--out", str(afile / "sub")), "cannot write there")
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "thesis.tex").write_text("precious")
+    _one_line_exit_2(_cli(*base, "--out", str(tmp_path / "mine")), "thesis.tex")
+    assert (tmp_path / "mine" / "thesis.tex").read_text() == "precious"
+    _one_line_exit_2(
+        _cli(*base, "--out", str(tmp_path / "o"), "--check", "validation/thresholds.toml",
+             "--scene-key", "nosuch"),
+        "--scene-key 'nosuch'",
+    )  # fmt: skip
+    assert not (tmp_path / "o").exists()
+    _one_line_exit_2(_cli(*base, "--out", str(tmp_path / "o"), "--scene-key", "default"),
+                     "only with --check")  # fmt: skip
+    _one_line_exit_2(_cli(*base, "--out", str(tmp_path / "o"), "--camera-sweep", "bits"),
+                     "--camera-sweep 'bits'")  # fmt: skip
+    assert not (tmp_path / "o").exists()
+    assert not list(tmp_path.glob(".o.*"))  # no temporary directory left behind
+
+
+def test_cli_refuses_a_bad_camera_parameter(synth, tmp_path):
+    pytest.importorskip("omnisim.camera")
+    base = [str(synth), "--variants", "default", "--baselines", "none", "--no-progress"]
+    _one_line_exit_2(_cli(*base, "--out", str(tmp_path / "o"), "--camera", "bits=7"), "bits")
+    _one_line_exit_2(_cli(*base, "--out", str(tmp_path / "o"), "--camera", "read_noise=-1"),
+                     "read_noise")  # fmt: skip
+    assert not (tmp_path / "o").exists()
+
+
+def test_cli_refuses_incomplete_dataset_and_nan_radiance(synth, tmp_path):
+    from omnisim.dataset import read_exr, write_exr
+
+    ds = tmp_path / "ds"
+    shutil.copytree(synth, ds)
+    base = ["--variants", "default", "--baselines", "none", "--no-progress"]
+    # NaN radiance: one line naming the frame and camera.
+    exr = ds / "frames" / "000001" / "cam2.exr"
+    chans = read_exr(exr)
+    chans["R"][3, 4] = np.nan
+    write_exr(exr, chans)
+    _one_line_exit_2(_cli(str(ds), "--out", str(tmp_path / "o"), *base), "non-finite radiance")
+    # Incomplete: frame 2 missing; refused, saying how much; --partial scores pair 0 -> 1.
+    shutil.copytree(synth, tmp_path / "ds2")
+    (tmp_path / "ds2" / "frames" / "000002" / "cam1.exr").unlink()
+    _one_line_exit_2(_cli(str(tmp_path / "ds2"), "--out", str(tmp_path / "o"), *base),
+                     "1 of 3 frames missing (2)")  # fmt: skip
+    p = _cli(str(tmp_path / "ds2"), "--out", str(tmp_path / "o"), *base, "--partial")
+    assert p.returncode == 0, p.stderr
+    assert (tmp_path / "o" / "summary.json").is_file()
+    # A second run replaces the previous report as a whole.
+    p = _cli(str(tmp_path / "ds2"), "--out", str(tmp_path / "o"), *base, "--partial")
+    assert p.returncode == 0, p.stderr
+    assert sorted(x.name for x in tmp_path.iterdir() if x.name.startswith(".o")) == []

@@ -1,0 +1,1 @@
+"""Small examples of the harness's formats (see docs/validation.md)."""

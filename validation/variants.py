@@ -1,0 +1,189 @@
+"""The omniflow rows: which OmniFlowConfig variants run, their names, and the
+flow step on the true stereo matches."""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .inputs import InputError
+
+__all__ = [
+    "VARIANT_CHOICES",
+    "TrueMatches",
+    "config_dict",
+    "is_paper_config",
+    "omniflow_variants",
+    "true_matches",
+    "variant_name",
+]
+
+
+#: The selectable choices of OmniFlowConfig that each get a row, default first.
+VARIANT_CHOICES: dict[str, tuple[str, ...]] = {
+    "match_method": ("robust", "paper"),
+    "gradients": ("first", "average"),
+    "temporal": ("difference", "dct3d"),
+    "solver": ("direct", "pooled"),
+}
+
+
+_SHORT = {
+    "robust": "robust",
+    "paper": "paper",
+    "first": "grad1",
+    "average": "gradavg",
+    "difference": "diff",
+    "dct3d": "dct3d",
+    "direct": "direct",
+    "pooled": "pooled",
+}
+
+
+@dataclass(frozen=True)
+class TrueMatches:
+    """A variant that skips matching: omniflow's flow step on the TRUE stereo matches.
+
+    The points are the cam1 pixels whose radial gradient magnitude is in the
+    top ``100 - percentile`` % (the paper's significant points, from the 8-bit
+    frame by central differences) and that cam2 sees (``gt.stereo.valid``);
+    their match is ``h2 = gt.stereo.h_other``. The row isolates the flow
+    solution (section 5.3) from the matching (section 5.2).
+    """
+
+    config: Any
+    percentile: float = 80.0
+
+    def __getattr__(self, name: str) -> Any:  # temporal, gradients, ... of the inner config
+        if name == "config":
+            raise AttributeError(name)
+        return getattr(self.config, name)
+
+
+def variant_name(config: Any) -> str:
+    """Row name of an OmniFlowConfig, e.g. ``omniflow[robust,grad1,diff,direct]``;
+    ``omniflow[truth,...]`` for :class:`TrueMatches`. Other fields that differ from
+    ``OmniFlowConfig()`` follow a semicolon: ``omniflow[paper,grad1,diff,direct;band=0.25]``."""
+    inner = config.config if isinstance(config, TrueMatches) else config
+    parts = [_SHORT.get(str(getattr(inner, k)), str(getattr(inner, k)))
+             for k in VARIANT_CHOICES if hasattr(inner, k)]  # fmt: skip
+    if isinstance(config, TrueMatches) and parts:
+        parts[0] = "truth"
+    extra = ""
+    if dataclasses.is_dataclass(inner):
+        try:
+            base = type(inner)()
+        except TypeError:
+            base = None
+        if base is not None:
+            diffs = [f"{f.name}={getattr(inner, f.name)!r}".replace("'", "")
+                     for f in dataclasses.fields(inner)
+                     if f.name not in VARIANT_CHOICES
+                     and getattr(inner, f.name) != getattr(base, f.name)]  # fmt: skip
+            extra = ";" + ",".join(diffs) if diffs else ""
+    return f"omniflow[{','.join(parts)}{extra}]"
+
+
+def omniflow_variants(mode: str = "all", *, true_matches: bool = True) -> list[tuple[str, Any]]:
+    """(name, OmniFlowConfig) for each variant, the default configuration first.
+
+    ``mode``: ``"default"`` (only the default), ``"oat"`` (the default plus each
+    choice changed one at a time, plus the paper's configuration), ``"all"``
+    (every combination). With
+    ``true_matches`` (not for "default") two more rows run the flow step of the
+    default and of the paper's configuration on the true matches
+    (:class:`TrueMatches`).
+    """
+    from omniflow.pipeline import OmniFlowConfig
+
+    base = OmniFlowConfig()
+    names = {f.name for f in dataclasses.fields(OmniFlowConfig)}
+    choices = {k: v for k, v in VARIANT_CHOICES.items() if k in names}
+    configs: list[Any] = [base]
+    if mode == "oat":
+        for key, values in choices.items():
+            for val in values:
+                if val != getattr(base, key):
+                    configs.append(dataclasses.replace(base, **{key: val}))
+    elif mode == "all":
+        for combo in itertools.product(*choices.values()):
+            cfg = dataclasses.replace(base, **dict(zip(choices, combo, strict=True)))
+            if cfg != base:
+                configs.append(cfg)
+    elif mode != "default":
+        raise InputError(f"variants = {mode!r}: expected 'default', 'oat' or 'all'")
+    paper = OmniFlowConfig.paper()
+    if mode != "default" and paper not in configs:  # the paper's exact configuration
+        configs.append(paper)
+    if true_matches and mode != "default":
+        configs.append(TrueMatches(base))
+        if paper != base:
+            configs.append(TrueMatches(paper))
+    return [(variant_name(c), c) for c in configs]
+
+
+def true_matches(
+    image: NDArray,
+    truth: dict[str, NDArray],
+    rig: Any,
+    percentile: float = 80.0,
+    *,
+    band: float = 0.25,
+) -> Any:
+    """The true stereo matches at cam1's significant pixels (see :class:`TrueMatches`).
+
+    ``image`` is cam1's grey float frame; its radial gradient comes from the DCT fit
+    (``band`` as the variant's) through :func:`omniflow.edges.polar_gradient_grid`,
+    the same eq. (19) the pipeline uses.
+    """
+    from omniflow.dct import fit_dct
+    from omniflow.edges import polar_gradient_grid
+    from omniflow.matching import Matches
+
+    unit = rig.cam1
+    x, y = unit.pixel_centres()
+    h1, theta = unit.polar_of_pixel(x, y)
+    f_h = np.abs(polar_gradient_grid(fit_dct(np.asarray(image, np.float32), band=band), unit)[0])
+    seen = (truth["gt.valid"] > 0.5) & (truth["gt.stereo.valid"] > 0.5) & (h1 >= 6.0)
+    seen &= h1 <= unit.r_m - 4.0
+    seen &= np.isfinite(truth["gt.stereo.h_other"]) & np.isfinite(f_h)
+    if not seen.any():
+        z = np.zeros(0)
+        return Matches(x=z, y=z, theta=z, h1=z, h2=z, score=z, n_significant=0, method="truth")
+    sig = seen & (f_h >= np.percentile(f_h[seen], percentile))
+    ii, jj = np.nonzero(sig)
+    return Matches(
+        x=x[ii, jj],
+        y=y[ii, jj],
+        theta=theta[ii, jj],
+        h1=h1[ii, jj],
+        h2=truth["gt.stereo.h_other"][ii, jj].astype(np.float64),
+        score=np.ones(ii.size),
+        n_significant=int(ii.size),
+        method="truth",
+    )
+
+
+def is_paper_config(cfg: Any) -> bool:
+    """Whether ``cfg`` is ``OmniFlowConfig.paper()`` (a stand-in config never is)."""
+    from omniflow.pipeline import OmniFlowConfig
+
+    return bool(cfg == OmniFlowConfig.paper())
+
+
+def config_dict(cfg: Any) -> dict[str, Any]:
+    if isinstance(cfg, TrueMatches):
+        out = config_dict(cfg.config)
+        out["match_method"] = "truth"
+        out["true_matches_percentile"] = cfg.percentile
+        return out
+    out = {}
+    for f in dataclasses.fields(cfg):
+        v = getattr(cfg, f.name)
+        out[f.name] = v if isinstance(v, int | float | str | bool) or v is None else repr(v)
+    return out
