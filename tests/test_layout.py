@@ -48,7 +48,7 @@ def test_every_omniflow_module_imports_no_simulator():
 def test_reading_a_dataset_imports_no_simulator(tmp_path):
     """The omniflow command's dataset mode, end to end in one process: the dataset is
     read with omniflow.dataset (importing omnisim.dataset there would fail this)."""
-    from omnisim_fakes import write_synthetic_dataset
+    from tests.helpers.fakes import write_synthetic_dataset
 
     ds = write_synthetic_dataset(tmp_path / "ds", frames=2, size=64)
     out = tmp_path / "out"

@@ -39,7 +39,6 @@ import itertools
 
 import numpy as np
 import pytest
-from omniflow_scenes import dis_flow, frames, paper_rig, true_matches, wall_scene
 
 from omniflow.flow import (
     axial_motion_violation,
@@ -53,6 +52,7 @@ from omniflow.flow import (
 )
 from omniflow.pipeline import OmniFlowConfig, estimate
 from omniflow.synthetic import Motion, SyntheticScene
+from tests.helpers.scenes import dis_flow, frames, paper_rig, true_matches, wall_scene
 
 # -- the algebra, on exact equations -------------------------------------------------
 

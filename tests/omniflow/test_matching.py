@@ -46,13 +46,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from omniflow_scenes import asymmetric_rig, paper_rig, true_h_other, wall_scene
 
 from omniflow.dct import fit_dct
 from omniflow.edges import polar_gradient_grid
 from omniflow.matching import Matches, match_radial, polar_gradient_fast, sample_xy
 from omniflow.pipeline import fill_outside_rim
 from omniflow.synthetic import Cylinder, SyntheticScene, Texture
+from tests.helpers.scenes import asymmetric_rig, paper_rig, true_h_other, wall_scene
 
 
 def _fits(scene: SyntheticScene, band: float = 0.5, **render_kw):
@@ -293,7 +293,7 @@ def test_rendered_frame_fewer_outliers_than_earlier_defaults(tmp_path):
     from omniflow.dataset import open_dataset
     from validation.sampling import sample_truth
 
-    scene_file = Path(__file__).resolve().parents[1] / "scenes" / "default.toml"
+    scene_file = Path(__file__).resolve().parents[2] / "scenes" / "default.toml"
     out = tmp_path / "default256"
     subprocess.run(
         [sys.executable, "-m", "omnisim.cli", "render", str(scene_file), "--out", str(out),

@@ -27,7 +27,7 @@ from validation.calibrate import make_dataset
 from validation.cli import main as omnivalidate
 from validation.thresholds import load_thresholds
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 THRESHOLDS = REPO / "validation" / "thresholds.toml"
 SCENES = load_thresholds(THRESHOLDS)["scenes"]
 SYNTHETIC = [k for k, v in SCENES.items() if str(v["scene"]).startswith("synthetic:")]
