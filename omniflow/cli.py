@@ -152,7 +152,7 @@ def _none_or(conv):
 
 #: Allowed range of every numeric OmniFlowConfig knob: (low, high, low included,
 #: high included); None is always allowed where the field's default is None. A new
-#: numeric knob needs an entry (tests/test_omniflow_bad_input.py checks the table).
+#: numeric knob needs an entry (tests/omniflow/test_bad_input.py checks the table).
 KNOB_LIMITS: dict[str, tuple[float, float, bool, bool]] = {
     "band": (0.0, 1.0, False, True),
     "match_band": (0.0, 1.0, False, True),

@@ -2,7 +2,7 @@
 
 End-to-end figures use closed-form scenes (omniflow.synthetic) at 256 x 256
 with the TRUE stereo matches at cam1's pixel centres, so only the flow step
-is measured. Measured with ``python -m pytest tests/test_flow.py -s -k best``
+is measured. Measured with ``python -m pytest tests/omniflow/test_flow.py -s -k best``
 (the table is printed); median endpoint error in pixels, three robot motions
 (turn 0.002 rad/frame; drive (0.01, 0.005) m/frame; both), two textures
 (striped wall r = 2 m; omniflow.synthetic's default room texture, r = 3 m),

@@ -4,7 +4,7 @@ A match is an outlier when |h2 - true h_other| > 1 px, where h_other is cam2's
 image radius of the scene point cam1 sees at (h1, theta) (points cam2 cannot
 see count as outliers too). Figures measured at 256 x 256 with the paper's
 rig (d = 0.10, R = 0.05, s = 0.30 m), band 0.5 and the matcher's defaults as
-the pipeline uses them, with ``python -m pytest tests/test_matching.py -s``
+the pipeline uses them, with ``python -m pytest tests/omniflow/test_matching.py -s``
 (the table is printed)::
 
     scene (wall radius, texture seed)  robust: outliers  matches/significant    paper's rule
