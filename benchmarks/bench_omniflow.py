@@ -38,6 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from omniflow.imageio import atomic_write_text, to_uint8
+from omniflow.jsonio import json_text
 from omniflow.rig import Rig
 
 
@@ -57,7 +58,7 @@ def synthetic_frames(size: int, count: int) -> tuple[list, list, Rig, str]:
 
 def dataset_frames(directory: str, k: int, count: int) -> tuple[list, list, Rig, str]:
     """Rendered frames k .. k + count - 1 of an omnisim dataset."""
-    from omnisim.dataset import open_dataset
+    from omniflow.dataset import open_dataset
 
     ds = open_dataset(directory)
     f1 = [ds.read_grey(j, "cam1") for j in range(k, k + count)]
@@ -226,7 +227,7 @@ def main(argv: list[str] | None = None) -> int:
           f"({omni_row['ratio_to_dis_medium']:.2f}x)")  # fmt: skip
     print(f"environment: {env}")
     if args.json:
-        atomic_write_text(Path(args.json), json.dumps(report, indent=2, default=str) + "\n")
+        atomic_write_text(Path(args.json), json_text(report))
         print(f"wrote {args.json}")
     return 0
 

@@ -43,7 +43,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy import ndimage
 from skimage.measure import CircleModel, ransac
 
-from omniflow.conventions import LUMA_WEIGHTS
+from omniflow.imageio import to_grey
 from omniflow.rig import Unit
 
 __all__ = ["RimCircle", "RimError", "calibrate_unit", "find_rim"]
@@ -79,7 +79,7 @@ class RimCircle:
 def _grey(image: ArrayLike) -> NDArray:
     img = np.asarray(image)
     if img.ndim == 3 and img.shape[2] in (3, 4):
-        img = img[..., :3].astype(np.float64) @ np.asarray(LUMA_WEIGHTS)
+        img = to_grey(img)
     if img.ndim != 2:
         raise RimError(
             f"image: expected a grey (H, W) or colour (H, W, 3) array, got shape {img.shape}"

@@ -41,6 +41,7 @@ from omniflow.imageio import (
     to_grey,
     write_png,
 )
+from omniflow.jsonio import json_text, jsonable
 from omniflow.rig import Rig, RigError, Unit, load_rig, unwarp
 
 PROG = "omniflow"
@@ -151,7 +152,7 @@ def _none_or(conv):
 
 #: Allowed range of every numeric OmniFlowConfig knob: (low, high, low included,
 #: high included); None is always allowed where the field's default is None. A new
-#: numeric knob needs an entry (tests/test_omniflow_bad_input.py checks the table).
+#: numeric knob needs an entry (tests/omniflow/test_bad_input.py checks the table).
 KNOB_LIMITS: dict[str, tuple[float, float, bool, bool]] = {
     "band": (0.0, 1.0, False, True),
     "match_band": (0.0, 1.0, False, True),
@@ -454,7 +455,7 @@ def _read_dataset(directory: str, k: int, window: int):
     ``window`` time steps are read, placed so that K .. K + 1 sits in the middle
     where the dataset allows; ``t`` is K's index in the returned lists.
     """
-    from omnisim.dataset import DatasetError, open_dataset
+    from omniflow.dataset import DatasetError, open_dataset
 
     meta = Path(directory) / "dataset.json"
     try:
@@ -596,22 +597,6 @@ def _column_units() -> dict[str, str]:
     return {**COLUMNS, "time_to_contact": "frames, -r / (dr/dt) where approaching, else inf"}
 
 
-def _jsonable(obj: Any) -> Any:
-    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        return {f.name: _jsonable(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, np.generic):
-        obj = obj.item()
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None if math.isnan(obj) else ("inf" if obj > 0 else "-inf")
-    if isinstance(obj, int | float | str | bool) or obj is None:
-        return obj
-    return str(obj)
-
-
 def _pictures(out: Path, image: np.ndarray, unit: Unit, cols, arrow_scale) -> list[Path]:
     from omniflow.draw import draw_flow_arrows, draw_flow_points
 
@@ -702,21 +687,21 @@ def run(args: argparse.Namespace, config_fields: list[str], argv: list[str]) -> 
             "inputs": info,
             "rig_source": rig_source,
             "rig": rig.to_dict(),
-            "config": _jsonable(config),
+            "config": jsonable(config),
             "points": n,
             "columns": {c: units.get(c, "") for c in cols},
             "timings_s": {
                 "read": t_read,
                 "estimate": t_estimate,
                 "write": t_write,
-                "pipeline_stages": _jsonable(result.timings),
+                "pipeline_stages": jsonable(result.timings),
             },
             "outputs": list(written),
             "median_flow_px": float(np.median(np.hypot(cols["dx"], cols["dy"]))) if n else None,
         }
         if args.odometry:
             summary["odometry"] = _odometry_summary(cols)
-        atomic_write_text(stage / "flow.json", json.dumps(_jsonable(summary), indent=2) + "\n")
+        atomic_write_text(stage / "flow.json", json_text(summary))
     return summary
 
 
@@ -748,7 +733,10 @@ def explain_error(exc: BaseException, out: str | None = None) -> tuple[int, str]
     if isinstance(exc, OutputError):
         return 2, f"--out {_one_line(exc)}"
     known: tuple[type, ...] = (CLIError, ImageError, RigError)
-    for module, name in (("omniflow.calibration", "RimError"), ("omnisim.dataset", "DatasetError")):
+    for module, name in (
+        ("omniflow.calibration", "RimError"),
+        ("omniflow.dataset", "DatasetError"),
+    ):
         if module in sys.modules:
             known += (getattr(sys.modules[module], name),)
     if isinstance(exc, known):

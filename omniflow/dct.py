@@ -331,7 +331,7 @@ def fit_dct3(
         The plain cosine series has zero slope at both ends of the window (its
         even extension), so for brightness changing linearly in time its f_t is
         off by a factor pi / 3 = 1.047 halfway between the frames of a 3-frame
-        window and by up to 1.063 for longer windows (see tests/test_dct.py);
+        window and by up to 1.063 for longer windows (see tests/omniflow/test_dct.py);
         detrending makes f_t exact for linear change and leaves only the
         curvature to the cosines.
 

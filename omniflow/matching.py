@@ -54,7 +54,7 @@ Two methods:
     per row.
 
 Measured on closed-form scenes (``omniflow.synthetic``, see
-``tests/test_matching.py``): see that file's module docstring for the
+``tests/omniflow/test_matching.py``): see that file's module docstring for the
 figures and the command.
 
 On rendered frames (omnisim, path traced) the robust matcher's outliers
@@ -574,7 +574,7 @@ def match_radial(
         ``consistency`` of its own. On rendered frames most outliers are
         1-3 px errors of isolated matches (path-tracing noise); measured on
         the default scene, 512 x 512, 16 spp: 7.8 % -> 5.2 % outliers for
-        18 % fewer matches (see ``tests/test_matching.py``).
+        18 % fewer matches (see ``tests/omniflow/test_matching.py``).
     consistency_support : int
         ``robust``: the agreeing neighbours a match needs.
     grids : (PolarGrids, PolarGrids), optional

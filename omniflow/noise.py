@@ -48,7 +48,7 @@ __all__ = [
 
 #: Bands :func:`choose_band` picks from by default (fractions of each axis). At most 1/2:
 #: wider bands cost fit time and measured worse on noise-free closed-form frames as often
-#: as better (tests/test_flow.py: band 0.75 0.0019 against 0.0028 px median EPE on the
+#: as better (tests/omniflow/test_flow.py: band 0.75 0.0019 against 0.0028 px median EPE on the
 #: striped wall, 0.0145 against 0.0112 on the room; docs/measurements.md).
 BAND_CANDIDATES: tuple[float, ...] = (0.125, 0.1875, 0.25, 0.3125, 0.375, 0.4375, 0.5)
 
@@ -71,7 +71,7 @@ def immerkaer_sigma(
     of 8-bit rounding). With ``block``, the estimate is made in each
     block x block tile that lies wholly inside the mask and the
     ``percentile`` of the tiles is returned: the least textured tiles show
-    the noise (the same room: 0.0029; tests/test_noise.py).
+    the noise (the same room: 0.0029; tests/omniflow/test_noise.py).
 
     Parameters
     ----------

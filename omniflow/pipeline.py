@@ -36,10 +36,10 @@ same with the 3-D DCT over 3 frames               0.0035-0.015
 OpenCV DIS medium, same frames and points         0.014-0.097   0.033-0.097
 ================================================  ============  ==============
 
-(tests/test_flow.py for the true-match table, tests/test_pipeline.py end to
-end, tests/test_matching.py for the matchers.) Eq. (14) assumes no motion
+(tests/omniflow/test_flow.py for the true-match table, tests/omniflow/test_pipeline.py end to
+end, tests/omniflow/test_matching.py for the matchers.) Eq. (14) assumes no motion
 along the axis; a wall moving up shows the error omniflow.flow predicts
-(tests/test_flow.py::test_vertical_motion_bias_matches_prediction).
+(tests/omniflow/test_flow.py::test_vertical_motion_bias_matches_prediction).
 
 Speed: the stage timings are in :attr:`OmniFlowResult.timings`;
 benchmarks/bench_omniflow.py compares the whole step with OpenCV DIS.
@@ -128,7 +128,7 @@ class OmniFlowConfig:
     """Every knob of the stereo omni flow step.
 
     The defaults are the robust choices measured best on closed-form scenes
-    (tests/test_flow.py, tests/test_pipeline.py); :meth:`paper` gives the
+    (tests/omniflow/test_flow.py, tests/omniflow/test_pipeline.py); :meth:`paper` gives the
     paper's own choices.
 
     Attributes
@@ -226,7 +226,7 @@ class OmniFlowConfig:
         Robust matcher: Gaussian blur across the radial lines, radians, to
         bring both units to one angular resolution; 0 disables it. 0.03
         (was 0.06) cut outliers on rendered 512 px frames of the default
-        scene from 11.4 % to 4.9 % (tests/test_matching.py).
+        scene from 11.4 % to 4.9 % (tests/omniflow/test_matching.py).
     consistency : float
         Robust matcher: disparity consistency vote, pixels: keep a match only
         if enough neighbours (+-0.05 rad, +-r_m/16) have a disparity within
@@ -291,7 +291,7 @@ class OmniFlowConfig:
         solver) for the increment. 0 is the paper's single first-order step
         of eq. (8); the paper does not iterate. Measured: helps on exact
         closed-form frames with ~0.7 px of motion (0.028 -> 0.013 px median
-        EPE, tests/test_flow.py), hurts on rendered frames (default scene,
+        EPE, tests/omniflow/test_flow.py), hurts on rendered frames (default scene,
         true matches, 512 px 16 spp, 24 neighbours: 0.224 -> 0.283 px cam1;
         scenes/turn_in_place, default pooling: 0.125 -> 0.187 px) where the
         error is render noise, not the linearisation; it
@@ -402,7 +402,7 @@ class OmniFlowConfig:
         and its analytic derivatives evaluated exactly at the points (eq.
         18-20), first-frame gradients, the frame difference of the fitted
         images for f_t and the direct solution of eq. (16) at each point;
-        no noise correction. tests/test_flow.py checks that this reproduces
+        no noise correction. tests/omniflow/test_flow.py checks that this reproduces
         eq. (16), (19) and (20) computed independently to rounding.
 
         Why it fails under noise: eq. (9) and (15) at one point are nearly
@@ -412,7 +412,7 @@ class OmniFlowConfig:
         difference f2_t - f1_t divided by it. Noise in the temporal
         derivatives and in the gradients is divided by that small D: the
         2x2 solve is ill-conditioned, and its error grows as its conditioning
-        falls (tests/test_flow.py measures this on noisy closed-form frames).
+        falls (tests/omniflow/test_flow.py measures this on noisy closed-form frames).
         """
         base = dict(
             band=0.25,

@@ -24,7 +24,7 @@ tangentially a wall at range r spans r / h_i metres per pixel, so near the
 image centre point sampling aliases. ``blur=sigma`` applies a Gaussian pixel
 footprint to every sinusoid analytically (from the Jacobian of the surface
 coordinates), which band-limits the image at the cost of brightness constancy
-holding only to the footprint's change between frames (tests/test_synthetic.py
+holding only to the footprint's change between frames (tests/omniflow/test_synthetic.py
 measures both).
 
 World and rig frames. World Z equals rig h (the rig moves only in the plane);

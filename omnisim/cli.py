@@ -240,8 +240,8 @@ def _frame_slice(text: str | None, count: int) -> list[int] | None:
 
 
 def _cmd_check(args: argparse.Namespace) -> int:
+    from omniflow.dataset import open_dataset
     from omnisim.check import format_results, run_checks
-    from omnisim.dataset import open_dataset
 
     ds = open_dataset(args.dir)
     frames = _frame_slice(args.frames, ds.frame_count)
@@ -265,15 +265,12 @@ def _cmd_check(args: argparse.Namespace) -> int:
     results = run_checks(ds, frames=frames, progress=args.progress)
     print(format_results(results))
     if args.json_out:
+        from omniflow.jsonio import jsonable
         from omnisim.dataset import atomic_write_json
 
         atomic_write_json(
             args.json_out,
-            [
-                {k: (None if isinstance(v, float) and v != v else v) for k, v in vars(r).items()}
-                | {"status": r.status}
-                for r in results
-            ],
+            jsonable([vars(r) | {"status": r.status} for r in results]),
         )
     return 1 if any(r.passed is False for r in results) else 0
 
@@ -315,7 +312,7 @@ def _error(msg: object) -> None:
 
 def _describe_exception(exc: BaseException) -> tuple[str, int] | None:
     """(one-line message, exit status) for an exception the handler knows, else None."""
-    from omnisim.dataset import DatasetError
+    from omniflow.dataset import DatasetError
     from omnisim.distributed import ClusterError
 
     if isinstance(exc, DatasetError | _UsageError | _IncompleteError):

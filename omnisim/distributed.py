@@ -35,6 +35,8 @@ from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
+from omnisim.meta import build_meta, load_scene_for_job, meta_digest, resolve_renderer, versions
+
 __all__ = ["SCHEDULER_TIMEOUT", "ClusterError", "render_on_cluster", "render_task"]
 
 #: Seconds to wait for the scheduler to answer, and for at least one worker to be there.
@@ -54,8 +56,6 @@ class ClusterError(RuntimeError):
 
 @functools.lru_cache(maxsize=4)
 def _worker_state(scene_path: str, overrides_json: str, renderer: str):
-    from omnisim.job import build_meta, load_scene_for_job, meta_digest, resolve_renderer
-
     overrides = json.loads(overrides_json)
     scene = load_scene_for_job(scene_path, overrides)
     meta = build_meta(scene, overrides, renderer=renderer)
@@ -76,11 +76,9 @@ def render_task(
 
     scene, meta, wdigest, render_fn = _worker_state(scene_path, overrides_json, renderer)
     if wdigest != digest:
-        from omnisim.job import _versions
-
         raise RuntimeError(
             f"worker would render a different dataset than the client for {scene_path}: "
-            f"check the scene file and package versions on the worker ({_versions()})"
+            f"check the scene file and package versions on the worker ({versions()})"
         )
     frame = render_fn(scene, k)
     if out is None:
@@ -134,8 +132,6 @@ def render_on_cluster(
     on disk. ``scheduler`` is an address or a ``distributed.Client``. Raises
     :class:`ClusterError` when the cluster fails (module docstring)."""
     from distributed import Client, wait
-
-    from omnisim.job import meta_digest
 
     if write_on not in ("client", "worker"):
         raise ValueError(f"write_on = {write_on!r}: expected 'client' or 'worker'")
@@ -212,7 +208,7 @@ def render_on_cluster(
 
 def _result(fut, where: str):
     """The future's result; a failure of the task or its workers as ClusterError."""
-    from omnisim.dataset import DatasetError
+    from omniflow.dataset import DatasetError
 
     try:
         return fut.result()

@@ -64,7 +64,8 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from omnisim.dataset import Dataset, DatasetError, flo_bytes, open_dataset
+from omniflow.dataset import Dataset, DatasetError, open_dataset
+from omnisim.dataset import flo_bytes
 
 __all__ = [
     "FORMATS",

@@ -54,7 +54,7 @@ Accuracy: rays are computed in float64 (the same formulas as
 each hit is then re-intersected in float64 with the plane of the triangle
 that was hit (``prim_index`` is the trimesh face index), so the points obey
 eq. (1) to float64 round-off before the float32 storage (max departure
-measured in ``tests/test_groundtruth.py``: ~1e-5 px, from storing r and h
+measured in ``tests/omnisim/test_groundtruth.py``: ~1e-5 px, from storing r and h
 as float32). Shapes that are not scene objects (area-light panels) get
 ``gt.object`` = 0 and ``gt.valid`` = 0: they are not material points with a
 known motion; they do occlude.
@@ -73,7 +73,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from omnisim.dataset import GT_CHANNELS
+from omniflow.dataset import GT_CHANNELS
 from omnisim.render import CAMERAS, MitsubaFrame, _unit, get_mitsuba_scene
 from omnisim.sensor import apply_affine, ensure_mitsuba, mirror_rays, transform_rays
 
@@ -86,7 +86,7 @@ __all__ = [
     "trace",
 ]
 
-# The contract's channel names live in omnisim.dataset, the one place that defines them.
+# The contract's channel names live in omniflow.dataset, the one place that defines them.
 
 #: Same-point test of the visibility traces: |t_hit - t_expected| <= REL * t + ABS.
 TRACE_TOL_REL = 1e-4
@@ -131,7 +131,7 @@ def trace(ms, fr: MitsubaFrame, origin: NDArray, direction: NDArray) -> tuple[ND
 #: then re-intersected in float64 with the EXACT ray on that triangle's plane, which
 #: contains the edge, so the point is exact. 1e-5 rad is about 100 float32 ulps of a
 #: direction, far above the slip (measured: every hole of the open_field fence closed at
-#: 1e-6 and 1e-5, tests/test_groundtruth.py::test_no_holes_in_any_scene).
+#: 1e-6 and 1e-5, tests/omnisim/test_groundtruth.py::test_no_holes_in_any_scene).
 EDGE_NUDGE = 1e-5
 # A fixed direction that no axis-aligned or diagonal mesh edge of the scenes follows.
 _NUDGE_AXIS = (0.2672612419124244, 0.5345224838248488, 0.8017837257372732)

@@ -47,7 +47,7 @@ render kernel (about 0.35 s measured with rebuilt scenes kept in a cache).
 Determinism: the sampler seed of (frame, camera) is derived from the scene
 seed (:func:`frame_seed`); with the same scene, seed and versions the images
 are bit-identical, also across Dr.Jit thread counts (checked for 7, 9 and 16
-spp with 1, 2 and 5 threads; ``tests/test_render.py`` checks repeat renders).
+spp with 1, 2 and 5 threads; ``tests/omnisim/test_render.py`` checks repeat renders).
 The denoiser keeps it: Open Image Denoise on the CPU gave the same bytes in
 two processes and with one Dr.Jit thread (default scene, 96 px, frame 1).
 """

@@ -49,9 +49,9 @@ import trimesh
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
+from omniflow.camera import CameraError, CameraModel
 from omniflow.rig import Rig, RigError, rig_from_dict
 from omnisim import geometry, textures
-from omnisim.camera import CameraError, CameraModel
 from omnisim.motion import (
     ConstantMotion,
     KeyframeMotion,
@@ -622,7 +622,7 @@ def _render_settings(chk: _Checker, tbl: Any) -> RenderSettings:
 
 
 def _camera(chk: _Checker, tbl: Any) -> CameraModel:
-    """The ``[camera]`` table (:class:`omnisim.camera.CameraModel`; defaults for missing keys)."""
+    """The ``[camera]`` table (:class:`omniflow.camera.CameraModel`; defaults for missing keys)."""
     if not isinstance(tbl, dict):
         raise chk.bad("camera", tbl, "a table of camera parameters ([camera])")
     try:

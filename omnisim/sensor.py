@@ -23,7 +23,7 @@ reflecting the incoming direction (h_i, v) gives
 (h_i, v) - (h_i - v) (1, -1) = (v, h_i): the reflected ray travels outward
 along (cos theta, sin theta) with slope dZ/dr = h_i / v = k. A point it meets
 at range r has Z - tip_h = rho + (r - rho) k = k (d + r), which is eq. (1),
-h_i = v (h - tip_h) / (d + r). ``tests/test_sensor.py`` checks this against an
+h_i = v (h - tip_h) / (d + r). ``tests/omnisim/test_sensor.py`` checks this against an
 explicit vector reflection off the cone's surface normal.
 
 The mirror is a perfect conductor: reflectance exactly 1 at every wavelength
@@ -47,7 +47,7 @@ from the continuous film position (exact for the pixel centres of power-of-
 two image sizes). Tracing each pixel centre's float32 ray through Mitsuba
 and putting the hit's (r, h) through eq. (1) gives h_i within 6.4e-5 px of
 the pixel's own (max over a 512 x 512 image, a cylinder wall at 2.5 m around
-the axis; ``tests/test_sensor.py``) and within 1e-3 px max, 3e-5 px rms on
+the axis; ``tests/omnisim/test_sensor.py``) and within 1e-3 px max, 3e-5 px rms on
 the default scene's walls, pillar and crate (``benchmarks/bench_render.py``):
 far under the 0.02 px target, float32 round-off only.
 """

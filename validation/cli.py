@@ -114,7 +114,7 @@ def _parser() -> argparse.ArgumentParser:
         action="append",
         default=[],
         metavar="KEY=VALUE",
-        help="camera-model parameter (omnisim.camera: exposure, full_well, read_noise, gain, "
+        help="camera-model parameter (omniflow.camera: exposure, full_well, read_noise, gain, "
         "bits, response, vignetting, defocus, seed) applied to the radiance when the images "
         "are formed, over the dataset's own camera; repeatable",
     )
@@ -153,8 +153,8 @@ def _frames(text: str | None) -> list[int] | None:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = _parser().parse_args(argv)
+    from omniflow.dataset import DatasetError
     from omniflow.rig import RigError
-    from omnisim.dataset import DatasetError
 
     from . import baselines as bl
     from .external import ExternalOutput
@@ -226,7 +226,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                 partial=args.partial,
             )
             if level:
-                from .summary import jsonable, summarize
+                from omniflow.jsonio import jsonable
+
+                from .summary import summarize
 
                 key, value = level[0].split("=", 1)
                 sweep += sweep_rows(jsonable(summarize(res)), key, value)

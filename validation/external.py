@@ -87,7 +87,7 @@ class ExternalOutput:
 
     def dense(self, t: int, cam: str, unit: Any, shape: tuple[int, int]) -> DenseFlow:
         """The method's flow of camera ``cam`` from frame t to t + 1, NaN where unknown."""
-        from omnisim.dataset import DatasetError, read_flo
+        from omniflow.dataset import DatasetError, read_flo
 
         path = self._path(t, f"{cam}.flo")
         try:

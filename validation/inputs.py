@@ -2,7 +2,7 @@
 
 Two sources, chosen once per run:
 
-* **a camera model** (:mod:`omnisim.camera`): the dataset's own ``camera`` section
+* **a camera model** (:mod:`omniflow.camera`): the dataset's own ``camera`` section
   of ``dataset.json`` (the camera the renderer recorded, whose images are the
   ``camN.png`` files), with ``--camera KEY=VALUE`` overrides, applied to the
   EXR's linear radiance at read time. One render, many cameras: the noise is
@@ -25,7 +25,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from omniflow.conventions import LUMA_WEIGHTS
+from omniflow.camera import CameraError, CameraModel
+from omniflow.dataset import grey_of
 
 __all__ = ["CAMERAS", "Inputs", "camera_model"]
 
@@ -51,10 +52,6 @@ def camera_model(meta: dict[str, Any], overrides: Sequence[str] = ()) -> Any:
     if not isinstance(section, dict) and not overrides:
         return None
     try:
-        from omnisim.camera import CameraError, CameraModel
-    except ImportError as exc:  # pragma: no cover - an older omnisim
-        raise InputError(f"--camera needs omnisim.camera, which this install lacks: {exc}") from exc
-    try:
         base = CameraModel.from_mapping(section if isinstance(section, dict) else {},
                                         where="dataset.json camera")  # fmt: skip
         return base.with_overrides(list(overrides)) if overrides else base
@@ -62,18 +59,13 @@ def camera_model(meta: dict[str, Any], overrides: Sequence[str] = ()) -> Any:
         raise InputError(str(exc).splitlines()[0]) from exc
 
 
-def _luminance(chans: dict[str, NDArray]) -> NDArray:
-    wr, wg, wb = LUMA_WEIGHTS
-    return wr * chans["R"] + wg * chans["G"] + wb * chans["B"]
-
-
 class Inputs:
     """Grey frames of both cameras, made once per (frame, camera) and cached.
 
     Parameters
     ----------
-    ds : omnisim.dataset.Dataset
-    camera : omnisim.camera.CameraModel or None
+    ds : omniflow.dataset.Dataset
+    camera : omniflow.camera.CameraModel or None
         See the module docstring; :func:`camera_model` picks it.
     """
 
@@ -97,13 +89,13 @@ class Inputs:
             )
         params = ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
                            for k, v in self.camera.to_dict().items())  # fmt: skip
-        return f"camera model (omnisim.camera) applied to the EXR radiance: {params}"
+        return f"camera model (omniflow.camera) applied to the EXR radiance: {params}"
 
     def _set_scale(self) -> None:
         vals = []
         for cam in CAMERAS:
             ch = self.ds.read_frame(0, cam)
-            g = _luminance(ch)
+            g = grey_of(ch)
             ok = (ch["gt.valid"] > 0.5) & np.isfinite(g)
             vals.append(g[ok] if ok.any() else g[np.isfinite(g)])
         v = np.concatenate(vals)
@@ -123,7 +115,7 @@ class Inputs:
         if self.camera is None:
             if self.scale is None:
                 self._set_scale()
-            g = _luminance(chans)
+            g = grey_of(chans)
             u8 = np.clip(np.rint(g * self.scale), 0, 255).astype(np.uint8)
             return u8, u8.astype(np.float32) / 255.0
         unit = self.ds.rig.cam1 if cam == "cam1" else self.ds.rig.cam2

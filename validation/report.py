@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from omniflow.imageio import atomic_write_text
+from omniflow.jsonio import jsonable
 
 from .report_doc import Doc, fmt
 from .report_figures import draw_figures, sweep_figure
@@ -45,7 +46,7 @@ from .report_tables import (
     speed_table,
 )
 from .results import Results
-from .summary import jsonable, summarize
+from .summary import summarize
 
 __all__ = ["OUTPUTS", "check_out_dir", "write_report"]
 

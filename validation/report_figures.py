@@ -226,7 +226,7 @@ def draw_figures(results: Results, summary: Mapping[str, Any], fig_dir: Path) ->
     return out
 
 
-#: Units of the camera parameters (omnisim.camera), for the sweep's axis label.
+#: Units of the camera parameters (omniflow.camera), for the sweep's axis label.
 _UNITS = {"read_noise": "electrons rms", "full_well": "electrons", "bits": "bits",
           "defocus": "px, Gaussian sigma", "vignetting": "fraction lost at the rim",
           "exposure": "fraction of full well per unit radiance", "gain": "unitless"}  # fmt: skip

@@ -14,10 +14,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from omniflow.jsonio import jsonable
+
 from .metrics import flow_summary, stats, stereo_summary
 from .results import Results
 
-__all__ = ["FORMAT", "flat_table", "headline", "jsonable", "summarize", "sweep_rows"]
+__all__ = ["FORMAT", "flat_table", "headline", "summarize", "sweep_rows"]
 
 FORMAT = "omnivalidate-summary/1"
 
@@ -149,7 +151,7 @@ def _derived_block(
 
 
 def summarize(results: Results) -> dict[str, Any]:
-    """The summary as a JSON-able dict (NaN written as null by :func:`jsonable`)."""
+    """The summary as a JSON-able dict (NaN written as null by :func:`omniflow.jsonio.jsonable`)."""
     methods = []
     default = next((m.name for m in results.methods if m.kind == "omniflow"), None)
     for m in results.methods:
@@ -536,18 +538,3 @@ def flat_table(summary: Mapping[str, Any]) -> list[dict[str, Any]]:
         row["time_ms"] = 1000 * _num(m["time_per_frame"]["median_s"])
         rows.append(row)
     return rows
-
-
-def jsonable(obj: Any) -> Any:
-    """Replace NaN/inf by None and numpy scalars by Python numbers, recursively."""
-    if isinstance(obj, Mapping):
-        return {str(k): jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return jsonable(obj.tolist())
-    if isinstance(obj, np.generic):
-        obj = obj.item()
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    return obj

@@ -51,7 +51,7 @@ def scene_meta(
     supersample: int = 2,
 ) -> dict[str, Any]:
     """``dataset.json`` content for a closed-form scene (contract layout)."""
-    from omnisim.dataset import FORMAT_NAME
+    from omniflow.dataset import FORMAT_NAME
 
     robot = []
     for k in range(frames):

@@ -142,6 +142,35 @@ def test_atomic_output_leaves_no_partial_file(tmp_path):
     assert (tmp_path / "sub" / "new.png").read_bytes() == b"x"
 
 
+def test_atomic_write_fsyncs_the_file_before_the_rename_and_the_folder_after(tmp_path, monkeypatch):
+    """The one atomic writer is durable: data synced before it gets its final name, the
+    rename synced after (a writer without either fails this)."""
+    import os
+
+    from omniflow import imageio
+
+    events = []
+    real_fsync, real_replace = os.fsync, os.replace
+
+    def fsync(fd):
+        events.append(("fsync", os.readlink(f"/proc/self/fd/{fd}")))
+        real_fsync(fd)
+
+    def replace(src, dst):
+        events.append(("replace", str(dst)))
+        real_replace(src, dst)
+
+    monkeypatch.setattr(imageio.os, "fsync", fsync)
+    monkeypatch.setattr(imageio.os, "replace", replace)
+    target = tmp_path / "dataset.json"
+    imageio.atomic_write_bytes(target, b"{}")
+    assert target.read_bytes() == b"{}"
+    (kind0, tmp_name), (kind1, dst), (kind2, folder) = events
+    assert kind0 == "fsync" and tmp_name.startswith(str(tmp_path / ".dataset.json.tmp."))
+    assert (kind1, dst) == ("replace", str(target))
+    assert (kind2, folder) == ("fsync", str(tmp_path))
+
+
 # -- drawing ----------------------------------------------------------------------------------
 
 

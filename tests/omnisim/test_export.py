@@ -15,7 +15,7 @@ from omnisim.cli import main
 from omnisim.dataset import open_dataset
 from omnisim.export import export_dataset
 
-SCENES = Path(__file__).resolve().parents[1] / "scenes"
+SCENES = Path(__file__).resolve().parents[2] / "scenes"
 
 
 @pytest.fixture(scope="module")
@@ -227,7 +227,7 @@ def test_png_export_8_and_16_bit(real, exports, tmp_path):
 
 
 def _v1(tmp_path):
-    from omnisim_fakes import write_synthetic_dataset
+    from tests.helpers.fakes import write_synthetic_dataset
 
     return write_synthetic_dataset(tmp_path / "v1", frames=2, size=32)
 

@@ -267,7 +267,7 @@ _HOLD = """
 import sys, time
 sys.path[:0] = {paths!r}
 from omnisim.dataset import DatasetWriter
-import test_dataset as t
+import tests.omnisim.test_dataset as t
 w = DatasetWriter({d!r}, t.make_meta(frames=2))
 print("held", flush=True)
 time.sleep(60)
@@ -283,9 +283,8 @@ def test_second_writer_in_another_process_is_refused(tmp_path):
     w = DatasetWriter(d, make_meta(frames=2))
     w.write_frame(0, make_frame(0))
     (d / "frames" / ".000001.tmp.1.abcd").mkdir()  # "the other writer's" frame in progress
-    tests = str(Path(__file__).resolve().parent)
-    root = str(Path(__file__).resolve().parents[1])
-    code = _HOLD.format(paths=[tests, root], d=str(d))
+    root = str(Path(__file__).resolve().parents[2])
+    code = _HOLD.format(paths=[root], d=str(d))
     # Held here: the other process is refused and removes nothing.
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert proc.returncode != 0 and "DatasetLockedError" in proc.stderr

@@ -15,10 +15,9 @@ import pytest
 from omnisim.cli import main
 from omnisim.dataset import open_dataset
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 DEFAULT = ROOT / "scenes" / "default.toml"
-TESTS = Path(__file__).resolve().parent
-FAKE = ["--renderer", "omnisim_fakes:render_frame", "--no-progress"]
+FAKE = ["--renderer", "tests.helpers.fakes:render_frame", "--no-progress"]
 SMALL = ["--resolution", "32", "--spp", "1"]
 
 
@@ -47,7 +46,7 @@ def final_frames_complete(d: Path) -> list[str]:
 
 def _env(**extra) -> dict[str, str]:
     env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join([str(TESTS), str(ROOT), env.get("PYTHONPATH", "")])
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")])
     env.update(extra)
     return env
 
@@ -146,7 +145,7 @@ def test_render_resume_and_refuse(tmp_path, capsys):
 def test_interrupted_in_process_resumes_identically(tmp_path):
     from omnisim.job import render_dataset
 
-    kw = dict(renderer="omnisim_fakes:render_frame", progress=False)
+    kw = dict(renderer="tests.helpers.fakes:render_frame", progress=False)
     ov = {"frames": 4, "render.width": 32, "render.height": 32}
     ref = render_dataset(DEFAULT, tmp_path / "ref", ov, **kw)
     assert ref.rendered == [0, 1, 2, 3]
@@ -179,6 +178,7 @@ def _wait_for(path: Path, proc: subprocess.Popen, timeout: float = 60.0) -> None
 
 
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM], ids=["SIGKILL", "SIGTERM"])
+@pytest.mark.slow  # 5.9 s and 5.4 s (docs/measurements.md, test durations)
 def test_killed_render_resumes_byte_identical(tmp_path, sig):
     ref = tmp_path / "ref"
     subprocess.run(_cmd(ref), check=True, env=_env(), timeout=120, capture_output=True)

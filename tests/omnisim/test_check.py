@@ -10,7 +10,7 @@ from omnisim.cli import main
 from omnisim.dataset import open_dataset, read_exr, write_exr
 
 pytest.importorskip("omniflow.synthetic")
-from omnisim_fakes import write_synthetic_dataset
+from tests.helpers.fakes import write_synthetic_dataset
 
 
 @pytest.fixture(scope="module")
@@ -121,7 +121,7 @@ def real(tmp_path_factory):
 
     from omnisim.job import render_dataset
 
-    scene = Path(__file__).resolve().parents[1] / "scenes" / "default.toml"
+    scene = Path(__file__).resolve().parents[2] / "scenes" / "default.toml"
     out = tmp_path_factory.mktemp("real") / "ds"
     ov = {"frames": 3, "render.width": 64, "render.height": 64, "render.spp": 4}
     render_dataset(scene, out, ov, progress=False)
@@ -139,7 +139,7 @@ def real_moving(tmp_path_factory):
 
     from omnisim.job import render_dataset
 
-    scene = Path(__file__).resolve().parents[1] / "scenes" / "large_motion.toml"
+    scene = Path(__file__).resolve().parents[2] / "scenes" / "large_motion.toml"
     out = tmp_path_factory.mktemp("real_moving") / "ds"
     ov = {"frames": 3, "render.width": 128, "render.height": 128}
     render_dataset(scene, out, ov, progress=False)

@@ -46,7 +46,7 @@ from omniflow.imageio import read_exr_channels, write_exr, write_png
 from omniflow.rig import Rig
 from omniflow.synthetic import Motion, SyntheticScene
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SIZE = 96
 OLD = {  # an earlier run's outputs, present in --out before every case
     "flow.csv": b"# old run\nx,y\n1,2\n",

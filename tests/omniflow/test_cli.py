@@ -24,11 +24,11 @@ import cv2
 import numpy as np
 import pytest
 from scipy.ndimage import map_coordinates
-from test_calibration import surround_texture
 
 from omniflow.imageio import read_image, to_grey, to_uint8, write_exr, write_png
 from omniflow.rig import Rig
 from omniflow.synthetic import Motion, SyntheticScene, rim_coverage
+from tests.omniflow.test_calibration import surround_texture
 
 SIZE = 192
 W = 0.01  # robot yaw rate, rad/frame

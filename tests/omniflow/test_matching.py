@@ -4,7 +4,7 @@ A match is an outlier when |h2 - true h_other| > 1 px, where h_other is cam2's
 image radius of the scene point cam1 sees at (h1, theta) (points cam2 cannot
 see count as outliers too). Figures measured at 256 x 256 with the paper's
 rig (d = 0.10, R = 0.05, s = 0.30 m), band 0.5 and the matcher's defaults as
-the pipeline uses them, with ``python -m pytest tests/test_matching.py -s``
+the pipeline uses them, with ``python -m pytest tests/omniflow/test_matching.py -s``
 (the table is printed)::
 
     scene (wall radius, texture seed)  robust: outliers  matches/significant    paper's rule
@@ -46,13 +46,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from omniflow_scenes import asymmetric_rig, paper_rig, true_h_other, wall_scene
 
 from omniflow.dct import fit_dct
 from omniflow.edges import polar_gradient_grid
 from omniflow.matching import Matches, match_radial, polar_gradient_fast, sample_xy
 from omniflow.pipeline import fill_outside_rim
 from omniflow.synthetic import Cylinder, SyntheticScene, Texture
+from tests.helpers.scenes import asymmetric_rig, paper_rig, true_h_other, wall_scene
 
 
 def _fits(scene: SyntheticScene, band: float = 0.5, **render_kw):
@@ -290,10 +290,10 @@ def test_rendered_frame_fewer_outliers_than_earlier_defaults(tmp_path):
     from pathlib import Path
 
     from omniflow.conventions import LUMA_WEIGHTS
-    from omnisim.dataset import open_dataset
+    from omniflow.dataset import open_dataset
     from validation.sampling import sample_truth
 
-    scene_file = Path(__file__).resolve().parents[1] / "scenes" / "default.toml"
+    scene_file = Path(__file__).resolve().parents[2] / "scenes" / "default.toml"
     out = tmp_path / "default256"
     subprocess.run(
         [sys.executable, "-m", "omnisim.cli", "render", str(scene_file), "--out", str(out),

@@ -2,7 +2,7 @@
 
 End-to-end figures use closed-form scenes (omniflow.synthetic) at 256 x 256
 with the TRUE stereo matches at cam1's pixel centres, so only the flow step
-is measured. Measured with ``python -m pytest tests/test_flow.py -s -k best``
+is measured. Measured with ``python -m pytest tests/omniflow/test_flow.py -s -k best``
 (the table is printed); median endpoint error in pixels, three robot motions
 (turn 0.002 rad/frame; drive (0.01, 0.005) m/frame; both), two textures
 (striped wall r = 2 m; omniflow.synthetic's default room texture, r = 3 m),
@@ -39,7 +39,6 @@ import itertools
 
 import numpy as np
 import pytest
-from omniflow_scenes import dis_flow, frames, paper_rig, true_matches, wall_scene
 
 from omniflow.flow import (
     axial_motion_violation,
@@ -53,6 +52,7 @@ from omniflow.flow import (
 )
 from omniflow.pipeline import OmniFlowConfig, estimate
 from omniflow.synthetic import Motion, SyntheticScene
+from tests.helpers.scenes import dis_flow, frames, paper_rig, true_matches, wall_scene
 
 # -- the algebra, on exact equations -------------------------------------------------
 
@@ -275,6 +275,7 @@ def flow_table():
 DEFAULT_MARGIN = 1.05
 
 
+@pytest.mark.slow  # flow_table fixture 14.0 s (docs/measurements.md, test durations)
 def test_best_variant_at_most_half_of_dis(flow_table):
     for case, row in flow_table.items():
         best = min(v for k, v in row.items() if k not in ("motion", "DIS"))
@@ -286,6 +287,7 @@ def test_best_variant_at_most_half_of_dis(flow_table):
         assert row["default"] < 0.03, case
 
 
+@pytest.mark.slow  # shares the 14.0 s flow_table fixture (docs/measurements.md, test durations)
 def test_paper_direct_solution_figures(flow_table):
     """The paper's choices (band 1/4, first-frame gradients, frame difference,
     direct solution): measured 0.045-0.32 px median for 0.09-0.25 px of

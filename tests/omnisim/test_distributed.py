@@ -12,10 +12,9 @@ distributed = pytest.importorskip("distributed")
 from omnisim.dataset import open_dataset  # noqa: E402
 from omnisim.job import render_dataset  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 DEFAULT = ROOT / "scenes" / "default.toml"
-TESTS = Path(__file__).resolve().parent
-FAKE = "omnisim_fakes:render_frame"
+FAKE = "tests.helpers.fakes:render_frame"
 
 
 def frame_bytes(d: Path) -> dict[str, bytes]:
@@ -30,7 +29,7 @@ def frame_bytes(d: Path) -> dict[str, bytes]:
 def cluster():
     from distributed import Client, LocalCluster
 
-    path = os.pathsep.join([str(TESTS), str(ROOT), os.environ.get("PYTHONPATH", "")])
+    path = os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])
     with (
         LocalCluster(
             n_workers=2,

@@ -1,14 +1,15 @@
 """Every column of OmniFlowResult against the closed-form truth of omniflow.synthetic.
 
 Audit (what the other tests already compare with ground truth, not just check
-for presence): ``dx, dy`` (endpoint error, tests/test_flow.py,
-tests/test_pipeline.py, tests/test_cli.py), ``dx2, dy2`` (tests/test_pipeline.py),
-``h2`` and ``r`` (stereo outliers and median range error, tests/test_pipeline.py,
-tests/test_cli.py), ``dr_dt`` (median error, tests/test_pipeline.py),
-``dtheta_dt`` (median of a pure rotation, tests/test_cli.py), ``h1, theta``
-(consistent with x, y, tests/test_cli.py), ``confidence`` (range, and the
-confident half beats the overall median, tests/test_pipeline.py), D only
-through ``omniflow.flow.direct_solution`` on random systems (tests/test_flow.py).
+for presence): ``dx, dy`` (endpoint error, tests/omniflow/test_flow.py,
+tests/omniflow/test_pipeline.py, tests/omniflow/test_cli.py), ``dx2, dy2``
+(tests/omniflow/test_pipeline.py),
+``h2`` and ``r`` (stereo outliers and median range error, tests/omniflow/test_pipeline.py,
+tests/omniflow/test_cli.py), ``dr_dt`` (median error, tests/omniflow/test_pipeline.py),
+``dtheta_dt`` (median of a pure rotation, tests/omniflow/test_cli.py), ``h1, theta``
+(consistent with x, y, tests/omniflow/test_cli.py), ``confidence`` (range, and the
+confident half beats the overall median, tests/omniflow/test_pipeline.py), D only
+through ``omniflow.flow.direct_solution`` on random systems (tests/omniflow/test_flow.py).
 Not compared with truth anywhere: ``x, y`` (as cam1 points of the scene),
 ``h``, ``x2, y2``, ``dh1_dt`` and ``dh2_dt`` (without a vertical bias),
 ``dtheta_dt`` per point, ``score``, ``D`` as output by the pipeline, and the
@@ -25,7 +26,7 @@ compared with the exact derivatives of the rendered image.
 Truth at each matched point comes from ``SyntheticScene.trace`` at the point's
 exact polar coordinates (no interpolation of truth grids).
 
-Measured figures (``python -m pytest tests/test_outputs_vs_truth.py -s``
+Measured figures (``python -m pytest tests/omniflow/test_outputs_vs_truth.py -s``
 prints them, test_report): see the comment at each bound; 2 s in all. No
 column was found wrong: every one agrees with the truth, signs and units
 included (correlation 0.996-1.0 with the truth per point).
@@ -199,13 +200,13 @@ def test_polar_position_is_the_pixel_of_the_point(scene, result, truth):
 
 
 # Bounds: twice the measured median / 90th percentile (2x margin), measured with
-# ``python -m pytest tests/test_outputs_vs_truth.py -s`` (printed per column).
+# ``python -m pytest tests/omniflow/test_outputs_vs_truth.py -s`` (printed per column).
 GEOMETRY_BOUNDS = {
     # column: (median bound, p90 bound)   measured median, p90
     # Re-measured with the pipeline's tangential_blur 0.03 (was 0.06): sub-pixel
     # precision on this closed-form scene halved (h2 median 0.047 -> 0.106 px,
     # r 0.0045 -> 0.0103 m), traded for 1-px outliers on rendered 512 px frames
-    # of the default scene falling from 11.4 % to 4.9 % (tests/test_matching.py).
+    # of the default scene falling from 11.4 % to 4.9 % (tests/omniflow/test_matching.py).
     "r": (0.021, 0.061),  # m: 0.0103, 0.0304 (wall at 3 m)
     "h": (0.0028, 0.0072),  # m: 0.00137, 0.00358
     "h2": (0.21, 0.62),  # px: 0.106, 0.311

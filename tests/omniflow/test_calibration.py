@@ -5,7 +5,7 @@ the rim antialiased by its area coverage in each pixel (synthetic.rim_coverage:
 exact chords integrated by Gauss-Legendre quadrature, error < 2e-4 px^2).
 A real rig's lit, textured surround is pasted outside the rim with the same
 coverage weights (textured_surround_image). Accuracy figures were measured by
-running these cases and printing the errors; ``python tests/test_calibration.py``
+running these cases and printing the errors; ``python tests/omniflow/test_calibration.py``
 prints the surround table of docs/measurements.md.
 """
 
@@ -156,7 +156,8 @@ def test_rim_with_a_lit_textured_surround(case, seed):
     )
     rim, seconds = _timed_find_rim(img)
     err = np.array([rim.x_c, rim.y_c, rim.r_m]) - truth
-    # Required: 0.1 px. Measured over these cases, seeds 1-2 (python tests/test_calibration.py):
+    # Required: 0.1 px. Measured over these cases, seeds 1-2
+    # (python tests/omniflow/test_calibration.py):
     # max |error| 0.049 px (seeds 1-3: also 0.049); the table is in docs/measurements.md.
     assert np.abs(err).max() < 0.1, err
     assert rim.inlier_fraction > 0.85  # measured >= 0.91
@@ -248,5 +249,5 @@ def main() -> None:
           f"{np.median(times):.2f} s, max {np.max(times):.2f} s")  # fmt: skip
 
 
-if __name__ == "__main__":  # python tests/test_calibration.py
+if __name__ == "__main__":  # python tests/omniflow/test_calibration.py
     main()

@@ -15,14 +15,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from omnisim.camera import CameraError, CameraModel, camera_image, srgb_encode
-from omnisim.dataset import open_dataset
+from omniflow.camera import CameraError, CameraModel, camera_image, srgb_encode
+from omniflow.dataset import open_dataset
 from omnisim.job import render_dataset
 
-ROOT = Path(__file__).resolve().parents[1]
-TESTS = Path(__file__).resolve().parent
+ROOT = Path(__file__).resolve().parents[2]
 DEFAULT = ROOT / "scenes" / "default.toml"
-FAKE = "omnisim_fakes:render_frame"
+FAKE = "tests.helpers.fakes:render_frame"
 SMALL = {"render.width": 32, "render.height": 32, "frames": 2}
 
 #: Flat patch for the noise tests: 256 x 256 x 3 = 196608 samples, so the sample standard
@@ -36,7 +35,7 @@ NOISE_RTOL = 0.02
 
 def _env() -> dict[str, str]:
     env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join([str(TESTS), str(ROOT), env.get("PYTHONPATH", "")])
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")])
     return env
 
 
@@ -254,9 +253,8 @@ def test_same_seed_same_bytes_other_camera_seed_other_noise(tmp_path):
 
 
 def test_exr_keeps_clean_radiance_and_truth_png_is_the_model(tmp_path):
-    import omnisim_fakes
-
     from omnisim.scene import load_scene
+    from tests.helpers import fakes
 
     over = {**SMALL, "camera.bits": 12, "camera.vignetting": 0.3, "camera.defocus": 0.8}
     d = _render(tmp_path / "d", **{k: v for k, v in over.items() if k not in SMALL})
@@ -265,7 +263,7 @@ def test_exr_keeps_clean_radiance_and_truth_png_is_the_model(tmp_path):
     model = ds.camera
     assert model == scene.camera and model.bits == 12
     for k in range(2):
-        clean = omnisim_fakes.render_frame(scene, k)
+        clean = fakes.render_frame(scene, k)
         for cam in ("cam1", "cam2"):
             chans = ds.read_frame(k, cam)
             for name, arr in clean[cam].items():

@@ -356,7 +356,7 @@ def test_fused_dr_jit_path_equals_the_numpy_reference(mods, scene, gts):
 
 # -- no holes: every surface the picture shows has its truth ------------------------------
 
-SCENES_DIR = __import__("pathlib").Path(__file__).resolve().parents[1] / "scenes"
+SCENES_DIR = __import__("pathlib").Path(__file__).resolve().parents[2] / "scenes"
 ALL_SCENES = sorted(p.stem for p in SCENES_DIR.glob("*.toml"))
 
 

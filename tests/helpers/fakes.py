@@ -1,7 +1,7 @@
 """Test doubles for omnisim's job, CLI, Dask and check tests (no Mitsuba needed).
 
 * :func:`render_frame` - a stand-in for ``omnisim.render.render_frame`` (renderer spec
-  ``"omnisim_fakes:render_frame"``): deterministic arrays with every contract channel,
+  ``"tests.helpers.fakes:render_frame"``): deterministic arrays with every contract channel,
   a function of the scene's rig, seed and the frame only. ``OMNISIM_FAKE_DELAY`` (s)
   slows each frame down so a test can interrupt a render.
 * :func:`write_synthetic_dataset` - a dataset built from :mod:`omniflow.synthetic`'s

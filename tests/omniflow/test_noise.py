@@ -43,9 +43,8 @@ def test_immerkaer_recovers_white_noise_on_a_smooth_image(sigma):
 
 def test_tiles_ignore_fine_texture():
     """A textured closed-form room: the whole-image estimate counts texture as noise."""
-    from omniflow_scenes import frames, paper_rig
-
     from omniflow.synthetic import SyntheticScene
+    from tests.helpers.scenes import frames, paper_rig
 
     rig = paper_rig(256)
     scene = SyntheticScene.room(rig, wall_radius=3.0, ceiling=None, texture_seed=7)

@@ -2,7 +2,7 @@
 
 End to end (matching included), 256 x 256, robot driving (0.01, 0.005)
 m/frame and turning 0.002 rad/frame, measured with
-``python -m pytest tests/test_pipeline.py -s`` (printed)::
+``python -m pytest tests/omniflow/test_pipeline.py -s`` (printed)::
 
     scene            config  matches  stereo outliers  r error  EPE cam1  DIS same pts  EPE cam2
     striped wall 2 m default    1134       0 %          0.02 %   0.0038     0.0324       0.010
@@ -25,11 +25,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from omniflow_scenes import dis_flow, frames, paper_rig, true_h_other, wall_scene
 
 from omniflow.matching import sample_xy
 from omniflow.pipeline import COLUMNS, OmniFlowConfig, OmniFlowResult, estimate
 from omniflow.synthetic import Motion, SyntheticScene
+from tests.helpers.scenes import dis_flow, frames, paper_rig, true_h_other, wall_scene
 
 DRIVE_AND_TURN = Motion(velocity=(0.01, 0.005), yaw_rate=0.002)
 
@@ -154,7 +154,7 @@ def test_default_pipeline_end_to_end(e2e_table):
     # texture it does not with the default pooling (48 neighbours within
     # r_m / 8: 0.0101 against 0.0090 px); with the earlier 24 within r_m / 16
     # it barely did (0.01136 against 0.01149 px). Not asserted there; see
-    # tests/test_outputs_vs_truth.py for the ranking on another room scene.
+    # tests/omniflow/test_outputs_vs_truth.py for the ranking on another room scene.
     row = e2e_table[("striped wall 2 m", "default")]
     assert row["epe_confident_half"] < row["epe"]
 

@@ -7,7 +7,7 @@ path / key / value, no "Traceback" anywhere, no partial output (a new --out dire
 is not created) and existing data untouched (every byte of the files that were there
 before, the directory's lock file aside: a run takes the lock before it compares).
 
-Renders use the fake renderer of tests/omnisim_fakes.py (32 px, 1 spp); only the
+Renders use the fake renderer of tests/helpers/fakes.py (32 px, 1 spp); only the
 Mitsuba-variant case starts Mitsuba (to ask it about CUDA).
 """
 
@@ -28,10 +28,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
-TESTS = Path(__file__).resolve().parent
+ROOT = Path(__file__).resolve().parents[2]
 OMNISIM = shutil.which("omnisim")
-FAKE = ["--renderer", "omnisim_fakes:render_frame", "--no-progress"]
+FAKE = ["--renderer", "tests.helpers.fakes:render_frame", "--no-progress"]
 
 pytestmark = pytest.mark.skipif(OMNISIM is None, reason="the omnisim command is not installed")
 
@@ -78,7 +77,7 @@ intensity = 6.0
 
 def _env(**extra: str) -> dict[str, str]:
     env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join([str(TESTS), str(ROOT), env.get("PYTHONPATH", "")])
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")])
     env.pop("OMNISIM_FAKE_DELAY", None)
     env.update(extra)
     return env
@@ -551,7 +550,7 @@ def test_bad_input(case: Case, tmp_path: Path):
     env = dict(case.env)
     if "PYTHONPATH_PREPEND" in env:
         pre = d / env.pop("PYTHONPATH_PREPEND")
-        env["PYTHONPATH"] = os.pathsep.join([str(pre), str(TESTS), str(ROOT)])
+        env["PYTHONPATH"] = os.pathsep.join([str(pre), str(ROOT)])
     try:
         res = _run(argv, **env)
     finally:
@@ -626,6 +625,7 @@ if __name__ == "__main__":  # pragma: no cover
     sys.exit(pytest.main([__file__, "-q"]))
 
 
+@pytest.mark.slow  # 5.6 s (docs/measurements.md, test durations)
 def test_two_renders_into_one_directory(tmp_path):
     """The second render is refused with one line while the first runs; the first
     finishes every frame (its temporaries are not touched by the second)."""

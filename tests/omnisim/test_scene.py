@@ -13,7 +13,7 @@ from omniflow.rig import Rig
 from omnisim import geometry
 from omnisim.scene import Scene, SceneError, apply_overrides, load_scene, parse_override
 
-SCENES = sorted((Path(__file__).resolve().parents[1] / "scenes").glob("*.toml"))
+SCENES = sorted((Path(__file__).resolve().parents[2] / "scenes").glob("*.toml"))
 
 # A small valid scene; tests append or replace parts of it.
 BASE = """
