@@ -74,7 +74,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from omniflow.dataset import GT_CHANNELS
-from omnisim.render import CAMERAS, MitsubaFrame, _unit, get_mitsuba_scene
+from omnisim.mitsuba_scene import CAMERAS, MitsubaFrame, camera_unit, get_mitsuba_scene
 from omnisim.sensor import apply_affine, ensure_mitsuba, mirror_rays, transform_rays
 
 __all__ = [
@@ -280,7 +280,7 @@ def ground_truth_reference(scene, frame: int, cams=CAMERAS) -> dict[str, dict[st
     # -- 1. the pixel centres' rays ---------------------------------------------
     origins, dirs, sel = [], [], []
     for cam in cams:
-        unit = _unit(scene, cam)
+        unit = camera_unit(scene, cam)
         xs, ys = unit.pixel_centres()
         rays = mirror_rays(unit, xs.ravel(), ys.ravel())
         idx = np.nonzero(rays.valid)[0]
@@ -335,7 +335,7 @@ def ground_truth_reference(scene, frame: int, cams=CAMERAS) -> dict[str, dict[st
     jobs = []
     for cam in cams:
         st = state[cam]
-        other = _unit(scene, CAMERAS[1 - CAMERAS.index(cam)])
+        other = camera_unit(scene, CAMERAS[1 - CAMERAS.index(cam)])
         xo, yo, h_o, _, seen = _project(other, st["q"])
         k = np.nonzero(seen)[0]
         st.update(h_o=h_o, ko=k)
@@ -531,7 +531,7 @@ def _dr_flow(mi, dr, ms, u: _Consts, x, y, h_i, p, obj, valid, fr, frn, key: str
 
 def _dr_backward(mi, dr, ms, scene, fr, frp, cam: str) -> dict[str, NDArray]:
     """The ``gt.bflow.*`` channels of ``cam``: flow from frame ``fr`` to ``frp`` (t - 1)."""
-    unit = _unit(scene, cam)
+    unit = camera_unit(scene, cam)
     u, x, y, h_i, p, _, obj, valid = _dr_primary(mi, dr, ms, unit, fr)
     out = _dr_flow(mi, dr, ms, u, x, y, h_i, p, obj, valid, fr, frp, "gt.bflow")
     dr.eval(*out.values())
@@ -540,8 +540,8 @@ def _dr_backward(mi, dr, ms, scene, fr, frp, cam: str) -> dict[str, NDArray]:
 
 
 def _dr_camera(mi, dr, ms, scene, fr, fr1, cam: str) -> dict[str, NDArray]:
-    unit = _unit(scene, cam)
-    other = _unit(scene, CAMERAS[1 - CAMERAS.index(cam)])
+    unit = camera_unit(scene, cam)
+    other = camera_unit(scene, CAMERAS[1 - CAMERAS.index(cam)])
     uo = _Consts(mi, other)
     tab0 = _tables(ms, fr)
     pose0 = _mat(mi, fr.robot_pose)
@@ -597,8 +597,8 @@ def ground_truth_frame(scene, frame: int, cams=CAMERAS) -> dict[str, dict[str, N
 
     ms = get_mitsuba_scene(scene)
     for cam in cams:
-        _unit(scene, cam)
-    back = {cam: _no_backward(_unit(scene, cam)) for cam in cams}
+        camera_unit(scene, cam)
+    back = {cam: _no_backward(camera_unit(scene, cam)) for cam in cams}
     if frame > 0:
         # Frame t - 1 first: the render of frame t leaves t - 1 and t in the two slots,
         # so only the forward pass below re-poses one (t - 1 -> t + 1), as before.
@@ -622,5 +622,5 @@ def _no_backward(unit) -> dict[str, NDArray]:
 
 def ground_truth(scene, frame: int, cam: str) -> dict[str, NDArray[np.float32]]:
     """The ``gt.*`` channels of camera ``cam`` at ``frame`` (module docstring)."""
-    _unit(scene, cam)
+    camera_unit(scene, cam)
     return ground_truth_frame(scene, frame, (cam,))[cam]
