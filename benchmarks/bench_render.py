@@ -36,7 +36,6 @@ wall-clock times grow with the load while CPU times do not. Run::
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import statistics
@@ -49,7 +48,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from omniflow.conventions import LUMA_WEIGHTS  # noqa: E402
+from omniflow.imageio import atomic_write_text, to_grey  # noqa: E402
+from omniflow.jsonio import json_text  # noqa: E402
 from omnisim import render  # noqa: E402
 from omnisim.groundtruth import ground_truth_frame  # noqa: E402
 from omnisim.scene import load_scene, parse_override  # noqa: E402
@@ -72,7 +72,7 @@ def _since(t0):
 
 
 def _luma(img):
-    return img @ np.asarray(LUMA_WEIGHTS, dtype=np.float32)
+    return to_grey(img)
 
 
 def time_frames(scene, frames: int) -> dict:
@@ -604,9 +604,7 @@ def main(argv=None) -> int:
     res["load_average_end"] = os.getloadavg()[0]
     print(f"load average at the end {res['load_average_end']:.2f}")
     if args.json:
-        tmp = args.json.with_suffix(args.json.suffix + ".partial")
-        tmp.write_text(json.dumps(res, indent=2) + "\n")
-        os.replace(tmp, args.json)
+        atomic_write_text(args.json, json_text(res))
     return 0
 
 

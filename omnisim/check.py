@@ -66,7 +66,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from omnisim.dataset import Dataset, DatasetError
+from omniflow.dataset import Dataset, DatasetError, grey_of
 
 __all__ = ["CheckResult", "Tolerances", "format_results", "run_checks"]
 
@@ -207,10 +207,8 @@ def _noise_sigma(img: NDArray, mask: NDArray) -> tuple[float, int]:
 
 
 def _luma(ch: dict[str, NDArray]) -> NDArray:
-    from omniflow.conventions import LUMA_WEIGHTS
-
-    wr, wg, wb = LUMA_WEIGHTS
-    return (wr * ch["R"] + wg * ch["G"] + wb * ch["B"]).astype(np.float64)
+    """The frame's Rec. 709 luma (the project's one: omniflow.dataset.grey_of), float64."""
+    return grey_of(ch).astype(np.float64)
 
 
 def _is_lambertian(material) -> bool:

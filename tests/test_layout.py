@@ -82,9 +82,8 @@ def test_reexports_are_the_same_objects():
 
 # -- no import cycles inside a package ------------------------------------------------
 
-#: Import cycles left on purpose, each with the reason. render <-> groundtruth: the
-#: shared Mitsuba scene cache (render.get_mitsuba_scene, MitsubaScene) is being changed
-#: on another branch (the denoiser); it moves to its own module once that is merged.
+#: Import cycles left on purpose, each with the reason (none: render <-> groundtruth was
+#: broken by omnisim.mitsuba_scene, job <-> distributed by omnisim.meta).
 KNOWN_CYCLES: set[frozenset[str]] = set()
 
 
