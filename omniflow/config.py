@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, fields, replace
 
+from omniflow.flow import UNIT_WEIGHTINGS
 from omniflow.matching import MATCH_METHODS
 
 __all__ = ["OmniFlowConfig"]
@@ -175,6 +176,12 @@ class OmniFlowConfig:
     pool_model : {"linear", "constant"}
         Pooled solver: local flow model (omniflow.flow.pooled_solution),
         varying linearly with theta or constant.
+    pool_unit_weighting : {"equal", "global", "local"}
+        Pooled solver: weight of each unit's equations, eq. (9) against
+        eq. (15) (omniflow.flow.pooled_solution): alike, or by the inverse of
+        each unit's residual variance, one figure per unit ("global") or
+        measured around each point ("local"). docs/measurements.md, "radial
+        shrink", has the figures.
     min_conditioning : float
         Drop points whose confidence is below this (0 keeps all).
     sampling : {"cubic", "linear", "exact"}
@@ -242,6 +249,7 @@ class OmniFlowConfig:
     pool_range_tol: float | None = 0.1
     pool_model: str = "linear"
     pool_flow_tol: float | None = None
+    pool_unit_weighting: str = "equal"
     min_conditioning: float = 0.0
     sampling: str = "cubic"
     iterations: int = 0
@@ -256,6 +264,7 @@ class OmniFlowConfig:
             "sampling": (self.sampling, SAMPLINGS),
             "rim_fill": (self.rim_fill, RIM_FILLS),
             "pool_model": (self.pool_model, POOL_MODELS),
+            "pool_unit_weighting": (self.pool_unit_weighting, UNIT_WEIGHTINGS),
             "eiv": (self.eiv, EIVS),
             "flow_band_rule": (self.flow_band_rule, BAND_RULES),
         }

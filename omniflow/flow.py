@@ -57,6 +57,9 @@ __all__ = [
     "predicted_bias",
 ]
 
+#: Weightings of the two units' equations in :func:`pooled_solution`.
+UNIT_WEIGHTINGS = ("equal", "global", "local")
+
 
 def _arr(*values: ArrayLike) -> list[NDArray]:
     out = [np.asarray(v, dtype=np.float64) for v in values]
@@ -263,6 +266,7 @@ def pooled_solution(
     noise1: float = 0.0,
     noise2: float = 0.0,
     residual_noise: bool = False,
+    unit_weighting: str = "equal",
 ) -> tuple[NDArray, NDArray, NDArray]:
     """Eq. (9) and (15) of neighbouring matches pooled in weighted least squares.
 
@@ -325,6 +329,17 @@ def pooled_solution(
         Measure each unit's image noise from the residuals of eq. (9) and (15)
         at the plain solution (noise in the band the flow step uses, whatever
         its spectrum) and scale ``noise1``, ``noise2`` by it.
+    unit_weighting : {"equal", "global", "local"}
+        Weight of each unit's equations. "equal": eq. (9) and (15) count
+        alike (ordinary least squares). "global": each unit's rows weighted
+        by the inverse of that unit's residual variance at the equal-weight
+        solution (one figure per unit). "local": by the inverse of the
+        unit's residual variance around each neighbour (the weighted mean of
+        the squared residuals over that neighbour's own pool), so a unit
+        whose equations do not hold in one part of the image (cam1 near its
+        centre, where the texture is compressed tangentially and its radial
+        derivative carries little but error) gives way there to the other.
+        Generalised least squares with the noise measured, not assumed.
 
     Returns
     -------
@@ -336,6 +351,8 @@ def pooled_solution(
     """
     if model not in ("constant", "linear"):
         raise ValueError(f"model = {model!r}: expected 'constant' or 'linear'")
+    if unit_weighting not in UNIT_WEIGHTINGS:
+        raise ValueError(f"unit_weighting = {unit_weighting!r}: expected one of {UNIT_WEIGHTINGS}")
     if model == "linear" and theta is None:
         raise ValueError("model='linear' needs theta")
     f1_h, f1_theta, f1_t, f2_h, f2_theta, f2_t, h1, h2 = (
@@ -358,24 +375,40 @@ def pooled_solution(
     p1, p2 = f1_h[idx] * rel, (k * f2_h)[idx] * rel
     q1, q2 = f1_theta[idx] / hi, f2_theta[idx] / hi
     t1, t2 = f1_t[idx], f2_t[idx]
-    cols = [p1 * p1 + p2 * p2, p1 * q1 + p2 * q2, q1 * q1 + q2 * q2,
-            p1 * t1 + p2 * t2, q1 * t1 + q2 * t2]  # fmt: skip
-    prods = np.stack(cols, axis=-1)  # (N, K, 5)
     if model == "constant":
         powers = w[:, None, :]  # (N, 1, K)
     else:
         powers = np.stack([w, w * u, w * u * u], axis=1)  # (N, 3, K)
-    sums = powers @ prods  # (N, 1 or 3, 5): sum_j w u^m (pp, pq, qq, pf, qf)
+
+    def weighted_sums(s1, s2):
+        # (N, 1 or 3, 5): sum_j w u^m (pp, pq, qq, pf, qf), unit 1's products times
+        # s1_j and unit 2's times s2_j
+        cols = [s1 * p1 * p1 + s2 * p2 * p2, s1 * p1 * q1 + s2 * p2 * q2,
+                s1 * q1 * q1 + s2 * q2 * q2, s1 * p1 * t1 + s2 * p2 * t2,
+                s1 * q1 * t1 + s2 * q2 * t2]  # fmt: skip
+        return powers @ np.stack(cols, axis=-1)
+
+    sums = weighted_sums(1.0, 1.0)
     a, c, conf = _solve_sums(sums, model, min_conditioning)
+    derivs = (f1_h, f1_theta, f1_t, f2_h, f2_theta, f2_t)
+    if residual_noise and (noise1 > 0 or noise2 > 0):
+        n1, n2 = _residual_variance(derivs, k, a, c / h1[:n], n)
+        noise1, noise2 = noise1 * n1, noise2 * n2
+    s1 = s2 = np.ones(w.shape)
+    if unit_weighting != "equal":
+        v1, v2 = _unit_variances(derivs, k, a, c / h1[:n], n, idx, w, unit_weighting)
+        if v1 is not None:
+            s1 = np.append(1.0 / v1, 0.0)[idx]  # neighbour j's rows weighted by 1 / v(j)
+            s2 = np.append(1.0 / v2, 0.0)[idx]
+            sums = weighted_sums(s1, s2)
+            a, c, conf = _solve_sums(sums, model, min_conditioning)
     if noise1 > 0 or noise2 > 0:
-        if residual_noise:
-            derivs = (f1_h, f1_theta, f1_t, f2_h, f2_theta, f2_t)
-            n1, n2 = _residual_variance(derivs, k, a, c / h1[:n], n)
-            noise1, noise2 = noise1 * n1, noise2 * n2
         # expected gradient-noise power on the pp and qq entries, with the
         # neighbours' rel, h_1,j / h_1,i and k_j taken as the point's own
-        # (1, 1, k_i): the pool is small against h_1
-        per_row = (noise1 + noise2 * k[:n] ** 2)[:, None] * powers.sum(axis=-1)  # (N, m)
+        # (1, 1, k_i): the pool is small against h_1; each row's noise carries
+        # its unit's weight
+        row_noise = noise1 * s1 + noise2 * k[:n, None] ** 2 * s2  # (N, K)
+        per_row = (powers @ row_noise[..., None])[..., 0]  # (N, m)
         noise = np.zeros_like(sums)
         noise[..., 0] = per_row
         noise[..., 2] = per_row
@@ -387,6 +420,47 @@ def pooled_solution(
         use = strong & np.isfinite(ac) & np.isfinite(cc)
         a, c, conf = np.where(use, ac, a), np.where(use, cc, c), np.where(use, confc, conf)
     return a, c / h1[:n], conf
+
+
+def _unit_variances(
+    derivs: tuple,
+    k: NDArray,
+    a: NDArray,
+    b: NDArray,
+    n: int,
+    idx: NDArray,
+    w: NDArray,
+    how: str,
+) -> tuple[NDArray | None, NDArray | None]:
+    """Residual variance of each unit's equation at each point (for ``unit_weighting``).
+
+    The residual of eq. (9) and (15) of every point at its own solution
+    (a, b); "global": one median-based variance per unit for all points;
+    "local": the weighted mean of the squared residuals over each point's pool
+    (``idx``, ``w``), floored at 1 % of the unit's global figure so that no
+    unit's weight runs away where its residuals happen to vanish. (None, None)
+    when fewer than 10 points have a solution or a variance is 0.
+    """
+    f1_h, f1_theta, f1_t, f2_h, f2_theta, f2_t = derivs  # with a sentinel at index n
+    ok = np.isfinite(a) & np.isfinite(b)
+    if ok.sum() < 10:
+        return None, None
+    out = []
+    for f_h, f_th, f_t, kk in ((f1_h, f1_theta, f1_t, 1.0), (f2_h, f2_theta, f2_t, k[:n])):
+        res = kk * f_h[:n] * a + f_th[:n] * b + f_t[:n]  # eq. (9), (15)
+        res2 = np.where(ok, res * res, np.nan)
+        glob = float(np.nanmedian(res2)) / 0.455  # median of a squared normal: 0.455 var
+        if how == "global":
+            out.append(np.full(n, glob))
+            continue
+        near = np.append(res2, np.nan)[idx]  # (N, K), NaN: no neighbour or no solution
+        wr = np.where(np.isfinite(near), w, 0.0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            local = (wr * np.nan_to_num(near)).sum(axis=1) / wr.sum(axis=1)
+        out.append(np.maximum(np.where(np.isfinite(local), local, glob), 0.01 * glob))
+    if not (out[0].min() > 0 and out[1].min() > 0):
+        return None, None
+    return out[0], out[1]
 
 
 def _residual_variance(

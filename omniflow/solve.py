@@ -167,7 +167,7 @@ def make_solver(
     def solve_w(derivs, weights):
         return pooled_solution(
             *derivs, h1, h2, idx, weights, **kw, noise1=noise[0], noise2=noise[1],
-            residual_noise=config.eiv == "residual",
+            residual_noise=config.eiv == "residual", unit_weighting=config.pool_unit_weighting,
         )  # fmt: skip
 
     def solve(f1_h, f1_th, f1_t, f2_h, f2_th, f2_t):
