@@ -42,8 +42,12 @@ class OmniFlowConfig:
         None: band.
     flow_band : float or None
         DCT band of the series the flow step differentiates (gradients and
-        f_t of eq. 9 and 15); 0.5 by default, the matching band. None: chosen
-        per frame pair from the images
+        f_t of eq. 9 and 15); 0.375 by default (3/8: 192 terms of 512).
+        On the rendered scenes (512 px, default images) 3/8 measured best
+        of 1/4 ... 1/2 in mean and median EPE on both cameras, and raised
+        the radial gain; on noise-free closed-form frames, whose texture
+        reaches the Nyquist limit, 1/2 is better (docs/measurements.md,
+        "radial shrink"). None: chosen per frame pair from the images
         by ``flow_band_rule`` (omniflow.noise.choose_band, with the noise
         measured by Immerkaer's estimator on each unit's annulus; the
         narrower of the two units' choices). The band trades noise (in f_t,
@@ -53,8 +57,9 @@ class OmniFlowConfig:
         Immerkaer's estimate reads fine texture as noise, and on the 128 px
         closed-form validation scene it read 0.034 (the frames are noise-free
         but for 8-bit rounding), chose 1/8 and multiplied the mean EPE by 40
-        (0.079 -> 3.3 px); on the converged default renders it chooses 1/2,
-        the default, anyway (docs/measurements.md, "flow band default").
+        (0.079 -> 3.3 px); on the converged default renders it chooses 1/2
+        (docs/measurements.md, "flow band default"), which is worse there
+        than 3/8.
     flow_band_rule : {"gain", "variance"}
         With ``flow_band=None``: the widest band whose fitted gradient keeps
         ``flow_band_gain`` of its power as signal
@@ -180,8 +185,10 @@ class OmniFlowConfig:
         Pooled solver: weight of each unit's equations, eq. (9) against
         eq. (15) (omniflow.flow.pooled_solution): alike, or by the inverse of
         each unit's residual variance, one figure per unit ("global") or
-        measured around each point ("local"). docs/measurements.md, "radial
-        shrink", has the figures.
+        measured around each point ("local", the default: on closed-form
+        frames it cut the median EPE by 20-30 %, on rendered ones it raised
+        the radial gain by 0.01 at equal EPE; docs/measurements.md, "radial
+        shrink"). Costs a second solve.
     min_conditioning : float
         Drop points whose confidence is below this (0 keeps all).
     sampling : {"cubic", "linear", "exact"}
@@ -214,7 +221,7 @@ class OmniFlowConfig:
 
     band: float = 0.5
     match_band: float | None = None
-    flow_band: float | None = 0.5
+    flow_band: float | None = 0.375
     flow_band_rule: str = "gain"
     flow_band_tolerance: float = 1.35
     flow_band_gain: float = 0.99
@@ -249,7 +256,7 @@ class OmniFlowConfig:
     pool_range_tol: float | None = 0.1
     pool_model: str = "linear"
     pool_flow_tol: float | None = None
-    pool_unit_weighting: str = "equal"
+    pool_unit_weighting: str = "local"
     min_conditioning: float = 0.0
     sampling: str = "cubic"
     iterations: int = 0
