@@ -42,12 +42,8 @@ class OmniFlowConfig:
         None: band.
     flow_band : float or None
         DCT band of the series the flow step differentiates (gradients and
-        f_t of eq. 9 and 15); 0.375 by default (3/8: 192 terms of 512).
-        On the rendered scenes (512 px, default images) 3/8 measured best
-        of 1/4 ... 1/2 in mean and median EPE on both cameras, and raised
-        the radial gain; on noise-free closed-form frames, whose texture
-        reaches the Nyquist limit, 1/2 is better (docs/measurements.md,
-        "radial shrink"). None: chosen per frame pair from the images
+        f_t of eq. 9 and 15); 0.5 by default, rolled off over its outer
+        half (``flow_taper``). None: chosen per frame pair from the images
         by ``flow_band_rule`` (omniflow.noise.choose_band, with the noise
         measured by Immerkaer's estimator on each unit's annulus; the
         narrower of the two units' choices). The band trades noise (in f_t,
@@ -57,9 +53,17 @@ class OmniFlowConfig:
         Immerkaer's estimate reads fine texture as noise, and on the 128 px
         closed-form validation scene it read 0.034 (the frames are noise-free
         but for 8-bit rounding), chose 1/8 and multiplied the mean EPE by 40
-        (0.079 -> 3.3 px); on the converged default renders it chooses 1/2
-        (docs/measurements.md, "flow band default"), which is worse there
-        than 3/8.
+        (0.079 -> 3.3 px); on the converged default renders it chooses 1/2,
+        the default, anyway (docs/measurements.md, "flow band default").
+    flow_taper : float
+        Fraction of the flow band over which the flow series rolls off to 0
+        (omniflow.dct.band_window, a radial cos^2 window on the DCT
+        coefficients); 0 is the sharp truncation of eq. (18) (the paper).
+        The sharp truncation rings, and near the image centre, where the
+        mirror compresses the texture tangentially, its ringing shrank the
+        radial flow by 5-10 %; 0.5 (weight 1 up to half the band) gave radial
+        gain 0.99-1.03 on rendered and closed-form frames and lower EPE
+        everywhere (docs/measurements.md, "radial shrink").
     flow_band_rule : {"gain", "variance"}
         With ``flow_band=None``: the widest band whose fitted gradient keeps
         ``flow_band_gain`` of its power as signal
@@ -221,7 +225,8 @@ class OmniFlowConfig:
 
     band: float = 0.5
     match_band: float | None = None
-    flow_band: float | None = 0.375
+    flow_band: float | None = 0.5
+    flow_taper: float = 0.5
     flow_band_rule: str = "gain"
     flow_band_tolerance: float = 1.35
     flow_band_gain: float = 0.99
@@ -278,6 +283,10 @@ class OmniFlowConfig:
         for name, (val, allowed) in checks.items():
             if val not in allowed:
                 raise ValueError(f"OmniFlowConfig.{name} = {val!r}: expected one of {allowed}")
+        if not 0.0 <= self.flow_taper <= 1.0:
+            raise ValueError(
+                f"OmniFlowConfig.flow_taper = {self.flow_taper!r}: expected a fraction in [0, 1]"
+            )
         for name in ("band", "flow_band", "match_band"):
             val = getattr(self, name)
             if val is not None and not (0 < val <= 1):
@@ -333,6 +342,7 @@ class OmniFlowConfig:
         base = dict(
             band=0.25,
             flow_band=0.25,
+            flow_taper=0.0,
             eiv="none",
             match_method="paper",
             gradients="first",

@@ -72,6 +72,7 @@ from omniflow.series import (
     unit_fits,
     unit_frames,
     unit_noise_sigma,
+    value_noise_share,
 )
 from omniflow.solve import flow_at_matches
 
@@ -157,9 +158,7 @@ def estimate(
             cam["noise_var"] = gradient_noise(s, cam["g"].fit, config)
         elif config.eiv == "residual":  # per unit of the fitted value's noise variance
             fit = cam["g"].fit
-            cam["noise_var"] = gradient_noise(1.0, fit, config) / (
-                fit.P * fit.Q / (fit.width * fit.height)
-            )
+            cam["noise_var"] = gradient_noise(1.0, fit, config) / value_noise_share(fit, config)
         else:
             cam["noise_var"] = 0.0
     diagnostics = {"flow_band": flow_band, "noise_sigma1": sigmas[0], "noise_sigma2": sigmas[1]}
