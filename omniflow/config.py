@@ -62,8 +62,10 @@ class OmniFlowConfig:
         The sharp truncation rings, and near the image centre, where the
         mirror compresses the texture tangentially, its ringing shrank the
         radial flow by 5-10 %; 0.5 (weight 1 up to half the band) gave radial
-        gain 0.99-1.03 on rendered and closed-form frames and lower EPE
-        everywhere (docs/measurements.md, "radial shrink").
+        gain 0.99-1.03 on the rendered and closed-form scenes, and 25-35 %
+        lower EPE on the rendered ones and 4x on the closed-form room (on the
+        closed-form striped wall, whose texture does not reach the band's
+        edge, as before); docs/measurements.md, "radial shrink".
     flow_band_rule : {"gain", "variance"}
         With ``flow_band=None``: the widest band whose fitted gradient keeps
         ``flow_band_gain`` of its power as signal
@@ -189,10 +191,11 @@ class OmniFlowConfig:
         Pooled solver: weight of each unit's equations, eq. (9) against
         eq. (15) (omniflow.flow.pooled_solution): alike, or by the inverse of
         each unit's residual variance, one figure per unit ("global") or
-        measured around each point ("local", the default: on closed-form
-        frames it cut the median EPE by 20-30 %, on rendered ones it raised
-        the radial gain by 0.01 at equal EPE; docs/measurements.md, "radial
-        shrink"). Costs a second solve.
+        measured around each point ("local", the default: with the sharp
+        truncation it cut the median EPE on closed-form frames by 20-30 %;
+        with the default roll-off it gains 2 % on the rendered default scene;
+        it halves the radial error where one unit is noisier;
+        docs/measurements.md, "radial shrink"). Costs a second solve.
     min_conditioning : float
         Drop points whose confidence is below this (0 keeps all).
     sampling : {"cubic", "linear", "exact"}
