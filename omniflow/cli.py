@@ -182,6 +182,7 @@ KNOB_LIMITS: dict[str, tuple[float, float, bool, bool]] = {
     "min_conditioning": (0.0, 1.0, True, True),  # lambda_min / lambda_max
     "iterations": (0, math.inf, True, False),
     "flow_band": (0.0, 1.0, False, True),
+    "flow_taper": (0.0, 1.0, True, True),  # fraction of the flow band rolled off
     "flow_band_tolerance": (1.0, math.inf, True, False),
     "flow_band_gain": (0.0, 1.0, False, False),
     "noise_sigma": (0.0, math.inf, True, False),  # grey levels of the [0, 1] image
