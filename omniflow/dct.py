@@ -42,6 +42,7 @@ from numpy.typing import ArrayLike, NDArray
 __all__ = ["DCT3Fit", "DCTFit", "band_window", "fit_dct", "fit_dct3"]
 
 
+@lru_cache(maxsize=16)
 def band_window(Q: int, P: int, taper: float) -> NDArray:
     """Weights (Q, P) that roll a truncated series off smoothly towards its band's edge.
 
@@ -59,10 +60,13 @@ def band_window(Q: int, P: int, taper: float) -> NDArray:
     if not 0.0 <= taper <= 1.0:
         raise ValueError(f"taper = {taper!r}: expected a fraction in [0, 1]")
     if taper == 0.0:
-        return np.ones((Q, P))
-    rho = np.hypot(np.arange(Q)[:, None] / Q, np.arange(P)[None, :] / P)
-    ramp = np.clip((rho - (1.0 - taper)) / taper, 0.0, 1.0)
-    return np.where(rho < 1.0, np.cos(0.5 * np.pi * ramp) ** 2, 0.0)
+        out = np.ones((Q, P))
+    else:
+        rho = np.hypot(np.arange(Q)[:, None] / Q, np.arange(P)[None, :] / P)
+        ramp = np.clip((rho - (1.0 - taper)) / taper, 0.0, 1.0)
+        out = np.where(rho < 1.0, np.cos(0.5 * np.pi * ramp) ** 2, 0.0)
+    out.setflags(write=False)  # cached: one array shared by every caller
+    return out
 
 
 def _check_image(image: ArrayLike, name: str = "image", ndim: int = 2) -> NDArray:
