@@ -182,6 +182,12 @@ class OmniFlowConfig:
         Off by default: on the rendered scenes the range test already keeps
         the movers' pools on the movers, and the edge test only thins the
         pools (docs/measurements.md, "Pooling that respects objects").
+    pool_residual_tol : float or None
+        Pooled solver: solve twice, and in the second pass leave out the
+        neighbours whose own eq. (9) and (15) miss the point's first-pass
+        flow by more than this many robust standard deviations of the
+        residuals (omniflow.flow.consistent_neighbours): another motion, or
+        another surface. None: one pass (unless ``pool_flow_tol``).
     pool_min_info : float or None
         Pooled solver: adapt each pool's size to the local texture; the pool
         grows over the neighbours, nearest first, until the weaker direction
@@ -259,6 +265,7 @@ class OmniFlowConfig:
     pool_model: str = "linear"
     pool_flow_tol: float | None = None
     pool_edge_tol: float | None = None
+    pool_residual_tol: float | None = None
     pool_min_info: float | None = None
     min_conditioning: float = 0.0
     sampling: str = "cubic"
@@ -293,7 +300,7 @@ class OmniFlowConfig:
                 f"OmniFlowConfig.flow_band_gain = {self.flow_band_gain!r}: "
                 "expected a fraction in (0, 1)"
             )
-        for name in ("pool_edge_tol", "pool_min_info"):
+        for name in ("pool_edge_tol", "pool_residual_tol", "pool_min_info"):
             val = getattr(self, name)
             if val is not None and not val > 0:
                 raise ValueError(f"OmniFlowConfig.{name} = {val!r}: expected > 0 or None")

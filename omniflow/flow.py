@@ -49,6 +49,7 @@ from scipy.spatial import cKDTree
 __all__ = [
     "axial_motion_violation",
     "conditioning",
+    "consistent_neighbours",
     "direct_solution",
     "edge_between",
     "flow_residual",
@@ -201,6 +202,7 @@ def neighbourhoods(
     range_tol: float | None = 0.1,
     edge_map: NDArray | None = None,
     edge_tol: float | None = None,
+    min_count: int = 8,
 ) -> tuple[NDArray, NDArray]:
     """The k nearest matched points within ``radius`` px of each (itself included).
 
@@ -223,6 +225,9 @@ def neighbourhoods(
         outline, where it is a stronger edge than the texture on either side,
         bounds the pool.
     edge_tol : float, optional
+    min_count : int
+        A pool that the edge test would leave with fewer neighbours than
+        this keeps them all (its solve would be near-singular).
 
     Returns
     -------
@@ -252,7 +257,7 @@ def neighbourhoods(
     if edge_map is not None and edge_tol is not None:
         strength = edge_between(edge_map, pts[:, 0], pts[:, 1], idx)
         level = np.median(_sample_grid(edge_map, pts[:, 0], pts[:, 1]))
-        w = np.where(strength > edge_tol * level, 0.0, w)
+        w = _keep_enough(np.where(strength > edge_tol * level, 0.0, w), w, min_count)
     if kk < k:
         idx = np.pad(idx, ((0, 0), (0, k - kk)), constant_values=n)
         w = np.pad(w, ((0, 0), (0, k - kk)))
@@ -265,6 +270,19 @@ def _sample_grid(grid: NDArray, x: NDArray, y: NDArray) -> NDArray:
 
     return map_coordinates(grid, [np.ravel(y) - 0.5, np.ravel(x) - 0.5], order=1,
                            mode="nearest").reshape(np.shape(x))  # fmt: skip
+
+
+def _keep_enough(w_new: NDArray, w_old: NDArray, min_count: int) -> NDArray:
+    """``w_new``, except that a pool left with fewer than ``min_count`` neighbours keeps ``w_old``.
+
+    A pool thinned below the four unknowns of the linear model (plus a margin)
+    gives a near-singular solve and a heavy-tailed flow; there the wider
+    pool's answer is the better one.
+    """
+    few = np.count_nonzero(w_new > 0, axis=1) < np.minimum(
+        min_count, np.count_nonzero(w_old > 0, axis=1)
+    )
+    return np.where(few[:, None], w_old, w_new)
 
 
 def edge_between(
@@ -321,6 +339,78 @@ def edge_between(
         vals = _sample_grid(dil, x[a] + f * dx[a, b], y[a] + f * dy[a, b])
         out[a, b] = np.maximum(out[a, b], vals)
     return out
+
+
+def consistent_neighbours(
+    idx: NDArray,
+    w: NDArray,
+    f1_h: ArrayLike,
+    f1_theta: ArrayLike,
+    f1_t: ArrayLike,
+    f2_h: ArrayLike,
+    f2_theta: ArrayLike,
+    f2_t: ArrayLike,
+    h1: ArrayLike,
+    h2: ArrayLike,
+    a: ArrayLike,
+    b: ArrayLike,
+    *,
+    tol: float,
+    min_count: int = 8,
+) -> NDArray:
+    """Pool weights without the neighbours whose own equations reject the point's flow.
+
+    Neighbour j's eq. (9) and (15) are evaluated at point i's first-pass
+    flow (a_i h_1,j / h_1,i, b_i) (the relative model of
+    :func:`pooled_solution`); where the RMS of the two residuals exceeds
+    ``tol`` times their robust scale over all points at their own flow
+    (1.4826 times the median absolute residual), j moves differently (or
+    is another surface) and gets weight 0. Unlike comparing the
+    neighbours' first-pass flows (each already a mixture where its pool
+    crossed the outline), this asks j's own data. A point without a
+    first-pass flow keeps its neighbours.
+
+    Parameters
+    ----------
+    idx, w : ndarray, shape (N, K)
+        From :func:`neighbourhoods`.
+    f1_h ... h2 : array_like, shape (N,)
+        As in :func:`pooled_solution`.
+    a, b : array_like, shape (N,)
+        First-pass dh_1/dt and dtheta/dt at the points.
+    tol : float
+        Residual allowed, in robust standard deviations.
+    min_count : int
+        A pool that the test would leave with fewer neighbours than this
+        keeps them all.
+
+    Returns
+    -------
+    ndarray, shape (N, K)
+    """
+    f1_h, f1_theta, f1_t, f2_h, f2_theta, f2_t, h1, h2 = (
+        np.append(np.asarray(v, dtype=np.float64).ravel(), np.nan)
+        for v in (f1_h, f1_theta, f1_t, f2_h, f2_theta, f2_t, h1, h2)
+    )
+    n = f1_h.size - 1
+    a = np.asarray(a, dtype=np.float64).ravel()
+    b = np.asarray(b, dtype=np.float64).ravel()
+    k = h2 / h1  # eq. (14)
+    aj = (a / h1[:n])[:, None] * h1[idx]  # the point's radial flow at the neighbour's radius
+    bj = b[:, None]
+    res1 = f1_h[idx] * aj + f1_theta[idx] * bj + f1_t[idx]  # eq. (9)
+    res2 = k[idx] * f2_h[idx] * aj + f2_theta[idx] * bj + f2_t[idx]  # eq. (15)
+    rms = np.sqrt(0.5 * (res1 * res1 + res2 * res2))
+    own = np.abs(np.concatenate([res1[:, 0], res2[:, 0]]))
+    own = own[np.isfinite(own)]
+    if own.size == 0:
+        return w
+    scale = 1.4826 * np.median(own)
+    with np.errstate(invalid="ignore"):
+        same = rms <= tol * scale
+    same[:, 0] = True
+    same |= ~(np.isfinite(a) & np.isfinite(b))[:, None]
+    return _keep_enough(np.where(same, w, 0.0), w, min_count)
 
 
 def informative_pools(

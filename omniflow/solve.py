@@ -17,7 +17,13 @@ from numpy.typing import NDArray
 from omniflow.applications import radial_velocity
 from omniflow.config import OmniFlowConfig
 from omniflow.flow import conditioning as direct_conditioning
-from omniflow.flow import direct_solution, informative_pools, neighbourhoods, pooled_solution
+from omniflow.flow import (
+    consistent_neighbours,
+    direct_solution,
+    informative_pools,
+    neighbourhoods,
+    pooled_solution,
+)
 from omniflow.matching import Matches
 from omniflow.rig import Rig, Unit
 from omniflow.sampling import sample_f, sample_fine, sample_polar_grad
@@ -184,6 +190,11 @@ def make_solver(
             weights = informative_pools(idx, w, f1_h, f1_th, f2_h, f2_th, h1, h2,
                                         target=config.pool_min_info)  # fmt: skip
         a, b, conf = solve_w(derivs, weights)
+        if config.pool_residual_tol is not None:  # second pass: j's equations agree with i
+            weights = consistent_neighbours(idx, weights, *derivs, h1, h2, a, b,
+                                            tol=config.pool_residual_tol)  # fmt: skip
+            if config.pool_flow_tol is None:
+                return solve_w(derivs, weights)
         if config.pool_flow_tol is None:
             return a, b, conf
         return solve_w(derivs, _same_motion(weights, idx, a, b, h1, config.pool_flow_tol))
