@@ -9,10 +9,14 @@ object, the scored points and the error of its mean flow against its mean
 true image motion, |mean est - mean true| / |mean true| on the (radial,
 tangential) flow vector. With ``--mixing``, also the share of the pool weight
 that each mover's matched points draw from other objects (object ids of the
-truth at the points; pools as the default solver builds them). Run::
+truth at the points; pools as the default solver builds them); with
+``--outline``, each mover's radial flow at its matched points within 3 px of its
+outline and inside (first variant); with ``--boundary BAND_MEAN``, the
+closed-form motion boundary of tests/omniflow/test_pooling.py instead of (or
+before) the datasets. Run from the repository root (it imports tests.helpers)::
 
-    python benchmarks/bench_pooling.py /work/data/crossing /work/data/independent_movers \\
-        default: res5:pool_residual_tol=5.0 edge3:pool_edge_tol=3.0
+    PYTHONPATH=$PWD python3 benchmarks/bench_pooling.py /work/data/crossing \\
+        /work/data/independent_movers default: res5:pool_residual_tol=5.0 edge3:pool_edge_tol=3.0
 """
 
 from __future__ import annotations
@@ -103,10 +107,83 @@ def mixing(dataset: str) -> list[str]:
             f"{np.mean(v) if v else float('nan'):.3f}" for i, v in share.items()]  # fmt: skip
 
 
+def boundary(variants: list, band_mean: float) -> list[str]:
+    """The closed-form motion boundary of tests/omniflow/test_pooling.py, per variant."""
+    from omniflow.flow import neighbourhoods
+    from omniflow.pipeline import estimate
+    from tests.helpers.scenes import band_scene, frames, paper_rig, sparse_true_matches
+
+    rig = paper_rig(256)
+    scene = band_scene(rig, yaw=0.01, band_mean=band_mean)
+    f1, f2 = frames(scene, 2)
+    m, gt = sparse_true_matches(scene, 0.1)
+    lines = [f"band mean {band_mean}: variant | band mean flow / true | band points whose "
+             "pool never reaches the wall | wall mean EPE"]  # fmt: skip
+    for name, config in variants:
+        res = estimate(f1, f2, rig, config, matches=m)
+        iy, ix = res["y"].astype(int), res["x"].astype(int)
+        obj = gt["gt.object"][iy, ix]
+        true_dh, true_tan = gt["gt.flow.dh"][iy, ix], gt["gt.flow.hdtheta"][iy, ix]
+        est_tan = res["h1"] * res["dtheta_dt"]
+        idx, _ = neighbourhoods(res["x"], res["y"], k=config.pool_k, radius=rig.cam1.r_m / 8.0)
+        crosses = ((np.append(obj, -1)[idx] != obj[:, None]) & (idx < obj.size)).any(axis=1)
+        band, inner = obj == 2, (obj == 2) & ~crosses
+        epe = np.hypot(res["dh1_dt"] - true_dh, est_tan - true_tan)
+        lines.append(f"{name:12s} {est_tan[band].mean() / true_tan[band].mean():.3f} | "
+                     f"{est_tan[inner].mean() / true_tan[inner].mean():.3f} | "
+                     f"{epe[obj == 1].mean():.4f}")  # fmt: skip
+    return lines
+
+
+def outline(dataset: str, config, within: float = 3.0) -> list[str]:
+    """Each mover's radial flow (est / true means) at matched points near its outline and inside."""
+    from scipy.ndimage import distance_transform_edt
+
+    from omniflow.dataset import open_dataset
+    from omniflow.pipeline import estimate
+    from validation.inputs import Inputs, camera_model
+    from validation.scoring_derived import moving_objects
+
+    ds = open_dataset(dataset)
+    inputs = Inputs(ds, camera_model(ds.meta))
+    acc: dict[int, list] = {int(i): [] for i in moving_objects(ds.meta)}
+    for t in range(ds.frame_count - 1):
+        f1 = [inputs.grey(k, "cam1") for k in (t, t + 1)]
+        f2 = [inputs.grey(k, "cam2") for k in (t, t + 1)]
+        res = estimate(f1, f2, ds.rig, config)
+        ch = ds.read_frame(t, "cam1")
+        iy = np.clip(res["y"].astype(int), 0, ch["gt.object"].shape[0] - 1)
+        ix = np.clip(res["x"].astype(int), 0, ch["gt.object"].shape[1] - 1)
+        obj = ch["gt.object"][iy, ix].astype(int)
+        for i in acc:
+            dist = distance_transform_edt(ch["gt.object"] == i)[iy, ix]
+            sel = obj == i
+            h2_err = np.abs(res["h2"] - ch["gt.stereo.h_other"][iy, ix])
+            cols = (dist, res["dh1_dt"], ch["gt.flow.dh"][iy, ix], h2_err)
+            acc[i] += list(zip(*(c[sel] for c in cols), strict=True))
+    lines = []
+    for i, rows in acc.items():
+        if not rows:
+            lines.append(f"    {ds.objects[i]:10s} no points")
+            continue
+        d, est, true, h2err = (np.array(c) for c in zip(*rows, strict=True))
+        near = d <= within
+        cells = [f"{lab} {sel.sum()} points radial est {est[sel].mean():+.3f} true "
+                 f"{true[sel].mean():+.3f}" for lab, sel in (("near", near), ("inside", ~near))
+                 if sel.any()]  # fmt: skip
+        lines.append(f"    {ds.objects[i]:10s} (outline = within {within} px) " + "; ".join(cells)
+                     + f"; matched h2 error median {np.median(h2err):.2f} px")  # fmt: skip
+    return lines
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("datasets", nargs="+", help="dataset directories, then the variants")
     parser.add_argument("--mixing", action="store_true", help="also the pools' mixing shares")
+    parser.add_argument("--outline", action="store_true",
+                        help="each mover's radial flow near its outline and inside")  # fmt: skip
+    parser.add_argument("--boundary", type=float, metavar="BAND_MEAN", action="append",
+                        help="the closed-form motion boundary, this band brightness")  # fmt: skip
     args = parser.parse_args()
     datasets = [a for a in args.datasets if ":" not in a]
     variants = [parse_variant(a) for a in args.datasets if ":" in a] or [parse_variant("default:")]
@@ -115,11 +192,16 @@ def main() -> None:
     from validation.summary import summarize
 
     warnings.simplefilter("ignore")
+    for mean in args.boundary or []:
+        plain = [(n, c.config if hasattr(c, "percentile") else c) for n, c in variants]
+        print("\n".join(boundary(plain, mean)), flush=True)
     for ds in datasets:
         res = run_validation(ds, variants=variants, baselines=[], progress=False)
         print("\n".join(mover_rows(jsonable(summarize(res)))), flush=True)
         if args.mixing:
             print("\n".join(mixing(ds)), flush=True)
+        if args.outline:
+            print("\n".join(outline(ds, variants[0][1])), flush=True)
 
 
 if __name__ == "__main__":

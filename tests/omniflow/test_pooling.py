@@ -1,8 +1,8 @@
 """Pooling that respects objects: omniflow.flow's edge_between, consistent_neighbours,
 informative_pools, and the pooled solver across a motion boundary.
 
-The closed-form motion boundary (:func:`boundary`): a textured band (a short
-coaxial cylinder, r = 1.85 m, 0.40 <= Z <= 0.55 m, darker than the wall)
+The closed-form motion boundary (tests.helpers.scenes.band_scene): a textured band
+(a short coaxial cylinder, r = 1.85 m, 0.40 <= Z <= 0.55 m, darker than the wall)
 turns about the rig's axis at 0.01 rad per frame in front of a static
 textured wall at r = 2.0 m; the robot stands still. The ranges differ by
 7.5 %, inside the default ``pool_range_tol`` of 10 %, so the range test
@@ -23,7 +23,7 @@ EPE on the wall, px per frame::
     pool_edge_tol = 3, pool_residual_tol = 3   0.896   wall 0.0177
     pool_range_tol = 0.03 (an oracle range test) 0.852
 
-Band points whose pool never reaches the wall have a ratio of 0.92-0.96 in
+Band points whose pool never reaches the wall have a ratio of 0.92-0.97 in
 every configuration: the rest of the shortfall is the band-limited fit
 smearing the band with the wall near its outline, not the pooling.
 """
@@ -42,10 +42,8 @@ from omniflow.flow import (
     neighbourhoods,
     pooled_solution,
 )
-from omniflow.matching import Matches
 from omniflow.pipeline import estimate
-from omniflow.synthetic import Cylinder, Motion, SyntheticScene, Texture
-from tests.helpers.scenes import frames, paper_rig, true_matches
+from tests.helpers.scenes import band_scene, frames, paper_rig, sparse_true_matches
 
 YAW = 0.01  # rad per frame: 0.2-0.5 px of tangential flow on the band in cam1
 
@@ -54,17 +52,9 @@ YAW = 0.01  # rad per frame: 0.2-0.5 px of tangential flow on the band in cam1
 def boundary():
     """Frames, subsampled true matches and cam1's truth of the motion-boundary scene."""
     rig = paper_rig(256)
-    band = Cylinder(radius=1.85, id=2, name="band", z_min=0.40, z_max=0.55,
-                    texture=Texture.random(5, contrast=0.2, mean=0.25,
-                                           period_u=2 * np.pi * 1.85),
-                    motion=Motion(yaw_rate=YAW))  # fmt: skip
-    wall_texture = Texture.random(3, contrast=0.4, mean=0.5, period_u=4 * np.pi)
-    wall = Cylinder(radius=2.0, id=1, name="wall", texture=wall_texture)
-    scene = SyntheticScene(rig=rig, bodies=(band, wall))
+    scene = band_scene(rig, yaw=YAW)
     f1, f2 = frames(scene, 2)
-    m, gt, _ = true_matches(scene)
-    keep = np.random.default_rng(0).random(len(m.theta)) < 0.1
-    m = Matches.from_polar(rig, m.theta[keep], m.h1[keep], m.h2[keep])
+    m, gt = sparse_true_matches(scene, 0.1)
     return rig, f1, f2, m, gt
 
 
