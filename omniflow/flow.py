@@ -34,6 +34,14 @@ conditioned, 0 singular. The columns are scaled to pixels per frame
 (a, h_1 b) so the measure does not depend on units. For the 2x2 direct
 solution this is 1 / cond(A)^2.
 
+Pools that respect objects. :func:`neighbourhoods` leaves out neighbours at
+another range and, optionally, across a strong image edge
+(:func:`edge_between`); :func:`consistent_neighbours` leaves out those whose
+own equations reject the point's first-pass flow (another motion), and
+:func:`informative_pools` cuts each pool to the nearest neighbours that
+condition it well enough (small pools in rich texture). A pool thinned
+below a few neighbours keeps them all, as its solve would be near-singular.
+
 When the scene point moves along the axis with dh/dt != 0, differentiating
 eq. (3)-(4) gives dh_2 - (h_2/h_1) dh_1 = s v dh / ((d + r)(s - h)) (see
 :func:`axial_motion_violation`), and eq. (15) is off by f2_h times that;
