@@ -478,6 +478,15 @@ def build_parser() -> argparse.ArgumentParser:
         "inlier threshold (2.5 robust sigma) (default: 4.0)",
     )
     regions.add_argument(
+        "--auto-coherence",
+        type=float,
+        default=0.5,
+        metavar="F",
+        help="neighbours join one group only when their own velocities (flow minus the "
+        "robot's motion) differ by at most F times the larger; inf: position only "
+        "(default: 0.5)",
+    )
+    regions.add_argument(
         "--steer-lead",
         type=float,
         default=1.0,
@@ -650,6 +659,8 @@ def _check_region_options(args) -> None:
             f"--auto-residual {args.auto_residual}: expected a finite number >= 1 "
             "(1: every odometry outlier)"
         )
+    if not (args.auto_coherence > 0):  # inf allowed: position only
+        raise CLIError(f"--auto-coherence {args.auto_coherence}: expected a number > 0 (or inf)")
     if not (math.isfinite(args.steer_lead) and args.steer_lead >= 0):
         raise CLIError(f"--steer-lead {args.steer_lead}: expected a finite number of frames >= 0")
     fi = args.frame_interval
@@ -870,8 +881,10 @@ def _regions(args, cols, masks, fit, rig: Rig, frame_interval):
         link = args.auto_link if args.auto_link is not None else rig.cam1.r_m / 10
         block["auto"] = {
             "found_by": "odometry residual > K x its inlier threshold, grouped by single "
-            "linkage in cam1's image (gaps <= link px), groups >= min_points",
+            "linkage in cam1's image (gaps <= link px, own velocities within coherence x the "
+            "larger), groups >= min_points",
             "K": args.auto_residual,
+            "coherence": args.auto_coherence,
             "link_px": link,
             "min_points": args.auto_min_points,
         }
@@ -883,13 +896,16 @@ def _regions(args, cols, masks, fit, rig: Rig, frame_interval):
                 moving = np.isfinite(fit.residuals) & (
                     fit.residuals > args.auto_residual * fit.threshold
                 )
+            own = fit.own_velocity(cols["theta"], cols["r"], cols["dr_dt"], cols["dtheta_dt"])
             labels = auto_groups(cols["x"], cols["y"], moving, link=link,
-                                 min_points=args.auto_min_points)  # fmt: skip
+                                 min_points=args.auto_min_points, velocity=own,
+                                 coherence=args.auto_coherence)  # fmt: skip
             block["auto"]["candidates"] = int(moving.sum())
         cols["auto_region"] = labels.astype(float)
         for k in range(1, int(labels.max(initial=0)) + 1):
             member = labels == k
-            spec = f"auto: {int(member.sum())} points"
+            v = np.median(own[member], axis=0)
+            spec = f"auto: own velocity ({v[0]:.3g}, {v[1]:.3g}) m/frame (rig X, Y, median)"
             rows.append(summarise(f"auto{k}", "auto", spec, cols, member,
                                   frame_interval=frame_interval, lead=args.steer_lead))  # fmt: skip
             outlines.append((f"auto{k}", _hull_mask(cols["x"][member], cols["y"][member], rig)))

@@ -216,11 +216,16 @@ def auto_groups(
     *,
     link: float,
     min_points: int,
+    velocity: ArrayLike | None = None,
+    coherence: float = math.inf,
 ) -> NDArray:
-    """Spatially connected groups of candidate points: (N,) labels, 0 = in no group.
+    """Connected groups of candidate points: (N,) labels, 0 = in no group.
 
-    Two candidates belong to one group when a chain of candidates links them,
-    each step at most ``link`` pixels in cam1's image (single linkage:
+    Two candidates are neighbours when they lie at most ``link`` pixels apart
+    in cam1's image and, given ``velocity`` (N, 2), their velocities differ by
+    at most ``coherence`` times the larger of the two (the points of one
+    object moving on its own share its velocity; mismatched static points
+    scatter). A group is a chain of neighbours (single linkage:
     :meth:`scipy.spatial.cKDTree.query_pairs` and
     :func:`scipy.sparse.csgraph.connected_components`). Groups of fewer than
     ``min_points`` points are dropped; the rest are numbered 1, 2, ... from
@@ -233,12 +238,19 @@ def auto_groups(
     x = np.asarray(x, dtype=float)
     y = np.asarray(y, dtype=float)
     cand = np.asarray(candidate, dtype=bool) & np.isfinite(x) & np.isfinite(y)
+    if velocity is not None:
+        v = np.asarray(velocity, dtype=float).reshape(-1, 2)
+        cand &= np.isfinite(v).all(axis=1)
     labels = np.zeros(x.shape, dtype=int)
     idx = np.flatnonzero(cand)
     if idx.size == 0:
         return labels
     pts = np.column_stack([x[idx], y[idx]])
     pairs = cKDTree(pts).query_pairs(float(link), output_type="ndarray")
+    if velocity is not None and math.isfinite(coherence):
+        va, vb = v[idx[pairs[:, 0]]], v[idx[pairs[:, 1]]]
+        larger = np.maximum(np.hypot(*va.T), np.hypot(*vb.T))
+        pairs = pairs[np.hypot(*(va - vb).T) <= coherence * larger]
     graph = coo_matrix(
         (np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(idx.size, idx.size)
     )
