@@ -387,3 +387,34 @@ def test_unknown_object_names_the_dataset_objects(base, tmp_path):
     line = check_clean_failure(proc, 2, "--region o:object:crosser: no object 'crosser'")
     assert "1 wall" in line  # the objects the dataset has
     assert snapshot(tmp_path, base["dir"]) == before
+
+
+def test_zero_matches_with_regions_is_an_empty_answer(base, tmp_path):
+    # Black frames: no point, so every region row is empty (one warning line each), no
+    # automatic group, no odometry fit, and the outputs are written as a set (exit 0).
+    from tests.omniflow.test_bad_input import _blank_frames
+
+    out = tmp_path / "out"
+    proc = run_omniflow([*_blank_frames(base, tmp_path, "black"), "--rig",
+                         base["dir"] / "rig.toml", "--out", out, "--auto-regions",
+                         "--region", "d:box:0,10,0,20", "--region", "e:box:20,30,0,20",
+                         "--landmark", "d:1,0", "--landmark", "e:0,1"])  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    assert "Traceback" not in proc.stderr
+    lines = proc.stderr.splitlines()
+    assert lines[0].startswith("omniflow: warning: no stereo matches"), lines
+    assert sorted(line.split(" (")[0] for line in lines[1:]) == [
+        "omniflow: warning: region d",
+        "omniflow: warning: region e",
+    ]
+    with open(out / "regions.csv") as fh:
+        rows = list(csv.DictReader(line for line in fh if not line.startswith("#")))
+    assert [(row["name"], row["points"], row["dx"]) for row in rows] == [
+        ("d", "0", ""),
+        ("e", "0", ""),
+    ]
+    meta = json.loads((out / "flow.json").read_text())
+    assert "error" in meta["odometry"] and "error" in meta["regions"]["auto"]
+    assert "hold no matched point" in meta["position_fix"]["error"]
+    header = (out / "flow.csv").read_text().splitlines()[1].split(",")
+    assert "odometry_inlier" in header and "auto_region" in header
