@@ -352,6 +352,7 @@ def draw_regions(canvas: NDArray[np.uint8], outlines: list[tuple[str, NDArray]])
     h, w = canvas.shape[:2]
     font = max(0.35, h / 1200.0)
     face = cv2.FONT_HERSHEY_SIMPLEX
+    placed: list[tuple[int, int, int, int]] = []  # label boxes so far (x0, y0, x1, y1)
     for k, (name, mask) in enumerate(outlines):
         colour = _COLOURS[k % len(_COLOURS)]
         contours, _ = cv2.findContours(
@@ -365,5 +366,14 @@ def draw_regions(canvas: NDArray[np.uint8], outlines: list[tuple[str, NDArray]])
         (tw, th), _ = cv2.getTextSize(name, face, font, 1)
         cx = int(np.clip(j.mean() - tw / 2, 0, max(0, w - tw)))
         cy = int(np.clip(i.mean() + th / 2, th, h - 2))
+        for _ in range(len(placed)):  # move down past labels it would overlap
+            hit = [
+                b for b in placed if cx < b[2] and b[0] < cx + tw and cy - th < b[3] and b[1] < cy
+            ]
+            if not hit:
+                break
+            cy = max(b[3] for b in hit) + th + 3
+        cy = int(min(cy, h - 2))
+        placed.append((cx - 6, cy - th - 2, cx + tw + 6, cy + 3))  # with a margin
         cv2.putText(canvas, name, (cx, cy), face, font, (0, 0, 0), 3, cv2.LINE_AA)
         cv2.putText(canvas, name, (cx, cy), face, font, colour, 1, cv2.LINE_AA)
