@@ -17,7 +17,7 @@ from numpy.typing import NDArray
 from omniflow.applications import radial_velocity
 from omniflow.config import OmniFlowConfig
 from omniflow.flow import conditioning as direct_conditioning
-from omniflow.flow import direct_solution, neighbourhoods, pooled_solution
+from omniflow.flow import determinant, direct_solution, neighbourhoods, pooled_solution
 from omniflow.matching import Matches
 from omniflow.rig import Rig, Unit
 from omniflow.sampling import sample_f, sample_fine, sample_polar_grad
@@ -49,7 +49,7 @@ def flow_at_matches(
     noise = (cam1.get("noise_var", 0.0), cam2.get("noise_var", 0.0))
     solve = make_solver(rig, config, x1, y1, theta, h1, h2, r, noise)
     a, b, conf = solve(f1_h, f1_th, f1_t, f2_h, f2_th, f2_t)
-    D = f1_h * f2_th - (h2 / h1) * f2_h * f1_th  # eq. (16)
+    D = determinant(f1_h, f1_th, f2_h, f2_th, h1, h2)
     k = h2 / h1  # eq. (14)
     for _ in range(config.iterations):
         # Gauss-Newton on eq. (8)'s linearisation: the residual of brightness
