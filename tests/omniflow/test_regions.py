@@ -271,7 +271,7 @@ def test_box_region_flow_and_time_to_contact_against_truth(mover):
         assert float(row[key]) == pytest.approx(np.mean(cols[key][member]), rel=1e-6), key
     assert float(row["dr_dt_mean"]) == pytest.approx(np.mean(cols["dr_dt"][member]), rel=1e-6)
     # Against the truth at the same points. Measured on this scene (default
-    # OmniFlowConfig, /tmp script beside the fixture): 23 points; dx 0.351 against
+    # OmniFlowConfig; this test's row and truth printed): 23 points; dx 0.351 against
     # 0.328 px, dy -0.033 against -0.028, dh1_dt 0.354 against 0.332 (the radial flow
     # 7 % high); time to contact 56.3 against 60.8 frames (-7.5 %), median of the points
     # 56.5 against 61.0; home-in heading -2.15 against -2.13 deg; centroid range 1.2165
