@@ -58,6 +58,7 @@ __all__ = [
     "axial_motion_violation",
     "conditioning",
     "consistent_neighbours",
+    "determinant",
     "direct_solution",
     "edge_between",
     "flow_residual",
@@ -151,6 +152,16 @@ def _eig_ratio(m11: NDArray, m12: NDArray, m22: NDArray) -> NDArray:
         return np.where(lmax > 0, lmin / lmax, 0.0)
 
 
+def determinant(
+    f1_h: ArrayLike, f1_theta: ArrayLike, f2_h: ArrayLike, f2_theta: ArrayLike,
+    h1: ArrayLike, h2: ArrayLike,
+) -> NDArray:  # fmt: skip
+    """The determinant D of the coaxial system, eq. (16); ~0 where eq. (9) and (15) are
+    nearly dependent."""
+    f1_h, f1_theta, f2_h, f2_theta, h1, h2 = _arr(f1_h, f1_theta, f2_h, f2_theta, h1, h2)
+    return f1_h * f2_theta - (h2 / h1) * f2_h * f1_theta  # eq. (16), with eq. (14)
+
+
 def direct_solution(
     f1_h: ArrayLike,
     f1_theta: ArrayLike,
@@ -190,7 +201,7 @@ def direct_solution(
         f1_h, f1_theta, f1_t, f2_h, f2_theta, f2_t, h1, h2
     )
     k = h2 / h1  # eq. (14)
-    D = f1_h * f2_theta - k * f2_h * f1_theta  # eq. (16)
+    D = determinant(f1_h, f1_theta, f2_h, f2_theta, h1, h2)
     ok = D != 0
     if min_conditioning > 0:
         ok &= conditioning(f1_h, f1_theta, f2_h, f2_theta, h1, h2) >= min_conditioning

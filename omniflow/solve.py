@@ -19,6 +19,7 @@ from omniflow.config import OmniFlowConfig
 from omniflow.flow import conditioning as direct_conditioning
 from omniflow.flow import (
     consistent_neighbours,
+    determinant,
     direct_solution,
     informative_pools,
     neighbourhoods,
@@ -58,7 +59,7 @@ def flow_at_matches(
         edge_map = np.hypot(*cam1["g"].grad_xy)  # |grad f| of the flow step's cam1 image
     solve = make_solver(rig, config, x1, y1, theta, h1, h2, r, noise, edge_map=edge_map)
     a, b, conf = solve(f1_h, f1_th, f1_t, f2_h, f2_th, f2_t)
-    D = f1_h * f2_th - (h2 / h1) * f2_h * f1_th  # eq. (16)
+    D = determinant(f1_h, f1_th, f2_h, f2_th, h1, h2)
     k = h2 / h1  # eq. (14)
     for _ in range(config.iterations):
         # Gauss-Newton on eq. (8)'s linearisation: the residual of brightness
