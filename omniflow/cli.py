@@ -197,6 +197,9 @@ KNOB_LIMITS: dict[str, tuple[float, float, bool, bool]] = {
     "noise_sigma": (0.0, math.inf, True, False),  # grey levels of the [0, 1] image
     "self_similarity": (0.0, 1.0, False, True),  # a factor on 1 - NCC; 1 = off
     "pool_flow_tol": (0.0, math.inf, False, False),
+    "pool_edge_tol": (0.0, math.inf, False, False),  # a factor on the median edge at the matches
+    "pool_residual_tol": (0.0, math.inf, False, False),  # robust standard deviations
+    "pool_min_info": (0.0, math.inf, False, False),  # in typical single points' information
 }
 
 

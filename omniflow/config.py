@@ -156,6 +156,28 @@ class OmniFlowConfig:
         neighbours whose first-pass flow differs from the point's by more
         than this, cam1 pixels per frame (a mover keeps its own motion where
         its range does not set it apart from the background); None: one pass.
+    pool_edge_tol : float or None
+        Pooled solver: leave out the neighbours separated from the point by
+        an image edge stronger than this many times the typical edge at the
+        matches (the largest gradient magnitude of the flow step's fitted
+        cam1 image on the segment between them, against its median at the
+        matches; omniflow.flow.edge_between): an object's outline bounds the
+        pool where it is a stronger edge than the texture. None: no test.
+        Off by default: on the rendered scenes the range test already keeps
+        the movers' pools on the movers, and the edge test only thins the
+        pools (docs/measurements.md, "Pooling that respects objects").
+    pool_residual_tol : float or None
+        Pooled solver: solve twice, and in the second pass leave out the
+        neighbours whose own eq. (9) and (15) miss the point's first-pass
+        flow by more than this many robust standard deviations of the
+        residuals (omniflow.flow.consistent_neighbours): another motion, or
+        another surface. None: one pass (unless ``pool_flow_tol``).
+    pool_min_info : float or None
+        Pooled solver: adapt each pool's size to the local texture; the pool
+        grows over the neighbours, nearest first, until the weaker direction
+        of its normal matrix holds this many typical points' information
+        (omniflow.flow.informative_pools), so rich texture pools a few close
+        neighbours and poor texture all of them. None: every neighbour.
     pool_model : {"linear", "constant"}
         Pooled solver: local flow model (omniflow.flow.pooled_solution),
         varying linearly with theta or constant.
@@ -220,6 +242,9 @@ class OmniFlowConfig:
     pool_range_tol: float | None = 0.1
     pool_model: str = "linear"
     pool_flow_tol: float | None = None
+    pool_edge_tol: float | None = None
+    pool_residual_tol: float | None = None
+    pool_min_info: float | None = None
     min_conditioning: float = 0.0
     sampling: str = "cubic"
     iterations: int = 0
@@ -253,6 +278,10 @@ class OmniFlowConfig:
                 f"OmniFlowConfig.flow_band_gain = {self.flow_band_gain!r}: "
                 "expected a fraction in (0, 1)"
             )
+        for name in ("pool_edge_tol", "pool_residual_tol", "pool_min_info"):
+            val = getattr(self, name)
+            if val is not None and not val > 0:
+                raise ValueError(f"OmniFlowConfig.{name} = {val!r}: expected > 0 or None")
         if self.noise_sigma is not None and not self.noise_sigma >= 0:
             raise ValueError(
                 f"OmniFlowConfig.noise_sigma = {self.noise_sigma!r}: expected >= 0 or None"
