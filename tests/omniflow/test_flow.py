@@ -14,31 +14,34 @@ true motion 0.10 to 0.27 px median::
     0.25 first   dct3d      direct                 0.0451 0.2375 0.2402 | 0.1654 0.3104 0.3337
     0.5  first   difference direct                 0.0089 0.0943 0.0962 | 0.1007 0.1941 0.2056
     0.5  average difference direct                 0.0088 0.0494 0.0502 | 0.0760 0.1396 0.1449
-    0.25 first   difference pooled                 0.0083 0.0355 0.0353 | 0.0187 0.0484 0.0517
-    0.25 average difference pooled                 0.0083 0.0290 0.0284 | 0.0185 0.0483 0.0502
-    0.5  first   difference pooled                 0.0005 0.0127 0.0135 | 0.0048 0.0145 0.0155
-    0.5  average difference pooled-const (4 px)    0.0009 0.0087 0.0087 | 0.0056 0.0125 0.0136
-    0.5  average difference pooled, units equal    0.0005 0.0029 0.0028 | 0.0034 0.0094 0.0112
-    0.5  average difference pooled                 0.0003 0.0020 0.0021 | 0.0028 0.0074 0.0090
-    0.5  average dct3d      pooled (3 frames)      0.0041 0.0120 0.0118 | 0.0062 0.0101 0.0102
-    default: 0.5 average difference pooled,        0.0000 0.0028 0.0028 | 0.0003 0.0023 0.0029
+    0.25 first   difference pooled                 0.0116 0.0477 0.0469 | 0.0210 0.0529 0.0549
+    0.25 average difference pooled                 0.0116 0.0378 0.0367 | 0.0208 0.0522 0.0531
+    0.5  first   difference pooled                 0.0006 0.0255 0.0263 | 0.0062 0.0167 0.0186
+    0.5  average difference pooled-const (4 px)    0.0010 0.0106 0.0107 | 0.0070 0.0151 0.0166
+    0.5  average difference pooled                 0.0005 0.0029 0.0028 | 0.0034 0.0094 0.0112
+    0.5  average difference pooled, units local    0.0003 0.0020 0.0021 | 0.0028 0.0074 0.0090
+    0.5  average dct3d      pooled (3 frames)      0.0037 0.0117 0.0119 | 0.0071 0.0115 0.0119
+    default: 0.5 average difference pooled,        0.0000 0.0031 0.0032 | 0.0004 0.0031 0.0042
       series rolled off over the band's outer half
+    default, units local                           0.0000 0.0028 0.0028 | 0.0003 0.0023 0.0029
     OpenCV DIS medium, same 8-bit frames/points    0.0144 0.0420 0.0403 | 0.0973 0.0926 0.0946
 
 (all 16 combinations are printed; they use the sharp truncation of eq. (18),
-``flow_taper=0``, and every pooled row but "units equal" weights each unit's
-equations by its local residual variance, ``pool_unit_weighting="local"``).
-The paper's direct solution is ill-conditioned radially (omniflow.flow's module
-docstring): here 1.6 to 6 times worse than DIS. Averaged gradients and band 0.5
-help the direct solution 2-5 times; pooling eq. (9) and (15) over the
-neighbouring matches helps most (48 neighbours within r_m / 8 = 16 px, a flow
-linear in theta); weighting the units by their residuals takes another 20-30 %
-off; rolling the series off towards the band's edge (the default) removes most
-of what is left on the room texture, whose power reaches the band's edge (4x:
-0.0029 against 0.0112 px), and leaves the striped wall as it was. (With the
-earlier 24 neighbours within r_m / 16 the units-equal row was 0.0007 0.0050
-0.0048 | 0.0054 0.0126 0.0142.) The 3-D DCT (3 frames) is no better than the
-frame difference here.
+``flow_taper=0``; "units local" weights each unit's equations by its local
+residual variance, ``pool_unit_weighting="local"``). The paper's direct solution
+is ill-conditioned radially (omniflow.flow's module docstring): here 1.6 to 6
+times worse than DIS. Averaged gradients and band 0.5 help the direct solution
+2-5 times; pooling eq. (9) and (15) over the neighbouring matches helps most (48
+neighbours within r_m / 8 = 16 px, a flow linear in theta: the previous default,
+"0.5 average difference pooled"); rolling the series off towards the band's edge
+(the default) takes 60-90 % off on the room texture, whose power reaches the
+band's edge, and leaves the striped wall within 0.0004 px; weighting the units
+by their residuals takes another 10-30 % off here (it is not the default: at a
+motion boundary it pulls the mover further towards the background and cancels
+pool_residual_tol, tests/omniflow/test_pooling.py). (With the earlier 24
+neighbours within r_m / 16 the previous default was 0.0007 0.0050 0.0048 |
+0.0054 0.0126 0.0142.) The 3-D DCT (3 frames) is no better than the frame
+difference here.
 """
 
 from __future__ import annotations
@@ -248,11 +251,12 @@ def _variants() -> dict[str, OmniFlowConfig]:
     out["0.5 average difference pooled-const"] = OmniFlowConfig(
         flow_band=0.5, flow_taper=0.0, pool_model="constant", pool_radius=4.0, pool_k=12
     )
-    # the previous default: sharp truncation, units weighted equally
-    out["0.5 average difference pooled equal"] = OmniFlowConfig(
-        flow_taper=0.0, pool_unit_weighting="equal"
+    # each unit's equations weighted by its local residual variance
+    out["0.5 average difference pooled local"] = OmniFlowConfig(
+        flow_taper=0.0, pool_unit_weighting="local"
     )
     out["default"] = OmniFlowConfig()  # flow band 1/2 rolled off over its outer half
+    out["default local"] = OmniFlowConfig(pool_unit_weighting="local")
     return out
 
 
@@ -285,10 +289,13 @@ def flow_table():
 
 
 #: measured: the default (band 1/2 rolled off over its outer half, averaged, pooled, units
-#: weighted locally) is the best variant in 4 of the 6 cases; on the striped wall's drive
-#: and both cases the sharp truncation with the units weighted locally is better, 0.0020
-#: and 0.0021 against 0.0028 px (ratio 1.40 and 1.33)
-DEFAULT_MARGIN = 1.5
+#: weighted equally) is within 1.55x of the best variant in every case: 0.0031 / 0.0032 px
+#: against 0.0020 / 0.0021 on the striped wall's drive / both (the sharp truncation with the
+#: units weighted locally), 0.0031 / 0.0042 against 0.0023 / 0.0029 on the room's (the
+#: default with the units weighted locally)
+DEFAULT_MARGIN = 1.7
+#: px: below this the medians are at rounding level (striped turn: 0.0000 to 4 digits)
+DEFAULT_SLACK = 0.0005
 
 
 @pytest.mark.slow  # flow_table fixture 14.0 s (docs/measurements.md, test durations)
@@ -296,15 +303,15 @@ def test_best_variant_at_most_half_of_dis(flow_table):
     for case, row in flow_table.items():
         best = min(v for k, v in row.items() if k not in ("motion", "DIS"))
         assert best <= 0.5 * row["DIS"], (case, best, row["DIS"])
-        assert row["default"] <= DEFAULT_MARGIN * best, case
-        # and the result is sub-pixel accurate in absolute terms (measured <= 0.0029)
+        assert row["default"] <= DEFAULT_MARGIN * best + DEFAULT_SLACK, (case, row["default"])
+        # and the result is sub-pixel accurate in absolute terms (measured <= 0.0042)
         assert row["default"] < 0.03, case
-    # the roll-off of the flow series (flow_taper) against the previous default (sharp
-    # truncation, units equal) on the room texture: measured 0.0003 / 0.0034, 0.0023 /
-    # 0.0094, 0.0029 / 0.0112 px (on the striped wall equal to 4 digits or better)
+    # the roll-off of the flow series (flow_taper) against the previous default (the
+    # same with the sharp truncation) on the room texture: measured 0.0004 / 0.0034,
+    # 0.0031 / 0.0094, 0.0042 / 0.0112 px (on the striped wall within 0.0004 px)
     for mname in MOTIONS:
         row = flow_table[f"room {mname}"]
-        assert row["default"] < 0.4 * row["0.5 average difference pooled equal"], mname
+        assert row["default"] < 0.45 * row["0.5 average difference pooled"], mname
 
 
 @pytest.mark.slow  # shares the 14.0 s flow_table fixture (docs/measurements.md, test durations)
@@ -568,9 +575,9 @@ def test_radial_gain_on_closed_form_frames():
     motion = MOTIONS["both"]
     room, wall = _scene("room", motion), _scene("striped", motion)
     sharp = OmniFlowConfig(flow_taper=0.0)
-    # measured: room 1.0071 default, 0.9621 sharp (0.9520 sharp with the units equal, the
-    # previous default), 0.9925 sharp with blur 0.8, 1.0057 default with blur 0.8; striped
-    # wall 1.0052 default, 1.0050 sharp. Bounds: 1 % around 1 where unbiased.
+    # measured: room 1.0072 default, 0.9520 sharp (the previous default), 0.9908 sharp with
+    # blur 0.8; striped wall 1.0021 default, 1.0061 sharp. Bounds: 1 % around 1 where
+    # unbiased. (With pool_unit_weighting="local": 1.0071, 0.9621, 0.9925, 1.0052.)
     assert abs(_radial_gain(room, OmniFlowConfig()) - 1) < 0.01
     assert _radial_gain(room, sharp) < 0.975
     assert abs(_radial_gain(room, sharp, blur=0.8) - 1) < 0.01
