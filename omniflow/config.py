@@ -58,7 +58,7 @@ class OmniFlowConfig:
         The sharp truncation rings, and near the image centre, where the
         mirror compresses the texture tangentially, its ringing shrank the
         radial flow by 5-10 %; 0.5 (weight 1 up to half the band) gave radial
-        gain 0.99-1.03 on the rendered and closed-form scenes, and 25-35 %
+        gain 0.99-1.03 on the rendered and closed-form scenes, and 10-35 %
         lower EPE on the rendered ones and 2.7-8x on the closed-form room (on the
         closed-form striped wall, whose texture does not reach the band's
         edge, as before); docs/measurements.md, "radial shrink".
