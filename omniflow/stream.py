@@ -1,0 +1,291 @@
+"""Streaming omni flow: one stereo frame at a time, each frame fitted once.
+
+A robot sees a sequence. :func:`omniflow.pipeline.estimate` on the pair
+(t, t + 1) fits both frames of both units, evaluates their grids, matches on
+frame t and solves; on the next pair (t + 1, t + 2) it would fit frame t + 1
+again. Everything the flow step takes from a pair is linear in the per-frame
+DCT fits (eq. 17-20): the averaged gradient of ``gradients="average"`` is the
+mean of the two frames' gradient grids, and f_t is the series of the
+difference of their coefficients. :class:`OmniFlowStream` therefore keeps one
+:class:`StereoFrame` per time step (the fit of each unit at the widest band
+the configuration needs, its noise level, and its grids made on demand, at
+most once per band) and builds each pair from the previous frame and the new
+one. The stereo matches of a pair are those of its first frame, made once.
+
+The result of :meth:`OmniFlowStream.push` equals ``estimate`` on the same two
+frames to floating-point tolerance (the gradient mean is taken on float32
+grids instead of on the coefficients; the matches, the pools and f_t are the
+same computation). Nothing is kept beyond the previous frame, so memory does
+not grow with the length of the sequence.
+
+``temporal="dct3d"`` fits a 3-D series over ``temporal_frames`` frames and has
+no per-frame fit to reuse: the stream then keeps the last ``temporal_frames``
+frames and returns, for each new one, ``estimate`` on that window for the last
+pair (the causal window: a live stream cannot look ahead).
+"""
+
+from __future__ import annotations
+
+import collections
+import time
+from dataclasses import replace
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from omniflow.dct import DCTFit, fit_dct
+from omniflow.matching import PolarGrids, match_radial
+from omniflow.noise import BAND_CANDIDATES
+from omniflow.pipeline import (
+    OmniFlowConfig,
+    OmniFlowResult,
+    _Frame,
+    _flow_band,
+    _gradient_noise,
+    _grey,
+    _match_frame,
+    _no_points,
+    _noise_sigma,
+    _truncate,
+    estimate,
+    flow_at_matches,
+)
+from omniflow.rig import Rig, Unit
+
+__all__ = ["OmniFlowStream", "StereoFrame"]
+
+
+class _UnitFrame:
+    """One unit at one time step: its DCT fit, noise level and grids per band."""
+
+    def __init__(self, fit: DCTFit, unit: Unit, sigma: float):
+        self.fit, self.unit, self.sigma = fit, unit, sigma
+        self._frames: dict[float, _Frame] = {}
+        self.match_frame: _Frame | None = None
+
+    def frame(self, band: float) -> _Frame:
+        """The fit truncated to ``band``, as a lazy-grid frame made once per band."""
+        fr = self._frames.get(band)
+        if fr is None:
+            fr = self._frames[band] = _Frame(_truncate(self.fit, band), self.unit)
+        return fr
+
+
+class StereoFrame:
+    """Both units at one time step, fitted once: what a stream keeps between pushes.
+
+    Built by :meth:`OmniFlowStream.push`; holds per unit the DCT fit at the
+    widest band the configuration needs (eq. 17), the image noise where the
+    configuration uses it, the grids made so far (each at most once per
+    band) and the flow band chosen for the pair that starts here.
+    """
+
+    def __init__(self, frame1: ArrayLike, frame2: ArrayLike, rig: Rig, config: OmniFlowConfig,
+                 index: int):  # fmt: skip
+        self.index = index
+        need_sigma = config.flow_band is None or (
+            config.eiv == "correct" and config.solver == "pooled"
+        )
+        fit_band = max(config.band, config.flow_band or max(BAND_CANDIDATES))
+        units = []
+        for what, frame, unit in (("frame1", frame1, rig.cam1), ("frame2", frame2, rig.cam2)):
+            image = _grey(frame, f"{what} of push {index}", unit, config)
+            sigma = _noise_sigma(frame, unit, config) if need_sigma else 0.0
+            units.append(_UnitFrame(fit_dct(image, band=fit_band), unit, sigma))
+        self.units: tuple[_UnitFrame, _UnitFrame] = (units[0], units[1])
+        self.flow_band = _flow_band(
+            [{"a": u.fit} for u in self.units], [u.sigma for u in self.units], config
+        )
+
+
+class OmniFlowStream:
+    """Omni flow of a live sequence: push one stereo frame, get the flow since the last.
+
+    Parameters
+    ----------
+    rig : Rig
+        The coaxial pair; every frame must have its units' sizes.
+    config : OmniFlowConfig, optional
+        Defaults to ``OmniFlowConfig()``. Any configuration works;
+        ``temporal="dct3d"`` runs :func:`~omniflow.pipeline.estimate` on a
+        window of the last ``temporal_frames`` frames (no per-frame reuse).
+
+    Examples
+    --------
+    >>> stream = OmniFlowStream(rig)                      # doctest: +SKIP
+    >>> for cam1, cam2 in camera_frames():                # doctest: +SKIP
+    ...     result = stream.push(cam1, cam2)              # None for the first frame
+    """
+
+    def __init__(self, rig: Rig, config: OmniFlowConfig | None = None):
+        self.rig = rig
+        self.config = OmniFlowConfig() if config is None else config
+        self._prev: StereoFrame | None = None
+        window = self.config.temporal_frames if self.config.temporal == "dct3d" else 0
+        self._window: collections.deque = collections.deque(maxlen=max(window, 1))
+        self.frames_pushed = 0
+
+    def reset(self) -> None:
+        """Forget the previous frame(s): the next push starts a new sequence."""
+        self._prev = None
+        self._window.clear()
+
+    def push(self, frame1: ArrayLike, frame2: ArrayLike) -> OmniFlowResult | None:
+        """Add the next stereo frame; the flow from the previous frame to this one.
+
+        Parameters
+        ----------
+        frame1, frame2 : ndarray, shape (H, W)
+            Grey frames of cam1 and cam2 at the new time step.
+
+        Returns
+        -------
+        OmniFlowResult or None
+            None for the first frame after construction or :meth:`reset` (and,
+            with ``temporal="dct3d"``, until ``temporal_frames`` frames are in).
+            ``timings["fit"]`` is the new frame's fit; the other stages as in
+            :func:`~omniflow.pipeline.estimate`.
+        """
+        index = self.frames_pushed
+        if self.config.temporal == "dct3d":
+            return self._push_window(frame1, frame2, index)
+        t_start = time.perf_counter()
+        cur = StereoFrame(frame1, frame2, self.rig, self.config, index)
+        t_fit = time.perf_counter() - t_start
+        self.frames_pushed += 1
+        prev, self._prev = self._prev, cur
+        if prev is None:
+            return None
+        return self._pair(prev, cur, t_start, t_fit)
+
+    def _push_window(self, frame1, frame2, index: int) -> OmniFlowResult | None:
+        for what, frame, unit in (("frame1", frame1, self.rig.cam1),
+                                  ("frame2", frame2, self.rig.cam2)):  # fmt: skip
+            _grey(frame, f"{what} of push {index}", unit, self.config)  # shape check only
+        self._window.append((np.array(frame1, copy=True), np.array(frame2, copy=True)))
+        self.frames_pushed += 1
+        if len(self._window) < self._window.maxlen:
+            return None
+        f1 = [a for a, _ in self._window]
+        f2 = [b for _, b in self._window]
+        return estimate(f1, f2, self.rig, self.config, t=len(f1) - 2)
+
+    # -- one pair -----------------------------------------------------------------
+
+    def _pair(self, prev: StereoFrame, cur: StereoFrame, t_start: float,
+              t_fit: float) -> OmniFlowResult:  # fmt: skip
+        config = self.config
+        timings: dict[str, float] = {"fit": t_fit}
+        flow_band = prev.flow_band
+        cams = [
+            _unit_pair(a, b, config, flow_band)
+            for a, b in zip(prev.units, cur.units, strict=True)
+        ]
+        diagnostics = {"flow_band": flow_band, "noise_sigma1": prev.units[0].sigma,
+                       "noise_sigma2": prev.units[1].sigma}  # fmt: skip
+        t_g = time.perf_counter()
+        grids = self._grids(prev)
+        timings["grids"] = time.perf_counter() - t_g
+        t_m = time.perf_counter()
+        matches = _match(grids, self.rig, config)  # a frame starts one pair only: matched once
+        timings["match"] = time.perf_counter() - t_m
+        n_sig = matches.n_significant
+        if len(matches.theta) == 0:
+            return _no_points(timings, t_start, config, n_sig)
+        t_s = time.perf_counter()
+        result = flow_at_matches(matches, self.rig, cams[0], cams[1], config)
+        timings["sample"] = result.pop("_t_sample")
+        timings["solve"] = time.perf_counter() - t_s - timings["sample"]
+        timings["total"] = time.perf_counter() - t_start
+        return OmniFlowResult(columns=result, timings=timings, config=config,
+                              n_significant=n_sig, diagnostics=diagnostics)  # fmt: skip
+
+    def _grids(self, frame: StereoFrame) -> tuple[PolarGrids, PolarGrids]:
+        """The grids the matcher reads from a frame (as :func:`estimate` builds them)."""
+        config = self.config
+        out = []
+        for u in frame.units:
+            a = u.frame(config.band)
+            if config.match_method == "paper":  # the polar edge finder's f_h, f_theta
+                out.append(PolarGrids(f=a.f, f_h=a.grad[0], f_theta=a.grad[1]))
+            else:
+                if u.match_frame is None:
+                    u.match_frame = _match_frame(a, config)
+                out.append(PolarGrids(f=u.match_frame.f, f_h=None))
+        return out[0], out[1]
+
+
+def _unit_pair(a: _UnitFrame, b: _UnitFrame, config: OmniFlowConfig, flow_band: float) -> dict:
+    """One unit's series for the pair (a, b), keys as :func:`omniflow.pipeline.estimate`'s.
+
+    ``a``: frame t at the matching band; ``b``: frame t + 1 at the flow band;
+    ``g``: the gradient series (frame t's, or the mean of both frames: its
+    gradient grids are the mean of theirs, each made once per frame); ``t``:
+    the series of f_t, the coefficients' difference (eq. 17 is linear).
+    """
+    fa, fb = a.frame(flow_band), b.frame(flow_band)
+    if config.gradients == "first":
+        g = fa
+    else:
+        g = _Frame(replace(fa.fit, coeffs=0.5 * (fa.fit.coeffs + fb.fit.coeffs)), a.unit)
+        if config.sampling != "exact":  # the exact path evaluates g's series itself
+            g._grad_xy = tuple(
+                np.multiply(np.add(p, q), np.float32(0.5))
+                for p, q in zip(fa.grad_xy, fb.grad_xy, strict=True)
+            )
+    ft = _Frame(replace(fa.fit, coeffs=fb.fit.coeffs - fa.fit.coeffs), a.unit)
+    cam = {"a": a.frame(config.band), "b": fb, "g": g, "t": ft}
+    if config.eiv == "correct":
+        cam["noise_var"] = _gradient_noise(a.sigma, g.fit, config)
+    elif config.eiv == "residual":  # per unit of the fitted value's noise variance
+        fit = g.fit
+        cam["noise_var"] = _gradient_noise(1.0, fit, config) / (
+            fit.P * fit.Q / (fit.width * fit.height)
+        )
+    else:
+        cam["noise_var"] = 0.0
+    return cam
+
+
+def _match(grids: tuple[PolarGrids, PolarGrids], rig: Rig, config: OmniFlowConfig):
+    """Stereo matches of one frame with the configured matcher (as :func:`estimate`)."""
+    return match_radial(
+        None,
+        None,
+        rig,
+        method=config.match_method,
+        threshold_percentile=config.threshold_percentile,
+        min_gradient=config.min_gradient,
+        r_min=config.r_min,
+        r_max=config.r_max,
+        n_theta=config.n_theta,
+        h_step=config.h_step,
+        h_min=config.h_min,
+        rim_margin=config.rim_margin,
+        patch_radius=config.patch_radius,
+        patch_lines=config.patch_lines,
+        profile_step=config.profile_step,
+        min_score=config.min_score,
+        uniqueness=config.uniqueness,
+        left_right=config.left_right,
+        candidate_fraction=config.candidate_fraction,
+        tangential_blur=config.tangential_blur,
+        consistency=config.consistency,
+        consistency_support=config.consistency_support,
+        self_similarity=config.self_similarity,
+        grids=grids,
+    )
+
+
+def stream_frames(rig: Rig, pairs, config: OmniFlowConfig | None = None):
+    """Yield (index, result) for each stereo frame of ``pairs`` after the first.
+
+    ``pairs`` is an iterable of (frame1, frame2); ``index`` is the new frame's
+    position in it (the flow runs from index - 1 to index).
+    """
+    stream = OmniFlowStream(rig, config)
+    for k, (f1, f2) in enumerate(pairs):
+        result = stream.push(f1, f2)
+        if result is not None:
+            yield k, result
+
