@@ -31,7 +31,7 @@ import time
 from dataclasses import replace
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
 from omniflow.dct import DCTFit, fit_dct
 from omniflow.matching import PolarGrids, match_radial
@@ -39,8 +39,8 @@ from omniflow.noise import BAND_CANDIDATES
 from omniflow.pipeline import (
     OmniFlowConfig,
     OmniFlowResult,
-    _Frame,
     _flow_band,
+    _Frame,
     _gradient_noise,
     _grey,
     _match_frame,
@@ -178,8 +178,7 @@ class OmniFlowStream:
         timings: dict[str, float] = {"fit": t_fit}
         flow_band = prev.flow_band
         cams = [
-            _unit_pair(a, b, config, flow_band)
-            for a, b in zip(prev.units, cur.units, strict=True)
+            _unit_pair(a, b, config, flow_band) for a, b in zip(prev.units, cur.units, strict=True)
         ]
         diagnostics = {"flow_band": flow_band, "noise_sigma1": prev.units[0].sigma,
                        "noise_sigma2": prev.units[1].sigma}  # fmt: skip
@@ -288,4 +287,3 @@ def stream_frames(rig: Rig, pairs, config: OmniFlowConfig | None = None):
         result = stream.push(f1, f2)
         if result is not None:
             yield k, result
-
