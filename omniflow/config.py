@@ -1,0 +1,336 @@
+"""The knobs of the stereo omni flow step: :class:`OmniFlowConfig`.
+
+Every choice :func:`omniflow.pipeline.estimate` makes is a field here, checked
+when the config is made; :meth:`OmniFlowConfig.paper` gives the paper's own
+choices.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields, replace
+
+from omniflow.matching import MATCH_METHODS
+
+__all__ = ["OmniFlowConfig"]
+
+GRADIENTS = ("first", "average")
+TEMPORALS = ("difference", "dct3d")
+SOLVERS = ("direct", "pooled")
+SAMPLINGS = ("cubic", "linear", "exact")
+RIM_FILLS = ("reflect", "none")
+POOL_MODELS = ("linear", "constant")
+EIVS = ("correct", "residual", "none")
+BAND_RULES = ("gain", "variance")
+
+
+@dataclass(frozen=True)
+class OmniFlowConfig:
+    """Every knob of the stereo omni flow step.
+
+    The defaults are the robust choices measured best on closed-form scenes
+    (tests/omniflow/test_flow.py, tests/omniflow/test_pipeline.py); :meth:`paper` gives the
+    paper's own choices.
+
+    Attributes
+    ----------
+    band : float
+        DCT band of the image matched on: P = band * W, Q = band * H
+        coefficients (eq. 17). Paper: 0.25 (for matching and flow alike).
+    match_band : float or None
+        Narrower band for the matched image (frame t's series truncated);
+        None: band.
+    flow_band : float or None
+        DCT band of the series the flow step differentiates (gradients and
+        f_t of eq. 9 and 15); 0.5 by default, the matching band. None: chosen
+        per frame pair from the images
+        by ``flow_band_rule`` (omniflow.noise.choose_band, with the noise
+        measured by Immerkaer's estimator on each unit's annulus; the
+        narrower of the two units' choices). The band trades noise (in f_t,
+        and in the gradients, which shrinks the flow: an errors-in-variables
+        bias) against texture detail; docs/measurements.md, "omniflow
+        accuracy", has the figures. The automatic choice is not the default:
+        Immerkaer's estimate reads fine texture as noise, and on the 128 px
+        closed-form validation scene it read 0.034 (the frames are noise-free
+        but for 8-bit rounding), chose 1/8 and multiplied the mean EPE by 40
+        (0.079 -> 3.3 px); on the converged default renders it chooses 1/2,
+        the default, anyway (docs/measurements.md, "flow band default").
+    flow_band_rule : {"gain", "variance"}
+        With ``flow_band=None``: the widest band whose fitted gradient keeps
+        ``flow_band_gain`` of its power as signal
+        (omniflow.noise.predicted_gain), or the widest whose predicted flow
+        variance (omniflow.noise.predicted_variance) is within
+        ``flow_band_tolerance`` of the least. "variance" measured better on
+        rendered frames (1 % noise: it picks 1/4 on the default scene, cam2
+        EPE 0.55x DIS instead of 0.77x) but picks too narrow a band for
+        texture whose detail runs along one direction only (closed-form
+        striped wall: 0.075 px instead of 0.0025); docs/measurements.md.
+    flow_band_tolerance : float
+        ``flow_band_rule="variance"``: the factor over the least variance allowed.
+    flow_band_gain : float
+        ``flow_band_rule="gain"``: the least predicted signal share of the
+        gradient power the chosen band keeps.
+    noise_sigma : float or None
+        Standard deviation of the image noise, grey levels (images in
+        [0, 1]); None: Immerkaer's estimate on each unit's frame t
+        (omniflow.noise.immerkaer_sigma; it also counts fine texture, so it
+        errs high). Used by ``flow_band=None`` and ``eiv="correct"``.
+    eiv : {"correct", "none"}
+        Errors-in-variables correction of the pooled solver: the expected
+        contribution of gradient noise (omniflow.noise.gradient_noise_variance
+        at the flow band, halved for averaged gradients) is subtracted from
+        the normal matrix (bias-compensated least squares), where that leaves
+        it positive definite; "none" solves the plain least squares. The
+        direct solver (eq. 16) is never corrected.
+    match_method : {"robust", "paper"}
+        Radial matching rule (omniflow.matching.match_radial): NCC of radial
+        profiles with left-right and uniqueness checks, or the paper's most
+        similar gradient vector.
+    threshold_percentile : float
+        Significant points of image 1: |df1/dh_1| above this percentile over
+        the annulus searched (paper: "passes some threshold").
+    min_gradient : float
+        Significant points also need |df1/dh_1| above this, grey levels per
+        pixel (images in [0, 1]); a textureless image has none.
+    r_min : float or None
+        Nearest range searched, metres (far end of the disparity window);
+        None: the nearest range both units see (Rig.min_common_range).
+    r_max : float
+        Farthest range searched, metres: the paper's minimum disparity.
+    n_theta : int
+        Radial lines searched, evenly spaced in theta.
+    h_step : float
+        Sample spacing along the radial lines, pixels.
+    h_min : float
+        Smallest image radius searched in cam1, pixels.
+    rim_margin : float
+        Radii within this of the rim are not searched, pixels.
+    patch_radius : float or None
+        Robust matcher: half-length of the radial profile compared, pixels;
+        None: r_m / 8.
+    patch_lines : int
+        Robust matcher: neighbouring radial lines on each side in the patch.
+    profile_step : float or None
+        Robust matcher: spacing of the profile's samples, pixels; None:
+        patch_radius / 8.
+    min_score : float
+        Robust matcher: smallest normalised cross-correlation accepted.
+    uniqueness : float
+        Robust matcher: accept when (1 - NCC_best) <= uniqueness *
+        (1 - NCC_second); 1 disables the test.
+    left_right : bool
+        Robust matcher: require the left-right consistency check.
+    candidate_fraction : float
+        Robust matcher: edges count as candidates down to this fraction of the
+        significance threshold.
+    tangential_blur : float
+        Robust matcher: Gaussian blur across the radial lines, radians, to
+        bring both units to one angular resolution; 0 disables it. 0.03
+        (was 0.06) cut outliers on rendered 512 px frames of the default
+        scene from 11.4 % to 4.9 % (tests/omniflow/test_matching.py).
+    consistency : float
+        Robust matcher: disparity consistency vote, pixels: keep a match only
+        if enough neighbours (+-0.05 rad, +-r_m/16) have a disparity within
+        this much of its own; 0 disables the vote.
+    consistency_support : int
+        Robust matcher: how many agreeing neighbours the vote needs (and at
+        least half of them).
+    self_similarity : float
+        Robust matcher: periodic-alias test (omniflow.matching.match_radial):
+        accept a match only when (1 - NCC_best) <= self_similarity
+        (1 - NCC_self), NCC_self the best NCC of the point's profile with
+        another edge of its own line within the window's width; 1 disables
+        (the default: 0.5 cut the wrong matches on periodic closed-form walls
+        15-30 times but changed nothing on the rendered default scene and
+        costs ~45 % of the matching time; docs/measurements.md).
+    gradients : {"first", "average"}
+        Spatial gradient of frame t (paper) or the mean of frames t and t + 1.
+    temporal : {"difference", "dct3d"}
+        f_t as the frame difference of the fitted images (paper, section 5.3)
+        or from a 3-D DCT over temporal_frames frames (the paper's suggested
+        refinement), evaluated at t + 1/2.
+    temporal_frames : int
+        Frames in the 3-D DCT window (>= 3), centred on t + 1/2 where possible.
+    solver : {"direct", "pooled"}
+        Eq. (16) per point (paper) or eq. (9) and (15) of neighbouring
+        matches pooled in least squares.
+    pool_radius : float or None
+        Pooled solver: neighbourhood radius, pixels; None: r_m / 8 (16 px at
+        256 x 256, 32 px at 512 x 512).
+    pool_k : int
+        Pooled solver: most neighbours, the point itself included. With
+        r_m / 8, 48 neighbours measured better than r_m / 16 and 24 on
+        closed-form frames (median EPE with the true matches 0.0050 ->
+        0.0030 px striped, 0.0142 -> 0.0112 room) and on rendered ones
+        (default scene, 16 spp, true matches: 0.224 -> 0.183 px cam1,
+        0.398 -> 0.321 px cam2 at 512 px; 0.321 -> 0.187, 0.533 -> 0.327 at
+        128 px 4 spp): the render noise averages out over more equations.
+    pool_range_tol : float or None
+        Pooled solver: neighbours whose range differs by more than this
+        fraction (another surface) are left out; None keeps them.
+    pool_flow_tol : float or None
+        Pooled solver: solve twice, and in the second pass leave out the
+        neighbours whose first-pass flow differs from the point's by more
+        than this, cam1 pixels per frame (a mover keeps its own motion where
+        its range does not set it apart from the background); None: one pass.
+    pool_model : {"linear", "constant"}
+        Pooled solver: local flow model (omniflow.flow.pooled_solution),
+        varying linearly with theta or constant.
+    min_conditioning : float
+        Drop points whose confidence is below this (0 keeps all).
+    sampling : {"cubic", "linear", "exact"}
+        How gradients and the fitted images are read at the matched points:
+        cv2.remap of the pixel grids, or the series evaluated exactly.
+    iterations : int
+        Gauss-Newton (Lucas-Kanade) refinements of the solution: frame
+        t + 1's fitted image is read at the displaced points (h_1 + dh_1,
+        theta + dtheta) in cam1 and (h_2 + (h_2/h_1) dh_1, theta + dtheta)
+        in cam2 (eq. 14; on a grid at twice the resolution, Lanczos
+        interpolation), the gradients are frame t + 1's at the displaced
+        point (averaged with frame t's at the point for
+        gradients="average"), and eq. (9) and (15) are solved again (same
+        solver) for the increment. 0 is the paper's single first-order step
+        of eq. (8); the paper does not iterate. Measured: helps on exact
+        closed-form frames with ~0.7 px of motion (0.028 -> 0.013 px median
+        EPE, tests/omniflow/test_flow.py), hurts on rendered frames (default scene,
+        true matches, 512 px 16 spp, 24 neighbours: 0.224 -> 0.283 px cam1;
+        scenes/turn_in_place, default pooling: 0.125 -> 0.187 px) where the
+        error is render noise, not the linearisation; it
+        helps again where the motion is several pixels (scenes/large_motion,
+        512 px: 2.77 -> 1.50 px cam1 with 3 iterations, still far off). Off
+        by default.
+    rim_fill : {"reflect", "none"}
+        Before the DCT fit, replace the pixels beyond the mirror's rim by the
+        image reflected radially about the rim ("reflect"), or keep them
+        ("none", the paper). The step at the rim otherwise rings through the
+        truncated series (Gibbs) some 20 px into the image.
+    """
+
+    band: float = 0.5
+    match_band: float | None = None
+    flow_band: float | None = 0.5
+    flow_band_rule: str = "gain"
+    flow_band_tolerance: float = 1.35
+    flow_band_gain: float = 0.99
+    noise_sigma: float | None = None
+    eiv: str = "residual"
+    match_method: str = "robust"
+    threshold_percentile: float = 80.0
+    min_gradient: float = 1e-4
+    r_min: float | None = None
+    r_max: float = 10.0
+    n_theta: int = 360
+    h_step: float = 1.0
+    h_min: float = 16.0
+    rim_margin: float = 4.0
+    patch_radius: float | None = None
+    patch_lines: int = 0
+    profile_step: float | None = None
+    min_score: float = 0.95
+    uniqueness: float = 0.5
+    left_right: bool = True
+    candidate_fraction: float = 0.5
+    tangential_blur: float = 0.03
+    consistency: float = 1.0
+    consistency_support: int = 2
+    self_similarity: float = 1.0
+    gradients: str = "average"
+    temporal: str = "difference"
+    temporal_frames: int = 3
+    solver: str = "pooled"
+    pool_radius: float | None = None
+    pool_k: int = 48
+    pool_range_tol: float | None = 0.1
+    pool_model: str = "linear"
+    pool_flow_tol: float | None = None
+    min_conditioning: float = 0.0
+    sampling: str = "cubic"
+    iterations: int = 0
+    rim_fill: str = "reflect"
+
+    def __post_init__(self) -> None:
+        checks = {
+            "match_method": (self.match_method, MATCH_METHODS),
+            "gradients": (self.gradients, GRADIENTS),
+            "temporal": (self.temporal, TEMPORALS),
+            "solver": (self.solver, SOLVERS),
+            "sampling": (self.sampling, SAMPLINGS),
+            "rim_fill": (self.rim_fill, RIM_FILLS),
+            "pool_model": (self.pool_model, POOL_MODELS),
+            "eiv": (self.eiv, EIVS),
+            "flow_band_rule": (self.flow_band_rule, BAND_RULES),
+        }
+        for name, (val, allowed) in checks.items():
+            if val not in allowed:
+                raise ValueError(f"OmniFlowConfig.{name} = {val!r}: expected one of {allowed}")
+        for name in ("band", "flow_band", "match_band"):
+            val = getattr(self, name)
+            if val is not None and not (0 < val <= 1):
+                raise ValueError(f"OmniFlowConfig.{name} = {val!r}: expected a fraction in (0, 1]")
+        if not self.flow_band_tolerance >= 1:
+            raise ValueError(
+                f"OmniFlowConfig.flow_band_tolerance = {self.flow_band_tolerance!r}: expected >= 1"
+            )
+        if not (0 < self.flow_band_gain < 1):
+            raise ValueError(
+                f"OmniFlowConfig.flow_band_gain = {self.flow_band_gain!r}: "
+                "expected a fraction in (0, 1)"
+            )
+        if self.noise_sigma is not None and not self.noise_sigma >= 0:
+            raise ValueError(
+                f"OmniFlowConfig.noise_sigma = {self.noise_sigma!r}: expected >= 0 or None"
+            )
+        if self.temporal_frames < 3:
+            raise ValueError("OmniFlowConfig.temporal_frames must be >= 3")
+        if not (isinstance(self.iterations, int) and self.iterations >= 0):
+            raise ValueError(
+                f"OmniFlowConfig.iterations = {self.iterations!r}: expected an integer >= 0"
+            )
+        if self.consistency < 0 or self.consistency_support < 1:
+            raise ValueError(
+                f"OmniFlowConfig.consistency = {self.consistency!r}, consistency_support = "
+                f"{self.consistency_support!r}: expected >= 0 and >= 1"
+            )
+        if self.pool_k < 1 or (self.pool_radius is not None and self.pool_radius <= 0):
+            raise ValueError("OmniFlowConfig.pool_k must be >= 1 and pool_radius > 0")
+
+    @classmethod
+    def paper(cls, **overrides) -> OmniFlowConfig:
+        """The paper's choices, as written.
+
+        Gradient-similarity matching (section 5.2), P = X/4 for the matching
+        and the flow step alike, the image as it is (no rim fill), the series
+        and its analytic derivatives evaluated exactly at the points (eq.
+        18-20), first-frame gradients, the frame difference of the fitted
+        images for f_t and the direct solution of eq. (16) at each point;
+        no noise correction. tests/omniflow/test_flow.py checks that this reproduces
+        eq. (16), (19) and (20) computed independently to rounding.
+
+        Why it fails under noise: eq. (9) and (15) at one point are nearly
+        dependent, because both units see nearly the same patch at the same
+        scale (f2_h ~ f1_h, f2_theta ~ f1_theta), so D of eq. (16) is
+        ~ f_h f_theta (1 - h_2/h_1) and the radial flow rests on the small
+        difference f2_t - f1_t divided by it. Noise in the temporal
+        derivatives and in the gradients is divided by that small D: the
+        2x2 solve is ill-conditioned, and its error grows as its conditioning
+        falls (tests/omniflow/test_flow.py measures this on noisy closed-form frames).
+        """
+        base = dict(
+            band=0.25,
+            flow_band=0.25,
+            eiv="none",
+            match_method="paper",
+            gradients="first",
+            temporal="difference",
+            solver="direct",
+            rim_fill="none",
+            sampling="exact",
+        )
+        base.update(overrides)
+        return cls(**base)
+
+    def replace(self, **changes) -> OmniFlowConfig:
+        """A copy with some fields changed."""
+        return replace(self, **changes)
+
+    def to_dict(self) -> dict:
+        return {f.name: getattr(self, f.name) for f in fields(self)}

@@ -1,0 +1,244 @@
+"""Fitted images on pixel grids and polar tables, and sampling them.
+
+A polar table has one row per radial line theta_k and one column per image
+radius; both units' tables are made with one cv2.remap each
+(:func:`polar_table`), their geometry is :class:`TableGeometry`. Also the
+small primitives both matching rules share (local maxima along a line, the
+parabola's vertex).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import lru_cache
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from omniflow.dct import DCTFit
+from omniflow.rig import Unit
+
+__all__ = [
+    "PolarGrids",
+    "TableGeometry",
+    "blur_lines",
+    "local_maxima",
+    "parabola_offset",
+    "polar_gradient_fast",
+    "polar_grids",
+    "polar_maps",
+    "polar_sample",
+    "polar_table",
+    "radial_derivative",
+    "sample_xy",
+]
+
+_REMAP_CHUNK = 32000  # cv2.remap needs both map dimensions below SHRT_MAX
+
+
+@dataclass(frozen=True)
+class PolarGrids:
+    """Per-pixel grids of one fitted image that matching samples from.
+
+    ``f`` is the fitted image (eq. 18), ``f_h`` and ``f_theta`` the polar
+    gradient (eq. 19-20) on every pixel centre, all (H, W) float32. The
+    paper's rule needs all three; the robust matcher reads only ``f``.
+    """
+
+    f: NDArray
+    f_h: NDArray
+    f_theta: NDArray | None = None
+    extra: dict = field(default_factory=dict)
+
+
+def polar_grids(fit: DCTFit, unit: Unit, *, gradient: bool = True) -> PolarGrids:
+    """Evaluate a fit (and its polar gradient) on the pixel grid (fast transform path)."""
+    f = np.asarray(fit.grid(), dtype=np.float32)
+    if not gradient:
+        return PolarGrids(f=f, f_h=None)
+    f_h, f_th = polar_gradient_fast(fit, unit)
+    return PolarGrids(f=f, f_h=f_h, f_theta=f_th)
+
+
+@lru_cache(maxsize=8)
+def _polar_basis(unit: Unit) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+    """Per-pixel (cos theta_i, sin theta_i, x - x_c, y - y_c), float32 (H, W); 0 at h_i = 0."""
+    x, y = unit.pixel_centres()
+    dx, dy = x - unit.x_c, y - unit.y_c
+    h_i = np.hypot(dx, dy)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        c = np.where(h_i > 0, dx / h_i, 0.0)
+        s = np.where(h_i > 0, dy / h_i, 0.0)
+    out = tuple(np.ascontiguousarray(a, dtype=np.float32) for a in (c, s, dx, dy))
+    for a in out:
+        a.setflags(write=False)
+    return out
+
+
+def polar_gradient_fast(fit: DCTFit, unit: Unit) -> tuple[NDArray, NDArray]:
+    """(df/dh_i, df/dtheta_i) on the pixel grid, float32, eq. (19)-(20).
+
+    The same as :func:`omniflow.edges.polar_gradient_grid` (with 0 instead of
+    NaN for f_h at h_i = 0), using cached per-pixel cos/sin grids.
+    """
+    if (fit.width, fit.height) != (unit.width, unit.height):
+        raise ValueError(
+            f"fit is {fit.width}x{fit.height} but unit {unit.name} is "
+            f"{unit.width}x{unit.height}: expected the same image size"
+        )
+    f_x, f_y = fit.grid_gradient()
+    f_x = np.asarray(f_x, dtype=np.float32)
+    f_y = np.asarray(f_y, dtype=np.float32)
+    c, s, dx, dy = _polar_basis(unit)
+    f_h = c * f_x
+    f_h += s * f_y  # eq. (19)
+    f_th = dx * f_y
+    f_th -= dy * f_x  # eq. (20)
+    return f_h, f_th
+
+
+def polar_sample(
+    image: NDArray, unit: Unit, h_i: NDArray, theta: NDArray, *, interpolation: str = "linear"
+) -> NDArray:
+    """Sample a per-pixel grid at polar image points (h_i, theta), eq. (6)-(7).
+
+    Parameters
+    ----------
+    image : ndarray, shape (H, W)
+        Grid on pixel centres (x = j + 0.5, y = i + 0.5).
+    unit : Unit
+        Supplies (x_c, y_c).
+    h_i, theta : array_like
+        Polar points; broadcast together.
+    interpolation : {"linear", "cubic"}
+        OpenCV interpolation; points outside the image read 0.
+
+    Returns
+    -------
+    ndarray, the broadcast shape, float32
+    """
+    h_i, theta = np.broadcast_arrays(
+        np.asarray(h_i, dtype=np.float64), np.asarray(theta, dtype=np.float64)
+    )
+    x, y = unit.pixel_of_polar(h_i, theta)
+    return sample_xy(image, x, y, interpolation=interpolation)
+
+
+def sample_xy(image: NDArray, x: NDArray, y: NDArray, *, interpolation: str = "linear") -> NDArray:
+    """Sample a grid on pixel centres at continuous (x, y) with cv2.remap; float32."""
+    flag = {"linear": cv2.INTER_LINEAR, "cubic": cv2.INTER_CUBIC}[interpolation]
+    x = np.asarray(x)
+    shape = x.shape
+    src = np.ascontiguousarray(image, dtype=np.float32)
+    mx = (np.asarray(x, dtype=np.float64) - 0.5).astype(np.float32).reshape(-1)
+    my = (np.asarray(y, dtype=np.float64) - 0.5).astype(np.float32).reshape(-1)
+    n = mx.size
+    if len(shape) == 2 and shape[0] < _REMAP_CHUNK and shape[1] < _REMAP_CHUNK:
+        return cv2.remap(
+            src,
+            mx.reshape(shape),
+            my.reshape(shape),
+            flag,
+            borderMode=cv2.BORDER_CONSTANT,
+            borderValue=0,
+        )
+    cols = min(max(n, 1), 4096)
+    rows = -(-n // cols)
+    pad = rows * cols - n
+    if pad:
+        mx = np.concatenate([mx, np.zeros(pad, np.float32)])
+        my = np.concatenate([my, np.zeros(pad, np.float32)])
+    out = cv2.remap(
+        src,
+        mx.reshape(rows, cols),
+        my.reshape(rows, cols),
+        flag,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=0,
+    )
+    return out.reshape(-1)[:n].reshape(shape)
+
+
+# ---------------------------------------------------------------------------
+# polar tables
+
+
+@lru_cache(maxsize=16)
+def polar_maps(unit: Unit, n_theta: int, h0: float, step: float, n: int) -> tuple[NDArray, NDArray]:
+    """cv2.remap maps (float32, shape (n_theta, n)) of the polar grid of one unit.
+
+    Row k is theta_k = -pi + 2 pi (k + 1/2) / n_theta, column j is
+    h_i = h0 + j step; map values are pixel indices (x - 1/2, y - 1/2).
+    """
+    theta = -np.pi + (2.0 * np.pi / n_theta) * (np.arange(n_theta) + 0.5)
+    h_i = h0 + step * np.arange(n)
+    mx = (unit.x_c - 0.5) + np.cos(theta)[:, None] * h_i[None, :]
+    my = (unit.y_c - 0.5) + np.sin(theta)[:, None] * h_i[None, :]
+    mx, my = mx.astype(np.float32), my.astype(np.float32)
+    mx.setflags(write=False)
+    my.setflags(write=False)
+    return mx, my
+
+
+def polar_table(image: NDArray, maps: tuple[NDArray, NDArray]) -> NDArray:
+    return cv2.remap(
+        np.ascontiguousarray(image, dtype=np.float32),
+        maps[0],
+        maps[1],
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=0,
+    )
+
+
+def blur_lines(table: NDArray, sigma: float) -> NDArray:
+    """Gaussian blur across the radial lines (theta, wrapping around), sigma in lines."""
+    half = int(np.ceil(3 * sigma))
+    if half < 1:
+        return table
+    padded = np.concatenate([table[-half:], table, table[:half]], axis=0)
+    out = cv2.GaussianBlur(
+        padded, (1, 2 * half + 1), sigmaX=0, sigmaY=sigma, borderType=cv2.BORDER_REPLICATE
+    )
+    return np.ascontiguousarray(out[half:-half])
+
+
+def radial_derivative(table: NDArray, step: float) -> NDArray:
+    """Central difference along the columns (radius) of a polar table."""
+    out = np.empty_like(table)
+    np.subtract(table[:, 2:], table[:, :-2], out=out[:, 1:-1])
+    out[:, 1:-1] *= 0.5 / step
+    out[:, 0] = out[:, 1]
+    out[:, -1] = out[:, -2]
+    return out
+
+
+def local_maxima(a: NDArray) -> NDArray:
+    """Local maxima along axis 1 (a plateau counts once, at its right end)."""
+    m = np.zeros(a.shape, dtype=bool)
+    m[:, 1:-1] = (a[:, 1:-1] >= a[:, :-2]) & (a[:, 1:-1] > a[:, 2:])
+    return m
+
+
+def parabola_offset(s_m: NDArray, s_0: NDArray, s_p: NDArray) -> NDArray:
+    """Vertex offset in [-1, 1] of the parabola through (-1, s_m), (0, s_0), (1, s_p)."""
+    den = s_m - 2.0 * s_0 + s_p
+    with np.errstate(divide="ignore", invalid="ignore"):
+        off = np.where(np.abs(den) > 1e-12, 0.5 * (s_m - s_p) / den, 0.0)
+    return np.clip(off, -1.0, 1.0)
+
+
+@dataclass(frozen=True)
+class TableGeometry:
+    """Geometry of the two polar tables (columns include ``pad`` on each side)."""
+
+    maps1: tuple
+    maps2: tuple
+    pad: int
+    n_h: int
+    h0: float
+    h_step: float
+    scale2: float
+    n_theta: int
+    win: tuple[int, int]  # column offsets j2 - j1 that can hold the match

@@ -1,0 +1,123 @@
+"""What the stereo omni flow step returns: :class:`OmniFlowResult`.
+
+One row per matched point, the columns and their units in :data:`COLUMNS`;
+with no match, every column has length 0 and :class:`NoMatchesWarning` says so.
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from omniflow.config import OmniFlowConfig
+
+__all__ = ["COLUMNS", "NoMatchesWarning", "OmniFlowResult", "no_points"]
+
+
+#: Output columns and their units, in CSV order.
+COLUMNS: dict[str, str] = {
+    "x": "px, cam1 column coordinate (pixel centre j + 0.5)",
+    "y": "px, cam1 row coordinate",
+    "theta": "rad, azimuth (theta_1 = theta_2)",
+    "h1": "px, cam1 image radius",
+    "h2": "px, matched cam2 image radius",
+    "r": "m, range from the axis (eq. 5)",
+    "h": "m, height above cam2's tip (eq. 4)",
+    "dh1_dt": "px/frame, cam1 radial flow",
+    "dtheta_dt": "rad/frame, angular flow",
+    "dr_dt": "m/frame, radial velocity -(d + r) dh1_dt / h1",
+    "dx": "px/frame, cam1 flow along x",
+    "dy": "px/frame, cam1 flow along y",
+    "x2": "px, cam2 column coordinate",
+    "y2": "px, cam2 row coordinate",
+    "dh2_dt": "px/frame, cam2 radial flow (h2/h1) dh1_dt (eq. 14)",
+    "dx2": "px/frame, cam2 flow along x",
+    "dy2": "px/frame, cam2 flow along y",
+    "score": "1, stereo match score (NCC or gradient similarity)",
+    "confidence": "1, lambda_min/lambda_max of the flow system's normal matrix",
+    "D": "grey^2/(px rad), determinant of eq. (16)",
+    "f1_h": "grey/px, df1/dh_1 used in eq. (9)",
+    "f1_theta": "grey/rad, df1/dtheta used in eq. (9)",
+    "f1_t": "grey/frame, df1/dt used in eq. (9)",
+    "f2_h": "grey/px, df2/dh_2 used in eq. (15)",
+    "f2_theta": "grey/rad, df2/dtheta used in eq. (15)",
+    "f2_t": "grey/frame, df2/dt used in eq. (15)",
+}
+
+
+@dataclass
+class OmniFlowResult:
+    """Per-point results of :func:`estimate`.
+
+    Attributes
+    ----------
+    columns : dict[str, ndarray]
+        Equal-length 1-D arrays, keys and units in :data:`COLUMNS`.
+    timings : dict[str, float]
+        Seconds per stage: ``fit``, ``grids``, ``match``, ``sample``,
+        ``solve``, ``total``.
+    config : OmniFlowConfig
+    n_significant : int
+        Significant points of image 1 that the matcher tried.
+    diagnostics : dict[str, float]
+        ``flow_band`` (the flow step's DCT band, chosen or given),
+        ``noise_sigma1``, ``noise_sigma2`` (the image noise used per unit,
+        grey levels; 0 when not needed).
+    """
+
+    columns: dict[str, NDArray]
+    timings: dict[str, float] = field(default_factory=dict)
+    config: OmniFlowConfig | None = None
+    n_significant: int = 0
+    diagnostics: dict[str, float] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return int(next(iter(self.columns.values())).size) if self.columns else 0
+
+    def __getitem__(self, key: str) -> NDArray:
+        return self.columns[key]
+
+    def to_csv(self, path: str | Path) -> Path:
+        """Write the columns to CSV atomically, with a '#' header line of units."""
+        from omniflow.imageio import atomic_output
+
+        names = list(self.columns)
+        data = (
+            np.column_stack([np.asarray(self.columns[k], dtype=float) for k in names])
+            if names
+            else np.zeros((0, 0))
+        )
+        units = "; ".join(f"{k}: {COLUMNS.get(k, '')}" for k in names)
+        path = Path(path)
+        with atomic_output(path) as tmp, open(tmp, "w") as fh:
+            fh.write(f"# omniflow per-point results; {units}\n")
+            fh.write(",".join(names) + "\n")
+            np.savetxt(fh, data, delimiter=",", fmt="%.9g")
+        return path
+
+
+class NoMatchesWarning(UserWarning):
+    """:func:`estimate` found no stereo match, so its result has no points.
+
+    Zero matches is an answer, not an error: a dark or lens-capped frame, a
+    constant image, or a rig whose units share no range in the searched window
+    leave nothing to measure. The result then has every column, each of length 0.
+    """
+
+
+def no_points(timings: dict, t_start: float, config, n_sig: int) -> OmniFlowResult:
+    """The empty result (every column of :data:`COLUMNS`, length 0) with a warning."""
+    warnings.warn(
+        f"no stereo matches ({n_sig} significant points in cam1 tried): the result is empty "
+        "(is the image dark, constant, or outside the units' common view?)",
+        NoMatchesWarning,
+        stacklevel=3,
+    )
+    timings.update(sample=0.0, solve=0.0, total=time.perf_counter() - t_start)
+    columns = {name: np.zeros(0) for name in COLUMNS}
+    return OmniFlowResult(columns=columns, timings=timings, config=config, n_significant=n_sig)
