@@ -33,24 +33,22 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import ArrayLike
 
+from omniflow.config import OmniFlowConfig
 from omniflow.dct import DCTFit, fit_dct
-from omniflow.matching import PolarGrids, match_radial
-from omniflow.noise import BAND_CANDIDATES
-from omniflow.pipeline import (
-    OmniFlowConfig,
-    OmniFlowResult,
-    _flow_band,
-    _Frame,
-    _gradient_noise,
-    _grey,
-    _match_frame,
-    _no_points,
-    _noise_sigma,
-    _truncate,
-    estimate,
-    flow_at_matches,
-)
+from omniflow.pipeline import estimate, matching_grids, stereo_matches
+from omniflow.result import OmniFlowResult, no_points
 from omniflow.rig import Rig, Unit
+from omniflow.series import (
+    Frame,
+    choose_flow_band,
+    fit_band,
+    grey_input,
+    needs_noise_sigma,
+    noise_variance,
+    truncate,
+    unit_noise_sigma,
+)
+from omniflow.solve import flow_at_matches
 
 __all__ = ["OmniFlowStream", "StereoFrame"]
 
@@ -60,14 +58,13 @@ class _UnitFrame:
 
     def __init__(self, fit: DCTFit, unit: Unit, sigma: float):
         self.fit, self.unit, self.sigma = fit, unit, sigma
-        self._frames: dict[float, _Frame] = {}
-        self.match_frame: _Frame | None = None
+        self._frames: dict[float, Frame] = {}
 
-    def frame(self, band: float) -> _Frame:
+    def frame(self, band: float) -> Frame:
         """The fit truncated to ``band``, as a lazy-grid frame made once per band."""
         fr = self._frames.get(band)
         if fr is None:
-            fr = self._frames[band] = _Frame(_truncate(self.fit, band), self.unit)
+            fr = self._frames[band] = Frame(truncate(self.fit, band), self.unit)
         return fr
 
 
@@ -83,17 +80,14 @@ class StereoFrame:
     def __init__(self, frame1: ArrayLike, frame2: ArrayLike, rig: Rig, config: OmniFlowConfig,
                  index: int):  # fmt: skip
         self.index = index
-        need_sigma = config.flow_band is None or (
-            config.eiv == "correct" and config.solver == "pooled"
-        )
-        fit_band = max(config.band, config.flow_band or max(BAND_CANDIDATES))
+        need_sigma = needs_noise_sigma(config)
         units = []
         for what, frame, unit in (("frame1", frame1, rig.cam1), ("frame2", frame2, rig.cam2)):
-            image = _grey(frame, f"{what} of push {index}", unit, config)
-            sigma = _noise_sigma(frame, unit, config) if need_sigma else 0.0
-            units.append(_UnitFrame(fit_dct(image, band=fit_band), unit, sigma))
+            image = grey_input(frame, f"{what} of push {index}", unit, config)
+            sigma = unit_noise_sigma(frame, unit, config) if need_sigma else 0.0
+            units.append(_UnitFrame(fit_dct(image, band=fit_band(config)), unit, sigma))
         self.units: tuple[_UnitFrame, _UnitFrame] = (units[0], units[1])
-        self.flow_band = _flow_band(
+        self.flow_band = choose_flow_band(
             [{"a": u.fit} for u in self.units], [u.sigma for u in self.units], config
         )
 
@@ -161,7 +155,7 @@ class OmniFlowStream:
     def _push_window(self, frame1, frame2, index: int) -> OmniFlowResult | None:
         for what, frame, unit in (("frame1", frame1, self.rig.cam1),
                                   ("frame2", frame2, self.rig.cam2)):  # fmt: skip
-            _grey(frame, f"{what} of push {index}", unit, self.config)  # shape check only
+            grey_input(frame, f"{what} of push {index}", unit, self.config)  # shape check only
         self._window.append((np.array(frame1, copy=True), np.array(frame2, copy=True)))
         self.frames_pushed += 1
         if len(self._window) < self._window.maxlen:
@@ -183,14 +177,14 @@ class OmniFlowStream:
         diagnostics = {"flow_band": flow_band, "noise_sigma1": prev.units[0].sigma,
                        "noise_sigma2": prev.units[1].sigma}  # fmt: skip
         t_g = time.perf_counter()
-        grids = self._grids(prev)
+        grids = matching_grids(*(u.frame(config.band) for u in prev.units), config)
         timings["grids"] = time.perf_counter() - t_g
         t_m = time.perf_counter()
-        matches = _match(grids, self.rig, config)  # a frame starts one pair only: matched once
+        matches = stereo_matches(grids, self.rig, config)  # a frame starts one pair only
         timings["match"] = time.perf_counter() - t_m
         n_sig = matches.n_significant
         if len(matches.theta) == 0:
-            return _no_points(timings, t_start, config, n_sig)
+            return no_points(timings, t_start, config, n_sig)
         t_s = time.perf_counter()
         result = flow_at_matches(matches, self.rig, cams[0], cams[1], config)
         timings["sample"] = result.pop("_t_sample")
@@ -198,20 +192,6 @@ class OmniFlowStream:
         timings["total"] = time.perf_counter() - t_start
         return OmniFlowResult(columns=result, timings=timings, config=config,
                               n_significant=n_sig, diagnostics=diagnostics)  # fmt: skip
-
-    def _grids(self, frame: StereoFrame) -> tuple[PolarGrids, PolarGrids]:
-        """The grids the matcher reads from a frame (as :func:`estimate` builds them)."""
-        config = self.config
-        out = []
-        for u in frame.units:
-            a = u.frame(config.band)
-            if config.match_method == "paper":  # the polar edge finder's f_h, f_theta
-                out.append(PolarGrids(f=a.f, f_h=a.grad[0], f_theta=a.grad[1]))
-            else:
-                if u.match_frame is None:
-                    u.match_frame = _match_frame(a, config)
-                out.append(PolarGrids(f=u.match_frame.f, f_h=None))
-        return out[0], out[1]
 
 
 def _unit_pair(a: _UnitFrame, b: _UnitFrame, config: OmniFlowConfig, flow_band: float) -> dict:
@@ -226,54 +206,16 @@ def _unit_pair(a: _UnitFrame, b: _UnitFrame, config: OmniFlowConfig, flow_band: 
     if config.gradients == "first":
         g = fa
     else:
-        g = _Frame(replace(fa.fit, coeffs=0.5 * (fa.fit.coeffs + fb.fit.coeffs)), a.unit)
+        g = Frame(replace(fa.fit, coeffs=0.5 * (fa.fit.coeffs + fb.fit.coeffs)), a.unit)
         if config.sampling != "exact":  # the exact path evaluates g's series itself
             g._grad_xy = tuple(
                 np.multiply(np.add(p, q), np.float32(0.5))
                 for p, q in zip(fa.grad_xy, fb.grad_xy, strict=True)
             )
-    ft = _Frame(replace(fa.fit, coeffs=fb.fit.coeffs - fa.fit.coeffs), a.unit)
+    ft = Frame(replace(fa.fit, coeffs=fb.fit.coeffs - fa.fit.coeffs), a.unit)
     cam = {"a": a.frame(config.band), "b": fb, "g": g, "t": ft}
-    if config.eiv == "correct":
-        cam["noise_var"] = _gradient_noise(a.sigma, g.fit, config)
-    elif config.eiv == "residual":  # per unit of the fitted value's noise variance
-        fit = g.fit
-        cam["noise_var"] = _gradient_noise(1.0, fit, config) / (
-            fit.P * fit.Q / (fit.width * fit.height)
-        )
-    else:
-        cam["noise_var"] = 0.0
+    cam["noise_var"] = noise_variance(a.sigma, g.fit, config)
     return cam
-
-
-def _match(grids: tuple[PolarGrids, PolarGrids], rig: Rig, config: OmniFlowConfig):
-    """Stereo matches of one frame with the configured matcher (as :func:`estimate`)."""
-    return match_radial(
-        None,
-        None,
-        rig,
-        method=config.match_method,
-        threshold_percentile=config.threshold_percentile,
-        min_gradient=config.min_gradient,
-        r_min=config.r_min,
-        r_max=config.r_max,
-        n_theta=config.n_theta,
-        h_step=config.h_step,
-        h_min=config.h_min,
-        rim_margin=config.rim_margin,
-        patch_radius=config.patch_radius,
-        patch_lines=config.patch_lines,
-        profile_step=config.profile_step,
-        min_score=config.min_score,
-        uniqueness=config.uniqueness,
-        left_right=config.left_right,
-        candidate_fraction=config.candidate_fraction,
-        tangential_blur=config.tangential_blur,
-        consistency=config.consistency,
-        consistency_support=config.consistency_support,
-        self_similarity=config.self_similarity,
-        grids=grids,
-    )
 
 
 def stream_frames(rig: Rig, pairs, config: OmniFlowConfig | None = None):
