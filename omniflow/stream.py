@@ -137,8 +137,9 @@ class OmniFlowStream:
         OmniFlowResult or None
             None for the first frame after construction or :meth:`reset` (and,
             with ``temporal="dct3d"``, until ``temporal_frames`` frames are in).
-            ``timings["fit"]`` is the new frame's fit; the other stages as in
-            :func:`~omniflow.pipeline.estimate`.
+            ``timings["fit"]`` is the new frame's fit; ``grids`` includes the
+            gradient mean of the pair (made here, not while sampling); the
+            other stages as in :func:`~omniflow.pipeline.estimate`.
         """
         index = self.frames_pushed
         if self.config.temporal == "dct3d":
@@ -171,12 +172,12 @@ class OmniFlowStream:
         config = self.config
         timings: dict[str, float] = {"fit": t_fit}
         flow_band = prev.flow_band
+        t_g = time.perf_counter()
         cams = [
             _unit_pair(a, b, config, flow_band) for a, b in zip(prev.units, cur.units, strict=True)
         ]
         diagnostics = {"flow_band": flow_band, "noise_sigma1": prev.units[0].sigma,
                        "noise_sigma2": prev.units[1].sigma}  # fmt: skip
-        t_g = time.perf_counter()
         grids = matching_grids(*(u.frame(config.band) for u in prev.units), config)
         timings["grids"] = time.perf_counter() - t_g
         t_m = time.perf_counter()
