@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import collections
 import time
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import replace
 
 import numpy as np
@@ -90,6 +91,7 @@ class StereoFrame:
         self.flow_band = choose_flow_band(
             [{"a": u.fit} for u in self.units], [u.sigma for u in self.units], config
         )
+        self.matching: Future | None = None  # the background matching, if any
 
 
 class OmniFlowStream:
@@ -103,6 +105,13 @@ class OmniFlowStream:
         Defaults to ``OmniFlowConfig()``. Any configuration works;
         ``temporal="dct3d"`` runs :func:`~omniflow.pipeline.estimate` on a
         window of the last ``temporal_frames`` frames (no per-frame reuse).
+    background : bool
+        Match each new frame in a background thread as soon as it is pushed
+        (its matches are needed only by the next push), while the caller
+        goes on: :meth:`push` then costs the fit, the sampling and the solve,
+        and the matching of a frame overlaps the wait for the next one and
+        that frame's fit. The results are the same. Call :meth:`close` (or
+        use the stream as a context manager) to end the thread.
 
     Examples
     --------
@@ -111,18 +120,35 @@ class OmniFlowStream:
     ...     result = stream.push(cam1, cam2)              # None for the first frame
     """
 
-    def __init__(self, rig: Rig, config: OmniFlowConfig | None = None):
+    def __init__(self, rig: Rig, config: OmniFlowConfig | None = None, *, background: bool = False):
         self.rig = rig
         self.config = OmniFlowConfig() if config is None else config
         self._prev: StereoFrame | None = None
         window = self.config.temporal_frames if self.config.temporal == "dct3d" else 0
         self._window: collections.deque = collections.deque(maxlen=max(window, 1))
         self.frames_pushed = 0
+        dct3d = self.config.temporal == "dct3d"
+        self._pool = ThreadPoolExecutor(1, "omniflow-match") if background and not dct3d else None
 
     def reset(self) -> None:
         """Forget the previous frame(s): the next push starts a new sequence."""
+        if self._prev is not None and self._prev.matching is not None:
+            self._prev.matching.cancel()
         self._prev = None
         self._window.clear()
+
+    def close(self) -> None:
+        """End the background thread (if any); the stream can still be used without it."""
+        self.reset()
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None
+
+    def __enter__(self) -> OmniFlowStream:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
     def push(self, frame1: ArrayLike, frame2: ArrayLike) -> OmniFlowResult | None:
         """Add the next stereo frame; the flow from the previous frame to this one.
@@ -150,8 +176,12 @@ class OmniFlowStream:
         self.frames_pushed += 1
         prev, self._prev = self._prev, cur
         if prev is None:
-            return None
-        return self._pair(prev, cur, t_start, t_fit)
+            result = None
+        else:
+            result = self._pair(prev, cur, t_start, t_fit)
+        if self._pool is not None:  # cur's matches, for the next push, while the caller goes on
+            cur.matching = self._pool.submit(_frame_matches, cur, self.rig, self.config)
+        return result
 
     def _push_window(self, frame1, frame2, index: int) -> OmniFlowResult | None:
         for what, frame, unit in (("frame1", frame1, self.rig.cam1),
@@ -171,6 +201,17 @@ class OmniFlowStream:
               t_fit: float) -> OmniFlowResult:  # fmt: skip
         config = self.config
         timings: dict[str, float] = {"fit": t_fit}
+        t_m = time.perf_counter()
+        if prev.matching is None:  # a frame starts one pair only: matched once, here
+            matches, t_grids, t_match = _frame_matches(prev, self.rig, config)
+            timings["match"] = t_match
+        else:  # matched in the background since prev was pushed: the wait is what counts
+            matches, t_grids, t_match = prev.matching.result()
+            prev.matching = None
+            timings["match"] = time.perf_counter() - t_m
+            timings["match_background"] = t_grids + t_match
+            t_grids = 0.0
+        # prev's frames are touched here only after its matching is done (no thread shares them)
         flow_band = prev.flow_band
         t_g = time.perf_counter()
         cams = [
@@ -178,11 +219,7 @@ class OmniFlowStream:
         ]
         diagnostics = {"flow_band": flow_band, "noise_sigma1": prev.units[0].sigma,
                        "noise_sigma2": prev.units[1].sigma}  # fmt: skip
-        grids = matching_grids(*(u.frame(config.band) for u in prev.units), config)
-        timings["grids"] = time.perf_counter() - t_g
-        t_m = time.perf_counter()
-        matches = stereo_matches(grids, self.rig, config)  # a frame starts one pair only
-        timings["match"] = time.perf_counter() - t_m
+        timings["grids"] = t_grids + time.perf_counter() - t_g
         n_sig = matches.n_significant
         if len(matches.theta) == 0:
             return no_points(timings, t_start, config, n_sig)
@@ -193,6 +230,15 @@ class OmniFlowStream:
         timings["total"] = time.perf_counter() - t_start
         return OmniFlowResult(columns=result, timings=timings, config=config,
                               n_significant=n_sig, diagnostics=diagnostics)  # fmt: skip
+
+
+def _frame_matches(frame: StereoFrame, rig: Rig, config: OmniFlowConfig):
+    """(stereo matches of one frame, seconds for its grids, seconds for the matching)."""
+    t0 = time.perf_counter()
+    grids = matching_grids(*(u.frame(config.band) for u in frame.units), config)
+    t1 = time.perf_counter()
+    matches = stereo_matches(grids, rig, config)
+    return matches, t1 - t0, time.perf_counter() - t1
 
 
 def _unit_pair(a: _UnitFrame, b: _UnitFrame, config: OmniFlowConfig, flow_band: float) -> dict:

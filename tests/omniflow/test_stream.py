@@ -78,6 +78,27 @@ def test_stream_equals_estimate_pair_by_pair(name, rig128, sequence):
     assert compared == len(f1) - window + 1
 
 
+@pytest.mark.parametrize(
+    "config", [OmniFlowConfig(), OmniFlowConfig.paper()], ids=["default", "paper"]
+)
+def test_background_matching_gives_the_same_results(rig128, sequence, config):
+    """Matching in a background thread changes when the work is done, not its result."""
+    f1, f2 = sequence
+    with OmniFlowStream(rig128, config, background=True) as stream:
+        plain = OmniFlowStream(rig128, config)
+        for t in range(len(f1)):
+            result, expected = stream.push(f1[t], f2[t]), plain.push(f1[t], f2[t])
+            if t == 0:
+                assert result is None and expected is None
+                continue
+            assert "match_background" in result.timings
+            for k, v in expected.columns.items():
+                np.testing.assert_array_equal(result[k], v, err_msg=k)
+        stream.reset()  # a pending background match is dropped with its frame
+        assert stream.push(f1[0], f2[0]) is None
+    assert stream._pool is None  # closed by the with block
+
+
 def test_the_tolerance_catches_a_wrong_pairing(rig128, sequence):
     """The check above fails for a real difference: flow of pair (1, 2) against pair (0, 1)."""
     f1, f2 = sequence
