@@ -3,8 +3,9 @@
 Reads an omnisim dataset or a folder of images one stereo frame at a time,
 runs :class:`omniflow.stream.OmniFlowStream` and writes one CSV per pair into
 ``--out`` (``flow_K0_K1.csv``, the flow from frame K0 to K1, the columns of
-``omniflow``'s flow.csv) and ``stream.json`` (input, rig, config, per-pair
-points and milliseconds). Every file is written under a temporary name and
+``omniflow``'s flow.csv) and ``stream.json`` (input, rig, config, how many
+pairs are present, this run's pairs, points and time). Nothing the command
+keeps grows with the length of the sequence. Every file is written under a temporary name and
 renamed, so an interrupted run leaves only whole files; run the same command
 again and it resumes after the last pair written (``stream.json`` must hold
 the same input, rig and options, else exit 2). Exit status as ``omniflow``:
@@ -14,6 +15,7 @@ the same input, rig and options, else exit 2). Exit status as ``omniflow``:
 from __future__ import annotations
 
 import argparse
+import collections
 import re
 import sys
 import textwrap
@@ -67,7 +69,7 @@ def build_parser() -> argparse.ArgumentParser:
             outputs (in --out DIR, each written under a temporary name, then renamed):
               flow_K0_K1.csv  the flow from frame K0 to K1 (six digits each), the columns of
                               omniflow's flow.csv (see omniflow --help), time_to_contact last
-              stream.json     input, rig, config, and per pair: points, milliseconds
+              stream.json     input, rig, config; pairs present; this run's pairs, points, time
             Run the same command again to resume after the last pair written.
 
             examples:
@@ -83,6 +85,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--stop", type=int, metavar="K", help="stop before this frame (default: the last + 1)"
     )
+    parser.add_argument(
+        "--background", action="store_true",
+        help="match each frame in a second thread while the next is read (same results)",
+    )  # fmt: skip
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.add_argument("--debug", action="store_true", help="on an error, show the traceback")
     parser.add_argument(
@@ -175,11 +181,11 @@ def pair_name(k0: int, k1: int) -> str:
 # -- the run --------------------------------------------------------------------------------
 
 
-def _check_resume(out: Path, header: dict) -> dict:
-    """The pairs already written by an earlier run of the same command (name -> entry)."""
+def _check_resume(out: Path, header: dict) -> None:
+    """Refuse an --out written by the same command with another input, rig or options."""
     manifest = out / MANIFEST
     if not manifest.exists():
-        return {}
+        return
     import json
 
     try:
@@ -192,7 +198,6 @@ def _check_resume(out: Path, header: dict) -> dict:
                 f"{manifest}: written with another {key}; use another --out (or delete the "
                 "folder) to stream with these options"
             )
-    return {e["csv"]: e for e in old.get("pairs", []) if (out / e["csv"]).is_file()}
 
 
 def run(args: argparse.Namespace, config_fields: list[str], argv: list[str]) -> dict:
@@ -218,22 +223,27 @@ def run(args: argparse.Namespace, config_fields: list[str], argv: list[str]) -> 
         "config": jsonable(config),
         "columns": _column_units(),
     }
-    done = _check_resume(out, header)
+    _check_resume(out, header)
     out.mkdir(parents=True, exist_ok=True)
-    pairs: list[dict] = sorted(done.values(), key=lambda e: e["to"])
+    # this run's figures: bounded, so nothing grows with the length of the sequence
+    recent_ms: collections.deque = collections.deque(maxlen=1000)
+    run_stats = {"pairs": 0, "points": 0, "seconds": 0.0}
 
-    def write_manifest(complete: bool) -> None:
-        ms = [e["ms"] for e in pairs if e.get("ms") is not None]
-        summary = {**header, "complete": complete, "pairs": pairs,
-                   "median_ms_per_frame": float(np.median(ms)) if ms else None}  # fmt: skip
+    def write_manifest(complete: bool, present: int) -> None:
+        this_run = {**run_stats, "median_ms_per_frame_last_1000": (
+            float(np.median(recent_ms)) if recent_ms else None)}  # fmt: skip
+        summary = {**header, "complete": complete, "pairs_in_out": present,
+                   "this_run": this_run}  # fmt: skip
         atomic_write_text(out / MANIFEST, json_text(summary))
 
     # dct3d streams the causal window of its last temporal_frames frames: the first
     # pair it can give ends at start + temporal_frames - 1
     window = config.temporal_frames if config.temporal == "dct3d" else 2
     wanted = range(args.start + window - 1, stop)
-    todo = [k for k in wanted if pair_name(k - 1, k) not in done]
-    stream = OmniFlowStream(source.rig, config)
+    # the CSVs are renamed into place whole, so one that exists is complete
+    todo = [k for k in wanted if not (out / pair_name(k - 1, k)).is_file()]
+    present = len(wanted) - len(todo)
+    stream = OmniFlowStream(source.rig, config, background=args.background)
     from tqdm import tqdm
 
     bar = tqdm(total=len(todo), desc=PROG, unit="frame", disable=args.quiet, file=sys.stderr)
@@ -261,17 +271,22 @@ def run(args: argparse.Namespace, config_fields: list[str], argv: list[str]) -> 
             cols["time_to_contact"] = time_to_contact(cols["r"], cols["dr_dt"])
             name = pair_name(k - 1, k)
             result.to_csv(out / name)
-            pairs.append({"from": k - 1, "to": k, "csv": name, "points": len(result), "ms": ms})
+            present += 1
+            run_stats["pairs"] += 1
+            run_stats["points"] += len(result)
+            run_stats["seconds"] += ms / 1e3
+            recent_ms.append(ms)
             bar.update(1)
             bar.set_postfix(points=len(result), ms=f"{ms:.0f}")
             if time.perf_counter() - last_written > 5.0:  # progress on disk, cheaply
-                write_manifest(False)
+                write_manifest(False, present)
                 last_written = time.perf_counter()
     finally:
         bar.close()
-        names = {e["csv"] for e in pairs}
-        write_manifest(all(pair_name(k - 1, k) in names for k in wanted))
-    return {"pairs": pairs, "written": len(todo), "out": str(out)}
+        stream.close()
+        write_manifest(present == len(wanted), present)
+    median = float(np.median(recent_ms)) if recent_ms else None
+    return {"written": run_stats["pairs"], "present": present, "out": str(out), "median_ms": median}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -294,8 +309,8 @@ def main(argv: list[str] | None = None) -> int:
             status, message = explain_error(exc, args.out)
             print(f"{PROG}: error: {message}", file=sys.stderr)
             return status
-    ms = [e["ms"] for e in summary["pairs"] if e.get("ms") is not None]
-    med = f"; median {np.median(ms):.1f} ms per frame" if ms else ""
-    print(f"{PROG}: {summary['written']} pair(s) written, {len(summary['pairs'])} in "
-          f"{summary['out']}{med}")  # fmt: skip
+    med = summary["median_ms"]
+    med_text = f"; median {med:.1f} ms per frame" if med is not None else ""
+    print(f"{PROG}: {summary['written']} pair(s) written, {summary['present']} in "
+          f"{summary['out']}{med_text}")  # fmt: skip
     return 0

@@ -46,16 +46,16 @@ def _frames(folder):
     return read("cam1"), read("cam2")
 
 
-def test_one_csv_per_pair_equal_to_estimate(folder, tmp_path, capsys):
+@pytest.mark.parametrize("extra", [[], ["--background"]], ids=["plain", "background"])
+def test_one_csv_per_pair_equal_to_estimate(folder, tmp_path, capsys, extra):
     out = tmp_path / "out"
-    assert _stream(folder, out) == 0
+    assert _stream(folder, out, *extra) == 0
     assert "3 pair(s) written" in capsys.readouterr().out
     names = sorted(p.name for p in out.iterdir())
     assert names == [f"flow_00000{k}_00000{k + 1}.csv" for k in range(3)] + ["stream.json"]
     meta = json.loads((out / "stream.json").read_text())
-    assert meta["complete"] and [e["points"] for e in meta["pairs"]] == [
-        len(read_csv(out / e["csv"])["x"]) for e in meta["pairs"]
-    ]
+    assert meta["complete"] and meta["pairs_in_out"] == 3 and meta["this_run"]["pairs"] == 3
+    assert meta["this_run"]["points"] == sum(len(read_csv(out / n)["x"]) for n in names[:3])
     f1, f2 = _frames(folder)
     for k in range(3):
         cols = read_csv(out / f"flow_{k:06d}_{k + 1:06d}.csv")
