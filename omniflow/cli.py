@@ -767,10 +767,6 @@ def _one_line_warning(message, category, filename, lineno, file=None, line=None)
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``omniflow`` command; returns the exit status."""
     argv = list(sys.argv[1:] if argv is None else argv)
-    if argv[:1] == ["stream"]:  # omniflow stream INPUT --out DIR: a sequence, streamed
-        from omniflow.stream_cli import main as stream_main
-
-        return stream_main(argv[1:])
     parser = build_parser()
     args = parser.parse_args(argv)
     with warnings.catch_warnings():

@@ -1,4 +1,4 @@
-"""``omniflow stream``: the flow of every consecutive pair of a sequence, each frame fitted once.
+"""``omniflow-stream``: the flow of every consecutive pair of a sequence, each frame fitted once.
 
 Reads an omnisim dataset or a folder of images one stereo frame at a time,
 runs :class:`omniflow.stream.OmniFlowStream` and writes one CSV per pair into
@@ -43,7 +43,7 @@ from omniflow.imageio import atomic_write_text, read_image, to_grey
 from omniflow.jsonio import json_text, jsonable
 from omniflow.rig import Rig, load_rig
 
-PROG = "omniflow stream"
+PROG = "omniflow-stream"
 MANIFEST = "stream.json"
 IMAGE_SUFFIXES = (".png", ".exr", ".tif", ".tiff", ".jpg", ".jpeg")
 
@@ -73,8 +73,9 @@ def build_parser() -> argparse.ArgumentParser:
             Run the same command again to resume after the last pair written.
 
             examples:
-              omniflow stream renders/room --out room_flow
-              omniflow stream frames/ --rig rig.toml --out flow --start 100 --stop 200
+              omniflow-stream renders/room --out room_flow
+              omniflow-stream frames/ --rig rig.toml --out flow --start 100 --stop 200
+              python -m omniflow.stream_cli renders/room --out room_flow  (the same)
             """
         ),
     )
@@ -217,7 +218,7 @@ def run(args: argparse.Namespace, config_fields: list[str], argv: list[str]) -> 
     if out.exists() and not out.is_dir():
         raise CLIError(f"--out {out}: exists and is not a folder; expected a folder")
     header: dict[str, Any] = {
-        "command": ["omniflow", "stream", *argv],
+        "command": [PROG, *argv],
         "input": jsonable(source.describe),
         "rig": source.rig.to_dict(),
         "config": jsonable(config),
@@ -290,7 +291,7 @@ def run(args: argparse.Namespace, config_fields: list[str], argv: list[str]) -> 
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of ``omniflow stream``; returns the exit status."""
+    """Entry point of ``omniflow-stream``; returns the exit status."""
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -314,3 +315,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{PROG}: {summary['written']} pair(s) written, {summary['present']} in "
           f"{summary['out']}{med_text}")  # fmt: skip
     return 0
+
+
+if __name__ == "__main__":  # python -m omniflow.stream_cli
+    sys.exit(main())

@@ -1,4 +1,4 @@
-"""``omniflow stream``: per-pair CSVs of a sequence, whole files only, resumable."""
+"""``omniflow-stream``: per-pair CSVs of a sequence, whole files only, resumable."""
 
 from __future__ import annotations
 
@@ -7,9 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from omniflow.cli import main
 from omniflow.imageio import read_image, to_grey, write_png
 from omniflow.pipeline import OmniFlowConfig, estimate
+from omniflow.stream_cli import main
 from omniflow.synthetic import Motion
 from tests.helpers.scenes import paper_rig, wall_scene
 from tests.omniflow.test_cli import read_csv
@@ -36,7 +36,7 @@ def folder(tmp_path_factory):
 
 def _stream(folder, out, *extra) -> int:
     d, _ = folder
-    return main(["stream", str(d), "--rig", str(d / "rig.json"), "--out", str(out),
+    return main([str(d), "--rig", str(d / "rig.json"), "--out", str(out),
                  "--quiet", *map(str, extra)])  # fmt: skip
 
 
@@ -98,7 +98,7 @@ def test_a_bad_frame_stops_with_whole_files_only(folder, tmp_path, capsys):
         (bad / p.name).write_bytes(p.read_bytes())
     (bad / "cam2_2.png").write_bytes(b"not a png")
     out = tmp_path / "out"
-    status = main(["stream", str(bad), "--rig", str(bad / "rig.json"), "--out", str(out),
+    status = main([str(bad), "--rig", str(bad / "rig.json"), "--out", str(out),
                    "--quiet"])  # fmt: skip
     err = capsys.readouterr().err
     assert status == 2 and err.count("\n") == 1 and "cam2_2.png" in err
@@ -125,8 +125,18 @@ def test_bad_ranges_are_one_line(folder, tmp_path, capsys, args, fragment):
 def test_a_folder_without_frames_or_rig(folder, tmp_path, capsys):
     empty = tmp_path / "empty"
     empty.mkdir()
-    assert main(["stream", str(empty), "--out", str(tmp_path / "o"), "--quiet"]) == 2
+    assert main([str(empty), "--out", str(tmp_path / "o"), "--quiet"]) == 2
     assert "0 cam1 and 0 cam2 image(s)" in capsys.readouterr().err
     d, _ = folder
-    assert main(["stream", str(d), "--out", str(tmp_path / "o"), "--quiet"]) == 2
+    assert main([str(d), "--out", str(tmp_path / "o"), "--quiet"]) == 2
     assert "needs --rig FILE" in capsys.readouterr().err
+
+
+def test_module_entry_point_runs():
+    """``python -m omniflow.stream_cli`` (the ``omniflow-stream`` script's module) answers."""
+    import subprocess
+    import sys
+
+    proc = subprocess.run([sys.executable, "-m", "omniflow.stream_cli", "--help"],
+                          capture_output=True, text=True, timeout=120, check=False)  # fmt: skip
+    assert proc.returncode == 0 and "usage: omniflow-stream" in proc.stdout
