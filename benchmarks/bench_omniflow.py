@@ -27,6 +27,7 @@ room, the robot turning and driving slowly), or rendered frames with
     python benchmarks/bench_omniflow.py --size 256 --repeats 10 --json bench.json
     python benchmarks/bench_omniflow.py --dataset /work/data/default --memory-sizes
     python benchmarks/bench_omniflow.py --set solver=pooled --set gradients=first
+    python benchmarks/bench_omniflow.py --dataset /work/data/default --profile 20
 """
 
 from __future__ import annotations
@@ -171,8 +172,10 @@ def memory_probe(folder: str, config_items: list[str]) -> dict:
     """Peak resident memory of one pair and of a streamed sequence on frames saved in ``folder``.
 
     Runs in its own process (``--memory-probe``), so the peak is the pipeline's
-    alone: the frames are loaded from .npy, the baseline is read, then
-    estimate() runs twice and the stream takes every frame three times over.
+    alone: the frames are loaded from .npz, one estimate() warms up (imports,
+    caches, the compiled kernels), the baseline is read and the peak reset, then
+    estimate() runs twice; the peak is reset again and a stream takes the frames
+    (forwards and backwards) three times over.
     """
     from omniflow.pipeline import OmniFlowConfig, estimate
     from omniflow.stream import OmniFlowStream
@@ -181,6 +184,7 @@ def memory_probe(folder: str, config_items: list[str]) -> dict:
     f1, f2 = list(data["f1"]), list(data["f2"])
     rig = Rig.symmetric(d=0.10, R=0.05, s=0.30, size=f1[0].shape[0])
     config = OmniFlowConfig(**parse_set(config_items, OmniFlowConfig))
+    estimate(f1, f2, rig, config, t=0)  # imports, caches, compiled kernels: not the pipeline's
     base = _rss_mb("VmRSS")
     reset = _reset_peak()
     for _ in range(2):
@@ -214,6 +218,20 @@ def measure_memory(sizes: list[int], config_items: list[str]) -> list[dict]:
             raise SystemExit(f"bench: memory probe at {size} px failed: {proc.stderr.strip()}")
         out.append(json.loads(proc.stdout.strip().splitlines()[-1]))
     return out
+
+
+def profile_pairs(run: Callable[[], object], n: int, top: int = 25) -> None:
+    """cProfile of ``n`` calls (process time, so other load on the machine counts less)."""
+    import cProfile
+    import pstats
+
+    profiler = cProfile.Profile(time.process_time)
+    profiler.enable()
+    for _ in range(n):
+        run()
+    profiler.disable()
+    print(f"cProfile of {n} omniflow pair runs (CPU seconds, sorted by own time):")
+    pstats.Stats(profiler, stream=sys.stdout).sort_stats("tottime").print_stats(top)
 
 
 def time_background_stream(f1, f2, rig, config, repeats: int, warmup: int) -> dict:
@@ -265,6 +283,10 @@ def main(argv: list[str] | None = None) -> int:
         help="closed-form image sizes for the peak-memory probe (default 512 1024; none: skip)",
     )  # fmt: skip
     parser.add_argument("--memory-probe", metavar="DIR", help=argparse.SUPPRESS)
+    parser.add_argument(
+        "--profile", type=int, default=0, metavar="N",
+        help="also profile N pair runs with cProfile (CPU time) and print the top functions",
+    )  # fmt: skip
     parser.add_argument("--json", metavar="PATH", help="also write the results as JSON here")
     args = parser.parse_args(argv)
 
@@ -349,6 +371,8 @@ def main(argv: list[str] | None = None) -> int:
         r["ratio_to_dis_medium"] = r["median_s"] / dis["median_s"]
         r["cpu_ratio_to_dis_medium"] = r["cpu_median_s"] / dis["cpu_median_s"]
 
+    if args.profile:
+        profile_pairs(lambda: estimate(f1, f2, rig, config, t=0), args.profile)
     background = time_background_stream(f1, f2, rig, config, args.repeats, args.warmup)
     memory = measure_memory(args.memory_sizes, args.set) if args.memory_sizes else []
 
