@@ -110,8 +110,9 @@ class OmniFlowStream:
         (its matches are needed only by the next push), while the caller
         goes on: :meth:`push` then costs the fit, the sampling and the solve,
         and the matching of a frame overlaps the wait for the next one and
-        that frame's fit. The results are the same. Call :meth:`close` (or
-        use the stream as a context manager) to end the thread.
+        that frame's fit. The results are the same; an error in the matching
+        is raised by the next push. Call :meth:`close` (or use the stream as a
+        context manager) to end the thread.
 
     Examples
     --------
