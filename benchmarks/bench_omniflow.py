@@ -12,8 +12,10 @@ clock and CPU time, median of ``--repeats`` rounds after ``--warmup``):
   on the cam1 pair and the cam2 pair (both pairs per call: the work omni
   flow does per stereo frame); DIS medium also on one thread (OpenCV uses
   every core by default, omni flow mostly one), the like-for-like figure,
-  timed after the others (switching OpenCV's thread count back and forth
-  left it serial: measured, the multi-threaded row then read as the serial one).
+  timed after the interleaved block, so the other rows run with OpenCV's
+  default thread count. DIS's own use of the second core varies from run to
+  run on a shared machine (CPU / wall 1.0-2.0 measured): compare CPU times,
+  or against the one-thread row.
 
 Omni flow answers at its matched points only and DIS at every pixel, so the
 points per frame and the milliseconds per 1000 points are printed beside the
