@@ -54,6 +54,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
+from omniflow.kernels import pooled_sums
+
 __all__ = [
     "axial_motion_violation",
     "conditioning",
@@ -606,27 +608,17 @@ def pooled_solution(
     n = f1_h.size - 1
     h1[n] = 1.0
     k = h2 / h1
-    hi = h1[:n, None]
-    rel = h1[idx] / hi if relative else 1.0
-    if model == "linear":
-        th = np.append(np.asarray(theta, dtype=np.float64).ravel(), 0.0)
-        u = (((th[idx] - th[:n, None]) + np.pi) % (2 * np.pi) - np.pi) * hi / scale
     # Normal equations without forming the design matrix: a row of neighbour j
     # and one unit is (p, q, p u, q u) [ * sqrt(w)] with p = f_h rel (k f2_h
     # for unit 2), q = f_theta / h_1, right side -f_t, so every entry of
     # A^T A and A^T rhs is a weighted sum of pp, pq, qq, pf, qf times 1, u or
-    # u^2 (both units share j's weight and u).
-    p1, p2 = f1_h[idx] * rel, (k * f2_h)[idx] * rel
-    q1, q2 = f1_theta[idx] / hi, f2_theta[idx] / hi
-    t1, t2 = f1_t[idx], f2_t[idx]
-    cols = [p1 * p1 + p2 * p2, p1 * q1 + p2 * q2, q1 * q1 + q2 * q2,
-            p1 * t1 + p2 * t2, q1 * t1 + q2 * t2]  # fmt: skip
-    prods = np.stack(cols, axis=-1)  # (N, K, 5)
-    if model == "constant":
-        powers = w[:, None, :]  # (N, 1, K)
-    else:
-        powers = np.stack([w, w * u, w * u * u], axis=1)  # (N, 3, K)
-    sums = powers @ prods  # (N, 1 or 3, 5): sum_j w u^m (pp, pq, qq, pf, qf)
+    # u^2 (both units share j's weight and u): one compiled pass over the
+    # neighbours (omniflow.kernels.pooled_sums).
+    th = np.append(np.asarray(theta, dtype=np.float64).ravel(), 0.0) if theta is not None else None
+    sums, wsum = pooled_sums(
+        idx, w, (f1_h, f1_theta, f1_t, k * f2_h, f2_theta, f2_t), h1, th,
+        relative=relative, linear=model == "linear", scale=scale,
+    )  # fmt: skip  # sums (N, 1 or 3, 5): sum_j w u^m (pp, pq, qq, pf, qf); wsum: sum_j w u^m
     a, c, conf = _solve_sums(sums, model, min_conditioning)
     if noise1 > 0 or noise2 > 0:
         if residual_noise:
@@ -636,7 +628,7 @@ def pooled_solution(
         # expected gradient-noise power on the pp and qq entries, with the
         # neighbours' rel, h_1,j / h_1,i and k_j taken as the point's own
         # (1, 1, k_i): the pool is small against h_1
-        per_row = (noise1 + noise2 * k[:n] ** 2)[:, None] * powers.sum(axis=-1)  # (N, m)
+        per_row = (noise1 + noise2 * k[:n] ** 2)[:, None] * wsum  # (N, m)
         noise = np.zeros_like(sums)
         noise[..., 0] = per_row
         noise[..., 2] = per_row
