@@ -54,6 +54,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
+from omniflow.kernels import pooled_sums
+
 __all__ = [
     "axial_motion_violation",
     "conditioning",
@@ -623,53 +625,40 @@ def pooled_solution(
     n = f1_h.size - 1
     h1[n] = 1.0
     k = h2 / h1
-    hi = h1[:n, None]
-    rel = h1[idx] / hi if relative else 1.0
-    if model == "linear":
-        th = np.append(np.asarray(theta, dtype=np.float64).ravel(), 0.0)
-        u = (((th[idx] - th[:n, None]) + np.pi) % (2 * np.pi) - np.pi) * hi / scale
     # Normal equations without forming the design matrix: a row of neighbour j
     # and one unit is (p, q, p u, q u) [ * sqrt(w)] with p = f_h rel (k f2_h
     # for unit 2), q = f_theta / h_1, right side -f_t, so every entry of
     # A^T A and A^T rhs is a weighted sum of pp, pq, qq, pf, qf times 1, u or
-    # u^2 (both units share j's weight and u).
-    p1, p2 = f1_h[idx] * rel, (k * f2_h)[idx] * rel
-    q1, q2 = f1_theta[idx] / hi, f2_theta[idx] / hi
-    t1, t2 = f1_t[idx], f2_t[idx]
-    if model == "constant":
-        powers = w[:, None, :]  # (N, 1, K)
-    else:
-        powers = np.stack([w, w * u, w * u * u], axis=1)  # (N, 3, K)
-
-    def weighted_sums(s1, s2):
-        # (N, 1 or 3, 5): sum_j w u^m (pp, pq, qq, pf, qf), unit 1's products times
-        # s1_j and unit 2's times s2_j
-        cols = [s1 * p1 * p1 + s2 * p2 * p2, s1 * p1 * q1 + s2 * p2 * q2,
-                s1 * q1 * q1 + s2 * q2 * q2, s1 * p1 * t1 + s2 * p2 * t2,
-                s1 * q1 * t1 + s2 * q2 * t2]  # fmt: skip
-        return powers @ np.stack(cols, axis=-1)
-
-    sums = weighted_sums(1.0, 1.0)
+    # u^2 (both units share j's weight and u): one compiled pass over the
+    # neighbours (omniflow.kernels.pooled_sums).
+    th = np.append(np.asarray(theta, dtype=np.float64).ravel(), 0.0) if theta is not None else None
+    derivs6 = (f1_h, f1_theta, f1_t, k * f2_h, f2_theta, f2_t)
+    kw = dict(relative=relative, linear=model == "linear", scale=scale)
+    sums, wsum = pooled_sums(idx, w, derivs6, h1, th, **kw)
+    # sums (N, 1 or 3, 5): sum_j w u^m (pp, pq, qq, pf, qf); wsum: sum_j w u^m
     a, c, conf = _solve_sums(sums, model, min_conditioning)
     derivs = (f1_h, f1_theta, f1_t, f2_h, f2_theta, f2_t)
     if residual_noise and (noise1 > 0 or noise2 > 0):
         n1, n2 = _residual_variance(derivs, k, a, c / h1[:n], n)
         noise1, noise2 = noise1 * n1, noise2 * n2
-    s1 = s2 = np.ones(w.shape)
+    wsum1 = wsum2 = wsum  # sum_j w u^m times each unit's row weight (1: equal)
     if unit_weighting != "equal":
         v1, v2 = _unit_variances(derivs, k, a, c / h1[:n], n, idx, w, unit_weighting)
         if v1 is not None:
-            s1 = np.append(1.0 / v1, 0.0)[idx]  # neighbour j's rows weighted by 1 / v(j)
-            s2 = np.append(1.0 / v2, 0.0)[idx]
-            sums = weighted_sums(s1, s2)
+            # neighbour j's rows of unit u weighted by 1 / v_u(j): its derivatives
+            # scaled by sqrt(1 / v_u(j)), so the same compiled sums apply
+            r1, r2 = (np.append(1.0 / np.sqrt(v), 0.0) for v in (v1, v2))
+            scaled = tuple(d * r for d, r in zip(derivs6, (r1, r1, r1, r2, r2, r2), strict=True))
+            sums, _ = pooled_sums(idx, w, scaled, h1, th, **kw)
             a, c, conf = _solve_sums(sums, model, min_conditioning)
+            wsum1, wsum2 = (_weight_sums(w, s[idx], idx, th, h1[:n], model, scale)
+                            for s in (r1 * r1, r2 * r2))  # fmt: skip
     if noise1 > 0 or noise2 > 0:
         # expected gradient-noise power on the pp and qq entries, with the
         # neighbours' rel, h_1,j / h_1,i and k_j taken as the point's own
         # (1, 1, k_i): the pool is small against h_1; each row's noise carries
         # its unit's weight
-        row_noise = noise1 * s1 + noise2 * k[:n, None] ** 2 * s2  # (N, K)
-        per_row = (powers @ row_noise[..., None])[..., 0]  # (N, m)
+        per_row = noise1 * wsum1 + (noise2 * k[:n] ** 2)[:, None] * wsum2  # (N, m)
         noise = np.zeros_like(sums)
         noise[..., 0] = per_row
         noise[..., 2] = per_row
@@ -681,6 +670,18 @@ def pooled_solution(
         use = strong & np.isfinite(ac) & np.isfinite(cc)
         a, c, conf = np.where(use, ac, a), np.where(use, cc, c), np.where(use, confc, conf)
     return a, c / h1[:n], conf
+
+
+def _weight_sums(
+    w: NDArray, s: NDArray, idx: NDArray, th: NDArray | None, hi: NDArray, model: str, scale: float
+) -> NDArray:
+    """sum_j w_ij s_ij u_ij^m, m = 0 (constant model) or 0, 1, 2 (linear), shape (N, 1 or 3)."""
+    ws = w * s
+    if model == "constant":
+        return ws.sum(axis=1)[:, None]
+    n = idx.shape[0]
+    u = (((th[idx] - th[:n, None]) + np.pi) % (2 * np.pi) - np.pi) * hi[:, None] / scale
+    return np.stack([ws.sum(axis=1), (ws * u).sum(axis=1), (ws * u * u).sum(axis=1)], axis=1)
 
 
 def _unit_variances(

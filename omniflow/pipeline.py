@@ -43,18 +43,19 @@ from numpy.typing import NDArray
 
 from omniflow.config import OmniFlowConfig
 from omniflow.matching import Matches, PolarGrids, match_radial
-from omniflow.noise import BAND_CANDIDATES
 from omniflow.result import COLUMNS, NoMatchesWarning, OmniFlowResult, no_points
 from omniflow.rig import Rig
 from omniflow.series import (
+    Frame,
     choose_flow_band,
     fill_outside_rim,
-    gradient_noise,
+    fit_band,
     match_frame,
+    needs_noise_sigma,
+    noise_variance,
     unit_fits,
     unit_frames,
     unit_noise_sigma,
-    value_noise_share,
 )
 from omniflow.solve import flow_at_matches
 
@@ -66,6 +67,8 @@ __all__ = [
     "estimate",
     "fill_outside_rim",
     "flow_at_matches",
+    "matching_grids",
+    "stereo_matches",
 ]
 
 
@@ -118,74 +121,33 @@ def estimate(
     timings: dict[str, float] = {}
     t_start = time.perf_counter()
 
-    need_sigma = config.flow_band is None or (config.eiv == "correct" and config.solver == "pooled")
     sigmas = (
         (
             unit_noise_sigma(frames1[t], rig.cam1, config),
             unit_noise_sigma(frames2[t], rig.cam2, config),
         )
-        if need_sigma
+        if needs_noise_sigma(config)
         else (0.0, 0.0)
     )
-    fit_band = max(config.band, config.flow_band or max(BAND_CANDIDATES))
     fits = (
-        unit_fits(frames1, t, rig.cam1, config, "frames1", fit_band),
-        unit_fits(frames2, t, rig.cam2, config, "frames2", fit_band),
+        unit_fits(frames1, t, rig.cam1, config, "frames1", fit_band(config)),
+        unit_fits(frames2, t, rig.cam2, config, "frames2", fit_band(config)),
     )
     flow_band = choose_flow_band(fits, sigmas, config)
     cam1 = unit_frames(fits[0], rig.cam1, config, flow_band)
     cam2 = unit_frames(fits[1], rig.cam2, config, flow_band)
     for cam, s in zip((cam1, cam2), sigmas, strict=True):
-        if config.eiv == "correct":
-            cam["noise_var"] = gradient_noise(s, cam["g"].fit, config)
-        elif config.eiv == "residual":  # per unit of the fitted value's noise variance
-            fit = cam["g"].fit
-            cam["noise_var"] = gradient_noise(1.0, fit, config) / value_noise_share(fit, config)
-        else:
-            cam["noise_var"] = 0.0
+        cam["noise_var"] = noise_variance(s, cam["g"].fit, config)
     diagnostics = {"flow_band": flow_band, "noise_sigma1": sigmas[0], "noise_sigma2": sigmas[1]}
     t_fit = time.perf_counter()
     timings["fit"] = t_fit - t_start
 
     n_sig = 0
     if matches is None:
-        if config.match_method == "paper":  # the polar edge finder's f_h, f_theta
-            grids = tuple(
-                PolarGrids(f=c["a"].f, f_h=c["a"].grad[0], f_theta=c["a"].grad[1])
-                for c in (cam1, cam2)
-            )
-        else:  # the robust matcher differentiates its polar table of f
-            grids = tuple(
-                PolarGrids(f=match_frame(c["a"], config).f, f_h=None) for c in (cam1, cam2)
-            )
+        grids = matching_grids(cam1["a"], cam2["a"], config)
         timings["grids"] = time.perf_counter() - t_fit
         t_m = time.perf_counter()
-        matches = match_radial(
-            None,
-            None,
-            rig,
-            method=config.match_method,
-            threshold_percentile=config.threshold_percentile,
-            min_gradient=config.min_gradient,
-            r_min=config.r_min,
-            r_max=config.r_max,
-            n_theta=config.n_theta,
-            h_step=config.h_step,
-            h_min=config.h_min,
-            rim_margin=config.rim_margin,
-            patch_radius=config.patch_radius,
-            patch_lines=config.patch_lines,
-            profile_step=config.profile_step,
-            min_score=config.min_score,
-            uniqueness=config.uniqueness,
-            left_right=config.left_right,
-            candidate_fraction=config.candidate_fraction,
-            tangential_blur=config.tangential_blur,
-            consistency=config.consistency,
-            consistency_support=config.consistency_support,
-            self_similarity=config.self_similarity,
-            grids=grids,
-        )
+        matches = stereo_matches(grids, rig, config)
         n_sig = matches.n_significant
         timings["match"] = time.perf_counter() - t_m
     else:
@@ -205,4 +167,44 @@ def estimate(
         config=config,
         n_significant=n_sig,
         diagnostics=diagnostics,
+    )
+
+
+def matching_grids(a1: Frame, a2: Frame, config: OmniFlowConfig) -> tuple[PolarGrids, PolarGrids]:
+    """The grids the matcher reads from frame t of each unit (``a`` of :func:`unit_frames`)."""
+    if config.match_method == "paper":  # the polar edge finder's f_h, f_theta
+        return tuple(PolarGrids(f=a.f, f_h=a.grad[0], f_theta=a.grad[1]) for a in (a1, a2))
+    # the robust matcher differentiates its polar table of f
+    return tuple(PolarGrids(f=match_frame(a, config).f, f_h=None) for a in (a1, a2))
+
+
+def stereo_matches(
+    grids: tuple[PolarGrids, PolarGrids], rig: Rig, config: OmniFlowConfig
+) -> Matches:
+    """The stereo matches of one time step with the configured matcher (section 5.2)."""
+    return match_radial(
+        None,
+        None,
+        rig,
+        method=config.match_method,
+        threshold_percentile=config.threshold_percentile,
+        min_gradient=config.min_gradient,
+        r_min=config.r_min,
+        r_max=config.r_max,
+        n_theta=config.n_theta,
+        h_step=config.h_step,
+        h_min=config.h_min,
+        rim_margin=config.rim_margin,
+        patch_radius=config.patch_radius,
+        patch_lines=config.patch_lines,
+        profile_step=config.profile_step,
+        min_score=config.min_score,
+        uniqueness=config.uniqueness,
+        left_right=config.left_right,
+        candidate_fraction=config.candidate_fraction,
+        tangential_blur=config.tangential_blur,
+        consistency=config.consistency,
+        consistency_support=config.consistency_support,
+        self_similarity=config.self_similarity,
+        grids=grids,
     )

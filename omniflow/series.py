@@ -21,16 +21,25 @@ from numpy.typing import NDArray
 from omniflow.config import OmniFlowConfig
 from omniflow.dct import DCTFit, _cos3, band_window, fit_dct, fit_dct3
 from omniflow.matching import polar_gradient_fast
-from omniflow.noise import choose_band, gradient_noise_variance, immerkaer_sigma
+from omniflow.noise import (
+    BAND_CANDIDATES,
+    choose_band,
+    gradient_noise_variance,
+    immerkaer_sigma,
+)
 from omniflow.rig import Unit
 
 __all__ = [
     "Frame",
     "choose_flow_band",
     "fill_outside_rim",
+    "fit_band",
     "gradient_noise",
     "grey_input",
     "match_frame",
+    "needs_noise_sigma",
+    "noise_variance",
+    "truncate",
     "unit_fits",
     "unit_frames",
     "unit_noise_sigma",
@@ -159,7 +168,7 @@ def unit_fits(
     return {"a": fa, "b": fb, "g": g, "t": replace(fa, coeffs=fb.coeffs - fa.coeffs)}
 
 
-def _truncate(fit: DCTFit, band: float, taper: float = 0.0) -> DCTFit:
+def truncate(fit: DCTFit, band: float, taper: float = 0.0) -> DCTFit:
     """The series with only the coefficients of ``band`` kept (eq. 18 truncated further),
     rolled off over the outer ``taper`` of the band (omniflow.dct.band_window; 0: sharp)."""
     q = max(1, round(band * fit.height))
@@ -178,9 +187,9 @@ def unit_frames(
 ) -> dict:
     """Lazy-grid :class:`Frame` s: ``a`` at the matching band, the others at ``flow_band``
     rolled off by ``config.flow_taper`` (``af``: frame t the same way, for the iterations)."""
-    out = {"a": Frame(_truncate(fits["a"], config.band), unit)}
+    out = {"a": Frame(truncate(fits["a"], config.band), unit)}
     for key, src in (("af", "a"), ("b", "b"), ("g", "g"), ("t", "t")):
-        out[key] = Frame(_truncate(fits[src], flow_band, config.flow_taper), unit)
+        out[key] = Frame(truncate(fits[src], flow_band, config.flow_taper), unit)
     return out
 
 
@@ -226,6 +235,30 @@ def choose_flow_band(
     )
 
 
+def fit_band(config: OmniFlowConfig) -> float:
+    """The band each frame is fitted at: the widest that matching or the flow step reads."""
+    return max(config.band, config.flow_band or max(BAND_CANDIDATES))
+
+
+def needs_noise_sigma(config: OmniFlowConfig) -> bool:
+    """Whether the configuration reads the image noise (band choice or EIV correction)."""
+    return config.flow_band is None or (config.eiv == "correct" and config.solver == "pooled")
+
+
+def noise_variance(sigma: float, g: DCTFit, config: OmniFlowConfig) -> float:
+    """The gradient-noise variance the pooled solver subtracts (``config.eiv``).
+
+    ``"correct"``: from the unit's pixel noise ``sigma``; ``"residual"``: per
+    unit of the fitted value's noise variance (the solver scales it by the
+    residuals); ``"none"``: 0. ``g`` is the gradient series of the pair.
+    """
+    if config.eiv == "correct":
+        return gradient_noise(sigma, g, config)
+    if config.eiv == "residual":
+        return gradient_noise(1.0, g, config) / value_noise_share(g, config)
+    return 0.0
+
+
 def gradient_noise(sigma: float, fit: DCTFit, config: OmniFlowConfig) -> float:
     """Variance of the gradient series' f_h (and f_theta / h_i) from pixel noise ``sigma``.
 
@@ -248,7 +281,7 @@ def match_frame(frame: Frame, config: OmniFlowConfig) -> Frame:
     """The image matched on: frame t's series truncated to ``match_band``."""
     if config.match_band is None or config.match_band >= config.band:
         return frame
-    return Frame(_truncate(frame.fit, config.match_band), frame.unit)
+    return Frame(truncate(frame.fit, config.match_band), frame.unit)
 
 
 def _as32(fit: DCTFit) -> DCTFit:

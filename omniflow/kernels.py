@@ -1,0 +1,109 @@
+"""Compiled kernels (Numba) for loops that numpy runs only through large temporaries.
+
+:func:`pooled_sums` forms the weighted sums of the pooled flow solver
+(:func:`omniflow.flow.pooled_solution`): for every point, over its K
+neighbours, sum_j w_ij u_ij^m (pp, pq, qq, pf, qf)_j. In numpy that is a
+dozen (N, K) gathers and products and an (N, K, 5) stack before one batched
+product; here it is one pass over the neighbours with nothing stored but
+the sums. The arithmetic of each term is numpy's, term by term; only the
+order of the additions over the K neighbours differs (a batched matrix
+product there, a running sum here), so the sums agree to rounding.
+
+The kernels compile on first use; ``cache=True`` keeps the machine code
+between runs where the package folder (or Numba's user cache) is writable.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+from numpy.typing import NDArray
+
+__all__ = ["pooled_sums"]
+
+
+@numba.njit(cache=True, nogil=True)
+def _pooled_sums(idx, w, f1_h, f1_theta, f1_t, kf2_h, f2_theta, f2_t, h1, th, relative,
+                 n_powers, scale):  # pragma: no cover - compiled  # fmt: skip
+    n, kk = idx.shape
+    sums = np.zeros((n, n_powers, 5))
+    wsum = np.zeros((n, n_powers))
+    two_pi = 2.0 * math.pi
+    for i in range(n):
+        hi = h1[i]
+        for s in range(kk):
+            j = idx[i, s]
+            ww = w[i, s]
+            rel = h1[j] / hi if relative else 1.0
+            p1 = f1_h[j] * rel
+            p2 = kf2_h[j] * rel
+            q1 = f1_theta[j] / hi
+            q2 = f2_theta[j] / hi
+            t1 = f1_t[j]
+            t2 = f2_t[j]
+            pp = p1 * p1 + p2 * p2
+            pq = p1 * q1 + p2 * q2
+            qq = q1 * q1 + q2 * q2
+            pf = p1 * t1 + p2 * t2
+            qf = q1 * t1 + q2 * t2
+            power = ww
+            for m in range(n_powers):
+                if m == 1:  # the tangential offset u, as numpy's floor-mod wrap
+                    u = (((th[j] - th[i]) + math.pi) % two_pi - math.pi) * hi / scale
+                    power = ww * u
+                elif m == 2:
+                    power = ww * u * u
+                sums[i, m, 0] += power * pp
+                sums[i, m, 1] += power * pq
+                sums[i, m, 2] += power * qq
+                sums[i, m, 3] += power * pf
+                sums[i, m, 4] += power * qf
+                wsum[i, m] += power
+    return sums, wsum
+
+
+def pooled_sums(
+    idx: NDArray,
+    w: NDArray,
+    derivs: tuple[NDArray, ...],
+    h1: NDArray,
+    theta: NDArray | None,
+    *,
+    relative: bool,
+    linear: bool,
+    scale: float,
+) -> tuple[NDArray, NDArray]:
+    """Weighted sums of the pooled normal equations, and of the weights.
+
+    Parameters
+    ----------
+    idx, w : ndarray, shape (N, K)
+        Neighbour indices (N + 1 entries below: index N is the sentinel) and weights.
+    derivs : six ndarrays, shape (N + 1,)
+        f1_h, f1_theta, f1_t, (h2/h1) f2_h, f2_theta, f2_t, each with a zero
+        sentinel at index N.
+    h1 : ndarray, shape (N + 1,)
+        cam1 image radius, sentinel 1.
+    theta : ndarray, shape (N + 1,), optional
+        Azimuth (``linear`` only).
+    relative, linear : bool
+        The local model of :func:`omniflow.flow.pooled_solution`.
+    scale : float
+        Tangential length that scales u, pixels.
+
+    Returns
+    -------
+    sums : ndarray, shape (N, 1 or 3, 5)
+        sum_j w u^m (pp, pq, qq, pf, qf), m = 0 (and 1, 2 for ``linear``).
+    wsum : ndarray, shape (N, 1 or 3)
+        sum_j w u^m.
+    """
+    f = [np.ascontiguousarray(v, dtype=np.float64) for v in derivs]
+    th = np.zeros_like(f[0]) if theta is None else np.ascontiguousarray(theta, dtype=np.float64)
+    return _pooled_sums(
+        np.ascontiguousarray(idx, dtype=np.int64), np.ascontiguousarray(w, dtype=np.float64),
+        *f, np.ascontiguousarray(h1, dtype=np.float64), th, bool(relative),
+        3 if linear else 1, float(scale),
+    )  # fmt: skip
