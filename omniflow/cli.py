@@ -192,6 +192,7 @@ KNOB_LIMITS: dict[str, tuple[float, float, bool, bool]] = {
     "min_conditioning": (0.0, 1.0, True, True),  # lambda_min / lambda_max
     "iterations": (0, math.inf, True, False),
     "flow_band": (0.0, 1.0, False, True),
+    "flow_taper": (0.0, 1.0, True, True),  # fraction of the flow band rolled off
     "flow_band_tolerance": (1.0, math.inf, True, False),
     "flow_band_gain": (0.0, 1.0, False, False),
     "noise_sigma": (0.0, math.inf, True, False),  # grey levels of the [0, 1] image
@@ -481,6 +482,15 @@ def build_parser() -> argparse.ArgumentParser:
         "inlier threshold (2.5 robust sigma) (default: 4.0)",
     )
     regions.add_argument(
+        "--auto-min-speed",
+        type=float,
+        default=1e-4,
+        metavar="M",
+        help="a point moves on its own only if its own speed also exceeds M m/frame: the "
+        "inlier threshold is relative (2.5 robust sigma), so on near-exact flow it would "
+        "call static points moving (default: 1e-4, 0.1 mm per frame)",
+    )
+    regions.add_argument(
         "--auto-coherence",
         type=float,
         default=0.5,
@@ -662,6 +672,8 @@ def _check_region_options(args) -> None:
             f"--auto-residual {args.auto_residual}: expected a finite number >= 1 "
             "(1: every odometry outlier)"
         )
+    if not (math.isfinite(args.auto_min_speed) and args.auto_min_speed >= 0):
+        raise CLIError(f"--auto-min-speed {args.auto_min_speed}: expected a finite number >= 0")
     if not (args.auto_coherence > 0):  # inf allowed: position only
         raise CLIError(f"--auto-coherence {args.auto_coherence}: expected a number > 0 (or inf)")
     if not (math.isfinite(args.steer_lead) and args.steer_lead >= 0):
@@ -883,13 +895,15 @@ def _regions(args, cols, masks, fit, rig: Rig, frame_interval):
     if args.auto_regions:
         link = args.auto_link if args.auto_link is not None else rig.cam1.r_m / 10
         block["auto"] = {
-            "found_by": "odometry residual > K x its inlier threshold, grouped by single "
+            "found_by": "odometry residual > K x its inlier threshold and own speed > "
+            "min_speed, grouped by single "
             "linkage in cam1's image (gaps <= link px, own velocities within coherence x the "
             "larger), groups >= min_points",
             "K": args.auto_residual,
             "coherence": args.auto_coherence,
             "link_px": link,
             "min_points": args.auto_min_points,
+            "min_speed_m_per_frame": args.auto_min_speed,
         }
         labels = np.zeros(len(cols["x"]), dtype=int)
         if fit is None:
@@ -900,6 +914,8 @@ def _regions(args, cols, masks, fit, rig: Rig, frame_interval):
                     fit.residuals > args.auto_residual * fit.threshold
                 )
             own = fit.own_velocity(cols["theta"], cols["r"], cols["dr_dt"], cols["dtheta_dt"])
+            with np.errstate(invalid="ignore"):
+                moving &= np.hypot(own[:, 0], own[:, 1]) > args.auto_min_speed
             labels = auto_groups(cols["x"], cols["y"], moving, link=link,
                                  min_points=args.auto_min_points, velocity=own,
                                  coherence=args.auto_coherence)  # fmt: skip

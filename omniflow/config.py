@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, fields, replace
 
+from omniflow.flow import UNIT_WEIGHTINGS
 from omniflow.matching import MATCH_METHODS
 
 __all__ = ["OmniFlowConfig"]
@@ -41,8 +42,8 @@ class OmniFlowConfig:
         None: band.
     flow_band : float or None
         DCT band of the series the flow step differentiates (gradients and
-        f_t of eq. 9 and 15); 0.5 by default, the matching band. None: chosen
-        per frame pair from the images
+        f_t of eq. 9 and 15); 0.5 by default, rolled off over its outer
+        half (``flow_taper``). None: chosen per frame pair from the images
         by ``flow_band_rule`` (omniflow.noise.choose_band, with the noise
         measured by Immerkaer's estimator on each unit's annulus; the
         narrower of the two units' choices). The band trades noise (in f_t,
@@ -50,6 +51,17 @@ class OmniFlowConfig:
         bias) against texture detail. The automatic choice is not the
         default because Immerkaer's estimate reads fine texture as noise
         (docs/measurements.md, "flow band default").
+    flow_taper : float
+        Fraction of the flow band over which the flow series rolls off to 0
+        (omniflow.dct.band_window, a radial cos^2 window on the DCT
+        coefficients); 0 is the sharp truncation of eq. (18) (the paper).
+        The sharp truncation rings, and near the image centre, where the
+        mirror compresses the texture tangentially, its ringing shrank the
+        radial flow by 5-10 %; 0.5 (weight 1 up to half the band) gave radial
+        gain 0.99-1.03 on the rendered and closed-form scenes, and 10-35 %
+        lower EPE on the rendered ones and 2.7-8x on the closed-form room (on the
+        closed-form striped wall, whose texture does not reach the band's
+        edge, as before); docs/measurements.md, "radial shrink".
     flow_band_rule : {"gain", "variance"}
         With ``flow_band=None``: the widest band whose fitted gradient keeps
         ``flow_band_gain`` of its power as signal
@@ -181,6 +193,17 @@ class OmniFlowConfig:
     pool_model : {"linear", "constant"}
         Pooled solver: local flow model (omniflow.flow.pooled_solution),
         varying linearly with theta or constant.
+    pool_unit_weighting : {"equal", "global", "local"}
+        Pooled solver: weight of each unit's equations, eq. (9) against
+        eq. (15) (omniflow.flow.pooled_solution): alike, or by the inverse of
+        each unit's residual variance, one figure per unit ("global") or
+        measured around each point ("local"). "equal" is the default: with
+        the default roll-off "local" halves the mean EPE on closed-form
+        frames and gains 0-5 % on the rendered ones, but at a motion boundary
+        it pulls the mover further towards the background (closed-form band:
+        0.70 of its flow against 0.75) and cancels ``pool_residual_tol``
+        (0.64 against 0.82); it halves the radial error where one unit is
+        noisier (docs/measurements.md, "radial shrink"). Costs a second solve.
     min_conditioning : float
         Drop points whose confidence is below this (0 keeps all).
     sampling : {"cubic", "linear", "exact"}
@@ -208,6 +231,7 @@ class OmniFlowConfig:
     band: float = 0.5
     match_band: float | None = None
     flow_band: float | None = 0.5
+    flow_taper: float = 0.5
     flow_band_rule: str = "gain"
     flow_band_tolerance: float = 1.35
     flow_band_gain: float = 0.99
@@ -242,6 +266,7 @@ class OmniFlowConfig:
     pool_range_tol: float | None = 0.1
     pool_model: str = "linear"
     pool_flow_tol: float | None = None
+    pool_unit_weighting: str = "equal"
     pool_edge_tol: float | None = None
     pool_residual_tol: float | None = None
     pool_min_info: float | None = None
@@ -259,12 +284,17 @@ class OmniFlowConfig:
             "sampling": (self.sampling, SAMPLINGS),
             "rim_fill": (self.rim_fill, RIM_FILLS),
             "pool_model": (self.pool_model, POOL_MODELS),
+            "pool_unit_weighting": (self.pool_unit_weighting, UNIT_WEIGHTINGS),
             "eiv": (self.eiv, EIVS),
             "flow_band_rule": (self.flow_band_rule, BAND_RULES),
         }
         for name, (val, allowed) in checks.items():
             if val not in allowed:
                 raise ValueError(f"OmniFlowConfig.{name} = {val!r}: expected one of {allowed}")
+        if not 0.0 <= self.flow_taper <= 1.0:
+            raise ValueError(
+                f"OmniFlowConfig.flow_taper = {self.flow_taper!r}: expected a fraction in [0, 1]"
+            )
         for name in ("band", "flow_band", "match_band"):
             val = getattr(self, name)
             if val is not None and not (0 < val <= 1):
@@ -324,6 +354,7 @@ class OmniFlowConfig:
         base = dict(
             band=0.25,
             flow_band=0.25,
+            flow_taper=0.0,
             eiv="none",
             match_method="paper",
             gradients="first",

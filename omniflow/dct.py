@@ -39,7 +39,34 @@ import numpy as np
 import scipy.fft
 from numpy.typing import ArrayLike, NDArray
 
-__all__ = ["DCT3Fit", "DCTFit", "fit_dct", "fit_dct3"]
+__all__ = ["DCT3Fit", "DCTFit", "band_window", "fit_dct", "fit_dct3"]
+
+
+@lru_cache(maxsize=16)
+def band_window(Q: int, P: int, taper: float) -> NDArray:
+    """Weights (Q, P) that roll a truncated series off smoothly towards its band's edge.
+
+    With rho = hypot(p / P, q / Q) the coefficient's frequency as a fraction of
+    the band (1 at the edge of the P x Q block along either axis), the weight is
+    1 for rho <= 1 - taper, cos^2(pi / 2 (rho - (1 - taper)) / taper) up to
+    rho = 1 and 0 beyond (a radial Tukey window). ``taper = 0`` is the sharp
+    truncation of eq. (18), all ones. Why: the sharp truncation is a sinc
+    kernel in the image, whose ringing carries texture power at the band's
+    edge across the image; near the image centre, where the conical mirror
+    compresses the scene tangentially and that power is large, it breaks the
+    flow equation's balance of f_t against the gradient (radial flow shrunk
+    by 5-10 %; docs/measurements.md, "radial shrink").
+    """
+    if not 0.0 <= taper <= 1.0:
+        raise ValueError(f"taper = {taper!r}: expected a fraction in [0, 1]")
+    if taper == 0.0:
+        out = np.ones((Q, P))
+    else:
+        rho = np.hypot(np.arange(Q)[:, None] / Q, np.arange(P)[None, :] / P)
+        ramp = np.clip((rho - (1.0 - taper)) / taper, 0.0, 1.0)
+        out = np.where(rho < 1.0, np.cos(0.5 * np.pi * ramp) ** 2, 0.0)
+    out.setflags(write=False)  # cached: one array shared by every caller
+    return out
 
 
 def _check_image(image: ArrayLike, name: str = "image", ndim: int = 2) -> NDArray:

@@ -71,6 +71,9 @@ __all__ = [
     "predicted_bias",
 ]
 
+#: Weightings of the two units' equations in :func:`pooled_solution`.
+UNIT_WEIGHTINGS = ("equal", "global", "local")
+
 
 def _arr(*values: ArrayLike) -> list[NDArray]:
     out = [np.asarray(v, dtype=np.float64) for v in values]
@@ -526,6 +529,7 @@ def pooled_solution(
     noise1: float = 0.0,
     noise2: float = 0.0,
     residual_noise: bool = False,
+    unit_weighting: str = "equal",
 ) -> tuple[NDArray, NDArray, NDArray]:
     """Eq. (9) and (15) of neighbouring matches pooled in weighted least squares.
 
@@ -588,6 +592,17 @@ def pooled_solution(
         Measure each unit's image noise from the residuals of eq. (9) and (15)
         at the plain solution (noise in the band the flow step uses, whatever
         its spectrum) and scale ``noise1``, ``noise2`` by it.
+    unit_weighting : {"equal", "global", "local"}
+        Weight of each unit's equations. "equal": eq. (9) and (15) count
+        alike (ordinary least squares). "global": each unit's rows weighted
+        by the inverse of that unit's residual variance at the equal-weight
+        solution (one figure per unit). "local": by the inverse of the
+        unit's residual variance around each neighbour (the weighted mean of
+        the squared residuals over that neighbour's own pool), so a unit
+        whose equations do not hold in one part of the image (cam1 near its
+        centre, where the texture is compressed tangentially and its radial
+        derivative carries little but error) gives way there to the other.
+        Generalised least squares with the noise measured, not assumed.
 
     Returns
     -------
@@ -599,6 +614,8 @@ def pooled_solution(
     """
     if model not in ("constant", "linear"):
         raise ValueError(f"model = {model!r}: expected 'constant' or 'linear'")
+    if unit_weighting not in UNIT_WEIGHTINGS:
+        raise ValueError(f"unit_weighting = {unit_weighting!r}: expected one of {UNIT_WEIGHTINGS}")
     if model == "linear" and theta is None:
         raise ValueError("model='linear' needs theta")
     f1_h, f1_theta, f1_t, f2_h, f2_theta, f2_t, h1, h2 = (
@@ -615,20 +632,33 @@ def pooled_solution(
     # u^2 (both units share j's weight and u): one compiled pass over the
     # neighbours (omniflow.kernels.pooled_sums).
     th = np.append(np.asarray(theta, dtype=np.float64).ravel(), 0.0) if theta is not None else None
-    sums, wsum = pooled_sums(
-        idx, w, (f1_h, f1_theta, f1_t, k * f2_h, f2_theta, f2_t), h1, th,
-        relative=relative, linear=model == "linear", scale=scale,
-    )  # fmt: skip  # sums (N, 1 or 3, 5): sum_j w u^m (pp, pq, qq, pf, qf); wsum: sum_j w u^m
+    derivs6 = (f1_h, f1_theta, f1_t, k * f2_h, f2_theta, f2_t)
+    kw = dict(relative=relative, linear=model == "linear", scale=scale)
+    sums, wsum = pooled_sums(idx, w, derivs6, h1, th, **kw)
+    # sums (N, 1 or 3, 5): sum_j w u^m (pp, pq, qq, pf, qf); wsum: sum_j w u^m
     a, c, conf = _solve_sums(sums, model, min_conditioning)
+    derivs = (f1_h, f1_theta, f1_t, f2_h, f2_theta, f2_t)
+    if residual_noise and (noise1 > 0 or noise2 > 0):
+        n1, n2 = _residual_variance(derivs, k, a, c / h1[:n], n)
+        noise1, noise2 = noise1 * n1, noise2 * n2
+    wsum1 = wsum2 = wsum  # sum_j w u^m times each unit's row weight (1: equal)
+    if unit_weighting != "equal":
+        v1, v2 = _unit_variances(derivs, k, a, c / h1[:n], n, idx, w, unit_weighting)
+        if v1 is not None:
+            # neighbour j's rows of unit u weighted by 1 / v_u(j): its derivatives
+            # scaled by sqrt(1 / v_u(j)), so the same compiled sums apply
+            r1, r2 = (np.append(1.0 / np.sqrt(v), 0.0) for v in (v1, v2))
+            scaled = tuple(d * r for d, r in zip(derivs6, (r1, r1, r1, r2, r2, r2), strict=True))
+            sums, _ = pooled_sums(idx, w, scaled, h1, th, **kw)
+            a, c, conf = _solve_sums(sums, model, min_conditioning)
+            wsum1, wsum2 = (_weight_sums(w, s[idx], idx, th, h1[:n], model, scale)
+                            for s in (r1 * r1, r2 * r2))  # fmt: skip
     if noise1 > 0 or noise2 > 0:
-        if residual_noise:
-            derivs = (f1_h, f1_theta, f1_t, f2_h, f2_theta, f2_t)
-            n1, n2 = _residual_variance(derivs, k, a, c / h1[:n], n)
-            noise1, noise2 = noise1 * n1, noise2 * n2
         # expected gradient-noise power on the pp and qq entries, with the
         # neighbours' rel, h_1,j / h_1,i and k_j taken as the point's own
-        # (1, 1, k_i): the pool is small against h_1
-        per_row = (noise1 + noise2 * k[:n] ** 2)[:, None] * wsum  # (N, m)
+        # (1, 1, k_i): the pool is small against h_1; each row's noise carries
+        # its unit's weight
+        per_row = noise1 * wsum1 + (noise2 * k[:n] ** 2)[:, None] * wsum2  # (N, m)
         noise = np.zeros_like(sums)
         noise[..., 0] = per_row
         noise[..., 2] = per_row
@@ -640,6 +670,59 @@ def pooled_solution(
         use = strong & np.isfinite(ac) & np.isfinite(cc)
         a, c, conf = np.where(use, ac, a), np.where(use, cc, c), np.where(use, confc, conf)
     return a, c / h1[:n], conf
+
+
+def _weight_sums(
+    w: NDArray, s: NDArray, idx: NDArray, th: NDArray | None, hi: NDArray, model: str, scale: float
+) -> NDArray:
+    """sum_j w_ij s_ij u_ij^m, m = 0 (constant model) or 0, 1, 2 (linear), shape (N, 1 or 3)."""
+    ws = w * s
+    if model == "constant":
+        return ws.sum(axis=1)[:, None]
+    n = idx.shape[0]
+    u = (((th[idx] - th[:n, None]) + np.pi) % (2 * np.pi) - np.pi) * hi[:, None] / scale
+    return np.stack([ws.sum(axis=1), (ws * u).sum(axis=1), (ws * u * u).sum(axis=1)], axis=1)
+
+
+def _unit_variances(
+    derivs: tuple,
+    k: NDArray,
+    a: NDArray,
+    b: NDArray,
+    n: int,
+    idx: NDArray,
+    w: NDArray,
+    how: str,
+) -> tuple[NDArray | None, NDArray | None]:
+    """Residual variance of each unit's equation at each point (for ``unit_weighting``).
+
+    The residual of eq. (9) and (15) of every point at its own solution
+    (a, b); "global": one median-based variance per unit for all points;
+    "local": the weighted mean of the squared residuals over each point's pool
+    (``idx``, ``w``), floored at 1 % of the unit's global figure so that no
+    unit's weight runs away where its residuals happen to vanish. (None, None)
+    when fewer than 10 points have a solution or a variance is 0.
+    """
+    f1_h, f1_theta, f1_t, f2_h, f2_theta, f2_t = derivs  # with a sentinel at index n
+    ok = np.isfinite(a) & np.isfinite(b)
+    if ok.sum() < 10:
+        return None, None
+    out = []
+    for f_h, f_th, f_t, kk in ((f1_h, f1_theta, f1_t, 1.0), (f2_h, f2_theta, f2_t, k[:n])):
+        res = kk * f_h[:n] * a + f_th[:n] * b + f_t[:n]  # eq. (9), (15)
+        res2 = np.where(ok, res * res, np.nan)
+        glob = float(np.nanmedian(res2)) / 0.455  # median of a squared normal: 0.455 var
+        if how == "global":
+            out.append(np.full(n, glob))
+            continue
+        near = np.append(res2, np.nan)[idx]  # (N, K), NaN: no neighbour or no solution
+        wr = np.where(np.isfinite(near), w, 0.0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            local = (wr * np.nan_to_num(near)).sum(axis=1) / wr.sum(axis=1)
+        out.append(np.maximum(np.where(np.isfinite(local), local, glob), 0.01 * glob))
+    if not (out[0].min() > 0 and out[1].min() > 0):
+        return None, None
+    return out[0], out[1]
 
 
 def _residual_variance(

@@ -151,18 +151,29 @@ def _freq_sums(n_coef: int, n: int) -> NDArray:
     return np.cumsum((np.pi * np.arange(n_coef) / n) ** 2)
 
 
-def gradient_noise_variance(sigma: float, P: int, Q: int, width: int, height: int) -> float:
+def gradient_noise_variance(
+    sigma: float, P: int, Q: int, width: int, height: int, window: NDArray | None = None
+) -> float:
     """Variance of the fitted gradient that white pixel noise leaves, per axis.
 
     With the orthonormal cosine basis phi_k (every coefficient of white noise
     of standard deviation sigma then has variance sigma^2), f_x of the series
     truncated to P x Q has, averaged over the image,
     Var f_x = sigma^2 (Q / Y) (1 / X) sum_{p<P} (pi p / X)^2, and likewise f_y.
-    Returned: the mean of the two (the variance of each polar component
-    f_h and f_theta / h_i, which are rotations of (f_x, f_y)).
+    With ``window`` (Q, P) weights on the coefficients (omniflow.dct.band_window)
+    each term carries its weight squared. Returned: the mean of the two (the
+    variance of each polar component f_h and f_theta / h_i, which are
+    rotations of (f_x, f_y)).
     """
-    vx = (Q / height) * (1.0 / width) * _freq_sums(P, width)[-1]
-    vy = (P / width) * (1.0 / height) * _freq_sums(Q, height)[-1]
+    if window is None:
+        vx = (Q / height) * (1.0 / width) * _freq_sums(P, width)[-1]
+        vy = (P / width) * (1.0 / height) * _freq_sums(Q, height)[-1]
+    else:
+        w2 = np.asarray(window, dtype=np.float64) ** 2
+        wp = (np.pi * np.arange(P) / width) ** 2
+        wq = (np.pi * np.arange(Q) / height) ** 2
+        vx = float((w2 * wp[None, :]).sum()) / (width * height)
+        vy = float((w2 * wq[:, None]).sum()) / (width * height)
     return float(sigma) ** 2 * 0.5 * (vx + vy)
 
 

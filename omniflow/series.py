@@ -19,7 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from omniflow.config import OmniFlowConfig
-from omniflow.dct import DCTFit, _cos3, fit_dct, fit_dct3
+from omniflow.dct import DCTFit, _cos3, band_window, fit_dct, fit_dct3
 from omniflow.matching import polar_gradient_fast
 from omniflow.noise import (
     BAND_CANDIDATES,
@@ -43,6 +43,7 @@ __all__ = [
     "unit_fits",
     "unit_frames",
     "unit_noise_sigma",
+    "value_noise_share",
 ]
 
 
@@ -167,22 +168,28 @@ def unit_fits(
     return {"a": fa, "b": fb, "g": g, "t": replace(fa, coeffs=fb.coeffs - fa.coeffs)}
 
 
-def truncate(fit: DCTFit, band: float) -> DCTFit:
-    """The series with only the coefficients of ``band`` kept (eq. 18 truncated further)."""
+def truncate(fit: DCTFit, band: float, taper: float = 0.0) -> DCTFit:
+    """The series with only the coefficients of ``band`` kept (eq. 18 truncated further),
+    rolled off over the outer ``taper`` of the band (omniflow.dct.band_window; 0: sharp)."""
     q = max(1, round(band * fit.height))
     p = max(1, round(band * fit.width))
-    if q >= fit.Q and p >= fit.P:
+    if q >= fit.Q and p >= fit.P and taper == 0.0:
         return fit
-    return replace(fit, coeffs=fit.coeffs[:q, :p])
+    coeffs = fit.coeffs[:q, :p]
+    if taper > 0.0:
+        window = band_window(coeffs.shape[0], coeffs.shape[1], taper)
+        coeffs = (coeffs * window).astype(fit.coeffs.dtype, copy=False)
+    return replace(fit, coeffs=coeffs)
 
 
 def unit_frames(
     fits: dict[str, DCTFit], unit: Unit, config: OmniFlowConfig, flow_band: float
 ) -> dict:
-    """Lazy-grid :class:`Frame` s: ``a`` at the matching band, the others at ``flow_band``."""
+    """Lazy-grid :class:`Frame` s: ``a`` at the matching band, the others at ``flow_band``
+    rolled off by ``config.flow_taper`` (``af``: frame t the same way, for the iterations)."""
     out = {"a": Frame(truncate(fits["a"], config.band), unit)}
-    for key in ("b", "g", "t"):
-        out[key] = Frame(truncate(fits[key], flow_band), unit)
+    for key, src in (("af", "a"), ("b", "b"), ("g", "g"), ("t", "t")):
+        out[key] = Frame(truncate(fits[src], flow_band, config.flow_taper), unit)
     return out
 
 
@@ -248,15 +255,26 @@ def noise_variance(sigma: float, g: DCTFit, config: OmniFlowConfig) -> float:
     if config.eiv == "correct":
         return gradient_noise(sigma, g, config)
     if config.eiv == "residual":
-        return gradient_noise(1.0, g, config) / (g.P * g.Q / (g.width * g.height))
+        return gradient_noise(1.0, g, config) / value_noise_share(g, config)
     return 0.0
 
 
 def gradient_noise(sigma: float, fit: DCTFit, config: OmniFlowConfig) -> float:
-    """Variance of the gradient series' f_h (and f_theta / h_i) from pixel noise ``sigma``."""
-    v = gradient_noise_variance(sigma, fit.P, fit.Q, fit.width, fit.height)
+    """Variance of the gradient series' f_h (and f_theta / h_i) from pixel noise ``sigma``.
+
+    ``fit`` is the flow series (truncated to the flow band and rolled off by
+    ``config.flow_taper``, whose window follows from its shape)."""
+    window = band_window(fit.Q, fit.P, config.flow_taper)
+    v = gradient_noise_variance(sigma, fit.P, fit.Q, fit.width, fit.height, window)
     # the mean of two frames' fits with independent noise has half the variance
     return v if config.gradients == "first" else 0.5 * v
+
+
+def value_noise_share(fit: DCTFit, config: OmniFlowConfig) -> float:
+    """The share of white pixel noise's variance that the flow series keeps in its values:
+    P Q / (X Y) for the sharp truncation, the mean squared window weight times that."""
+    window = band_window(fit.Q, fit.P, config.flow_taper)
+    return float(np.sum(window**2)) / (fit.width * fit.height)
 
 
 def match_frame(frame: Frame, config: OmniFlowConfig) -> Frame:

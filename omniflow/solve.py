@@ -72,13 +72,14 @@ def flow_at_matches(
             xd, yd = unit.pixel_of_polar(h_i + dh, theta + db0)
             g_h, g_th = sample_polar_grad(fr["b"], xd, yd, config.sampling)
             if config.gradients == "average":
-                a_h, a_th = sample_polar_grad(fr["a"], x, y, config.sampling)
+                a_h, a_th = sample_polar_grad(fr["af"], x, y, config.sampling)
                 g_h, g_th = 0.5 * (g_h + a_h), 0.5 * (g_th + a_th)
             # the residual needs the image itself read off-pixel: cubic
             # interpolation of a series with periods down to 1 / band px is
-            # biased by a few per cent, Lanczos (8 taps) much less
+            # biased by a few per cent, Lanczos (8 taps) much less; both
+            # frames at the flow band and taper
             res = sample_fine(fr["b"], xd, yd, config.sampling) - sample_fine(
-                fr["a"], x, y, config.sampling
+                fr["af"], x, y, config.sampling
             )
             inc.append((g_h, g_th, res))
         (g1_h, g1_th, r1), (g2_h, g2_th, r2) = inc
@@ -181,7 +182,7 @@ def make_solver(
     def solve_w(derivs, weights):
         return pooled_solution(
             *derivs, h1, h2, idx, weights, **kw, noise1=noise[0], noise2=noise[1],
-            residual_noise=config.eiv == "residual",
+            residual_noise=config.eiv == "residual", unit_weighting=config.pool_unit_weighting,
         )  # fmt: skip
 
     def solve(f1_h, f1_th, f1_t, f2_h, f2_th, f2_t):

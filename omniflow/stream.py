@@ -59,13 +59,14 @@ class _UnitFrame:
 
     def __init__(self, fit: DCTFit, unit: Unit, sigma: float):
         self.fit, self.unit, self.sigma = fit, unit, sigma
-        self._frames: dict[float, Frame] = {}
+        self._frames: dict[tuple[float, float], Frame] = {}
 
-    def frame(self, band: float) -> Frame:
-        """The fit truncated to ``band``, as a lazy-grid frame made once per band."""
-        fr = self._frames.get(band)
+    def frame(self, band: float, taper: float = 0.0) -> Frame:
+        """The fit truncated to ``band`` and rolled off by ``taper`` (omniflow.series.truncate),
+        as a lazy-grid frame made once per (band, taper)."""
+        fr = self._frames.get((band, taper))
         if fr is None:
-            fr = self._frames[band] = Frame(truncate(self.fit, band), self.unit)
+            fr = self._frames[band, taper] = Frame(truncate(self.fit, band, taper), self.unit)
         return fr
 
 
@@ -245,12 +246,13 @@ def _frame_matches(frame: StereoFrame, rig: Rig, config: OmniFlowConfig):
 def _unit_pair(a: _UnitFrame, b: _UnitFrame, config: OmniFlowConfig, flow_band: float) -> dict:
     """One unit's series for the pair (a, b), keys as :func:`omniflow.pipeline.estimate`'s.
 
-    ``a``: frame t at the matching band; ``b``: frame t + 1 at the flow band;
+    ``a``: frame t at the matching band; ``af``, ``b``: frames t and t + 1 at the flow
+    band, rolled off by ``config.flow_taper``;
     ``g``: the gradient series (frame t's, or the mean of both frames: its
     gradient grids are the mean of theirs, each made once per frame); ``t``:
     the series of f_t, the coefficients' difference (eq. 17 is linear).
     """
-    fa, fb = a.frame(flow_band), b.frame(flow_band)
+    fa, fb = a.frame(flow_band, config.flow_taper), b.frame(flow_band, config.flow_taper)
     if config.gradients == "first":
         g = fa
     else:
@@ -261,7 +263,7 @@ def _unit_pair(a: _UnitFrame, b: _UnitFrame, config: OmniFlowConfig, flow_band: 
                 for p, q in zip(fa.grad_xy, fb.grad_xy, strict=True)
             )
     ft = Frame(replace(fa.fit, coeffs=fb.fit.coeffs - fa.fit.coeffs), a.unit)
-    cam = {"a": a.frame(config.band), "b": fb, "g": g, "t": ft}
+    cam = {"a": a.frame(config.band), "af": fa, "b": fb, "g": g, "t": ft}
     cam["noise_var"] = noise_variance(a.sigma, g.fit, config)
     return cam
 

@@ -286,6 +286,7 @@ def _write_bad_inputs(case, d: Path):
     write_png(d / "s2.png", small)
 
 
+C4 = ["c1", "c2", "c3", "c4"]  # the four frames of a good case
 BAD = {
     "missing image": (["c1", "c2", "c3", "MISSING"], ["rig"], "missing.png: image file not found"),
     "sizes differ": (["c1", "c2", "c3", "SMALL"], ["rig"], "images differ in size"),
@@ -300,6 +301,8 @@ BAD = {
     "no rig": (["c1", "c2", "c3", "c4"], [], "--rig FILE is required"),
     "bad knob value": (["c1", "c2", "c3", "c4"], ["rig", "--band", "7"], "band"),
     "bad knob choice": (["c1", "c2", "c3", "c4"], ["rig", "--solver", "foo"], "--solver"),
+    "bad flow taper": (C4, ["rig", "--flow-taper", "2"], "--flow-taper 2"),
+    "bad unit weighting": (C4, ["rig", "--pool-unit-weighting", "inv"], "--pool-unit-weighting"),
     "dct3d needs 3 steps": (["c1", "c2", "c3", "c4"], ["rig", "--temporal", "dct3d"], "dct3d"),
     "not a dataset": ([], ["--dataset", "NODIR"], "not an omnisim dataset"),
     "calibrate without R, s": (["c1", "c2", "c3", "c4"], ["--calibrate", "--d", "0.1"], "--R, --s"),

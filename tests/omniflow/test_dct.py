@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from omniflow.dct import DCTFit, fit_dct, fit_dct3
+from omniflow.dct import DCTFit, band_window, fit_dct, fit_dct3
 
 # Per-dtype bound on reconstruction / path agreement, relative to grey levels in [0, 1].
 # Measured max: float64 8e-15 (full-band evaluate), float32 2.7e-7 (full-band grid).
@@ -236,3 +236,19 @@ def test_detrended_dct3_derivatives_and_slices_are_consistent():
     np.testing.assert_allclose(
         fit.time_derivative_at(1.3).evaluate(xs, ys), fit.gradient(xs, ys, 1.3)[2], atol=1e-13
     )
+
+
+def test_band_window_rolls_off_to_the_band_edge():
+    """omniflow.dct.band_window: 1 inside (1 - taper) of the band, 0 from its edge on,
+    cos^2 between, radial; taper 0 is the sharp truncation (all ones)."""
+    assert np.array_equal(band_window(8, 6, 0.0), np.ones((8, 6)))
+    w = band_window(64, 64, 0.5)
+    rho = np.hypot(np.arange(64)[:, None] / 64, np.arange(64)[None, :] / 64)
+    assert np.all(w[rho <= 0.5] == 1.0) and np.all(w[rho >= 1.0] == 0.0)
+    assert w[0, 48] == pytest.approx(0.5)  # rho 0.75: halfway down
+    assert w[0, 40] == pytest.approx(np.cos(0.5 * np.pi * 0.25) ** 2)  # rho 0.625: 0.854, cos^2
+    ramp = w[0, 32:]
+    assert np.all(np.diff(ramp) <= 0)  # monotone along an axis
+    assert np.allclose(w, w.T)  # radial: the same along both axes
+    with pytest.raises(ValueError, match="taper"):
+        band_window(4, 4, 1.5)

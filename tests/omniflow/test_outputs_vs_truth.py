@@ -40,7 +40,7 @@ import numpy as np
 import pytest
 
 from omniflow.conventions import wrap_angle
-from omniflow.dct import fit_dct
+from omniflow.dct import band_window, fit_dct
 from omniflow.matching import Matches
 from omniflow.pipeline import COLUMNS, OmniFlowConfig, estimate, fill_outside_rim
 from omniflow.rig import Rig
@@ -152,18 +152,24 @@ def _series_derivatives(scene, frames, result, band: float) -> dict:
     """The derivative columns recomputed from the fitted series itself (eq. 17-18).
 
     Default configuration: rim filled by reflection, the flow step's band
-    (chosen from the images: ``band``), gradient of
-    the mean of the fits of frames 0 and 1, f_t their difference; evaluated
-    exactly at the points (the pipeline samples grids, cubic).
+    (``band``) rolled off by the default ``flow_taper`` (omniflow.dct.band_window),
+    gradient of the mean of the fits of frames 0 and 1, f_t their difference;
+    evaluated exactly at the points (the pipeline samples grids, cubic).
     """
     rig, c = scene.rig, result
     out = {}
     eh, et = 1e-3, 1e-5
+    taper = OmniFlowConfig().flow_taper
+
+    def fit(image, unit):
+        f = fit_dct(fill_outside_rim(image, unit), band=band)
+        return replace(f, coeffs=f.coeffs * band_window(f.Q, f.P, taper))
+
     for k, unit, hh, fr in (
         ("1", rig.cam1, c["h1"], frames[0]),
         ("2", rig.cam2, c["h2"], frames[1]),
     ):
-        fa, fb = (fit_dct(fill_outside_rim(fr[j], unit), band=band) for j in (0, 1))
+        fa, fb = (fit(fr[j], unit) for j in (0, 1))
         g = replace(fa, coeffs=0.5 * (fa.coeffs + fb.coeffs))
         d = replace(fa, coeffs=fb.coeffs - fa.coeffs)
 
@@ -270,8 +276,17 @@ def test_flow_against_truth(result, truth, key):
     assert med < 0.05 * np.median(np.abs(truth[key]))
 
 
+@pytest.fixture(scope="module")
+def sharp(scene, frames, result):
+    """The same points with the sharply truncated flow series (``flow_taper=0``, eq. 18)."""
+    m = Matches.from_polar(scene.rig, result["theta"], result["h1"], result["h2"])
+    out = estimate(*frames, scene.rig, OmniFlowConfig(flow_taper=0.0), matches=m).columns
+    assert np.array_equal(out["x"], result["x"])
+    return out
+
+
 @pytest.mark.parametrize("key", list(DERIVATIVE_BOUNDS))
-def test_derivatives_against_the_true_image(result, truth, key):
+def test_derivatives_against_the_true_image(sharp, result, truth, key):
     """f_h, f_theta of the (band-limited, closed-form) image and its frame difference f_t.
 
     The truth is the exact rendered image at the point: the gradient by
@@ -279,15 +294,21 @@ def test_derivatives_against_the_true_image(result, truth, key):
     (gradients="average"), f_t = f(t + 1) - f(t). Without the 1.5 px blur the
     images alias (wall texture 5 cm at 3 m) and the band-1/2 series differs
     from the point-sampled image by 44-100 % (correlation 0.15-0.87, measured
-    at blur 0); with it, the columns agree to 2-8 % (correlation >= 0.996).
-    The correlation also pins the sign and the unit of each column.
+    at blur 0); with it, the sharply truncated series' columns agree to 2-8 %
+    (correlation >= 0.996). The default rolls the series off over the outer half
+    of its band (``flow_taper``), a deliberate smoothing: its columns are the
+    derivatives of a smoother image (measured 9-32 % off, correlation 0.949-0.999),
+    so only their correlation is bounded. The correlation also pins the sign and
+    the unit of each column.
     """
-    med, _ = _stats(result, truth, key)
+    med, _ = _stats(sharp, truth, key)
     rel = med / np.median(np.abs(truth[key]))
     bound, _measured = DERIVATIVE_BOUNDS[key]
     assert rel < bound, (key, rel)
-    corr = np.corrcoef(result[key], truth[key])[0, 1]
+    corr = np.corrcoef(sharp[key], truth[key])[0, 1]
     assert corr > 0.99, (key, corr)  # measured 0.9961-0.9998
+    corr = np.corrcoef(result[key], truth[key])[0, 1]
+    assert corr > 0.93, (key, corr)  # default taper: measured 0.9491-0.9989
 
 
 def test_derivatives_are_those_of_the_fitted_series(scene, frames, result, estimated):
