@@ -124,9 +124,10 @@ class OmniFlowConfig:
         significance threshold.
     tangential_blur : float
         Robust matcher: Gaussian blur across the radial lines, radians, to
-        bring both units to one angular resolution; 0 disables it. 0.03
-        (was 0.06) cut outliers on rendered 512 px frames of the default
-        scene from 11.4 % to 4.9 % (tests/omniflow/test_matching.py).
+        bring both units to one angular resolution; 0 disables it. 0.02
+        (was 0.03, before that 0.06): fewer outliers and more matches on
+        the rendered scenes (docs/measurements.md, "Matching: density,
+        sharp peaks").
     consistency : float
         Robust matcher: disparity consistency vote, pixels: keep a match only
         if enough neighbours (+-0.05 rad, +-r_m/16) have a disparity within
@@ -142,6 +143,18 @@ class OmniFlowConfig:
         (the default: 0.5 cut the wrong matches on periodic closed-form walls
         15-30 times but changed nothing on the rendered default scene and
         costs ~45 % of the matching time; docs/measurements.md).
+    flatness : float
+        Robust matcher: keep a match only when its NCC peak is sharp enough
+        to place to sub-pixel, (1 - NCC_peak) <= flatness x the peak's
+        curvature (omniflow.matching.tables.sharp_peak); 0 disables it.
+        Most 1-2 px errors on rendered frames have flat peaks.
+    dense_percentile : float
+        Robust matcher: also match the samples whose |df1/dh_1| is above this
+        percentile near each match on its line, at that match's disparity
+        (omniflow.matching.dense); 100 disables it (edges only, as before).
+    dense_reach : float
+        Robust matcher: how far along the line a match's disparity is tried
+        on its neighbours, in patch radii.
     gradients : {"first", "average"}
         Spatial gradient of frame t (paper) or the mean of frames t and t + 1.
     temporal : {"difference", "dct3d"}
@@ -229,10 +242,13 @@ class OmniFlowConfig:
     uniqueness: float = 0.5
     left_right: bool = True
     candidate_fraction: float = 0.5
-    tangential_blur: float = 0.03
+    tangential_blur: float = 0.02
     consistency: float = 1.0
     consistency_support: int = 2
     self_similarity: float = 1.0
+    flatness: float = 0.5
+    dense_percentile: float = 60.0
+    dense_reach: float = 1.0
     gradients: str = "average"
     temporal: str = "difference"
     temporal_frames: int = 3
@@ -278,6 +294,11 @@ class OmniFlowConfig:
         if self.noise_sigma is not None and not self.noise_sigma >= 0:
             raise ValueError(
                 f"OmniFlowConfig.noise_sigma = {self.noise_sigma!r}: expected >= 0 or None"
+            )
+        if not (0 <= self.dense_percentile <= 100 and self.dense_reach > 0 and self.flatness >= 0):
+            raise ValueError(
+                f"OmniFlowConfig.dense_percentile = {self.dense_percentile!r}, dense_reach = "
+                f"{self.dense_reach!r}, flatness = {self.flatness!r}: expected [0, 100], > 0, >= 0"
             )
         if self.temporal_frames < 3:
             raise ValueError("OmniFlowConfig.temporal_frames must be >= 3")

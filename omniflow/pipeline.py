@@ -203,6 +203,9 @@ def estimate(
             consistency=config.consistency,
             consistency_support=config.consistency_support,
             self_similarity=config.self_similarity,
+            flatness=config.flatness,
+            dense_percentile=config.dense_percentile,
+            dense_reach=config.dense_reach,
             grids=grids,
         )
         n_sig = matches.n_significant

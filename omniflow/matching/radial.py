@@ -84,6 +84,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from omniflow.dct import DCTFit
+from omniflow.matching.dense import densify
 from omniflow.matching.paper import match_paper
 from omniflow.matching.robust import match_robust
 from omniflow.matching.tables import (
@@ -181,6 +182,9 @@ def match_radial(
     consistency: float = 1.0,
     consistency_support: int = 2,
     self_similarity: float = 1.0,
+    flatness: float = 0.0,
+    dense_percentile: float = 100.0,
+    dense_reach: float = 1.0,
     grids: tuple[PolarGrids, PolarGrids] | None = None,
 ) -> Matches:
     """Match cam1's significant points along radial lines in cam2 (section 5.2).
@@ -273,6 +277,22 @@ def match_radial(
         18 % fewer matches (see ``tests/omniflow/test_matching.py``).
     consistency_support : int
         ``robust``: the agreeing neighbours a match needs.
+    flatness : float
+        ``robust``: keep a match only when its NCC peak is sharp enough to
+        place to sub-pixel: (1 - NCC_peak) <= flatness (2 NCC_0 - NCC_-1 -
+        NCC_+1), the NCC at the best column and its neighbours (about the
+        noise over the curvature, i.e. how far the noise can move the
+        vertex). Most of the matches off by 1-2 px on rendered frames have
+        flat peaks. 0 disables it.
+    dense_percentile : float
+        ``robust``: after the vote, also match every sample of image 1 whose
+        |df1/dh_1| is above this percentile (same annulus as
+        ``threshold_percentile``) and that lies within ``dense_reach``
+        patch radii of a match on its line, at that match's disparity +- 2
+        columns (:func:`omniflow.matching.dense.densify`). 100 disables it.
+    dense_reach : float
+        ``robust``: how far from a match its disparity is tried, in patch
+        radii.
     grids : (PolarGrids, PolarGrids), optional
         Precomputed grids of the two fits (saves re-evaluating them).
 
@@ -284,6 +304,11 @@ def match_radial(
         raise ValueError(f"method = {method!r}: expected one of {MATCH_METHODS}")
     if not (0.0 <= threshold_percentile < 100.0):
         raise ValueError(f"threshold_percentile = {threshold_percentile!r}: expected [0, 100)")
+    if not (0.0 <= dense_percentile <= 100.0 and dense_reach > 0 and flatness >= 0):
+        raise ValueError(
+            f"dense_percentile = {dense_percentile!r}, dense_reach = {dense_reach!r}, "
+            f"flatness = {flatness!r}: expected [0, 100], > 0 and >= 0"
+        )
     cam1, cam2 = rig.cam1, rig.cam2
     if patch_radius is None:
         patch_radius = cam1.r_m / 8.0
@@ -362,6 +387,7 @@ def match_radial(
             left_right=left_right,
             candidate_fraction=candidate_fraction,
             self_similarity=self_similarity,
+            flatness=flatness,
         )
     k1, j1, c2, score, n_sig = res
     theta = -np.pi + (2.0 * np.pi / n_theta) * (k1 + 0.5)
@@ -377,6 +403,24 @@ def match_radial(
             support=consistency_support,
         )  # fmt: skip
         ok[idx[~agree]] = False
+    if method == "robust" and dense_percentile < 100.0 and np.any(ok):
+        thr_d = float(np.percentile(np.abs(fh1[::2, core]), dense_percentile))
+        dk, dj, dc, ds, n_tried = densify(
+            tab, fh1, t1, t2, (k1[ok], j1[ok], c2[ok]), max(thr_d, float(min_gradient)),
+            w=w, stride=stride, lines=patch_lines, min_score=min_score,
+            reach=max(1, round(dense_reach * patch_radius / h_step)), flatness=flatness,
+        )  # fmt: skip
+        n_sig += n_tried
+        th_d = -np.pi + (2.0 * np.pi / n_theta) * (dk + 0.5)
+        h1_d = h_min + h_step * dj
+        h2_d = scale2 * (h_min + h_step * dc)
+        lo_d, hi_d = rig.disparity_window(h1_d, r_min, r_max)
+        in_d = (h2_d >= lo_d) & (h2_d <= hi_d) & np.isfinite(h2_d)
+        theta = np.concatenate([theta[ok], th_d[in_d]])
+        h1 = np.concatenate([h1[ok], h1_d[in_d]])
+        h2 = np.concatenate([h2[ok], h2_d[in_d]])
+        score = np.concatenate([score[ok], ds[in_d]])
+        ok = np.ones(theta.size, dtype=bool)
     return Matches.from_polar(
         rig, theta[ok], h1[ok], h2[ok], score[ok], n_significant=n_sig, method=method
     )

@@ -11,12 +11,12 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 from numpy.typing import NDArray
 
-from omniflow.matching.tables import TableGeometry, local_maxima, parabola_offset
+from omniflow.matching.tables import TableGeometry, local_maxima, parabola_offset, sharp_peak
 
-__all__ = ["match_robust"]
+__all__ = ["Descriptors", "match_robust"]
 
 
-class _Descriptors:
+class Descriptors:
     """Zero-mean, unit-norm polar patches of one table.
 
     A patch at (line k, column j) holds the radial profile at columns
@@ -138,6 +138,7 @@ def match_robust(
     left_right,
     candidate_fraction,
     self_similarity=1.0,
+    flatness=0.0,
 ):
     """NCC of radial profiles between the edges of both images, line by line.
 
@@ -146,7 +147,9 @@ def match_robust(
     the NCC of every pair of edges on every line is one batched matrix
     product: first the significant edges of image 1 against all edges of
     image 2, then, for the left-right check, the chosen edges of image 2
-    against all edges of image 1.
+    against all edges of image 1. Last, h_2 is refined to sub-pixel and the
+    match kept when the refined NCC is at least min_score and its peak sharp
+    enough for that (:func:`~omniflow.matching.tables.sharp_peak`, ``flatness``).
     """
     n_theta, pad, n_h = tab.n_theta, tab.pad, tab.n_h
     lo, hi = tab.win
@@ -168,8 +171,8 @@ def match_robust(
     if n_sig == 0 or not e2.any():
         return np.zeros(0, int), np.zeros(0, int), np.zeros(0), np.zeros(0), n_sig
     rows_s = np.broadcast_to(np.arange(n_theta)[:, None], sslot.shape)
-    desc2 = _Descriptors(t2, w, stride, patch_lines)
-    D1 = _Descriptors(t1, w, stride, patch_lines)(rows1, c1)  # (n_theta, c1, L)
+    desc2 = Descriptors(t2, w, stride, patch_lines)
+    D1 = Descriptors(t1, w, stride, patch_lines)(rows1, c1)  # (n_theta, c1, L)
     D2 = desc2(rows2, c2)  # (n_theta, c2, L)
     # padding slots get zero descriptors, hence NCC 0 with everything: never a
     # match (min_score > 0), never a left-right winner over a real edge
@@ -248,7 +251,7 @@ def match_robust(
         jj2 = jj2 + step
     off = parabola_offset(sm, s0, sp)
     peak = s0 + 0.25 * (sp - sm) * off  # the parabola's vertex value
-    keep = peak >= min_score
+    keep = (peak >= min_score) & sharp_peak(peak, sm, s0, sp, flatness)
     return (ks[keep], (jj1 - pad)[keep], (jj2 + off - pad)[keep],
             np.clip(peak[keep], 0.0, 1.0), n_sig)  # fmt: skip
 
