@@ -143,6 +143,12 @@ class OmniFlowConfig:
         (the default: 0.5 cut the wrong matches on periodic closed-form walls
         15-30 times but changed nothing on the rendered default scene and
         costs ~45 % of the matching time; docs/measurements.md).
+    alias_score : float
+        Robust matcher: periodic-alias test (omniflow.matching.robust): drop a
+        match whose image-1 profile recurs on its own line (NCC above this,
+        after falling below 0 at a smaller lag) within the disparity window's
+        width; 1 disables it. Cheaper than self_similarity (only the matches
+        that passed the other tests are compared) and on by default.
     flatness : float
         Robust matcher: keep a match only when its NCC peak is sharp enough
         to place to sub-pixel, (1 - NCC_peak) <= flatness x the peak's
@@ -246,6 +252,7 @@ class OmniFlowConfig:
     consistency: float = 1.0
     consistency_support: int = 2
     self_similarity: float = 1.0
+    alias_score: float = 0.9
     flatness: float = 0.5
     dense_percentile: float = 60.0
     dense_reach: float = 1.0

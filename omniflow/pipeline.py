@@ -204,6 +204,7 @@ def estimate(
             consistency_support=config.consistency_support,
             self_similarity=config.self_similarity,
             flatness=config.flatness,
+            alias_score=config.alias_score,
             dense_percentile=config.dense_percentile,
             dense_reach=config.dense_reach,
             grids=grids,

@@ -183,6 +183,7 @@ def match_radial(
     consistency_support: int = 2,
     self_similarity: float = 1.0,
     flatness: float = 0.0,
+    alias_score: float = 1.0,
     dense_percentile: float = 100.0,
     dense_reach: float = 1.0,
     grids: tuple[PolarGrids, PolarGrids] | None = None,
@@ -284,6 +285,16 @@ def match_radial(
         noise over the curvature, i.e. how far the noise can move the
         vertex). Most of the matches off by 1-2 px on rendered frames have
         flat peaks. 0 disables it.
+    alias_score : float
+        ``robust``: periodic-alias test, cheaper than ``self_similarity``
+        (only the matches that passed the other tests are compared): drop a
+        match whose image-1 profile recurs on its own line, i.e. its NCC with
+        another edge at a lag between half the profile and the disparity
+        window's width exceeds ``alias_score`` after falling below 0 at a
+        smaller lag. On a periodic wall an alias a period away in image 2 can
+        score better than the truth, so the uniqueness test, the left-right
+        check and the vote all confirm it; a smooth ramp (recurring without
+        falling) is left to them. 1 disables it.
     dense_percentile : float
         ``robust``: after the vote, also match every sample of image 1 whose
         |df1/dh_1| is above this percentile (same annulus as
@@ -388,6 +399,7 @@ def match_radial(
             candidate_fraction=candidate_fraction,
             self_similarity=self_similarity,
             flatness=flatness,
+            alias_score=alias_score,
         )
     k1, j1, c2, score, n_sig = res
     theta = -np.pi + (2.0 * np.pi / n_theta) * (k1 + 0.5)
