@@ -161,6 +161,10 @@ class OmniFlowConfig:
     dense_reach : float
         Robust matcher: how far along the line a match's disparity is tried
         on its neighbours, in patch radii.
+    short_patch : float
+        Robust matcher: a second pass with profiles this fraction of
+        patch_radius long, adding matches where the first left none (small
+        and inclined objects: the ring of independent_movers); 0 disables it.
     gradients : {"first", "average"}
         Spatial gradient of frame t (paper) or the mean of frames t and t + 1.
     temporal : {"difference", "dct3d"}
@@ -256,6 +260,7 @@ class OmniFlowConfig:
     flatness: float = 0.5
     dense_percentile: float = 60.0
     dense_reach: float = 1.0
+    short_patch: float = 0.5
     gradients: str = "average"
     temporal: str = "difference"
     temporal_frames: int = 3
@@ -302,6 +307,8 @@ class OmniFlowConfig:
             raise ValueError(
                 f"OmniFlowConfig.noise_sigma = {self.noise_sigma!r}: expected >= 0 or None"
             )
+        if not (0 <= self.short_patch < 1):
+            raise ValueError(f"OmniFlowConfig.short_patch = {self.short_patch!r}: expected [0, 1)")
         if not (0 <= self.dense_percentile <= 100 and self.dense_reach > 0 and self.flatness >= 0):
             raise ValueError(
                 f"OmniFlowConfig.dense_percentile = {self.dense_percentile!r}, dense_reach = "

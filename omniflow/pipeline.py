@@ -207,6 +207,7 @@ def estimate(
             alias_score=config.alias_score,
             dense_percentile=config.dense_percentile,
             dense_reach=config.dense_reach,
+            short_patch=config.short_patch,
             grids=grids,
         )
         n_sig = matches.n_significant

@@ -104,6 +104,9 @@ __all__ = ["MATCH_METHODS", "Matches", "match_radial"]
 MATCH_METHODS = ("robust", "paper")
 
 
+_FIELDS = ("x", "y", "theta", "h1", "h2", "score")  # the per-match arrays of Matches
+
+
 @dataclass(frozen=True)
 class Matches:
     """Stereo matches along radial lines; all arrays 1-D of equal length N.
@@ -140,9 +143,7 @@ class Matches:
 
     def subset(self, keep: NDArray) -> Matches:
         """The matches selected by a boolean mask or index array."""
-        return replace(
-            self, **{k: getattr(self, k)[keep] for k in ("x", "y", "theta", "h1", "h2", "score")}
-        )
+        return replace(self, **{k: getattr(self, k)[keep] for k in _FIELDS})
 
     @classmethod
     def from_polar(
@@ -186,6 +187,7 @@ def match_radial(
     alias_score: float = 1.0,
     dense_percentile: float = 100.0,
     dense_reach: float = 1.0,
+    short_patch: float = 0.0,
     grids: tuple[PolarGrids, PolarGrids] | None = None,
 ) -> Matches:
     """Match cam1's significant points along radial lines in cam2 (section 5.2).
@@ -304,6 +306,12 @@ def match_radial(
     dense_reach : float
         ``robust``: how far from a match its disparity is tried, in patch
         radii.
+    short_patch : float
+        ``robust``: match a second time with profiles of ``short_patch``
+        times ``patch_radius`` (all else the same) and add the matches at
+        points the first pass left unmatched. A short profile stays on a
+        small or inclined object (whose radial scale differs between the
+        units) where the long one reaches the background. 0 disables it.
     grids : (PolarGrids, PolarGrids), optional
         Precomputed grids of the two fits (saves re-evaluating them).
 
@@ -313,6 +321,9 @@ def match_radial(
     """
     if method not in MATCH_METHODS:
         raise ValueError(f"method = {method!r}: expected one of {MATCH_METHODS}")
+    if not (0.0 <= short_patch < 1.0):
+        raise ValueError(f"short_patch = {short_patch!r}: expected [0, 1)")
+    second = {k: v for k, v in locals().items() if k not in ("fit1", "fit2", "rig", "short_patch")}
     if not (0.0 <= threshold_percentile < 100.0):
         raise ValueError(f"threshold_percentile = {threshold_percentile!r}: expected [0, 100)")
     if not (0.0 <= dense_percentile <= 100.0 and dense_reach > 0 and flatness >= 0):
@@ -433,6 +444,24 @@ def match_radial(
         h2 = np.concatenate([h2[ok], h2_d[in_d]])
         score = np.concatenate([score[ok], ds[in_d]])
         ok = np.ones(theta.size, dtype=bool)
-    return Matches.from_polar(
+    out = Matches.from_polar(
         rig, theta[ok], h1[ok], h2[ok], score[ok], n_significant=n_sig, method=method
     )
+    if method == "robust" and short_patch > 0:
+        second.update(grids=grids, patch_radius=short_patch * patch_radius)
+        if second["profile_step"] is not None:
+            second["profile_step"] = min(second["profile_step"], second["patch_radius"] / 2)
+        out = _union(out, match_radial(None, None, rig, **second), n_theta, h_step)
+    return out
+
+
+def _union(a: Matches, b: Matches, n_theta: int, h_step: float) -> Matches:
+    """``a`` plus the matches of ``b`` at (line, column) samples ``a`` has none at."""
+
+    def key(m: Matches) -> NDArray:
+        k = np.rint((m.theta + np.pi) * n_theta / (2.0 * np.pi) - 0.5).astype(np.int64)
+        return k * (1 << 32) + np.rint(m.h1 / h_step).astype(np.int64)
+
+    new = ~np.isin(key(b), key(a))
+    cols = {f: np.concatenate([getattr(a, f), getattr(b, f)[new]]) for f in _FIELDS}
+    return replace(a, **cols, n_significant=a.n_significant + b.n_significant)
