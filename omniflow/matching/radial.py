@@ -179,15 +179,15 @@ def match_radial(
     uniqueness: float = 0.5,
     left_right: bool = True,
     candidate_fraction: float = 0.5,
-    tangential_blur: float = 0.03,
+    tangential_blur: float = 0.02,
     consistency: float = 1.0,
     consistency_support: int = 2,
     self_similarity: float = 1.0,
-    flatness: float = 0.0,
-    alias_score: float = 1.0,
-    dense_percentile: float = 100.0,
+    flatness: float = 0.5,
+    alias_score: float = 0.9,
+    dense_percentile: float = 60.0,
     dense_reach: float = 1.0,
-    short_patch: float = 0.0,
+    short_patch: float = 0.5,
     grids: tuple[PolarGrids, PolarGrids] | None = None,
 ) -> Matches:
     """Match cam1's significant points along radial lines in cam2 (section 5.2).
@@ -448,7 +448,7 @@ def match_radial(
         rig, theta[ok], h1[ok], h2[ok], score[ok], n_significant=n_sig, method=method
     )
     if method == "robust" and short_patch > 0:
-        second.update(grids=grids, patch_radius=short_patch * patch_radius)
+        second.update(grids=grids, patch_radius=short_patch * patch_radius, short_patch=0.0)
         if second["profile_step"] is not None:
             second["profile_step"] = min(second["profile_step"], second["patch_radius"] / 2)
         out = _union(out, match_radial(None, None, rig, **second), n_theta, h_step)
