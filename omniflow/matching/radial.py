@@ -41,9 +41,16 @@ Two methods:
     unique ((1 - NCC) of the best at most ``uniqueness`` times that of the
     second best edge) and pass a left-right check (matching image 2's edge
     back to image 1 finds the same edge). h_2 is refined to sub-pixel by a
-    parabola through the NCC at the neighbouring samples. Last, a disparity
-    consistency vote (``consistency``) keeps a match only where enough of
-    its neighbours in (theta, h_1) agree with its disparity. The profiles
+    parabola through the NCC at the neighbouring samples, and the match is
+    kept only where that peak is sharp enough to place (``flatness``) and
+    its image-1 profile does not recur on its own line within the window
+    (``alias_score``: on a periodic texture an alias can outscore the
+    truth). Then a disparity consistency vote (``consistency``) keeps a
+    match only where enough of its neighbours in (theta, h_1) agree with its
+    disparity. The matches then grow to the textured samples near them on
+    their lines (``dense_percentile``, :mod:`omniflow.matching.dense`), and a
+    second pass with shorter profiles (``short_patch``) adds matches where
+    the first has none (small objects, inclined surfaces). The profiles
     compare equal radial scales, which is exact for vertical surfaces (both
     units map dh to dh_i = v dh / (d + r)); on inclined surfaces the scales
     differ by up to h_2 / h_1 and the NCC drops.
