@@ -137,7 +137,8 @@ class Matches:
         1 - |g1 - g2| / (|g1| + |g2|) for ``"paper"``).
     n_significant : int
         Number of significant points of image 1 that were tried (the
-        denominator of a match rate).
+        denominator of a match rate): the edges of both passes and the
+        samples the densification tried.
     method : str
         ``"robust"`` or ``"paper"``.
     """
