@@ -394,6 +394,23 @@ class OdometryFit:
     def inlier_fraction(self) -> float:
         return float(np.mean(self.inliers)) if self.inliers.size else 0.0
 
+    def own_velocity(
+        self, theta: ArrayLike, r: ArrayLike, dr_dt: ArrayLike, dtheta_dt: ArrayLike
+    ) -> NDArray:
+        """Each point's velocity not explained by the robot's motion, (N, 2) rig (X, Y), m/frame.
+
+        Observed minus the fitted static-scene model (the module's odometry
+        model), turned from (radial, tangential) into the rig frame: for an
+        object translating on the floor, every one of its points gets the
+        object's own velocity, so its points agree with one another.
+        """
+        theta, r, dr_dt, dtheta_dt = _arrays(theta, r, dr_dt, dtheta_dt)
+        A, b = _odometry_rows(theta.ravel(), r.ravel(), dr_dt.ravel(), dtheta_dt.ravel(), 1.0)
+        res = b - A @ np.array([self.w, self.V_x, self.V_y])  # (N, 2): tangential, radial
+        c, s = np.cos(theta.ravel()), np.sin(theta.ravel())
+        d_t, d_r = res[:, 0], res[:, 1]
+        return np.column_stack([d_r * c - d_t * s, d_r * s + d_t * c])
+
 
 def _odometry_rows(theta, r, dr_dt, dtheta_dt, radial_weight):
     """Design matrix (N, k, 3) and observations (N, k) in m/frame; k = 1 or 2 rows per point."""

@@ -42,12 +42,22 @@ from omniflow.imageio import (
     write_png,
 )
 from omniflow.jsonio import json_text, jsonable
+from omniflow.regions import regions_csv_text
 from omniflow.rig import Rig, RigError, Unit, load_rig, unwarp
 
 PROG = "omniflow"
 
 #: Every file the command writes in --out; flow.json (the manifest) is moved last.
-OUTPUTS = ("flow.csv", "flow_arrows.png", "flow_color.png", "unwarp_cam1.png", "flow.json")
+OUTPUTS = (
+    "flow.csv",
+    "regions.csv",
+    "flow_arrows.png",
+    "flow_color.png",
+    "unwarp_cam1.png",
+    "flow.json",
+)
+#: The pictures among OUTPUTS (left out by --no-pictures).
+PICTURES = ("flow_arrows.png", "flow_color.png", "unwarp_cam1.png")
 
 
 class CLIError(ValueError):
@@ -192,6 +202,9 @@ KNOB_LIMITS: dict[str, tuple[float, float, bool, bool]] = {
     "dense_reach": (0.0, math.inf, False, False),  # patch radii
     "short_patch": (0.0, 1.0, True, False),  # a fraction of patch_radius; 0 = off
     "pool_flow_tol": (0.0, math.inf, False, False),
+    "pool_edge_tol": (0.0, math.inf, False, False),  # a factor on the median edge at the matches
+    "pool_residual_tol": (0.0, math.inf, False, False),  # robust standard deviations
+    "pool_min_info": (0.0, math.inf, False, False),  # in typical single points' information
 }
 
 
@@ -333,7 +346,10 @@ def build_parser() -> argparse.ArgumentParser:
                                dr_dt (m/frame), dx, dy (cam1 px/frame), cam2 columns x2, y2,
                                dh2_dt, dx2, dy2, confidence, D, time_to_contact (frames)
               flow.json        units of every column, the config, the rig, the inputs and timings
+              regions.csv      with --region / --auto-regions: per region its point count,
+                               mean flow, dr/dt, time to contact and steering headings
               flow_arrows.png  cam1 frame t with the flow drawn as arrows (magnified; see legend)
+                               and the regions outlined
               flow_color.png   cam1 frame t with each point in the Middlebury flow colour
               unwarp_cam1.png  cam1 as a panorama (eq. 6-7) with the flow drawn on it
             Velocities are per frame interval: divide by the frame interval for per-second units.
@@ -416,7 +432,90 @@ def build_parser() -> argparse.ArgumentParser:
     output.add_argument(
         "--odometry",
         action="store_true",
-        help="also fit the robot's yaw rate and velocity to the flow (omniflow.applications)",
+        help="also fit the robot's yaw rate and velocity to the flow (omniflow.applications); "
+        "flow.csv gets a column odometry_inlier (1: the fit used the point)",
+    )
+    output.add_argument(
+        "--odometry-radial-weight",
+        type=float,
+        default=1.0,
+        metavar="W",
+        help="weight of the dr/dt rows against the r dtheta/dt rows in the odometry fit; "
+        "0 fits the bearing rates only (default: 1.0)",
+    )
+    regions = parser.add_argument_group(
+        "regions (time to contact, steering and position fix per object; regions.csv)"
+    )
+    regions.add_argument(
+        "--region",
+        action="append",
+        default=[],
+        metavar="SPEC",
+        help="a region, repeatable: NAME:box:THETA0,THETA1,H0,H1 (cam1 polar box: theta in "
+        "degrees from THETA0 towards increasing theta to THETA1, through 360 if THETA1 < "
+        "THETA0; image radius h1 in px, 0 <= H0 < H1 <= r_m), NAME:mask:FILE (an image of "
+        "cam1's size, non-zero inside) or NAME:object:ID|NAME (--dataset only: an object of "
+        "the ground truth's gt.object at frame K)",
+    )
+    regions.add_argument(
+        "--auto-regions",
+        action="store_true",
+        help="find the independently moving objects: the points whose flow the odometry fit "
+        "does not explain, grouped where they lie together in the image (regions auto1, "
+        "auto2, ...; flow.csv gets a column auto_region)",
+    )
+    regions.add_argument(
+        "--auto-min-points",
+        type=int,
+        default=20,
+        metavar="N",
+        help="smallest group --auto-regions reports, points (default: 20)",
+    )
+    regions.add_argument(
+        "--auto-link",
+        type=float,
+        metavar="PX",
+        help="largest gap between neighbouring points of one group, cam1 px (default: r_m / 10)",
+    )
+    regions.add_argument(
+        "--auto-residual",
+        type=float,
+        default=4.0,
+        metavar="K",
+        help="a point moves on its own when its odometry residual exceeds K times the fit's "
+        "inlier threshold (2.5 robust sigma) (default: 4.0)",
+    )
+    regions.add_argument(
+        "--auto-coherence",
+        type=float,
+        default=0.5,
+        metavar="F",
+        help="neighbours join one group only when their own velocities (flow minus the "
+        "robot's motion) differ by at most F times the larger; inf: position only "
+        "(default: 0.5)",
+    )
+    regions.add_argument(
+        "--steer-lead",
+        type=float,
+        default=1.0,
+        metavar="FRAMES",
+        help="steering headings aim at the region's centroid this many frames ahead "
+        "(omniflow.applications.steering_heading) (default: 1.0)",
+    )
+    regions.add_argument(
+        "--frame-interval",
+        type=float,
+        metavar="S",
+        help="seconds between frames, for times to contact in seconds (default: the "
+        "dataset's; none for IMAGE files)",
+    )
+    regions.add_argument(
+        "--landmark",
+        action="append",
+        default=[],
+        metavar="NAME:X,Y",
+        help="the world position (m) of region NAME's centroid, repeatable: with two or more, "
+        "flow.json gets the robot's pose (omniflow.applications.position_fix)",
     )
     algo = parser.add_argument_group("algorithm preset")
     algo.add_argument(
@@ -549,6 +648,52 @@ def _check_options(args) -> None:
         raise CLIError(f"--t {args.t}: expected a time step >= 0")
     if args.frame < 0:
         raise CLIError(f"--frame {args.frame}: expected a frame index >= 0")
+    _check_region_options(args)
+
+
+def _check_region_options(args) -> None:
+    """Region, landmark and odometry options: ranges, syntax, names (no file is read here)."""
+    from omniflow.regions import RegionError, parse_landmark, parse_region
+
+    w = args.odometry_radial_weight
+    if not (math.isfinite(w) and w >= 0):
+        raise CLIError(f"--odometry-radial-weight {w}: expected a finite number >= 0")
+    if args.auto_min_points < 1:
+        raise CLIError(f"--auto-min-points {args.auto_min_points}: expected an integer >= 1")
+    if args.auto_link is not None and not (math.isfinite(args.auto_link) and args.auto_link > 0):
+        raise CLIError(f"--auto-link {args.auto_link}: expected a finite distance in px > 0")
+    if not (math.isfinite(args.auto_residual) and args.auto_residual >= 1):
+        raise CLIError(
+            f"--auto-residual {args.auto_residual}: expected a finite number >= 1 "
+            "(1: every odometry outlier)"
+        )
+    if not (args.auto_coherence > 0):  # inf allowed: position only
+        raise CLIError(f"--auto-coherence {args.auto_coherence}: expected a number > 0 (or inf)")
+    if not (math.isfinite(args.steer_lead) and args.steer_lead >= 0):
+        raise CLIError(f"--steer-lead {args.steer_lead}: expected a finite number of frames >= 0")
+    fi = args.frame_interval
+    if fi is not None and not (math.isfinite(fi) and fi > 0):
+        raise CLIError(f"--frame-interval {fi}: expected a finite number of seconds > 0")
+    try:
+        specs = [parse_region(text) for text in args.region]
+        landmarks = [parse_landmark(text) for text in args.landmark]
+    except RegionError as exc:
+        raise CLIError(str(exc)) from exc
+    names = [spec.name for spec in specs]
+    for spec in specs:
+        if names.count(spec.name) > 1:
+            raise CLIError(f"--region {spec.text}: the name {spec.name!r} is given twice")
+    for (name, _, _), text in zip(landmarks, args.landmark, strict=True):
+        if name not in names:
+            known = ", ".join(names) or "none given"
+            raise CLIError(f"--landmark {text}: no --region named {name!r} (regions: {known})")
+        if [lm[0] for lm in landmarks].count(name) > 1:
+            raise CLIError(f"--landmark {text}: region {name!r} has two landmarks")
+    if len(landmarks) == 1:
+        raise CLIError(
+            f"--landmark {args.landmark[0]}: a position fix needs at least 2 landmarks "
+            "(one fixes the position only up to a turn about it)"
+        )
 
 
 def _load_inputs(args, config):
@@ -593,20 +738,98 @@ def _load_inputs(args, config):
     return f1, f2, t, rig, rig_source, info
 
 
+def _region_masks(args, rig: Rig, shape: tuple[int, int]) -> list[tuple[Any, np.ndarray]]:
+    """Each --region as (RegionSpec, cam1 pixel mask (H, W) bool); files read and checked."""
+    from omniflow.regions import RegionError, in_box, parse_region
+
+    out = []
+    labels = None
+    for text in args.region:
+        try:
+            spec = parse_region(text, r_m=rig.cam1.r_m)
+        except RegionError as exc:
+            raise CLIError(str(exc)) from exc
+        if spec.kind == "box":
+            x, y = rig.cam1.pixel_centres()
+            h1, theta = rig.cam1.polar_of_pixel(x, y)
+            mask = in_box(theta, h1, spec.box) & (h1 <= rig.cam1.r_m)
+        elif spec.kind == "mask":
+            try:
+                image = read_image(spec.path)
+            except ImageError as exc:
+                raise CLIError(f"--region {text}: {_one_line(exc)}") from exc
+            if image.shape[:2] != tuple(shape):
+                raise CLIError(
+                    f"--region {text}: the mask is {_size(image.shape)}; expected cam1's size "
+                    f"{_size(shape)}"
+                )
+            if not np.isfinite(image).all():
+                raise CLIError(f"--region {text}: the mask has NaN or infinite pixels")
+            mask = image != 0 if image.ndim == 2 else np.any(image != 0, axis=2)
+        else:
+            if not args.dataset:
+                raise CLIError(
+                    f"--region {text}: object regions need --dataset (its ground truth "
+                    "gt.object names the objects)"
+                )
+            if labels is None:
+                labels, objects = _object_labels(args.dataset, args.frame)
+            ident = _object_id(spec, objects, text)
+            mask = labels == ident
+        out.append((spec, mask))
+    return out
+
+
+def _object_labels(directory: str, k: int) -> tuple[np.ndarray, dict[int, str]]:
+    """gt.object of cam1 at frame K of a dataset, and the dataset's id -> name table."""
+    from omniflow.dataset import DatasetError, open_dataset
+
+    try:
+        ds = open_dataset(directory)
+        labels = np.rint(ds.read_frame(k, "cam1")["gt.object"]).astype(int)
+    except DatasetError as exc:
+        raise CLIError(str(exc)) from exc
+    return labels, ds.objects
+
+
+def _object_id(spec, objects: dict[int, str], text: str) -> int:
+    """The gt.object id a --region NAME:object:ID|NAME means (CLIError if none)."""
+    if isinstance(spec.object, int) and spec.object in objects:
+        return spec.object
+    ids = [i for i, name in objects.items() if name == spec.object]
+    if len(ids) == 1:
+        return ids[0]
+    shown = ", ".join(f"{i} {n}" for i, n in sorted(objects.items())) or "none"
+    raise CLIError(
+        f"--region {text}: no object {spec.object!r} in the dataset; expected an id or "
+        f"name of: {shown}"
+    )
+
+
 # -- outputs -----------------------------------------------------------------------------
 
 
 def _column_units() -> dict[str, str]:
     from omniflow.pipeline import COLUMNS
 
-    return {**COLUMNS, "time_to_contact": "frames, -r / (dr/dt) where approaching, else inf"}
+    return {
+        **COLUMNS,
+        "time_to_contact": "frames, -r / (dr/dt) where approaching, else inf",
+        "odometry_inlier": "1 where the odometry fit used the point, 0 where not (moving or "
+        "mismatched), nan without a fit",
+        "auto_region": "the --auto-regions group (auto1 = 1, ...), 0 in none",
+    }
 
 
-def _pictures(out: Path, image: np.ndarray, unit: Unit, cols, arrow_scale) -> list[Path]:
+def _pictures(
+    out: Path, image: np.ndarray, unit: Unit, cols, arrow_scale, outlines=()
+) -> list[Path]:
     from omniflow.draw import draw_flow_arrows, draw_flow_points
+    from omniflow.regions import draw_regions
 
     x, y, dx, dy = (np.asarray(cols[c], float) for c in ("x", "y", "dx", "dy"))
     arrows = draw_flow_arrows(image, x, y, dx, dy, scale=arrow_scale)
+    draw_regions(arrows, list(outlines))
     written = [
         write_png(out / "flow_arrows.png", arrows, bits=8),
         write_png(out / "flow_color.png", draw_flow_points(image, x, y, dx, dy), bits=8),
@@ -625,21 +848,128 @@ def _pictures(out: Path, image: np.ndarray, unit: Unit, cols, arrow_scale) -> li
     return written
 
 
-def _odometry_summary(cols) -> dict:
+def _odometry(cols, radial_weight: float):
+    """(OdometryFit or None, its summary for flow.json) on every point's flow."""
     from omniflow.applications import odometry
 
-    try:  # bearing rates only: omni flow's radial component is the ill-conditioned one
-        fit = odometry(cols["theta"], cols["r"], cols["dtheta_dt"])
+    radial = cols["dr_dt"] if radial_weight > 0 else None
+    rows = "dtheta/dt, r" + (f" and dr/dt (weight {radial_weight:g})" if radial is not None else "")
+    try:
+        fit = odometry(cols["theta"], cols["r"], cols["dtheta_dt"], radial,
+                       radial_weight=radial_weight)  # fmt: skip
     except ValueError as exc:
-        return {"error": _one_line(exc)}
-    return {
-        "fitted_on": "dtheta/dt and r of every point (omniflow.applications.odometry, robust)",
+        return None, {"error": _one_line(exc)}
+    return fit, {
+        "fitted_on": f"{rows} of every point (omniflow.applications.odometry, robust)",
         "yaw_rate_rad_per_frame": fit.w,
         "V_x_m_per_frame": fit.V_x,
         "V_y_m_per_frame": fit.V_y,
         "inlier_fraction": fit.inlier_fraction,
         "residual_scale_m_per_frame": fit.scale,
+        "inlier_threshold_m_per_frame": fit.threshold,
+        "inliers": "flow.csv column odometry_inlier: 1 where the fit used the point",
     }
+
+
+def _regions(args, cols, masks, fit, rig: Rig, frame_interval):
+    """regions.csv rows, pixel outlines for the pictures, and the flow.json block."""
+    from omniflow.regions import auto_groups, in_box, points_in_mask, summarise
+
+    rows, outlines = [], []
+    for spec, mask in masks:
+        if spec.kind == "box":
+            member = in_box(cols["theta"], cols["h1"], spec.box)
+        else:
+            member = points_in_mask(mask, cols["x"], cols["y"])
+        rows.append(summarise(spec.name, spec.kind, spec.text, cols, member,
+                              frame_interval=frame_interval, lead=args.steer_lead))  # fmt: skip
+        outlines.append((spec.name, mask))
+    block: dict[str, Any] = {}
+    if args.auto_regions:
+        link = args.auto_link if args.auto_link is not None else rig.cam1.r_m / 10
+        block["auto"] = {
+            "found_by": "odometry residual > K x its inlier threshold, grouped by single "
+            "linkage in cam1's image (gaps <= link px, own velocities within coherence x the "
+            "larger), groups >= min_points",
+            "K": args.auto_residual,
+            "coherence": args.auto_coherence,
+            "link_px": link,
+            "min_points": args.auto_min_points,
+        }
+        labels = np.zeros(len(cols["x"]), dtype=int)
+        if fit is None:
+            block["auto"]["error"] = "no odometry fit (see odometry)"
+        else:
+            with np.errstate(invalid="ignore"):
+                moving = np.isfinite(fit.residuals) & (
+                    fit.residuals > args.auto_residual * fit.threshold
+                )
+            own = fit.own_velocity(cols["theta"], cols["r"], cols["dr_dt"], cols["dtheta_dt"])
+            labels = auto_groups(cols["x"], cols["y"], moving, link=link,
+                                 min_points=args.auto_min_points, velocity=own,
+                                 coherence=args.auto_coherence)  # fmt: skip
+            block["auto"]["candidates"] = int(moving.sum())
+        cols["auto_region"] = labels.astype(float)
+        for k in range(1, int(labels.max(initial=0)) + 1):
+            member = labels == k
+            v = np.median(own[member], axis=0)
+            spec = f"auto: own velocity ({v[0]:.3g}, {v[1]:.3g}) m/frame (rig X, Y, median)"
+            rows.append(summarise(f"auto{k}", "auto", spec, cols, member,
+                                  frame_interval=frame_interval, lead=args.steer_lead))  # fmt: skip
+            outlines.append((f"auto{k}", _hull_mask(cols["x"][member], cols["y"][member], rig)))
+    for row in rows:
+        if row["points"] == 0:
+            warnings.warn(f"region {row['name']} ({row['spec']}) holds no matched point; "
+                          "its row in regions.csv is empty", stacklevel=2)  # fmt: skip
+    block.update({
+        "file": "regions.csv",
+        "frame_interval_s": frame_interval,
+        "steer_lead_frames": args.steer_lead,
+        "rows": rows,
+    })  # fmt: skip
+    return rows, outlines, block
+
+
+def _hull_mask(x: np.ndarray, y: np.ndarray, rig: Rig) -> np.ndarray:
+    """cam1 pixel mask of the convex hull of points (for the pictures)."""
+    import cv2
+
+    mask = np.zeros((rig.cam1.height, rig.cam1.width), np.uint8)
+    pts = np.column_stack([np.floor(x), np.floor(y)]).astype(np.int32)
+    cv2.fillConvexPoly(mask, cv2.convexHull(pts), 1)
+    return mask.astype(bool)
+
+
+def _position_fix(args, rows) -> dict:
+    """The robot's pose from --landmark regions (omniflow.applications.position_fix)."""
+    from omniflow.applications import position_fix
+    from omniflow.regions import parse_landmark
+
+    by_name = {row["name"]: row for row in rows}
+    marks = [parse_landmark(text) for text in args.landmark]
+    used = [(name, x, y, by_name[name]) for name, x, y in marks]
+    empty = [name for name, _, _, row in used if row["points"] == 0]
+    block: dict[str, Any] = {"landmarks": {n: [x, y] for n, x, y, _ in used}}
+    if empty:
+        block["error"] = f"region(s) {', '.join(empty)} hold no matched point"
+        return block
+    try:
+        fix = position_fix(
+            [[x, y] for _, x, y, _ in used],
+            [row["r"] for *_, row in used],
+            [math.radians(row["bearing_deg"]) for *_, row in used],
+        )
+    except ValueError as exc:
+        block["error"] = _one_line(exc)
+        return block
+    block.update({
+        "from": "each region's centroid (r, bearing) against its landmark's world (X, Y)",
+        "x_m": fix.x,
+        "y_m": fix.y,
+        "yaw_deg": math.degrees(fix.yaw),
+        "rms_position_m": fix.rms_position,
+    })  # fmt: skip
+    return block
 
 
 # -- main ---------------------------------------------------------------------------------
@@ -658,9 +988,19 @@ def run(args: argparse.Namespace, config_fields: list[str], argv: list[str]) -> 
     _check_options(args)
     t0 = time.perf_counter()
     f1, f2, t, rig, rig_source, info = _load_inputs(args, config)
+    masks = _region_masks(args, rig, f1[0].shape)
     t_read = time.perf_counter() - t0
+    frame_interval = (
+        args.frame_interval if args.frame_interval is not None else info.get("frame_interval_s")
+    )
+    with_regions = bool(masks) or args.auto_regions
     out = Path(args.out)
-    written = OUTPUTS if not args.no_pictures else ("flow.csv", "flow.json")
+    written = [
+        name
+        for name in OUTPUTS
+        if not (args.no_pictures and name in PICTURES)
+        and not (name == "regions.csv" and not with_regions)
+    ]
     with OutputSet(out, owned=OUTPUTS, manifest="flow.json") as stage:
         t1 = time.perf_counter()
         try:
@@ -680,9 +1020,19 @@ def run(args: argparse.Namespace, config_fields: list[str], argv: list[str]) -> 
         t2 = time.perf_counter()
         cols = result.columns
         cols["time_to_contact"] = time_to_contact(cols["r"], cols["dr_dt"])
+        fit, odometry_block = None, None
+        if args.odometry or args.auto_regions:
+            fit, odometry_block = _odometry(cols, args.odometry_radial_weight)
+            cols["odometry_inlier"] = (
+                fit.inliers.astype(float) if fit is not None else np.full(len(cols["x"]), np.nan)
+            )
+        rows, outlines, regions_block = [], [], None
+        if with_regions:
+            rows, outlines, regions_block = _regions(args, cols, masks, fit, rig, frame_interval)
+            atomic_write_text(stage / "regions.csv", regions_csv_text(rows))
         result.to_csv(stage / "flow.csv")
         if not args.no_pictures:
-            _pictures(stage, f1[t], rig.cam1, cols, args.arrow_scale)
+            _pictures(stage, f1[t], rig.cam1, cols, args.arrow_scale, outlines)
         t_write = time.perf_counter() - t2
 
         n = len(cols["x"])
@@ -704,8 +1054,12 @@ def run(args: argparse.Namespace, config_fields: list[str], argv: list[str]) -> 
             "outputs": list(written),
             "median_flow_px": float(np.median(np.hypot(cols["dx"], cols["dy"]))) if n else None,
         }
-        if args.odometry:
-            summary["odometry"] = _odometry_summary(cols)
+        if odometry_block is not None:
+            summary["odometry"] = odometry_block
+        if regions_block is not None:
+            summary["regions"] = regions_block
+        if args.landmark:
+            summary["position_fix"] = _position_fix(args, rows)
         atomic_write_text(stage / "flow.json", json_text(summary))
     return summary
 

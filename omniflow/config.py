@@ -47,23 +47,16 @@ class OmniFlowConfig:
         measured by Immerkaer's estimator on each unit's annulus; the
         narrower of the two units' choices). The band trades noise (in f_t,
         and in the gradients, which shrinks the flow: an errors-in-variables
-        bias) against texture detail; docs/measurements.md, "omniflow
-        accuracy", has the figures. The automatic choice is not the default:
-        Immerkaer's estimate reads fine texture as noise, and on the 128 px
-        closed-form validation scene it read 0.034 (the frames are noise-free
-        but for 8-bit rounding), chose 1/8 and multiplied the mean EPE by 40
-        (0.079 -> 3.3 px); on the converged default renders it chooses 1/2,
-        the default, anyway (docs/measurements.md, "flow band default").
+        bias) against texture detail. The automatic choice is not the
+        default because Immerkaer's estimate reads fine texture as noise
+        (docs/measurements.md, "flow band default").
     flow_band_rule : {"gain", "variance"}
         With ``flow_band=None``: the widest band whose fitted gradient keeps
         ``flow_band_gain`` of its power as signal
         (omniflow.noise.predicted_gain), or the widest whose predicted flow
         variance (omniflow.noise.predicted_variance) is within
-        ``flow_band_tolerance`` of the least. "variance" measured better on
-        rendered frames (1 % noise: it picks 1/4 on the default scene, cam2
-        EPE 0.55x DIS instead of 0.77x) but picks too narrow a band for
-        texture whose detail runs along one direction only (closed-form
-        striped wall: 0.075 px instead of 0.0025); docs/measurements.md.
+        ``flow_band_tolerance`` of the least; docs/measurements.md compares
+        the two rules.
     flow_band_tolerance : float
         ``flow_band_rule="variance"``: the factor over the least variance allowed.
     flow_band_gain : float
@@ -111,7 +104,7 @@ class OmniFlowConfig:
         Robust matcher: neighbouring radial lines on each side in the patch.
     profile_step : float or None
         Robust matcher: spacing of the profile's samples, pixels; None:
-        patch_radius / 8.
+        patch_radius / 16 (33 samples per profile).
     min_score : float
         Robust matcher: smallest normalised cross-correlation accepted.
     uniqueness : float
@@ -124,10 +117,7 @@ class OmniFlowConfig:
         significance threshold.
     tangential_blur : float
         Robust matcher: Gaussian blur across the radial lines, radians, to
-        bring both units to one angular resolution; 0 disables it. 0.02
-        (was 0.03, before that 0.06): fewer outliers and more matches on
-        the rendered scenes (docs/measurements.md, "Matching: density,
-        sharp peaks").
+        bring both units to one angular resolution; 0 disables it.
     consistency : float
         Robust matcher: disparity consistency vote, pixels: keep a match only
         if enough neighbours (+-0.05 rad, +-r_m/16) have a disparity within
@@ -140,9 +130,7 @@ class OmniFlowConfig:
         accept a match only when (1 - NCC_best) <= self_similarity
         (1 - NCC_self), NCC_self the best NCC of the point's profile with
         another edge of its own line within the window's width; 1 disables
-        (the default: 0.5 cut the wrong matches on periodic closed-form walls
-        15-30 times but changed nothing on the rendered default scene and
-        costs ~45 % of the matching time; docs/measurements.md).
+        (the default; docs/measurements.md has its effect and cost).
     alias_score : float
         Robust matcher: periodic-alias test (omniflow.matching.robust): drop a
         match whose image-1 profile recurs on its own line (NCC above this,
@@ -180,13 +168,8 @@ class OmniFlowConfig:
         Pooled solver: neighbourhood radius, pixels; None: r_m / 8 (16 px at
         256 x 256, 32 px at 512 x 512).
     pool_k : int
-        Pooled solver: most neighbours, the point itself included. With
-        r_m / 8, 48 neighbours measured better than r_m / 16 and 24 on
-        closed-form frames (median EPE with the true matches 0.0050 ->
-        0.0030 px striped, 0.0142 -> 0.0112 room) and on rendered ones
-        (default scene, 16 spp, true matches: 0.224 -> 0.183 px cam1,
-        0.398 -> 0.321 px cam2 at 512 px; 0.321 -> 0.187, 0.533 -> 0.327 at
-        128 px 4 spp): the render noise averages out over more equations.
+        Pooled solver: most neighbours, the point itself included
+        (docs/measurements.md has 48 against 24).
     pool_range_tol : float or None
         Pooled solver: neighbours whose range differs by more than this
         fraction (another surface) are left out; None keeps them.
@@ -195,6 +178,28 @@ class OmniFlowConfig:
         neighbours whose first-pass flow differs from the point's by more
         than this, cam1 pixels per frame (a mover keeps its own motion where
         its range does not set it apart from the background); None: one pass.
+    pool_edge_tol : float or None
+        Pooled solver: leave out the neighbours separated from the point by
+        an image edge stronger than this many times the typical edge at the
+        matches (the largest gradient magnitude of the flow step's fitted
+        cam1 image on the segment between them, against its median at the
+        matches; omniflow.flow.edge_between): an object's outline bounds the
+        pool where it is a stronger edge than the texture. None: no test.
+        Off by default: on the rendered scenes the range test already keeps
+        the movers' pools on the movers, and the edge test only thins the
+        pools (docs/measurements.md, "Pooling that respects objects").
+    pool_residual_tol : float or None
+        Pooled solver: solve twice, and in the second pass leave out the
+        neighbours whose own eq. (9) and (15) miss the point's first-pass
+        flow by more than this many robust standard deviations of the
+        residuals (omniflow.flow.consistent_neighbours): another motion, or
+        another surface. None: one pass (unless ``pool_flow_tol``).
+    pool_min_info : float or None
+        Pooled solver: adapt each pool's size to the local texture; the pool
+        grows over the neighbours, nearest first, until the weaker direction
+        of its normal matrix holds this many typical points' information
+        (omniflow.flow.informative_pools), so rich texture pools a few close
+        neighbours and poor texture all of them. None: every neighbour.
     pool_model : {"linear", "constant"}
         Pooled solver: local flow model (omniflow.flow.pooled_solution),
         varying linearly with theta or constant.
@@ -212,15 +217,9 @@ class OmniFlowConfig:
         point (averaged with frame t's at the point for
         gradients="average"), and eq. (9) and (15) are solved again (same
         solver) for the increment. 0 is the paper's single first-order step
-        of eq. (8); the paper does not iterate. Measured: helps on exact
-        closed-form frames with ~0.7 px of motion (0.028 -> 0.013 px median
-        EPE, tests/omniflow/test_flow.py), hurts on rendered frames (default scene,
-        true matches, 512 px 16 spp, 24 neighbours: 0.224 -> 0.283 px cam1;
-        scenes/turn_in_place, default pooling: 0.125 -> 0.187 px) where the
-        error is render noise, not the linearisation; it
-        helps again where the motion is several pixels (scenes/large_motion,
-        512 px: 2.77 -> 1.50 px cam1 with 3 iterations, still far off). Off
-        by default.
+        of eq. (8); the paper does not iterate. Off by default: it helps
+        where the linearisation is the error (exact frames, large motion)
+        and hurts where noise is (docs/measurements.md).
     rim_fill : {"reflect", "none"}
         Before the DCT fit, replace the pixels beyond the mirror's rim by the
         image reflected radially about the rim ("reflect"), or keep them
@@ -270,6 +269,9 @@ class OmniFlowConfig:
     pool_range_tol: float | None = 0.1
     pool_model: str = "linear"
     pool_flow_tol: float | None = None
+    pool_edge_tol: float | None = None
+    pool_residual_tol: float | None = None
+    pool_min_info: float | None = None
     min_conditioning: float = 0.0
     sampling: str = "cubic"
     iterations: int = 0
@@ -303,6 +305,10 @@ class OmniFlowConfig:
                 f"OmniFlowConfig.flow_band_gain = {self.flow_band_gain!r}: "
                 "expected a fraction in (0, 1)"
             )
+        for name in ("pool_edge_tol", "pool_residual_tol", "pool_min_info"):
+            val = getattr(self, name)
+            if val is not None and not val > 0:
+                raise ValueError(f"OmniFlowConfig.{name} = {val!r}: expected > 0 or None")
         if self.noise_sigma is not None and not self.noise_sigma >= 0:
             raise ValueError(
                 f"OmniFlowConfig.noise_sigma = {self.noise_sigma!r}: expected >= 0 or None"

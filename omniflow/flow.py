@@ -34,6 +34,14 @@ conditioned, 0 singular. The columns are scaled to pixels per frame
 (a, h_1 b) so the measure does not depend on units. For the 2x2 direct
 solution this is 1 / cond(A)^2.
 
+Pools that respect objects. :func:`neighbourhoods` leaves out neighbours at
+another range and, optionally, across a strong image edge
+(:func:`edge_between`); :func:`consistent_neighbours` leaves out those whose
+own equations reject the point's first-pass flow (another motion), and
+:func:`informative_pools` cuts each pool to the nearest neighbours that
+condition it well enough (small pools in rich texture). A pool thinned
+below a few neighbours keeps them all, as its solve would be near-singular.
+
 When the scene point moves along the axis with dh/dt != 0, differentiating
 eq. (3)-(4) gives dh_2 - (h_2/h_1) dh_1 = s v dh / ((d + r)(s - h)) (see
 :func:`axial_motion_violation`), and eq. (15) is off by f2_h times that;
@@ -49,8 +57,12 @@ from scipy.spatial import cKDTree
 __all__ = [
     "axial_motion_violation",
     "conditioning",
+    "consistent_neighbours",
+    "determinant",
     "direct_solution",
+    "edge_between",
     "flow_residual",
+    "informative_pools",
     "neighbourhoods",
     "partial_solutions",
     "pooled_solution",
@@ -140,6 +152,16 @@ def _eig_ratio(m11: NDArray, m12: NDArray, m22: NDArray) -> NDArray:
         return np.where(lmax > 0, lmin / lmax, 0.0)
 
 
+def determinant(
+    f1_h: ArrayLike, f1_theta: ArrayLike, f2_h: ArrayLike, f2_theta: ArrayLike,
+    h1: ArrayLike, h2: ArrayLike,
+) -> NDArray:  # fmt: skip
+    """The determinant D of the coaxial system, eq. (16); ~0 where eq. (9) and (15) are
+    nearly dependent."""
+    f1_h, f1_theta, f2_h, f2_theta, h1, h2 = _arr(f1_h, f1_theta, f2_h, f2_theta, h1, h2)
+    return f1_h * f2_theta - (h2 / h1) * f2_h * f1_theta  # eq. (16), with eq. (14)
+
+
 def direct_solution(
     f1_h: ArrayLike,
     f1_theta: ArrayLike,
@@ -179,7 +201,7 @@ def direct_solution(
         f1_h, f1_theta, f1_t, f2_h, f2_theta, f2_t, h1, h2
     )
     k = h2 / h1  # eq. (14)
-    D = f1_h * f2_theta - k * f2_h * f1_theta  # eq. (16)
+    D = determinant(f1_h, f1_theta, f2_h, f2_theta, h1, h2)
     ok = D != 0
     if min_conditioning > 0:
         ok &= conditioning(f1_h, f1_theta, f2_h, f2_theta, h1, h2) >= min_conditioning
@@ -197,6 +219,9 @@ def neighbourhoods(
     radius: float = 4.0,
     r: ArrayLike | None = None,
     range_tol: float | None = 0.1,
+    edge_map: NDArray | None = None,
+    edge_tol: float | None = None,
+    min_count: int = 8,
 ) -> tuple[NDArray, NDArray]:
     """The k nearest matched points within ``radius`` px of each (itself included).
 
@@ -211,6 +236,17 @@ def neighbourhoods(
     r : array_like, shape (N,), optional
         Triangulated range; with ``range_tol`` neighbours whose range differs
         by more than range_tol * r (another surface) get zero weight.
+    edge_map : ndarray, shape (H, W), optional
+        Edge strength on the pixel grid (e.g. the gradient magnitude of the
+        fitted image); with ``edge_tol``, neighbours separated from the point
+        by an edge stronger than edge_tol times the median of ``edge_map`` at
+        the points (:func:`edge_between`) get zero weight: an object's
+        outline, where it is a stronger edge than the texture on either side,
+        bounds the pool.
+    edge_tol : float, optional
+    min_count : int
+        A pool that the edge test would leave with fewer neighbours than
+        this keeps them all (its solve would be near-singular).
 
     Returns
     -------
@@ -237,10 +273,235 @@ def neighbourhoods(
             same = np.abs(rr[idx] - rr[:n, None]) <= range_tol * np.abs(rr[:n, None])
         same[:, 0] = True
         w = np.where(same, w, 0.0)
+    if edge_map is not None and edge_tol is not None:
+        strength = edge_between(edge_map, pts[:, 0], pts[:, 1], idx)
+        level = np.median(_sample_grid(edge_map, pts[:, 0], pts[:, 1]))
+        w = _keep_enough(np.where(strength > edge_tol * level, 0.0, w), w, min_count)
     if kk < k:
         idx = np.pad(idx, ((0, 0), (0, k - kk)), constant_values=n)
         w = np.pad(w, ((0, 0), (0, k - kk)))
     return idx, w
+
+
+def _sample_grid(grid: NDArray, x: NDArray, y: NDArray) -> NDArray:
+    """Bilinear samples of a pixel grid at pixel coordinates (x, y) (centres at j + 1/2)."""
+    from scipy.ndimage import map_coordinates
+
+    return map_coordinates(grid, [np.ravel(y) - 0.5, np.ravel(x) - 0.5], order=1,
+                           mode="nearest").reshape(np.shape(x))  # fmt: skip
+
+
+def _keep_enough(w_new: NDArray, w_old: NDArray, min_count: int) -> NDArray:
+    """``w_new``, except that a pool left with fewer than ``min_count`` neighbours keeps ``w_old``.
+
+    A pool thinned below the four unknowns of the linear model (plus a margin)
+    gives a near-singular solve and a heavy-tailed flow; there the wider
+    pool's answer is the better one.
+    """
+    few = np.count_nonzero(w_new > 0, axis=1) < np.minimum(
+        min_count, np.count_nonzero(w_old > 0, axis=1)
+    )
+    return np.where(few[:, None], w_old, w_new)
+
+
+def edge_between(
+    edge_map: NDArray, x: ArrayLike, y: ArrayLike, idx: NDArray, *, spacing: float = 2.0
+) -> NDArray:
+    """The strongest edge on the segment from each point to each of its neighbours.
+
+    ``edge_map`` (H, W) is dilated with a square of ``spacing`` + 1 px, so
+    samples every ``spacing`` px along the open segment (its end points
+    left out: they lie on edges, being significant points) see every peak
+    within spacing / 2 of the line.
+
+    Parameters
+    ----------
+    edge_map : ndarray, shape (H, W)
+        Edge strength on the pixel grid.
+    x, y : array_like, shape (N,)
+        Pixel coordinates of the points.
+    idx : ndarray, shape (N, K), int
+        Neighbour indices, N for none (as :func:`neighbourhoods` returns).
+    spacing : float
+        Sample spacing along the segments, pixels.
+
+    Returns
+    -------
+    ndarray, shape (N, K)
+        Largest dilated edge strength between point i and neighbour idx[i, j];
+        0 for the point itself, a missing neighbour or one closer than spacing.
+    """
+    import cv2
+
+    x = np.asarray(x, dtype=np.float64).ravel()
+    y = np.asarray(y, dtype=np.float64).ravel()
+    n = x.size
+    size = 2 * int(np.ceil(spacing / 2.0)) + 1
+    dil = cv2.dilate(np.asarray(edge_map, np.float32), np.ones((size, size), np.uint8))
+    found = idx < n
+    xe, ye = np.append(x, np.nan), np.append(y, np.nan)
+    dx, dy = xe[idx] - x[:, None], ye[idx] - y[:, None]
+    length = np.where(found, np.hypot(dx, dy), 0.0)
+    m = int(np.ceil(np.max(length, initial=0.0) / spacing))  # samples on the longest segment
+    out = np.zeros(idx.shape)
+    if m < 2:
+        return out
+    ii, jj = np.nonzero(found & (length >= spacing))
+    seg = length[ii, jj]
+    for s in range(1, m):
+        frac = s * spacing / seg  # a point every ``spacing`` px from point i
+        inside = frac < 1.0 - 0.5 * spacing / seg
+        if not inside.any():
+            break
+        a, b = ii[inside], jj[inside]
+        f = frac[inside]
+        vals = _sample_grid(dil, x[a] + f * dx[a, b], y[a] + f * dy[a, b])
+        out[a, b] = np.maximum(out[a, b], vals)
+    return out
+
+
+def consistent_neighbours(
+    idx: NDArray,
+    w: NDArray,
+    f1_h: ArrayLike,
+    f1_theta: ArrayLike,
+    f1_t: ArrayLike,
+    f2_h: ArrayLike,
+    f2_theta: ArrayLike,
+    f2_t: ArrayLike,
+    h1: ArrayLike,
+    h2: ArrayLike,
+    a: ArrayLike,
+    b: ArrayLike,
+    *,
+    tol: float,
+    min_count: int = 8,
+) -> NDArray:
+    """Pool weights without the neighbours whose own equations reject the point's flow.
+
+    Neighbour j's eq. (9) and (15) are evaluated at point i's first-pass
+    flow (a_i h_1,j / h_1,i, b_i) (the relative model of
+    :func:`pooled_solution`); where the RMS of the two residuals exceeds
+    ``tol`` times their robust scale over all points at their own flow
+    (1.4826 times the median absolute residual), j moves differently (or
+    is another surface) and gets weight 0. Unlike comparing the
+    neighbours' first-pass flows (each already a mixture where its pool
+    crossed the outline), this asks j's own data. A point without a
+    first-pass flow keeps its neighbours.
+
+    Parameters
+    ----------
+    idx, w : ndarray, shape (N, K)
+        From :func:`neighbourhoods`.
+    f1_h ... h2 : array_like, shape (N,)
+        As in :func:`pooled_solution`.
+    a, b : array_like, shape (N,)
+        First-pass dh_1/dt and dtheta/dt at the points.
+    tol : float
+        Residual allowed, in robust standard deviations.
+    min_count : int
+        A pool that the test would leave with fewer neighbours than this
+        keeps them all.
+
+    Returns
+    -------
+    ndarray, shape (N, K)
+    """
+    f1_h, f1_theta, f1_t, f2_h, f2_theta, f2_t, h1, h2 = (
+        np.append(np.asarray(v, dtype=np.float64).ravel(), np.nan)
+        for v in (f1_h, f1_theta, f1_t, f2_h, f2_theta, f2_t, h1, h2)
+    )
+    n = f1_h.size - 1
+    a = np.asarray(a, dtype=np.float64).ravel()
+    b = np.asarray(b, dtype=np.float64).ravel()
+    k = h2 / h1  # eq. (14)
+    aj = (a / h1[:n])[:, None] * h1[idx]  # the point's radial flow at the neighbour's radius
+    bj = b[:, None]
+    res1 = f1_h[idx] * aj + f1_theta[idx] * bj + f1_t[idx]  # eq. (9)
+    res2 = k[idx] * f2_h[idx] * aj + f2_theta[idx] * bj + f2_t[idx]  # eq. (15)
+    rms = np.sqrt(0.5 * (res1 * res1 + res2 * res2))
+    own = np.abs(np.concatenate([res1[:, 0], res2[:, 0]]))
+    own = own[np.isfinite(own)]
+    if own.size == 0:
+        return w
+    scale = 1.4826 * np.median(own)
+    with np.errstate(invalid="ignore"):
+        same = rms <= tol * scale
+    same[:, 0] = True
+    same |= ~(np.isfinite(a) & np.isfinite(b))[:, None]
+    return _keep_enough(np.where(same, w, 0.0), w, min_count)
+
+
+def informative_pools(
+    idx: NDArray,
+    w: NDArray,
+    f1_h: ArrayLike,
+    f1_theta: ArrayLike,
+    f2_h: ArrayLike,
+    f2_theta: ArrayLike,
+    h1: ArrayLike,
+    h2: ArrayLike,
+    *,
+    target: float,
+    min_count: int = 8,
+) -> NDArray:
+    """Pool weights cut to the nearest neighbours that condition eq. (9) and (15) well enough.
+
+    The pool of point i grows over its neighbours in order of distance (the
+    order :func:`neighbourhoods` gives) until the weaker direction of its
+    normal matrix on (dh_1/dt, h_1 dtheta/dt) (the ``model="constant"``
+    matrix of :func:`pooled_solution`) holds ``target`` times the
+    information of a typical single equation pair (the median over the
+    points of their own largest eigenvalue); later neighbours get weight 0.
+    Rich texture reaches that with a few close neighbours, so the pool stays
+    small and crosses fewer object outlines; poor texture keeps the whole
+    neighbourhood. At least ``min_count`` neighbours (with non-zero weight
+    or not) are kept, so the linear model's four unknowns stay determined.
+
+    Parameters
+    ----------
+    idx, w : ndarray, shape (N, K)
+        From :func:`neighbourhoods`, neighbours sorted by distance.
+    f1_h ... h2 : array_like, shape (N,)
+        Gradients and radii at the points, as in :func:`pooled_solution`.
+    target : float
+        Information wanted on the weaker direction, in typical single points.
+    min_count : int
+        Fewest neighbours kept, the point itself counted.
+
+    Returns
+    -------
+    ndarray, shape (N, K)
+        ``w`` with the neighbours past the informative prefix set to 0.
+    """
+    f1_h, f1_theta, f2_h, f2_theta, h1, h2 = (
+        np.append(np.asarray(v, dtype=np.float64).ravel(), 0.0)
+        for v in (f1_h, f1_theta, f2_h, f2_theta, h1, h2)
+    )
+    n = f1_h.size - 1
+    h1[n] = 1.0
+    hi = h1[:n, None]
+    rel = h1[idx] / hi
+    p1, p2 = f1_h[idx] * rel, (h2 / h1 * f2_h)[idx] * rel
+    q1, q2 = f1_theta[idx] / hi, f2_theta[idx] / hi
+    pp, pq, qq = p1 * p1 + p2 * p2, p1 * q1 + p2 * q2, q1 * q1 + q2 * q2
+    own_max = _eig_max(pp[:, 0], pq[:, 0], qq[:, 0])
+    level = target * np.median(own_max)
+    cpp, cpq, cqq = (np.cumsum(w * v, axis=1) for v in (pp, pq, qq))
+    lmin = _eig_max(cpp, cpq, cqq) * _eig_ratio(cpp, cpq, cqq)
+    enough = lmin >= level
+    # first prefix length that is informative enough; K where none is
+    count = np.where(enough.any(axis=1), np.argmax(enough, axis=1) + 1, idx.shape[1])
+    count = np.maximum(count, min_count)
+    keep = np.arange(idx.shape[1])[None, :] < count[:, None]
+    return np.where(keep, w, 0.0)
+
+
+def _eig_max(m11: NDArray, m12: NDArray, m22: NDArray) -> NDArray:
+    """lambda_max of symmetric 2x2 matrices [[m11, m12], [m12, m22]]."""
+    tr = m11 + m22
+    det = m11 * m22 - m12 * m12
+    return 0.5 * tr + np.sqrt(np.maximum(0.25 * tr * tr - det, 0.0))
 
 
 def pooled_solution(

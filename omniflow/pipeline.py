@@ -18,27 +18,9 @@ pixel flow is the displacement of the point's image over one frame,
 (x_c + (h + dh) cos(theta + dtheta), ...) - (x, y), so it compares directly
 with a ground-truth displacement; velocities are per frame interval.
 
-Accuracy of the variants (closed-form scenes, 256 x 256, 0.1-0.27 px of
-motion; median endpoint error; the tests print the full tables):
-
-================================================  ============  ==============
-configuration                                     true matches  end to end
-================================================  ============  ==============
-paper: band 1/4, paper matching, first-frame      0.045-0.32    0.29-0.94
-gradients, frame difference, direct (eq. 16)                    (58-91 % wrong
-                                                                matches)
-band 1/2, averaged gradients, direct              0.009-0.145
-band 1/4, averaged gradients, pooled              0.014-0.066
-default: band 1/2, robust matching, averaged      0.0005-0.011  0.004-0.009
-gradients, frame difference, pooled (linear,                    (0 % wrong)
-48 neighbours within r_m / 8)
-same with the 3-D DCT over 3 frames               0.0035-0.015
-OpenCV DIS medium, same frames and points         0.014-0.097   0.033-0.097
-================================================  ============  ==============
-
-(tests/omniflow/test_flow.py for the true-match table, tests/omniflow/test_pipeline.py end to
-end, tests/omniflow/test_matching.py for the matchers.) Eq. (14) assumes no motion
-along the axis; a wall moving up shows the error omniflow.flow predicts
+Accuracy of the variants on closed-form scenes (true matches and end to end,
+against OpenCV DIS): docs/measurements.md, "Moved from the omniflow
+docstrings". Eq. (14) assumes no motion along the axis
 (tests/omniflow/test_flow.py::test_vertical_motion_bias_matches_prediction).
 
 Where each step lives: the knobs in :mod:`omniflow.config`, the result in

@@ -17,7 +17,14 @@ from numpy.typing import NDArray
 from omniflow.applications import radial_velocity
 from omniflow.config import OmniFlowConfig
 from omniflow.flow import conditioning as direct_conditioning
-from omniflow.flow import direct_solution, neighbourhoods, pooled_solution
+from omniflow.flow import (
+    consistent_neighbours,
+    determinant,
+    direct_solution,
+    informative_pools,
+    neighbourhoods,
+    pooled_solution,
+)
 from omniflow.matching import Matches
 from omniflow.rig import Rig, Unit
 from omniflow.sampling import sample_f, sample_fine, sample_polar_grad
@@ -47,9 +54,12 @@ def flow_at_matches(
     t1 = time.perf_counter()
     r, h = rig.triangulate(h1, h2)
     noise = (cam1.get("noise_var", 0.0), cam2.get("noise_var", 0.0))
-    solve = make_solver(rig, config, x1, y1, theta, h1, h2, r, noise)
+    edge_map = None
+    if config.solver == "pooled" and config.pool_edge_tol is not None:
+        edge_map = np.hypot(*cam1["g"].grad_xy)  # |grad f| of the flow step's cam1 image
+    solve = make_solver(rig, config, x1, y1, theta, h1, h2, r, noise, edge_map=edge_map)
     a, b, conf = solve(f1_h, f1_th, f1_t, f2_h, f2_th, f2_t)
-    D = f1_h * f2_th - (h2 / h1) * f2_h * f1_th  # eq. (16)
+    D = determinant(f1_h, f1_th, f2_h, f2_th, h1, h2)
     k = h2 / h1  # eq. (14)
     for _ in range(config.iterations):
         # Gauss-Newton on eq. (8)'s linearisation: the residual of brightness
@@ -133,12 +143,15 @@ def make_solver(
     h2: NDArray,
     r: NDArray,
     noise: tuple[float, float] = (0.0, 0.0),
+    *,
+    edge_map: NDArray | None = None,
 ):
     """The configured solver of eq. (9) and (15) at these matches, as a function
     of the six derivatives returning (dh1_dt, dtheta_dt, confidence).
 
     ``noise``: the variance of each unit's gradient components, subtracted by
-    the pooled solver (``eiv="correct"``)."""
+    the pooled solver (``eiv="correct"``). ``edge_map``: cam1's edge strength
+    on the pixel grid, for ``config.pool_edge_tol``."""
     if config.solver == "direct":
 
         def solve(f1_h, f1_th, f1_t, f2_h, f2_th, f2_t):
@@ -158,8 +171,9 @@ def make_solver(
         return solve
     pool_radius = rig.cam1.r_m / 8.0 if config.pool_radius is None else config.pool_radius
     idx, w = neighbourhoods(
-        x1, y1, k=config.pool_k, radius=pool_radius, r=r, range_tol=config.pool_range_tol
-    )
+        x1, y1, k=config.pool_k, radius=pool_radius, r=r, range_tol=config.pool_range_tol,
+        edge_map=edge_map, edge_tol=config.pool_edge_tol,
+    )  # fmt: skip
 
     kw = dict(theta=theta, model=config.pool_model, scale=pool_radius,
               min_conditioning=config.min_conditioning)  # fmt: skip
@@ -172,10 +186,19 @@ def make_solver(
 
     def solve(f1_h, f1_th, f1_t, f2_h, f2_th, f2_t):
         derivs = (f1_h, f1_th, f1_t, f2_h, f2_th, f2_t)
-        a, b, conf = solve_w(derivs, w)
+        weights = w
+        if config.pool_min_info is not None:  # the pool's size from the local texture
+            weights = informative_pools(idx, w, f1_h, f1_th, f2_h, f2_th, h1, h2,
+                                        target=config.pool_min_info)  # fmt: skip
+        a, b, conf = solve_w(derivs, weights)
+        if config.pool_residual_tol is not None:  # second pass: j's equations agree with i
+            weights = consistent_neighbours(idx, weights, *derivs, h1, h2, a, b,
+                                            tol=config.pool_residual_tol)  # fmt: skip
+            if config.pool_flow_tol is None:
+                return solve_w(derivs, weights)
         if config.pool_flow_tol is None:
             return a, b, conf
-        return solve_w(derivs, _same_motion(w, idx, a, b, h1, config.pool_flow_tol))
+        return solve_w(derivs, _same_motion(weights, idx, a, b, h1, config.pool_flow_tol))
 
     return solve
 

@@ -64,23 +64,8 @@ Measured on closed-form scenes (``omniflow.synthetic``, see
 ``tests/omniflow/test_matching.py``): see that file's module docstring for the
 figures and the command.
 
-On rendered frames (omnisim, path traced) the robust matcher's outliers
-(|h_2 - gt.stereo.h_other| > 1 px) are mostly small: on the default scene at
-512 x 512, 16 spp, with the earlier defaults (tangential_blur 0.06, profiles
-of 9 samples, no vote) 20.6 % of 1208 matches, of which 215 of 249 within
-3 px and unbiased (median signed error 0.0 px, no trend with theta or h_1);
-0.5 % of the matches see a point cam2 does not (gt.stereo.valid = 0), 13 %
-of the outliers (6 % of all matches) lie within 6 px of an object boundary,
-and no match lies beyond 0.85 r_m (the rim is not the cause).
-The outliers follow the render noise (256 x 256: 22.8 % at 4 spp, 6.7 % at
-64 spp) and the score (33 % below NCC 0.97, 12.5 % above 0.99). Added
-Gaussian noise on closed-form frames does not reproduce them (0 % at 5 %
-noise): path-traced frames differ between the units by more than white
-noise. Three changes, measured on that frame (``match_radial`` on the
-frame's 8-bit grey image, as ``omnivalidate`` feeds it): a narrower
-tangential blur (0.03: 14.9 %), profiles of 17 samples either side
-(``profile_step`` patch_radius / 16: 13.7 % alone, 7.8 % with the blur,
-as many matches) and the consistency vote (5.0 % of 1036 matches).
+Outliers on rendered frames, and the three changes that cut them:
+docs/measurements.md, "Moved from the omniflow docstrings".
 """
 
 from __future__ import annotations
@@ -245,11 +230,8 @@ def match_radial(
     profile_step : float, optional
         ``robust``: spacing of the profile's samples along the radial line,
         pixels (rounded to a multiple of h_step); default patch_radius / 16,
-        33 samples (at most one per h_step). On rendered frames (path-tracing
-        noise) the denser profile halved the outliers at 512 x 512 (16 spp:
-        13.7 % instead of 20.6 % alone, 7.8 % instead of 14.9 % with
-        tangential_blur 0.03); patch_radius / 8 was as good on noise-free
-        closed-form frames.
+        33 samples (at most one per h_step); docs/measurements.md has the
+        figures (fewer outliers on rendered frames than patch_radius / 8).
     min_score : float
         ``robust``: smallest NCC accepted.
     uniqueness : float
@@ -276,12 +258,8 @@ def match_radial(
         times more coarsely in theta than cam2 at the same point, so the
         same patch looks different in the two units unless both are blurred
         to a common angular resolution. 0 disables it. Default 0.03 (1.7
-        lines of 360): on rendered frames it matched more points with fewer
-        outliers than 0.06 (default scene, 512 x 512, 16 spp: 14.9 % instead
-        of 20.6 %; 256 x 256, 64 spp: 2.5 % instead of 6.7 %; 0.02 and 0.04
-        were as good or worse); on closed-form frames it matched as well
-        (0.2 % outliers in all, 0.3 % with 0.06) but fewer points on the
-        room texture (704 / 1525 instead of 893 / 1893).
+        lines of 360); docs/measurements.md has the figures against 0.02,
+        0.04 and 0.06.
     consistency : float
         ``robust``: disparity consistency vote, pixels of cam2 (0 disables).
         A surface's disparity h_2 - (v_2 / v_1) h_1 varies smoothly, so a
@@ -289,9 +267,8 @@ def match_radial(
         neighbouring matches (within +-0.05 rad in theta and +-r_m / 16 in
         h_1), and at least half of them, have a disparity within
         ``consistency`` of its own. On rendered frames most outliers are
-        1-3 px errors of isolated matches (path-tracing noise); measured on
-        the default scene, 512 x 512, 16 spp: 7.8 % -> 5.2 % outliers for
-        18 % fewer matches (see ``tests/omniflow/test_matching.py``).
+        1-3 px errors of isolated matches; docs/measurements.md has what the
+        vote removes.
     consistency_support : int
         ``robust``: the agreeing neighbours a match needs.
     flatness : float

@@ -17,6 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from omniflow.dct import DCTFit
+from omniflow.edges import polar_gradient_grid
 from omniflow.rig import Unit
 
 __all__ = [
@@ -62,41 +63,15 @@ def polar_grids(fit: DCTFit, unit: Unit, *, gradient: bool = True) -> PolarGrids
     return PolarGrids(f=f, f_h=f_h, f_theta=f_th)
 
 
-@lru_cache(maxsize=8)
-def _polar_basis(unit: Unit) -> tuple[NDArray, NDArray, NDArray, NDArray]:
-    """Per-pixel (cos theta_i, sin theta_i, x - x_c, y - y_c), float32 (H, W); 0 at h_i = 0."""
-    x, y = unit.pixel_centres()
-    dx, dy = x - unit.x_c, y - unit.y_c
-    h_i = np.hypot(dx, dy)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        c = np.where(h_i > 0, dx / h_i, 0.0)
-        s = np.where(h_i > 0, dy / h_i, 0.0)
-    out = tuple(np.ascontiguousarray(a, dtype=np.float32) for a in (c, s, dx, dy))
-    for a in out:
-        a.setflags(write=False)
-    return out
-
-
 def polar_gradient_fast(fit: DCTFit, unit: Unit) -> tuple[NDArray, NDArray]:
     """(df/dh_i, df/dtheta_i) on the pixel grid, float32, eq. (19)-(20).
 
-    The same as :func:`omniflow.edges.polar_gradient_grid` (with 0 instead of
-    NaN for f_h at h_i = 0), using cached per-pixel cos/sin grids.
+    :func:`omniflow.edges.polar_gradient_grid` with 0 instead of NaN for f_h at
+    h_i = 0 (the matchers compare magnitudes; a NaN would poison percentiles).
     """
-    if (fit.width, fit.height) != (unit.width, unit.height):
-        raise ValueError(
-            f"fit is {fit.width}x{fit.height} but unit {unit.name} is "
-            f"{unit.width}x{unit.height}: expected the same image size"
-        )
-    f_x, f_y = fit.grid_gradient()
-    f_x = np.asarray(f_x, dtype=np.float32)
-    f_y = np.asarray(f_y, dtype=np.float32)
-    c, s, dx, dy = _polar_basis(unit)
-    f_h = c * f_x
-    f_h += s * f_y  # eq. (19)
-    f_th = dx * f_y
-    f_th -= dy * f_x  # eq. (20)
-    return f_h, f_th
+    f_h, f_th = polar_gradient_grid(fit, unit)
+    f_h = np.nan_to_num(np.asarray(f_h, dtype=np.float32), nan=0.0, copy=False)
+    return f_h, np.asarray(f_th, dtype=np.float32)
 
 
 def polar_sample(

@@ -104,3 +104,30 @@ def dis_flow(frame0: np.ndarray, frame1: np.ndarray) -> np.ndarray:
     """OpenCV DIS (medium preset) on the 8-bit frames, (H, W, 2) pixels."""
     dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
     return dis.calc(to_uint8(frame0), to_uint8(frame1), None)
+
+
+def band_scene(rig: Rig, *, yaw: float = 0.01, band_mean: float = 0.25) -> SyntheticScene:
+    """A motion boundary the range test cannot see: a band turning in front of a wall.
+
+    The band is a short coaxial cylinder (r = 1.85 m, 0.40 <= Z <= 0.55 m, id 2, texture
+    mean ``band_mean``, contrast 0.2) turning about the rig's axis at ``yaw`` rad per
+    frame; the wall (r = 2.0 m, id 1, mean 0.5, contrast 0.4) is static, as is the rig.
+    Their ranges differ by 7.5 %, inside the default ``pool_range_tol``.
+    """
+    band = Cylinder(radius=1.85, id=2, name="band", z_min=0.40, z_max=0.55,
+                    texture=Texture.random(5, contrast=0.2, mean=band_mean,
+                                           period_u=2 * np.pi * 1.85),
+                    motion=Motion(yaw_rate=yaw))  # fmt: skip
+    wall_texture = Texture.random(3, contrast=0.4, mean=0.5, period_u=4 * np.pi)
+    wall = Cylinder(radius=2.0, id=1, name="wall", texture=wall_texture)
+    return SyntheticScene(rig=rig, bodies=(band, wall))
+
+
+def sparse_true_matches(scene: SyntheticScene, share: float, seed: int = 0):
+    """:func:`true_matches` at a seeded random ``share`` of the pixels (a matcher's density).
+
+    Returns (Matches, truth dict of cam1 at frame 0).
+    """
+    m, gt, _ = true_matches(scene)
+    keep = np.random.default_rng(seed).random(len(m.theta)) < share
+    return Matches.from_polar(scene.rig, m.theta[keep], m.h1[keep], m.h2[keep]), gt

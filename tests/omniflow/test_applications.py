@@ -307,6 +307,24 @@ def test_odometry_with_noise_matches_the_oracle_fit(seed):
     np.testing.assert_allclose((fit.w, fit.V_x, fit.V_y), truth, atol=1.5e-4)
 
 
+@pytest.mark.parametrize("seed", range(3))
+def test_own_velocity_is_each_mover_s_velocity(seed):
+    # Exact flow: the points' velocity the robot's motion does not explain is each moving
+    # point's own velocity (rig frame) and zero on static points, to float precision.
+    rng = np.random.default_rng(seed)
+    theta = rng.uniform(-np.pi, np.pi, 200)
+    r = rng.uniform(0.5, 4.0, 200)
+    w, vx, vy = 0.01, 0.02, -0.01
+    dr, dth = static_flow(theta, r, w, vx, vy)
+    own = np.zeros((200, 2))
+    own[:50] = rng.uniform(-0.05, 0.05, (50, 2))
+    c, s = np.cos(theta[:50]), np.sin(theta[:50])
+    dr[:50] += own[:50, 0] * c + own[:50, 1] * s
+    dth[:50] += (-own[:50, 0] * s + own[:50, 1] * c) / r[:50]
+    fit = odometry(theta, r, dth, dr)
+    np.testing.assert_allclose(fit.own_velocity(theta, r, dr, dth), own, atol=1e-12)
+
+
 def test_odometry_on_bearing_rates_only():
     # Without dr/dt (omni flow's noisier component) the bearing rates of points
     # spread around the axis still fix all three unknowns.

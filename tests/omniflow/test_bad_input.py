@@ -414,6 +414,12 @@ CASES = {
     "temporal-frames 1": (_opts("--temporal-frames", "1"), 2, "--temporal-frames 1"),
     "pool-k 0": (_opts("--pool-k", "0"), 2, "--pool-k 0"),
     "pool-range-tol negative": (_opts("--pool-range-tol", "-1"), 2, "--pool-range-tol -1"),
+    "pool-edge-tol 0": (
+        _opts("--pool-edge-tol", "0"),
+        2,
+        "--pool-edge-tol 0: expected a number > 0",
+    ),
+    "pool-min-info nan": (_opts("--pool-min-info", "nan"), 2, "--pool-min-info nan"),
     "r-max 0": (_opts("--r-max", "0"), 2, "--r-max 0"),
     "min-conditioning nan": (_opts("--min-conditioning", "nan"), 2, "--min-conditioning nan"),
     "r-min beyond r-max": (_opts("--r-min", "20"), 2, "r_min = 20.0, r_max = 10.0"),

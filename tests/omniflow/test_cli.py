@@ -184,11 +184,15 @@ def test_outputs_sidecar_and_pictures(case, tmp_path):
         assert meta["columns"][name], name  # units documented
     assert meta["columns"]["dx"].startswith("px/frame")
     assert meta["timings_s"]["estimate"] > 0 and "match" in meta["timings_s"]["pipeline_stages"]
-    # Odometry from the flow (bearing rates of all points): the robot turns by W and
-    # does not translate. Measured: yaw rate 0.01014, V (0.00075, 0.00031) m/frame.
+    # Odometry from the flow (dtheta/dt and dr/dt of all points, the default
+    # --odometry-radial-weight 1): the robot turns by W and does not translate. Measured:
+    # yaw rate 0.01044, V (-2.0e-5, -2.2e-5) m/frame, 97 % inliers (weight 0, bearing
+    # rates only: 0.01052, V (-2.8e-4, 9.2e-5), 85 %).
     odo = meta["odometry"]
     assert odo["yaw_rate_rad_per_frame"] == pytest.approx(W, abs=1e-3)
     assert np.hypot(odo["V_x_m_per_frame"], odo["V_y_m_per_frame"]) < 3e-3
+    assert "dr/dt (weight 1)" in odo["fitted_on"]
+    assert set(np.unique(read_csv(out / "flow.csv")["odometry_inlier"])) <= {0.0, 1.0}
     for pic in ("flow_arrows.png", "flow_color.png"):
         img = read_image(out / pic)
         assert img.shape == (SIZE, SIZE, 3) and img.std() > 0.05
