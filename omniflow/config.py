@@ -145,7 +145,10 @@ class OmniFlowConfig:
     dense_percentile : float
         Robust matcher: also match the samples whose |df1/dh_1| is above this
         percentile near each match on its line, at that match's disparity
-        (omniflow.matching.dense); 100 disables it (edges only, as before).
+        (omniflow.matching.dense); 100 disables it (the default: edges only).
+        60 gives ~4 % of the valid pixels on the rendered scenes, but with
+        the pooled solver's default pool the flow is less accurate and the
+        step ~3x slower (docs/measurements.md, "Matching").
     dense_reach : float
         Robust matcher: how far along the line a match's disparity is tried
         on its neighbours, in patch radii.
@@ -257,7 +260,7 @@ class OmniFlowConfig:
     self_similarity: float = 1.0
     alias_score: float = 0.9
     flatness: float = 0.5
-    dense_percentile: float = 60.0
+    dense_percentile: float = 100.0
     dense_reach: float = 1.0
     short_patch: float = 0.5
     gradients: str = "average"

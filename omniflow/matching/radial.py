@@ -184,7 +184,7 @@ def match_radial(
     self_similarity: float = 1.0,
     flatness: float = 0.5,
     alias_score: float = 0.9,
-    dense_percentile: float = 60.0,
+    dense_percentile: float = 100.0,
     dense_reach: float = 1.0,
     short_patch: float = 0.5,
     grids: tuple[PolarGrids, PolarGrids] | None = None,
