@@ -197,6 +197,11 @@ KNOB_LIMITS: dict[str, tuple[float, float, bool, bool]] = {
     "flow_band_gain": (0.0, 1.0, False, False),
     "noise_sigma": (0.0, math.inf, True, False),  # grey levels of the [0, 1] image
     "self_similarity": (0.0, 1.0, False, True),  # a factor on 1 - NCC; 1 = off
+    "alias_score": (-1.0, 1.0, True, True),  # an NCC; 1 = off
+    "flatness": (0.0, math.inf, True, False),  # (1 - NCC) per unit of peak curvature; 0 = off
+    "dense_percentile": (0.0, 100.0, True, True),  # a percentile of |df/dh|; 100 = off
+    "dense_reach": (0.0, math.inf, False, False),  # patch radii
+    "short_patch": (0.0, 1.0, True, False),  # a fraction of patch_radius; 0 = off
     "pool_flow_tol": (0.0, math.inf, False, False),
     "pool_edge_tol": (0.0, math.inf, False, False),  # a factor on the median edge at the matches
     "pool_residual_tol": (0.0, math.inf, False, False),  # robust standard deviations

@@ -143,6 +143,31 @@ class OmniFlowConfig:
         (1 - NCC_self), NCC_self the best NCC of the point's profile with
         another edge of its own line within the window's width; 1 disables
         (the default; docs/measurements.md has its effect and cost).
+    alias_score : float
+        Robust matcher: periodic-alias test (omniflow.matching.robust): drop a
+        match whose image-1 profile recurs on its own line (NCC above this,
+        after falling below 0 at a smaller lag) within the disparity window's
+        width; 1 disables it. Cheaper than self_similarity (only the matches
+        that passed the other tests are compared) and on by default.
+    flatness : float
+        Robust matcher: keep a match only when its NCC peak is sharp enough
+        to place to sub-pixel, (1 - NCC_peak) <= flatness x the peak's
+        curvature (omniflow.matching.tables.sharp_peak); 0 disables it.
+        Most 1-2 px errors on rendered frames have flat peaks.
+    dense_percentile : float
+        Robust matcher: also match the samples whose |df1/dh_1| is above this
+        percentile near each match on its line, at that match's disparity
+        (omniflow.matching.dense); 100 disables it (the default: edges only).
+        60 gives ~4 % of the valid pixels on the rendered scenes, but with
+        the pooled solver's default pool the flow is less accurate and the
+        step ~3x slower (docs/measurements.md, "Matching").
+    dense_reach : float
+        Robust matcher: how far along the line a match's disparity is tried
+        on its neighbours, in patch radii.
+    short_patch : float
+        Robust matcher: a second pass with profiles this fraction of
+        patch_radius long, adding matches where the first left none (small
+        and inclined objects: the ring of independent_movers); 0 disables it.
     gradients : {"first", "average"}
         Spatial gradient of frame t (paper) or the mean of frames t and t + 1.
     temporal : {"difference", "dct3d"}
@@ -253,10 +278,15 @@ class OmniFlowConfig:
     uniqueness: float = 0.5
     left_right: bool = True
     candidate_fraction: float = 0.5
-    tangential_blur: float = 0.03
+    tangential_blur: float = 0.02
     consistency: float = 1.0
     consistency_support: int = 2
     self_similarity: float = 1.0
+    alias_score: float = 0.9
+    flatness: float = 0.5
+    dense_percentile: float = 100.0
+    dense_reach: float = 1.0
+    short_patch: float = 0.5
     gradients: str = "average"
     temporal: str = "difference"
     temporal_frames: int = 3
@@ -315,6 +345,13 @@ class OmniFlowConfig:
         if self.noise_sigma is not None and not self.noise_sigma >= 0:
             raise ValueError(
                 f"OmniFlowConfig.noise_sigma = {self.noise_sigma!r}: expected >= 0 or None"
+            )
+        if not (0 <= self.short_patch < 1):
+            raise ValueError(f"OmniFlowConfig.short_patch = {self.short_patch!r}: expected [0, 1)")
+        if not (0 <= self.dense_percentile <= 100 and self.dense_reach > 0 and self.flatness >= 0):
+            raise ValueError(
+                f"OmniFlowConfig.dense_percentile = {self.dense_percentile!r}, dense_reach = "
+                f"{self.dense_reach!r}, flatness = {self.flatness!r}: expected [0, 100], > 0, >= 0"
             )
         if self.temporal_frames < 3:
             raise ValueError("OmniFlowConfig.temporal_frames must be >= 3")

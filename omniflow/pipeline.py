@@ -206,5 +206,10 @@ def stereo_matches(
         consistency=config.consistency,
         consistency_support=config.consistency_support,
         self_similarity=config.self_similarity,
+        flatness=config.flatness,
+        alias_score=config.alias_score,
+        dense_percentile=config.dense_percentile,
+        dense_reach=config.dense_reach,
+        short_patch=config.short_patch,
         grids=grids,
     )

@@ -11,12 +11,12 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 from numpy.typing import NDArray
 
-from omniflow.matching.tables import TableGeometry, local_maxima, parabola_offset
+from omniflow.matching.tables import TableGeometry, local_maxima, parabola_offset, sharp_peak
 
-__all__ = ["match_robust"]
+__all__ = ["Descriptors", "match_robust"]
 
 
-class _Descriptors:
+class Descriptors:
     """Zero-mean, unit-norm polar patches of one table.
 
     A patch at (line k, column j) holds the radial profile at columns
@@ -138,6 +138,8 @@ def match_robust(
     left_right,
     candidate_fraction,
     self_similarity=1.0,
+    flatness=0.0,
+    alias_score=1.0,
 ):
     """NCC of radial profiles between the edges of both images, line by line.
 
@@ -146,7 +148,9 @@ def match_robust(
     the NCC of every pair of edges on every line is one batched matrix
     product: first the significant edges of image 1 against all edges of
     image 2, then, for the left-right check, the chosen edges of image 2
-    against all edges of image 1.
+    against all edges of image 1. Last, h_2 is refined to sub-pixel and the
+    match kept when the refined NCC is at least min_score and its peak sharp
+    enough for that (:func:`~omniflow.matching.tables.sharp_peak`, ``flatness``).
     """
     n_theta, pad, n_h = tab.n_theta, tab.pad, tab.n_h
     lo, hi = tab.win
@@ -168,8 +172,8 @@ def match_robust(
     if n_sig == 0 or not e2.any():
         return np.zeros(0, int), np.zeros(0, int), np.zeros(0), np.zeros(0), n_sig
     rows_s = np.broadcast_to(np.arange(n_theta)[:, None], sslot.shape)
-    desc2 = _Descriptors(t2, w, stride, patch_lines)
-    D1 = _Descriptors(t1, w, stride, patch_lines)(rows1, c1)  # (n_theta, c1, L)
+    desc2 = Descriptors(t2, w, stride, patch_lines)
+    D1 = Descriptors(t1, w, stride, patch_lines)(rows1, c1)  # (n_theta, c1, L)
     D2 = desc2(rows2, c2)  # (n_theta, c2, L)
     # padding slots get zero descriptors, hence NCC 0 with everything: never a
     # match (min_score > 0), never a left-right winner over a real edge
@@ -207,6 +211,11 @@ def match_robust(
         A[far] = -np.inf
         self_best = np.maximum(A.max(axis=2), -1.0)
         ok &= (1.0 - best) <= self_similarity * (1.0 - self_best)
+    if alias_score < 1.0 and ok.any():
+        lags = ((w * stride) // 2, hi - lo)
+        line = ok.nonzero()[0]
+        d1 = D1s[ok]
+        ok[ok] = _not_periodic(D1, c1, e1, line, j1[ok], d1, lags=lags, alias_score=alias_score)
     if left_right and ok.any():
         # the best image-1 edge of each chosen image-2 edge, in its window
         oslot, eo, _ = _per_line(ok)
@@ -248,9 +257,43 @@ def match_robust(
         jj2 = jj2 + step
     off = parabola_offset(sm, s0, sp)
     peak = s0 + 0.25 * (sp - sm) * off  # the parabola's vertex value
-    keep = peak >= min_score
+    keep = (peak >= min_score) & sharp_peak(peak, sm, s0, sp, flatness)
     return (ks[keep], (jj1 - pad)[keep], (jj2 + off - pad)[keep],
             np.clip(peak[keep], 0.0, 1.0), n_sig)  # fmt: skip
+
+
+def _not_periodic(
+    D1: NDArray, c1: NDArray, e1: NDArray, line: NDArray, j1: NDArray, d1: NDArray,
+    *, lags: tuple[int, int], alias_score: float,
+) -> NDArray:  # fmt: skip
+    """The periodic-alias test of :func:`match_robust`, for M chosen matches.
+
+    Each match's image-1 profile ``d1`` (M, L), at column ``j1`` of line
+    ``line``, is compared with the other edges of its own line (``D1``, ``c1``,
+    ``e1``: the edge layout, columns ascending). It recurs when, at a lag
+    ``lags[0] <= |lag| <= lags[1]``, the NCC is above ``alias_score`` after
+    falling below 0 at a smaller lag on the same side (a period; a smooth
+    ramp correlates with itself at every lag without falling, and is left to
+    the other tests). Then an alias a period away in image 2 matches as well
+    as the truth, or better, and the match is dropped however well it scores.
+    Bool (M,), True = keep. Only the matches that passed the other tests are
+    compared: M x (edges per line) profile products.
+    """
+    A = np.einsum("ml,mcl->mc", d1, _rows_take(D1, line[:, None], np.arange(D1.shape[1])[None, :]))
+    lag = c1[line] - j1[:, None]
+    A[~e1[line] | (np.abs(lag) > lags[1])] = np.nan
+    recurs = np.zeros(A.shape[0], dtype=bool)
+    for a, dist in (
+        (np.where(lag > 0, A, np.nan), lag),
+        (np.where(lag < 0, A, np.nan)[:, ::-1], -lag[:, ::-1]),
+    ):
+        # a: NCC by edge, walking outward from j1; fallen: it was below 0 at a smaller lag
+        low = np.fmin.accumulate(np.where(np.isnan(a), np.inf, a), axis=1)
+        fallen = np.zeros_like(a, dtype=bool)
+        fallen[:, 1:] = low[:, :-1] < 0.0
+        with np.errstate(invalid="ignore"):
+            recurs |= np.any(fallen & (dist >= lags[0]) & (a > alias_score), axis=1)
+    return ~recurs
 
 
 def _rows_take(a: NDArray, k: NDArray, j: NDArray) -> NDArray:

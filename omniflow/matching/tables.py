@@ -33,6 +33,7 @@ __all__ = [
     "polar_table",
     "radial_derivative",
     "sample_xy",
+    "sharp_peak",
 ]
 
 _REMAP_CHUNK = 32000  # cv2.remap needs both map dimensions below SHRT_MAX
@@ -202,6 +203,19 @@ def parabola_offset(s_m: NDArray, s_0: NDArray, s_p: NDArray) -> NDArray:
     with np.errstate(divide="ignore", invalid="ignore"):
         off = np.where(np.abs(den) > 1e-12, 0.5 * (s_m - s_p) / den, 0.0)
     return np.clip(off, -1.0, 1.0)
+
+
+def sharp_peak(peak: NDArray, s_m: NDArray, s_0: NDArray, s_p: NDArray, flatness: float) -> NDArray:
+    """Whether an NCC peak is sharp enough to place its vertex to sub-pixel.
+
+    The vertex of the parabola through the NCC at three neighbouring columns
+    moves with the noise by about (1 - NCC) / curvature columns: a match is
+    kept when (1 - peak) <= ``flatness`` (2 s_0 - s_m - s_p). ``flatness``
+    <= 0 keeps everything. Bool, the broadcast shape.
+    """
+    if flatness <= 0:
+        return np.ones(np.broadcast(peak, s_0).shape, dtype=bool)
+    return (1.0 - peak) <= flatness * (2.0 * s_0 - s_m - s_p)
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,128 @@
+"""More matches per radial line: grow the robust matcher's matches to their neighbours.
+
+The robust rule matches only edges (local maxima of |df/dh_i|), about one
+sample in twenty. A surface's disparity varies slowly along a radial line, so
+every other textured sample near a matched edge can be matched by a short
+search around that edge's disparity: :func:`densify` tries each sample of
+image 1 whose |df1/dh_1| passes a (lower) threshold and that lies within
+``reach`` columns of a match on its line, with the NCC of its own radial
+profile (the same descriptors as the robust rule) at the seed's disparity
++- ``search`` columns. Between two seeds the guess is interpolated, and a
+sample between two seeds that disagree by more than one column (a depth edge
+between them) is not tried. A sample is kept where its NCC peaks inside the
+searched range, scores at least ``min_score`` and is sharp enough
+(:func:`~omniflow.matching.tables.sharp_peak`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from omniflow.matching.robust import Descriptors
+from omniflow.matching.tables import TableGeometry, parabola_offset, sharp_peak
+
+__all__ = ["densify"]
+
+
+def _seed_guess(
+    k: NDArray, j: NDArray, disp: NDArray, ck: NDArray, cj: NDArray, n_cols: int, reach: int
+) -> tuple[NDArray, NDArray]:
+    """Each candidate's disparity guess from the nearest seeds on its line.
+
+    Returns (usable, guess): a candidate is usable when a seed lies within
+    ``reach`` columns on either side and, with one on each side, the two
+    agree within one column (the guess is then interpolated between them).
+    """
+    order = np.lexsort((j, k))
+    ks, js, ds = k[order], j[order], disp[order]
+    key = ks.astype(np.int64) * n_cols + js
+    right = np.searchsorted(key, ck.astype(np.int64) * n_cols + cj)  # first seed to the right
+    left = right - 1
+    li, ri = np.clip(left, 0, key.size - 1), np.clip(right, 0, key.size - 1)
+    has_l = (left >= 0) & (ks[li] == ck) & (cj - js[li] <= reach)
+    has_r = (right < key.size) & (ks[ri] == ck) & (js[ri] - cj <= reach)
+    both = has_l & has_r
+    usable = (has_l | has_r) & ~(both & (np.abs(ds[li] - ds[ri]) > 1.0))
+    a = (cj - js[li]) / np.maximum(js[ri] - js[li], 1)
+    guess = np.where(both, ds[li] + a * (ds[ri] - ds[li]), np.where(has_l, ds[li], ds[ri]))
+    return usable, guess
+
+
+def densify(
+    tab: TableGeometry,
+    fh1: NDArray,
+    t1: NDArray,
+    t2: NDArray,
+    seeds: tuple[NDArray, NDArray, NDArray],
+    thr: float,
+    *,
+    w: int,
+    stride: int,
+    lines: int,
+    min_score: float,
+    reach: int,
+    search: int = 2,
+    flatness: float = 0.0,
+) -> tuple[NDArray, NDArray, NDArray, NDArray, int]:
+    """Match the textured samples near each seed match at the seed's disparity.
+
+    Parameters
+    ----------
+    tab : TableGeometry
+    fh1 : ndarray, (n_theta, n_cols)
+        df1/dh_1 on image 1's polar table (padded columns).
+    t1, t2 : ndarray, (n_theta, n_cols)
+        The (blurred) polar tables of f of both units.
+    seeds : (k, j1, c2)
+        The matches to grow from: line, image 1 column and sub-pixel image 2
+        column, both counted from the first core column (as the robust rule
+        returns them).
+    thr : float
+        Candidates have |df1/dh_1| >= thr.
+    w, stride, lines : int
+        The profile of :class:`~omniflow.matching.robust.Descriptors`.
+    min_score, flatness : float
+        Acceptance, as for the robust rule.
+    reach : int
+        Candidates lie within this many columns of a seed on their line.
+    search : int
+        Columns searched either side of the seed's disparity.
+
+    Returns
+    -------
+    (k, j1, c2, score, n_tried) : the new matches (columns from the first
+    core column, c2 sub-pixel), and the number of candidates tried.
+    """
+    pad, n_h = tab.pad, tab.n_h
+    k, j1, c2 = (np.asarray(a) for a in seeds)
+    cand = np.abs(fh1) >= thr
+    cand[:, :pad] = False
+    cand[:, pad + n_h :] = False
+    jj = j1.astype(np.int64) + pad
+    cand[k, jj] = False  # the seeds themselves
+    ck, cj = np.nonzero(cand)
+    empty = (np.zeros(0, np.intp), np.zeros(0, np.intp), np.zeros(0), np.zeros(0), 0)
+    if ck.size == 0 or k.size == 0:
+        return empty
+    usable, guess = _seed_guess(k, jj, c2 - j1, ck, cj, fh1.shape[1], reach)
+    ck, cj, guess = ck[usable], cj[usable], guess[usable]
+    if ck.size == 0:
+        return empty
+    d1 = Descriptors(t1, w, stride, lines)(ck, cj)  # (N, L)
+    desc2 = Descriptors(t2, w, stride, lines)
+    base = np.rint(guess).astype(np.intp)
+    offs = np.arange(-search - 1, search + 2)  # one more each side for the parabola
+    cols = np.clip(cj[:, None] + base[:, None] + offs, w * stride, t2.shape[1] - 1 - w * stride)
+    S = np.einsum("nl,nsl->ns", d1, desc2(np.broadcast_to(ck[:, None], cols.shape), cols))
+    b = np.argmax(S[:, 1:-1], axis=1) + 1
+    r = np.arange(ck.size)
+    s_m, s_0, s_p = S[r, b - 1], S[r, b], S[r, b + 1]
+    off = parabola_offset(s_m, s_0, s_p)
+    peak = s_0 + 0.25 * (s_p - s_m) * off  # the parabola's vertex value
+    # a peak on the searched range's border may continue outside it: not a peak
+    ok = (s_0 >= s_m) & (s_0 >= s_p) & (peak >= min_score)
+    ok &= sharp_peak(peak, s_m, s_0, s_p, flatness)
+    col2 = cj + base + offs[b] + off
+    return (ck[ok], (cj - pad)[ok], (col2 - pad)[ok], np.clip(peak[ok], 0.0, 1.0),
+            int(ck.size))  # fmt: skip
