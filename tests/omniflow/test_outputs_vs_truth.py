@@ -195,7 +195,9 @@ def _stats(c, truth, key) -> tuple[float, float]:
 
 def test_every_documented_column_is_output(result):
     assert set(result) == set(COLUMNS)
-    assert len(result["x"]) > 1000  # measured 1750 points
+    # measured 990 points (1750 before the sharp-peak and periodic-alias tests of the
+    # matcher, issue 9 part 3, dropped the flat and recurring matches)
+    assert len(result["x"]) > 800
 
 
 def test_polar_position_is_the_pixel_of_the_point(scene, result, truth):
