@@ -190,6 +190,7 @@ KNOB_LIMITS: dict[str, tuple[float, float, bool, bool]] = {
     "pool_k": (1, math.inf, True, False),
     "pool_range_tol": (0.0, math.inf, False, False),
     "min_conditioning": (0.0, 1.0, True, True),  # lambda_min / lambda_max
+    "pool_min_conditioning": (0.0, 1.0, True, True),  # lambda_min / lambda_max
     "iterations": (0, math.inf, True, False),
     "flow_band": (0.0, 1.0, False, True),
     "flow_taper": (0.0, 1.0, True, True),  # fraction of the flow band rolled off

@@ -231,6 +231,15 @@ class OmniFlowConfig:
         noisier (docs/measurements.md, "radial shrink"). Costs a second solve.
     min_conditioning : float
         Drop points whose confidence is below this (0 keeps all).
+    pool_min_conditioning : float
+        Pooled solver: the floor of ``min_conditioning`` for the pooled
+        system (the larger of the two applies). Default 1e-3: a pool that
+        near-singular is not a measurement (one short-profile match with
+        too few neighbours gave 225 px of flow on the 512 px approach
+        render); it drops 0-3 of ~2500 points per 512 px scene. 0.01 also
+        drops good points on anisotropic texture (closed-form striped walls,
+        whose pools are legitimately ill-conditioned along the stripes);
+        docs/measurements.md, "Matching defaults after the merge".
     sampling : {"cubic", "linear", "exact"}
         How gradients and the fitted images are read at the matched points:
         cv2.remap of the pixel grids, or the series evaluated exactly.
@@ -301,6 +310,7 @@ class OmniFlowConfig:
     pool_residual_tol: float | None = None
     pool_min_info: float | None = None
     min_conditioning: float = 0.0
+    pool_min_conditioning: float = 1e-3
     sampling: str = "cubic"
     iterations: int = 0
     rim_fill: str = "reflect"

@@ -176,8 +176,9 @@ def make_solver(
         edge_map=edge_map, edge_tol=config.pool_edge_tol,
     )  # fmt: skip
 
+    floor = max(config.min_conditioning, config.pool_min_conditioning)
     kw = dict(theta=theta, model=config.pool_model, scale=pool_radius,
-              min_conditioning=config.min_conditioning)  # fmt: skip
+              min_conditioning=floor)  # fmt: skip
 
     def solve_w(derivs, weights):
         return pooled_solution(

@@ -399,7 +399,11 @@ def test_iterations_reduce_the_error_of_a_large_motion():
     for solver, bound in (("pooled", 0.75), ("direct", 0.85)):
         epe = []
         for it in (0, 1):
-            config = OmniFlowConfig(solver=solver, iterations=it, flow_band=0.5)
+            # every true match answers (no conditioning floor: 22 of 13724 pools on
+            # the stripes fall below the default 1e-3)
+            config = OmniFlowConfig(
+                solver=solver, iterations=it, flow_band=0.5, pool_min_conditioning=0.0
+            )
             c = estimate(f1, f2, rig, config, matches=m)
             assert len(c) == sel.sum()
             epe.append(float(np.median(np.hypot(c["dx"] - tdx, c["dy"] - tdy))))

@@ -125,10 +125,12 @@ def test_the_tolerance_catches_a_wrong_pairing(rig128, sequence):
 def test_mixing_frames_mismatched_to_the_pair_is_caught(rig128, sequence):
     """A stream that averaged the gradient of the wrong frames would fail the tolerance."""
     f1, f2 = sequence
-    stream = OmniFlowStream(rig128)
+    # no conditioning floor, so both keep every match and the flows compare one to one
+    config = OmniFlowConfig(pool_min_conditioning=0.0)
+    stream = OmniFlowStream(rig128, config)
     stream.push(f1[0], f2[0])
     result = stream.push(f1[2], f2[2])  # skips frame 1: the pair (0, 2)
-    expected = estimate(f1, f2, rig128, t=0)
+    expected = estimate(f1, f2, rig128, config, t=0)
     assert len(result) == len(expected)  # same matches (frame 0's) ...
     assert _worst_relative(result, expected) > 100 * REL_TOL  # ... different flow
 
