@@ -422,8 +422,8 @@ def consistent_neighbours(
     k = h2 / h1  # eq. (14)
     aj = (a / h1[:n])[:, None] * h1[idx]  # the point's radial flow at the neighbour's radius
     bj = b[:, None]
-    res1 = f1_h[idx] * aj + f1_theta[idx] * bj + f1_t[idx]  # eq. (9)
-    res2 = k[idx] * f2_h[idx] * aj + f2_theta[idx] * bj + f2_t[idx]  # eq. (15)
+    res1 = flow_residual(f1_h[idx], f1_theta[idx], f1_t[idx], aj, bj)  # eq. (9)
+    res2 = flow_residual(k[idx] * f2_h[idx], f2_theta[idx], f2_t[idx], aj, bj)  # eq. (15)
     rms = np.sqrt(0.5 * (res1 * res1 + res2 * res2))
     own = np.abs(np.concatenate([res1[:, 0], res2[:, 0]]))
     own = own[np.isfinite(own)]
@@ -684,6 +684,15 @@ def _weight_sums(
     return np.stack([ws.sum(axis=1), (ws * u).sum(axis=1), (ws * u * u).sum(axis=1)], axis=1)
 
 
+def _unit_residuals(derivs: tuple, k: NDArray, a: NDArray, b: NDArray, n: int) -> tuple:
+    """Residuals of eq. (9) and (15) at each point's own flow (a, b); ``derivs`` carry a
+    sentinel at index n."""
+    f1_h, f1_theta, f1_t, f2_h, f2_theta, f2_t = derivs
+    res1 = flow_residual(f1_h[:n], f1_theta[:n], f1_t[:n], a, b)  # eq. (9)
+    res2 = flow_residual(k[:n] * f2_h[:n], f2_theta[:n], f2_t[:n], a, b)  # eq. (15)
+    return res1, res2
+
+
 def _unit_variances(
     derivs: tuple,
     k: NDArray,
@@ -703,13 +712,11 @@ def _unit_variances(
     unit's weight runs away where its residuals happen to vanish. (None, None)
     when fewer than 10 points have a solution or a variance is 0.
     """
-    f1_h, f1_theta, f1_t, f2_h, f2_theta, f2_t = derivs  # with a sentinel at index n
     ok = np.isfinite(a) & np.isfinite(b)
     if ok.sum() < 10:
         return None, None
     out = []
-    for f_h, f_th, f_t, kk in ((f1_h, f1_theta, f1_t, 1.0), (f2_h, f2_theta, f2_t, k[:n])):
-        res = kk * f_h[:n] * a + f_th[:n] * b + f_t[:n]  # eq. (9), (15)
+    for res in _unit_residuals(derivs, k, a, b, n):
         res2 = np.where(ok, res * res, np.nan)
         glob = float(np.nanmedian(res2)) / 0.455  # median of a squared normal: 0.455 var
         if how == "global":
@@ -735,15 +742,11 @@ def _residual_variance(
     variance) plus terms of second order; the median of a squared normal
     variable is 0.455 of its variance.
     """
-    f1_h, f1_theta, f1_t, f2_h, f2_theta, f2_t = derivs  # with a sentinel at index n
     ok = np.isfinite(a) & np.isfinite(b)
     if ok.sum() < 10:
         return 0.0, 0.0
-    out = []
-    for f_h, f_th, f_t, kk in ((f1_h, f1_theta, f1_t, 1.0), (f2_h, f2_theta, f2_t, k[:n])):
-        res = kk * f_h[:n] * a + f_th[:n] * b + f_t[:n]  # eq. (9), (15)
-        out.append(float(np.median(res[ok] ** 2)) / 0.455 / 2.0)
-    return out[0], out[1]
+    res1, res2 = _unit_residuals(derivs, k, a, b, n)
+    return tuple(float(np.median(res[ok] ** 2)) / 0.455 / 2.0 for res in (res1, res2))
 
 
 def _solve_sums(
