@@ -1047,7 +1047,7 @@ def run(args: argparse.Namespace, config_fields: list[str], argv: list[str]) -> 
         if with_regions:
             rows, outlines, regions_block = _regions(args, cols, masks, fit, rig, frame_interval)
             atomic_write_text(stage / "regions.csv", regions_csv_text(rows))
-        result.to_csv(stage / "flow.csv")
+        result.to_csv(stage / "flow.csv", _column_units())
         if not args.no_pictures:
             _pictures(stage, f1[t], rig.cam1, cols, args.arrow_scale, outlines)
         t_write = time.perf_counter() - t2

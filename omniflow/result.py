@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import time
 import warnings
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -82,8 +83,13 @@ class OmniFlowResult:
     def __getitem__(self, key: str) -> NDArray:
         return self.columns[key]
 
-    def to_csv(self, path: str | Path) -> Path:
-        """Write the columns to CSV atomically, with a '#' header line of units."""
+    def to_csv(self, path: str | Path, units: Mapping[str, str] | None = None) -> Path:
+        """Write the columns to CSV atomically, with a '#' header line of units.
+
+        ``units`` names the unit of columns added after :func:`estimate` (the
+        CLI's ``odometry_inlier``, ``auto_region``, ...); :data:`COLUMNS` gives
+        the rest.
+        """
         from omniflow.imageio import atomic_output
 
         names = list(self.columns)
@@ -92,10 +98,11 @@ class OmniFlowResult:
             if names
             else np.zeros((0, 0))
         )
-        units = "; ".join(f"{k}: {COLUMNS.get(k, '')}" for k in names)
+        known = {**COLUMNS, **(units or {})}
+        line = "; ".join(f"{k}: {known.get(k, '')}" for k in names)
         path = Path(path)
         with atomic_output(path) as tmp, open(tmp, "w") as fh:
-            fh.write(f"# omniflow per-point results; {units}\n")
+            fh.write(f"# omniflow per-point results; {line}\n")
             fh.write(",".join(names) + "\n")
             np.savetxt(fh, data, delimiter=",", fmt="%.9g")
         return path
