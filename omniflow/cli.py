@@ -27,6 +27,7 @@ import traceback
 import types
 import typing
 import warnings
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -643,6 +644,54 @@ def _make_config(args, config_fields: list[str]):
         raise CLIError(f"bad algorithm option: {_one_line(exc)}") from exc
     check_knobs(config)
     return config
+
+
+class _SettingsParser(argparse.ArgumentParser):
+    """Parser of NAME=VALUE settings: a usage error is a :class:`CLIError`, not an exit."""
+
+    def error(self, message: str) -> typing.NoReturn:
+        raise CLIError(message)
+
+
+def config_from_settings(settings: str | Sequence[str], *, paper: bool = False) -> Any:
+    """An OmniFlowConfig from ``NAME=VALUE`` settings, checked as the CLI's options are.
+
+    ``settings`` is a comma-separated string (``"flow_taper=0,eiv=none"``) or a
+    list of ``NAME=VALUE`` strings; NAME is an OmniFlowConfig field (``-`` or
+    ``_``), VALUE parsed as its option would be (``none`` for None, ``true`` /
+    ``false`` for a switch, space-separated numbers for a tuple). The other
+    fields keep their defaults (``paper``: those of ``OmniFlowConfig.paper()``).
+    Raises :class:`CLIError` with one line naming the setting and what was expected.
+    """
+    items = settings.split(",") if isinstance(settings, str) else list(settings)
+    parser = _SettingsParser(prog="settings", add_help=False, allow_abbrev=False)
+    fields = _add_config_options(parser)
+    argv: list[str] = []
+    for item in (i.strip() for i in items):
+        if not item:
+            continue
+        name, sep, value = item.partition("=")
+        name = name.strip().replace("-", "_")
+        if not sep or name not in fields:
+            raise CLIError(
+                f"{item!r}: expected NAME=VALUE with NAME an OmniFlowConfig field, e.g. "
+                "flow_taper=0 (omniflow --help lists them)"
+            )
+        action = next(a for a in parser._actions if a.dest == f"cfg_{name}")
+        if isinstance(action, argparse.BooleanOptionalAction):
+            if value.strip().lower() not in ("true", "false", "1", "0", "yes", "no"):
+                raise CLIError(f"{item!r}: expected {name}=true or {name}=false")
+            on = value.strip().lower() in ("true", "1", "yes")
+            argv.append(_flag(name) if on else "--no-" + name.replace("_", "-"))
+        else:
+            argv += [f"{_flag(name)}={value.strip()}"] if action.nargs is None else [
+                _flag(name), *value.split()]  # fmt: skip
+    try:
+        args = parser.parse_args(argv)
+    except CLIError as exc:
+        raise CLIError(f"{', '.join(items)}: {exc}") from None
+    args.paper = paper
+    return _make_config(args, fields)
 
 
 def _check_options(args) -> None:
