@@ -372,8 +372,9 @@ def test_periodic_walls_at_most_2_percent_outliers():
     defaults (256 px): 0.1 m at 3 m (detail 0.1) 0 matches, against 2201, all
     wrong, without the periodic-alias test (alias_score = 1); 0.15 m at 2 m
     with more random detail (0.3) 68 matches, 0 wrong (35 with the rule
-    before the image-2 confirmation), against 219 wrong of 790 without it (with the densification, dense_percentile 60: 418, 0
-    wrong, against 1303 wrong of 5762). Bounds: at most 2 % wrong (the
+    before the image-2 confirmation), against 219 wrong of 790 without it
+    (with the densification, dense_percentile 60: 418, 0 wrong, against
+    1303 wrong of 5762; figures before the confirmation). Bounds: at most 2 % wrong (the
     issue's target) and at least 25 matches where the detail tells the
     periods apart; the test's removal must show (>= 10 % wrong without it)."""
     rig = paper_rig()
