@@ -28,6 +28,8 @@ import itertools
 import numpy as np
 from numpy.typing import NDArray
 
+from omniflow.matching.robust import Descriptors
+
 __all__ = ["line_edges", "not_periodic", "profiles"]
 
 
@@ -36,18 +38,11 @@ def profiles(table: NDArray, k: NDArray, j: NDArray, *, w: int, stride: int, lin
 
     The profile at (line k, column j) holds columns j - w stride .. j + w
     stride, every ``stride``-th, on lines k - lines .. k + lines (wrapping in
-    theta): L = (2 lines + 1)(2 w + 1) values, as the matcher's descriptors.
-    A constant profile is all zeros (its NCC with anything is 0).
+    theta): L = (2 lines + 1)(2 w + 1) values, the matcher's descriptors
+    (:class:`omniflow.matching.robust.Descriptors`, whose whole profile must
+    lie inside the table).
     """
-    k = np.asarray(k, dtype=np.intp)
-    j = np.asarray(j, dtype=np.intp)
-    offs = stride * np.arange(-w, w + 1)
-    n = table.shape[0]
-    rows = [table[(k[..., None] + dk) % n, j[..., None] + offs] for dk in range(-lines, lines + 1)]
-    p = np.concatenate(rows, axis=-1).astype(np.float32)
-    p -= p.mean(axis=-1, keepdims=True)
-    norm = np.sqrt(np.einsum("...l,...l->...", p, p))[..., None]
-    return np.divide(p, norm, out=np.zeros_like(p), where=norm > 1e-12)
+    return Descriptors(table, w, stride, lines)(np.asarray(k), np.asarray(j))
 
 
 def line_edges(edges: NDArray, k: NDArray) -> tuple[NDArray, NDArray]:
@@ -84,6 +79,8 @@ def not_periodic(
     alias2_score: float = 0.9,
     confirm_score: float = 0.8,
     columns2: tuple[int, int] | None = None,
+    desc1: Descriptors | None = None,
+    desc2: Descriptors | None = None,
 ) -> NDArray:
     """Whether each match's image-1 profile does NOT recur with an alias; bool (M,).
 
@@ -125,16 +122,32 @@ def not_periodic(
         image-1 profile recurs at two lags at least (one above
         ``alias_score``, the other above this): a period, not a lone
         recurrence.
+    desc1, desc2 : Descriptors, optional
+        The matcher's descriptors of ``table`` and ``table2`` with the same
+        (w, stride, lines), if it has them (saves building them again).
     """
     m = np.asarray(k).size
     if alias_score >= 1.0 or m == 0:
         return np.ones(m, dtype=bool)
     k = np.asarray(k, dtype=np.intp)
     j = np.asarray(j, dtype=np.intp)
-    d1 = profiles(table, k, j, w=w, stride=stride, lines=lines)  # (M, L)
-    cols, exists = line_edges(edges, k)  # (M, c)
-    kk = np.broadcast_to(k[:, None], cols.shape)
-    A = np.einsum("ml,mcl->mc", d1, profiles(table, kk, cols, w=w, stride=stride, lines=lines))
+    desc1 = Descriptors(table, w, stride, lines) if desc1 is None else desc1
+    d1 = desc1(k, j)  # (M, L)
+    # NCC of each match's profile with every edge of its line: the matches and
+    # the edges laid out per line, one batched product per line
+    used, row = np.unique(k, return_inverse=True)  # the lines with matches
+    ecols, eexists = line_edges(edges, used)  # (lines used, c)
+    safe = np.where(eexists, ecols, w * stride)  # padding slots: any whole profile
+    P = desc1(np.broadcast_to(used[:, None], ecols.shape), safe)
+    P[~eexists] = 0.0
+    order = np.argsort(row, kind="stable")
+    counts = np.bincount(row, minlength=used.size)
+    slot = np.empty(m, dtype=np.intp)
+    slot[order] = np.arange(m) - np.concatenate([[0], np.cumsum(counts)[:-1]])[row[order]]
+    Dm = np.zeros((used.size, int(counts.max()), d1.shape[1]), dtype=np.float32)
+    Dm[row, slot] = d1
+    A = np.matmul(Dm, P.transpose(0, 2, 1))[row, slot].astype(float)  # (M, c)
+    cols, exists = ecols[row], eexists[row]
     lag = cols - j[:, None]
     A[~exists | (np.abs(lag) > lags[1])] = np.nan
     fallen = np.zeros(A.shape, dtype=bool)  # the NCC fell below 0 nearer j, that side
@@ -158,13 +171,14 @@ def not_periodic(
     lo_col, hi_col = w * stride, table2.shape[1] - 1 - w * stride
     if columns2 is not None:
         lo_col, hi_col = max(lo_col, columns2[0]), min(hi_col, columns2[1])
+    desc2 = Descriptors(table2, w, stride, lines) if desc2 is None else desc2
     hidden = np.zeros(mi.size, dtype=bool)  # in the window, but no whole profile there
     for sign, dj in itertools.product((1, -1), (-1, 0, 1)):
         c2 = at + sign * lag[mi, ci] + dj
         in_window = (c2 - j[mi] >= window[0]) & (c2 - j[mi] <= window[1])
         usable = (c2 >= lo_col) & (c2 <= hi_col)
         hidden |= in_window & ~usable
-        p2 = profiles(table2, k[mi], np.clip(c2, lo_col, hi_col), w=w, stride=stride, lines=lines)
+        p2 = desc2(k[mi], np.clip(c2, lo_col, hi_col))
         ncc = np.einsum("nl,nl->n", d1[mi], p2)
         best = np.where(in_window & usable, np.maximum(best, ncc), best)
     # a period away lies in the window but past the rim (or the centre): the
