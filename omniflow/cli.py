@@ -200,6 +200,8 @@ KNOB_LIMITS: dict[str, tuple[float, float, bool, bool]] = {
     "noise_sigma": (0.0, math.inf, True, False),  # grey levels of the [0, 1] image
     "self_similarity": (0.0, 1.0, False, True),  # a factor on 1 - NCC; 1 = off
     "alias_score": (-1.0, 1.0, True, True),  # an NCC; 1 = off
+    "alias_image2": (-1.0, 1.0, True, True),  # an NCC
+    "alias_period": (-1.0, 1.0, True, True),  # an NCC
     "flatness": (0.0, math.inf, True, False),  # (1 - NCC) per unit of peak curvature; 0 = off
     "dense_percentile": (0.0, 100.0, True, True),  # a percentile of |df/dh|; 100 = off
     "dense_reach": (0.0, math.inf, False, False),  # patch radii

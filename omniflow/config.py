@@ -149,6 +149,16 @@ class OmniFlowConfig:
         after falling below 0 at a smaller lag) within the disparity window's
         width; 1 disables it. Cheaper than self_similarity (only the matches
         that passed the other tests are compared) and on by default.
+    alias_image2 : float
+        Robust matcher: the alias test (omniflow.matching.periodic) drops a
+        match whose profile recurs at lag L only when image 2 holds the alias
+        too (NCC with image 2's profile at h_2 +- L above this). On low
+        texture a lone step edge recurs in image 1 with no alias in image 2.
+        <= -1: any recurrence drops the match (the rule before).
+    alias_period : float
+        Robust matcher: where image 2's columns a recurrence away are past
+        its rim, the match is dropped only when its profile also recurs at a
+        second lag with NCC above this (a period, not a lone recurrence).
     flatness : float
         Robust matcher: keep a match only when its NCC peak is sharp enough
         to place to sub-pixel, (1 - NCC_peak) <= flatness x the peak's
@@ -292,6 +302,8 @@ class OmniFlowConfig:
     consistency_support: int = 2
     self_similarity: float = 1.0
     alias_score: float = 0.9
+    alias_image2: float = 0.9
+    alias_period: float = 0.8
     flatness: float = 0.5
     dense_percentile: float = 100.0
     dense_reach: float = 1.0

@@ -208,6 +208,8 @@ def stereo_matches(
         self_similarity=config.self_similarity,
         flatness=config.flatness,
         alias_score=config.alias_score,
+        alias_image2=config.alias_image2,
+        alias_period=config.alias_period,
         dense_percentile=config.dense_percentile,
         dense_reach=config.dense_reach,
         short_patch=config.short_patch,
