@@ -783,50 +783,32 @@ def _solve_sums(
     with ``positive``, where the matrix is not positive definite.
     """
     pp, pq, qq, pf, qf = (sums[:, :, c] for c in range(5))
-    if model == "constant":
-        M = np.stack([np.stack([pp[:, 0], pq[:, 0]], -1), np.stack([pq[:, 0], qq[:, 0]], -1)], 1)
-        v = -np.stack([pf[:, 0], qf[:, 0]], -1)
-    else:
-        M = np.stack(
-            [
-                np.stack([pp[:, 0], pq[:, 0], pp[:, 1], pq[:, 1]], -1),
-                np.stack([pq[:, 0], qq[:, 0], pq[:, 1], qq[:, 1]], -1),
-                np.stack([pp[:, 1], pq[:, 1], pp[:, 2], pq[:, 2]], -1),
-                np.stack([pq[:, 1], qq[:, 1], pq[:, 2], qq[:, 2]], -1),
-            ],
-            axis=1,
-        )
-        v = -np.stack([pf[:, 0], qf[:, 0], pf[:, 1], qf[:, 1]], -1)
-    pd = np.ones(M.shape[0], bool)
-    if model == "constant":
-        S = M
-    else:  # Schur complement on (a, c): the two slopes solved out
-        B = M[:, 2:, 2:]
-        det_b = B[:, 0, 0] * B[:, 1, 1] - B[:, 0, 1] * B[:, 1, 0]
-        pd &= (det_b > 0) & (B[:, 0, 0] > 0)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            inv_b = (
-                np.stack(
-                    [
-                        np.stack([B[:, 1, 1], -B[:, 0, 1]], -1),
-                        np.stack([-B[:, 1, 0], B[:, 0, 0]], -1),
-                    ],
-                    axis=-2,
-                )
-                / np.where(det_b > 0, det_b, np.nan)[:, None, None]
-            )
-        C = M[:, :2, 2:] @ inv_b
-        S = M[:, :2, :2] - C @ M[:, 2:, :2]
-        v = v[:, :2] - (C @ v[:, 2:, None])[..., 0]
-    m11, m12, m22 = S[:, 0, 0], S[:, 0, 1], S[:, 1, 1]
+    pd = np.ones(sums.shape[0], bool)
+    # the blocks of the normal matrix are symmetric 2x2: [[pp_m, pq_m], [pq_m, qq_m]] for
+    # the powers m = 0 (on (a, c)), 1 (coupling to the slopes), 2 (on the slopes)
+    m11, m12, m22 = pp[:, 0], pq[:, 0], qq[:, 0]
+    v = [-pf[:, 0], -qf[:, 0]]
+    if model != "constant":  # Schur complement on (a, c): the two slopes solved out
+        b11, b12, b22 = pp[:, 2], pq[:, 2], qq[:, 2]
+        det_b = b11 * b22 - b12 * b12
+        pd &= (det_b > 0) & (b11 > 0)
+        inv = 1.0 / np.where(det_b > 0, det_b, np.nan)
+        k11, k12, k22 = pp[:, 1], pq[:, 1], qq[:, 1]
+        # C = K B^-1, K the coupling block
+        c11, c12 = (k11 * b22 - k12 * b12) * inv, (k12 * b11 - k11 * b12) * inv
+        c21, c22 = (k12 * b22 - k22 * b12) * inv, (k22 * b11 - k12 * b12) * inv
+        m11 = m11 - (c11 * k11 + c12 * k12)
+        m12 = m12 - (c11 * k12 + c12 * k22)
+        m22 = m22 - (c21 * k12 + c22 * k22)
+        v = [v[0] + (c11 * pf[:, 1] + c12 * qf[:, 1]), v[1] + (c21 * pf[:, 1] + c22 * qf[:, 1])]
     det = m11 * m22 - m12 * m12
     conf = np.nan_to_num(_eig_ratio(m11, m12, m22))
     ok = (det > 0) & (conf >= min_conditioning) & (conf > 0)
     if positive:
         ok &= pd & (m11 > 0)
     with np.errstate(divide="ignore", invalid="ignore"):
-        a = np.where(ok, (m22 * v[:, 0] - m12 * v[:, 1]) / det, np.nan)
-        c = np.where(ok, (m11 * v[:, 1] - m12 * v[:, 0]) / det, np.nan)
+        a = np.where(ok, (m22 * v[0] - m12 * v[1]) / det, np.nan)
+        c = np.where(ok, (m11 * v[1] - m12 * v[0]) / det, np.nan)
     return a, c, conf
 
 

@@ -36,22 +36,9 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from omniflow.kernels import grid_read, grid_scatter
+
 __all__ = ["GridPools"]
-
-
-def _bilinear(grid: NDArray, gx: NDArray, gy: NDArray) -> NDArray:
-    """Bilinear samples of a (H, W, C) grid at cell coordinates (centres at integers), (N, C)."""
-    h, w = grid.shape[:2]
-    gx = np.clip(gx, 0.0, w - 1.0)
-    gy = np.clip(gy, 0.0, h - 1.0)
-    x0 = np.minimum(np.floor(gx).astype(np.intp), w - 2) if w > 1 else np.zeros(gx.shape, np.intp)
-    y0 = np.minimum(np.floor(gy).astype(np.intp), h - 2) if h > 1 else np.zeros(gy.shape, np.intp)
-    fx = (gx - x0)[:, None]
-    fy = (gy - y0)[:, None]
-    x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
-    top = grid[y0, x0] * (1.0 - fx) + grid[y0, x1] * fx
-    bottom = grid[y1, x0] * (1.0 - fx) + grid[y1, x1] * fx
-    return top * (1.0 - fy) + bottom * fy
 
 
 class GridPools:
@@ -176,16 +163,14 @@ class GridPools:
             x1 = min(int(ix[members].max()) + margin + 1, self.gw)
             y1 = min(int(iy[members].max()) + margin + 1, self.gh)
             cw, ch = max(x1 - x0, 2), max(y1 - y0, 2)
-            img = np.zeros((ch * cw, 6), np.float32)
-            np.add.at(img, (iy[members] - y0) * cw + (ix[members] - x0), parts[members])
-            img = img.reshape(ch, cw, 6)
+            img = np.zeros((ch, cw, 6), np.float32)
+            grid_scatter(img, iy - y0, ix - x0, parts, members)
             # a reader outside the crop reads its border, which is 0 (margin > kernel half)
             f = np.concatenate(
                 [cv2.sepFilter2D(img, cv2.CV_32F, kx, ky, borderType=cv2.BORDER_CONSTANT)
                  for kx, ky in pairs], axis=2,
             )  # fmt: skip
-            vals = _bilinear(f, self.gx[readers] - x0, self.gy[readers] - y0)
-            read[readers] += coef[readers, None] * vals
+            grid_read(f, self.gx - x0, self.gy - y0, readers, coef, read)
         read = read.reshape(n, len(pairs), 6)
         read = [read[on, m] * norm for m in range(len(pairs))]
         if linear:

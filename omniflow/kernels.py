@@ -9,6 +9,10 @@ the sums. The arithmetic of each term is numpy's, term by term; only the
 order of the additions over the K neighbours differs (a batched matrix
 product there, a running sum here), so the sums agree to rounding.
 
+:func:`grid_scatter` and :func:`grid_read` put the grid pooling's point terms
+into a cell image and read filtered images back bilinearly at the points
+(:mod:`omniflow.gridpool`), without numpy's (N, C) temporaries per corner.
+
 The kernels compile on first use; ``cache=True`` keeps the machine code
 between runs where the package folder (or Numba's user cache) is writable.
 """
@@ -21,7 +25,7 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["pooled_sums"]
+__all__ = ["grid_read", "grid_scatter", "pooled_sums"]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -107,3 +111,36 @@ def pooled_sums(
         *f, np.ascontiguousarray(h1, dtype=np.float64), th, bool(relative),
         3 if linear else 1, float(scale),
     )  # fmt: skip
+
+
+@numba.njit(cache=True, nogil=True)
+def grid_scatter(img, iy, ix, parts, members):  # pragma: no cover - compiled
+    """Add ``parts[i]`` (C,) into ``img[iy[i], ix[i]]`` (img (H, W, C)) for i in ``members``."""
+    for t in range(members.size):
+        i = members[t]
+        for c in range(parts.shape[1]):
+            img[iy[i], ix[i], c] += parts[i, c]
+
+
+@numba.njit(cache=True, nogil=True)
+def grid_read(f, gx, gy, readers, coef, out):  # pragma: no cover - compiled
+    """Add ``coef[i]`` times the bilinear sample of ``f`` (H, W, C), H, W >= 2, at cell
+    coordinates (gx[i], gy[i]) (centres at integers, clamped to the grid) to ``out[i]``
+    (C,) for i in ``readers``."""
+    h, w, nc = f.shape
+    for t in range(readers.size):
+        i = readers[t]
+        x = min(max(gx[i], 0.0), w - 1.0)
+        y = min(max(gy[i], 0.0), h - 1.0)
+        x0 = min(int(x), w - 2)  # x >= 0: truncation is the floor
+        y0 = min(int(y), h - 2)
+        fx = x - x0
+        fy = y - y0
+        c = coef[i]
+        w00 = (1.0 - fx) * (1.0 - fy) * c
+        w01 = fx * (1.0 - fy) * c
+        w10 = (1.0 - fx) * fy * c
+        w11 = fx * fy * c
+        for k in range(nc):
+            out[i, k] += (w00 * f[y0, x0, k] + w01 * f[y0, x0 + 1, k]
+                          + w10 * f[y0 + 1, x0, k] + w11 * f[y0 + 1, x0 + 1, k])  # fmt: skip
