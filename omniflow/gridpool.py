@@ -172,17 +172,18 @@ class GridPools:
             )  # fmt: skip
             grid_read(f, self.gx - x0, self.gy - y0, readers, coef, read)
         read = read.reshape(n, len(pairs), 6)
-        read = [read[on, m] * norm for m in range(len(pairs))]
+        sel = slice(None) if on.all() else on
+        read = [read[sel, m] * norm for m in range(len(pairs))]
         if linear:
-            tx, ty = self.tangent[on, 0:1], self.tangent[on, 1:2]
+            tx, ty = self.tangent[sel, 0:1], self.tangent[sel, 1:2]
             m0, mx, my, mxx, mxy, myy = read
             mom = [m0, (tx * mx + ty * my) / scale,
                    (tx * tx * mxx + 2.0 * tx * ty * mxy + ty * ty * myy) / scale**2]  # fmt: skip
         else:
             mom = read
-        hi = h1[on, None]
+        hi = h1[sel, None]
         fac = np.concatenate([1.0 / hi**2] * 3 + [1.0 / hi] * 2, axis=1)  # (M, 5)
         for m in range(m_pow):
-            wsum[on, m] = mom[m][:, 0]
-            sums[on, m, :] = mom[m][:, 1:] * fac
+            wsum[sel, m] = mom[m][:, 0]
+            sums[sel, m, :] = mom[m][:, 1:] * fac
         return sums, wsum
