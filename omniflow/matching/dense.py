@@ -16,6 +16,7 @@ searched range, scores at least ``min_score`` and is sharp enough
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -100,10 +101,17 @@ def densify(
     cand[:, :pad] = False
     cand[:, pad + n_h :] = False
     jj = j1.astype(np.int64) + pad
+    empty = (np.zeros(0, np.intp), np.zeros(0, np.intp), np.zeros(0), np.zeros(0), 0)
+    if k.size == 0:
+        return empty
+    # only samples within ``reach`` columns of a seed on their line can be tried: a
+    # dilation of the seeds along the lines cuts the candidates before the search
+    seeded = np.zeros(fh1.shape, np.uint8)
+    seeded[k, jj] = 1
+    cand &= cv2.dilate(seeded, np.ones((1, 2 * reach + 1), np.uint8)).astype(bool)
     cand[k, jj] = False  # the seeds themselves
     ck, cj = np.nonzero(cand)
-    empty = (np.zeros(0, np.intp), np.zeros(0, np.intp), np.zeros(0), np.zeros(0), 0)
-    if ck.size == 0 or k.size == 0:
+    if ck.size == 0:
         return empty
     usable, guess = _seed_guess(k, jj, c2 - j1, ck, cj, fh1.shape[1], reach)
     ck, cj, guess = ck[usable], cj[usable], guess[usable]
