@@ -65,6 +65,7 @@ def densify(
     reach: int,
     search: int = 2,
     flatness: float = 0.0,
+    descriptors: tuple[Descriptors, Descriptors] | None = None,
 ) -> tuple[NDArray, NDArray, NDArray, NDArray, int]:
     """Match the textured samples near each seed match at the seed's disparity.
 
@@ -89,6 +90,10 @@ def densify(
         Candidates lie within this many columns of a seed on their line.
     search : int
         Columns searched either side of the seed's disparity.
+    descriptors : (Descriptors, Descriptors), optional
+        The profiles of ``t1`` and ``t2`` with these ``w``, ``stride``,
+        ``lines``, when the caller has them already (the robust rule builds
+        the same); built here otherwise.
 
     Returns
     -------
@@ -117,8 +122,9 @@ def densify(
     ck, cj, guess = ck[usable], cj[usable], guess[usable]
     if ck.size == 0:
         return empty
-    d1 = Descriptors(t1, w, stride, lines)(ck, cj)  # (N, L)
-    desc2 = Descriptors(t2, w, stride, lines)
+    desc1, desc2 = descriptors or (Descriptors(t1, w, stride, lines),
+                                   Descriptors(t2, w, stride, lines))  # fmt: skip
+    d1 = desc1(ck, cj)  # (N, L)
     base = np.rint(guess).astype(np.intp)
     offs = np.arange(-search - 1, search + 2)  # one more each side for the parabola
     cols = np.clip(cj[:, None] + base[:, None] + offs, w * stride, t2.shape[1] - 1 - w * stride)
