@@ -106,18 +106,19 @@ def table_rows(summary: dict) -> list[str]:
             err = math.hypot(re_ - rt, te - tt) / max(math.hypot(rt, tt), 1e-12)
             errs.append(f"{name} {100 * err:.1f} (n {o['n']})")
         ttc = (m["derived"].get("ttc_relative_error") or {}).get("median")
+        ttc_cell = "-" if ttc is None else f"{ttc:.3f}"
+        outl = m["stereo"]["all"]["outliers"]
         rows.append(f"| {scene} | {m['name']} | {100 * dens['of_valid_pixels']:.2f} | "
                     f"{dens['points_per_frame']:.0f} | " + " | ".join(cells) + f" | {gains} | "
                     + ("; ".join(errs) or "-") + " | "
-                    + ("-" if ttc is None else f"{ttc:.3f}") + " |")  # fmt: skip
+                    + f"{ttc_cell} | {100 * outl:.1f} |")  # fmt: skip
     return rows
 
 
 TABLE_HEAD = (
     "| scene | variant | dens % | pts/fr | cam1 EPE mean/med | ratio DIS | cam2 EPE mean/med "
-    "| ratio DIS | gain r cam1/cam2 | movers: mean-flow error % (cam1) | TTC med rel |\n"
-    + "|---" * 11
-    + "|"
+    "| ratio DIS | gain r cam1/cam2 | movers: mean-flow error % (cam1) | TTC med rel "
+    "| stereo outliers % |\n" + "|---" * 12 + "|"
 )
 
 

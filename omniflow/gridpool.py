@@ -148,7 +148,7 @@ class GridPools:
         pairs = [(g0, g0)]
         if linear:
             pairs += [(g1, g0), (g0, g1), (g2, g0), (g1, g1), (g0, g2)]
-        read = np.zeros((n, 6 * len(pairs)))
+        read = np.zeros((len(pairs), n, 6))
         ix, iy = self.flat % self.gw, self.flat // self.gw
         margin = self.half + 1
         for c in np.unique(self.bins[on]):
@@ -166,14 +166,12 @@ class GridPools:
             img = np.zeros((ch, cw, 6), np.float32)
             grid_scatter(img, iy - y0, ix - x0, parts, members)
             # a reader outside the crop reads its border, which is 0 (margin > kernel half)
-            f = np.concatenate(
-                [cv2.sepFilter2D(img, cv2.CV_32F, kx, ky, borderType=cv2.BORDER_CONSTANT)
-                 for kx, ky in pairs], axis=2,
-            )  # fmt: skip
-            grid_read(f, self.gx - x0, self.gy - y0, readers, coef, read)
-        read = read.reshape(n, len(pairs), 6)
+            gx, gy = self.gx - x0, self.gy - y0
+            for m, (kx, ky) in enumerate(pairs):
+                f = cv2.sepFilter2D(img, cv2.CV_32F, kx, ky, borderType=cv2.BORDER_CONSTANT)
+                grid_read(f, gx, gy, readers, coef, read[m])
         sel = slice(None) if on.all() else on
-        read = [read[sel, m] * norm for m in range(len(pairs))]
+        read = [r_m[sel] * norm for r_m in read]
         if linear:
             tx, ty = self.tangent[sel, 0:1], self.tangent[sel, 1:2]
             m0, mx, my, mxx, mxy, myy = read
