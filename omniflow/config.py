@@ -159,8 +159,10 @@ class OmniFlowConfig:
         percentile near each match on its line, at that match's disparity
         (omniflow.matching.dense); 100 disables it (the default: edges only).
         60 gives ~4 % of the valid pixels on the rendered scenes, but with
-        the pooled solver's default pool the flow is less accurate and the
-        step ~3x slower (docs/measurements.md, "Matching").
+        the pooled solver's default pool (the ``pool_k`` nearest) the flow is
+        less accurate and the step ~3x slower (docs/measurements.md,
+        "Matching"); with ``pool_grid`` the pools keep their area and the
+        flow is more accurate than without the densification ("Density").
     dense_reach : float
         Robust matcher: how far along the line a match's disparity is tried
         on its neighbours, in patch radii.
