@@ -9,6 +9,12 @@ the sums. The arithmetic of each term is numpy's, term by term; only the
 order of the additions over the K neighbours differs (a batched matrix
 product there, a running sum here), so the sums agree to rounding.
 
+:func:`ncc_offsets` scores a radial profile of table 1 against profiles of table
+2 at a few columns (the densification's short search, omniflow.matching.dense):
+the normalised cross-correlation of the same profiles as
+omniflow.matching.robust.Descriptors, summed straight from the tables instead of
+gathering every profile first.
+
 :func:`grid_scatter` and :func:`grid_read` put the grid pooling's point terms
 into a cell image and read filtered images back bilinearly at the points
 (:mod:`omniflow.gridpool`), without numpy's (N, C) temporaries per corner.
@@ -25,7 +31,7 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["grid_read", "grid_scatter", "pooled_sums"]
+__all__ = ["grid_read", "grid_scatter", "ncc_offsets", "pooled_sums"]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -144,3 +150,42 @@ def grid_read(f, gx, gy, readers, coef, out):  # pragma: no cover - compiled
         for k in range(nc):
             out[i, k] += (w00 * f[y0, x0, k] + w01 * f[y0, x0 + 1, k]
                           + w10 * f[y0 + 1, x0, k] + w11 * f[y0 + 1, x0 + 1, k])  # fmt: skip
+
+
+@numba.njit(cache=True, nogil=True)
+def ncc_offsets(t1, t2, k, j, cols, w, stride, lines, out):  # pragma: no cover - compiled
+    """NCC of the profile of ``t1`` at (k[i], j[i]) with those of ``t2`` at (k[i], cols[i, s]).
+
+    A profile: the 2 w + 1 samples every ``stride`` columns centred on the column, on
+    the 2 ``lines`` + 1 lines around k (wrapping in theta); zero-mean, unit-norm (a
+    flat profile has norm 1e-12). Columns must keep the profile inside the table.
+    Writes out[i, s].
+    """
+    n_lines = t1.shape[0]
+    length = (2 * w + 1) * (2 * lines + 1)
+    for i in range(k.size):
+        s1 = 0.0
+        s2 = 0.0
+        for dk in range(-lines, lines + 1):
+            row = (k[i] + dk) % n_lines
+            for q in range(-w, w + 1):
+                v = np.float64(t1[row, j[i] + q * stride])  # float64 products
+                s1 += v
+                s2 += v * v
+        mean1 = s1 / length
+        inv1 = 1.0 / max(math.sqrt(max(s2 - s1 * mean1, 0.0)), 1e-12)
+        for s in range(cols.shape[1]):
+            c = cols[i, s]
+            dot = 0.0
+            b1 = 0.0
+            b2 = 0.0
+            for dk in range(-lines, lines + 1):
+                row = (k[i] + dk) % n_lines
+                for q in range(-w, w + 1):
+                    v2 = np.float64(t2[row, c + q * stride])
+                    dot += (np.float64(t1[row, j[i] + q * stride]) - mean1) * v2
+                    b1 += v2
+                    b2 += v2 * v2
+            # sum (v1 - mean1)(v2 - mean2) = sum (v1 - mean1) v2: the first is zero-mean
+            inv2 = 1.0 / max(math.sqrt(max(b2 - b1 * (b1 / length), 0.0)), 1e-12)
+            out[i, s] = dot * inv1 * inv2

@@ -6,7 +6,7 @@ every other textured sample near a matched edge can be matched by a short
 search around that edge's disparity: :func:`densify` tries each sample of
 image 1 whose |df1/dh_1| passes a (lower) threshold and that lies within
 ``reach`` columns of a match on its line, with the NCC of its own radial
-profile (the same descriptors as the robust rule) at the seed's disparity
+profile (the same profiles as the robust rule's descriptors) at the seed's disparity
 +- ``search`` columns. Between two seeds the guess is interpolated, and a
 sample between two seeds that disagree by more than one column (a depth edge
 between them) is not tried. A sample is kept where its NCC peaks inside the
@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from omniflow.matching.robust import Descriptors
+from omniflow.kernels import ncc_offsets
 from omniflow.matching.tables import TableGeometry, parabola_offset, sharp_peak
 
 __all__ = ["densify"]
@@ -65,7 +65,6 @@ def densify(
     reach: int,
     search: int = 2,
     flatness: float = 0.0,
-    descriptors: tuple[Descriptors, Descriptors] | None = None,
 ) -> tuple[NDArray, NDArray, NDArray, NDArray, int]:
     """Match the textured samples near each seed match at the seed's disparity.
 
@@ -90,10 +89,6 @@ def densify(
         Candidates lie within this many columns of a seed on their line.
     search : int
         Columns searched either side of the seed's disparity.
-    descriptors : (Descriptors, Descriptors), optional
-        The profiles of ``t1`` and ``t2`` with these ``w``, ``stride``,
-        ``lines``, when the caller has them already (the robust rule builds
-        the same); built here otherwise.
 
     Returns
     -------
@@ -122,13 +117,14 @@ def densify(
     ck, cj, guess = ck[usable], cj[usable], guess[usable]
     if ck.size == 0:
         return empty
-    desc1, desc2 = descriptors or (Descriptors(t1, w, stride, lines),
-                                   Descriptors(t2, w, stride, lines))  # fmt: skip
-    d1 = desc1(ck, cj)  # (N, L)
     base = np.rint(guess).astype(np.intp)
     offs = np.arange(-search - 1, search + 2)  # one more each side for the parabola
     cols = np.clip(cj[:, None] + base[:, None] + offs, w * stride, t2.shape[1] - 1 - w * stride)
-    S = np.einsum("nl,nsl->ns", d1, desc2(np.broadcast_to(ck[:, None], cols.shape), cols))
+    # the NCC of the robust rule's profiles (Descriptors), summed from the tables
+    S = np.empty(cols.shape)
+    ncc_offsets(np.ascontiguousarray(t1, np.float32), np.ascontiguousarray(t2, np.float32),
+                ck.astype(np.int64), cj.astype(np.int64), cols.astype(np.int64),
+                int(w), int(stride), int(lines), S)  # fmt: skip
     b = np.argmax(S[:, 1:-1], axis=1) + 1
     r = np.arange(ck.size)
     s_m, s_0, s_p = S[r, b - 1], S[r, b], S[r, b + 1]
