@@ -189,6 +189,7 @@ KNOB_LIMITS: dict[str, tuple[float, float, bool, bool]] = {
     "temporal_frames": (3, math.inf, True, False),
     "pool_radius": (0.0, math.inf, False, False),
     "pool_k": (1, math.inf, True, False),
+    "pool_grid": (0.0, 1.0, False, True),  # grid cell / pool radius
     "pool_range_tol": (0.0, math.inf, False, False),
     "min_conditioning": (0.0, 1.0, True, True),  # lambda_min / lambda_max
     "pool_min_conditioning": (0.0, 1.0, True, True),  # lambda_min / lambda_max

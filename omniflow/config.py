@@ -169,8 +169,10 @@ class OmniFlowConfig:
         percentile near each match on its line, at that match's disparity
         (omniflow.matching.dense); 100 disables it (the default: edges only).
         60 gives ~4 % of the valid pixels on the rendered scenes, but with
-        the pooled solver's default pool the flow is less accurate and the
-        step ~3x slower (docs/measurements.md, "Matching").
+        the pooled solver's default pool (the ``pool_k`` nearest) the flow is
+        less accurate and the step ~3x slower (docs/measurements.md,
+        "Matching"); with ``pool_grid`` the pools keep their area and the
+        flow is more accurate than without the densification ("Density").
     dense_reach : float
         Robust matcher: how far along the line a match's disparity is tried
         on its neighbours, in patch radii.
@@ -195,6 +197,16 @@ class OmniFlowConfig:
     pool_k : int
         Pooled solver: most neighbours, the point itself included
         (docs/measurements.md has 48 against 24).
+    pool_grid : float or None
+        Pooled solver: pool by filtering on a grid (omniflow.gridpool)
+        with cells of this fraction of ``pool_radius``, so each pool holds
+        every match within the radius (not the ``pool_k`` nearest) at a cost
+        that does not grow with the number of matches; points whose window
+        mixes ranges (``pool_range_tol``) keep the k-d tree's pools. Only for
+        the one-pass equal-weight solver (``pool_edge_tol``,
+        ``pool_residual_tol``, ``pool_flow_tol``, ``pool_min_info`` all None,
+        ``pool_unit_weighting="equal"``); otherwise the tree pools. None: the
+        k-d tree everywhere.
     pool_range_tol : float or None
         Pooled solver: neighbours whose range differs by more than this
         fraction (another surface) are left out; None keeps them.
@@ -314,6 +326,7 @@ class OmniFlowConfig:
     solver: str = "pooled"
     pool_radius: float | None = None
     pool_k: int = 48
+    pool_grid: float | None = None
     pool_range_tol: float | None = 0.1
     pool_model: str = "linear"
     pool_flow_tol: float | None = None
@@ -360,7 +373,7 @@ class OmniFlowConfig:
                 f"OmniFlowConfig.flow_band_gain = {self.flow_band_gain!r}: "
                 "expected a fraction in (0, 1)"
             )
-        for name in ("pool_edge_tol", "pool_residual_tol", "pool_min_info"):
+        for name in ("pool_edge_tol", "pool_residual_tol", "pool_min_info", "pool_grid"):
             val = getattr(self, name)
             if val is not None and not val > 0:
                 raise ValueError(f"OmniFlowConfig.{name} = {val!r}: expected > 0 or None")
