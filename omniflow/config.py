@@ -240,6 +240,15 @@ class OmniFlowConfig:
         drops good points on anisotropic texture (closed-form striped walls,
         whose pools are legitimately ill-conditioned along the stripes);
         docs/measurements.md, "Matching defaults after the merge".
+    decouple_tol : float or None
+        Pooled solver: report a point decoupled (result column ``coupled``
+        False) where the two units' equations cannot share one radial flow,
+        eq. (14) failing (motion along the axis: a rolling or tumbling
+        object's texture): the F statistic of a separate radial flow per
+        unit over the point's pool above this (omniflow.decoupled). There
+        dh1_dt, dh2_dt and dtheta_dt come from eq. (9) and (10) with one
+        shared dtheta/dt, and dr_dt from both radial flows. None: every
+        point coupled (the paper's model).
     sampling : {"cubic", "linear", "exact"}
         How gradients and the fitted images are read at the matched points:
         cv2.remap of the pixel grids, or the series evaluated exactly.
@@ -311,6 +320,7 @@ class OmniFlowConfig:
     pool_min_info: float | None = None
     min_conditioning: float = 0.0
     pool_min_conditioning: float = 1e-3
+    decouple_tol: float | None = None
     sampling: str = "cubic"
     iterations: int = 0
     rim_fill: str = "reflect"
