@@ -10,19 +10,23 @@ does not move along the axis. Differentiating eq. (3) and (4)::
 so for dh != 0 (an object rising or falling, or a rolling ball or tumbling
 ring whose texture moves vertically) the two radial flows are independent
 unknowns, and a solve that ties them answers a wrong radial flow on both
-cameras. The azimuth is still shared (theta_1 = theta_2 for every point of a
-coaxial rig), so the decoupled model has three unknowns per point,
-(dh_1/dt, dh_2/dt, dtheta/dt), from eq. (9) of unit 1 and eq. (10) of unit
-2, pooled over the same neighbours as the coupled solve::
+cameras. Solving the two for the flows, dh_i/dt = U - h_i W in either unit
+with U = v dh / (d + r) and W = dr / (d + r): U is the axial motion's share,
+the same in both units, and W the range's, scaling with each unit's h_i
+(U = 0 is eq. (14)). The azimuth is still shared (theta_1 = theta_2 for every
+point of a coaxial rig), so the decoupled model has three unknowns,
+(U, W, dtheta/dt), in eq. (9) of unit 1 and eq. (10) of unit 2, pooled over
+the same neighbours as the coupled solve (U, W and dtheta/dt shared by the
+pool, a rigid patch at one range)::
 
-    f1_h a_1 + f1_theta b = -f1_t                               # eq. (9)
-    f2_h a_2 + f2_theta b = -f2_t                               # eq. (10)
+    f1_h (U - h_1 W) + f1_theta b = -f1_t                       # eq. (9)
+    f2_h (U - h_2 W) + f2_theta b = -f2_t                       # eq. (10)
 
 Detection (:func:`decouple`). Both models are fitted in weighted least
-squares over each point's pool (constant model, radial flows scaling with the
-image radius as in :func:`omniflow.flow.pooled_solution`); the decoupled one
-has one more unknown, so its residual sum is never larger. The F statistic
-of that one extra unknown,
+squares over each point's pool (constant model; with U = 0 the radial flow
+scales with the image radius as in :func:`omniflow.flow.pooled_solution`);
+the decoupled one has one more unknown, so its residual sum is never
+larger. The F statistic of that one extra unknown,
 
     F = (RSS_coupled - RSS_decoupled) / (RSS_decoupled / (n_eff - 3)),
 
@@ -76,34 +80,30 @@ def model_fits(
     -------
     dict
         ``a1``, ``a2`` (dh_1/dt and dh_2/dt of the decoupled fit, px/frame),
-        ``b`` (its dtheta/dt, rad/frame), ``coupled_a``, ``coupled_b`` (the
-        one-radial-flow fit), ``F`` (the statistic of the extra unknown;
-        NaN where either fit is singular), ``n_eff``.
+        ``b`` (its dtheta/dt, rad/frame), ``U`` (v dh / (d + r), the axial
+        motion's share of either unit's radial flow, px/frame),
+        ``coupled_a``, ``coupled_b`` (the fit with U = 0, eq. 14), ``F``
+        (the statistic of the extra unknown; NaN where either fit is
+        singular), ``n_eff``.
     """
-    n = h1.size
     ext = lambda v: np.append(np.asarray(v, dtype=np.float64), 0.0)[idx]  # noqa: E731
     f1_h, f1_th, f1_t, f2_h, f2_th, f2_t = (ext(v) for v in derivs)
     hi = h1[:, None]
-    rel = ext(h1) / hi  # radial flow proportional to h_1 over the pool (flow.pooled_solution)
-    k = h2 / h1
-    # unit 1's rows (p1, q1) . (a_1, c) = -t1; unit 2's (p2, q2) . (a_2', c) = -t2, where
-    # c = h_1,i b and a_2' = dh_2/dt / k_i (unit 2's radial flow in cam1's scale, so that
-    # eq. (14) reads a_2' = a_1)
-    p1, q1 = f1_h * rel, f1_th / hi
-    p2, q2 = ext(k) * f2_h * rel, f2_th / hi
-    s = lambda v: (w * v).sum(axis=1)  # noqa: E731
-    pp1, pq1, pt1, tt1 = s(p1 * p1), s(p1 * q1), s(p1 * f1_t), s(f1_t * f1_t)
-    pp2, pq2, pt2, tt2 = s(p2 * p2), s(p2 * q2), s(p2 * f2_t), s(f2_t * f2_t)
-    qq, qt = s(q1 * q1 + q2 * q2), s(q1 * f1_t + q2 * f2_t)
-    tt = tt1 + tt2
-    zero = np.zeros(n)
+    # Unknowns (U, W, c): dh_i/dt = U - h_i W in either unit (eq. 3-4 differentiated,
+    # U = v dh / (d + r), W = dr / (d + r), both shared by a pool on one surface), W
+    # scaled by h_1,i and c = h_1,i dtheta/dt. Unit u's row of neighbour j:
+    # (f_h, -f_h h_u,j / h_1,i, f_theta / h_1,i) . (U, h_1,i W, c) = -f_t; U = 0 is the
+    # coupled model (eq. 14), whose W column is pooled_solution's relative radial one.
+    u1, w1, q1 = f1_h, -f1_h * ext(h1) / hi, f1_th / hi
+    u2, w2, q2 = f2_h, -f2_h * ext(h2) / hi, f2_th / hi
+    s = lambda x, y: (w * (x * y)).sum(axis=1)  # noqa: E731
+    cols = ((u1, u2), (w1, w2), (q1, q2))
     M3 = np.stack(
-        [np.stack([pp1, zero, pq1], -1), np.stack([zero, pp2, pq2], -1),
-         np.stack([pq1, pq2, qq], -1)], axis=1,
-    )  # fmt: skip
-    g3 = np.stack([pt1, pt2, qt], -1)
-    M2 = np.stack([np.stack([pp1 + pp2, pq1 + pq2], -1), np.stack([pq1 + pq2, qq], -1)], axis=1)
-    g2 = np.stack([pt1 + pt2, qt], -1)
+        [np.stack([s(a1, b1) + s(a2, b2) for b1, b2 in cols], -1) for a1, a2 in cols], axis=1
+    )
+    g3 = np.stack([s(a1, f1_t) + s(a2, f2_t) for a1, a2 in cols], -1)
+    tt = s(f1_t, f1_t) + s(f2_t, f2_t)
+    M2, g2 = M3[:, 1:, 1:], g3[:, 1:]
     x3 = _solve(M3, -g3)
     x2 = _solve(M2, -g2)
     rss3 = tt + np.einsum("ij,ij->i", x3, g3)  # min of sum w (A x + t)^2 = tt + g . x
@@ -113,11 +113,13 @@ def model_fits(
         n_eff = 2.0 * wsum * wsum / w2sum  # two rows (one per unit) per neighbour
         F = (rss2 - rss3) / (rss3 / (n_eff - 3.0))
     F = np.where((n_eff > 4.0) & (rss3 > 0), F, np.nan)
+    k = h2 / h1
     return {
-        "a1": x3[:, 0],
-        "a2": x3[:, 1] * k,
+        "a1": x3[:, 0] - x3[:, 1],
+        "a2": x3[:, 0] - k * x3[:, 1],
         "b": x3[:, 2] / h1,
-        "coupled_a": x2[:, 0],
+        "U": x3[:, 0],
+        "coupled_a": -x2[:, 0],
         "coupled_b": x2[:, 1] / h1,
         "F": F,
         "n_eff": n_eff,
