@@ -48,6 +48,7 @@ def main(argv: list[str]) -> int:
         "decouple_tol": t,
         "n": int(F.size),
         "switched_share": float(np.mean(F > t)) if t is not None and F.size else 0.0,
+        "F_max": float(F.max()) if F.size else None,
         "F_quantiles": {q: float(np.quantile(F, q / 100)) for q in (50, 90, 99, 99.9)}
         if F.size
         else {},

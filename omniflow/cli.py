@@ -347,7 +347,9 @@ def build_parser() -> argparse.ArgumentParser:
                                x, y (cam1 px), theta (rad),
                                h1, h2 (px), r, h (m), dh1_dt (px/frame), dtheta_dt (rad/frame),
                                dr_dt (m/frame), dx, dy (cam1 px/frame), cam2 columns x2, y2,
-                               dh2_dt, dx2, dy2, confidence, D, time_to_contact (frames)
+                               dh2_dt, dx2, dy2, confidence, D, coupled (1: eq. 14 holds,
+                               0: each camera's radial flow solved on its own),
+                               time_to_contact (frames)
               flow.json        units of every column, the config, the rig, the inputs and timings
               regions.csv      with --region / --auto-regions: per region its point count,
                                mean flow, dr/dt, time to contact and steering headings

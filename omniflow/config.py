@@ -248,7 +248,10 @@ class OmniFlowConfig:
         unit over the point's pool above this (omniflow.decoupled). There
         dh1_dt, dh2_dt and dtheta_dt come from eq. (9) and (10) with one
         shared dtheta/dt, and dr_dt from both radial flows. None: every
-        point coupled (the paper's model).
+        point coupled (the paper's model). 20 switches no point of the
+        default, approach and crossing renders (the largest F there is
+        19) and 41 of the 47 points on the ball of independent_movers;
+        docs/measurements.md, "Movers: decoupled radial flow".
     sampling : {"cubic", "linear", "exact"}
         How gradients and the fitted images are read at the matched points:
         cv2.remap of the pixel grids, or the series evaluated exactly.
@@ -320,7 +323,7 @@ class OmniFlowConfig:
     pool_min_info: float | None = None
     min_conditioning: float = 0.0
     pool_min_conditioning: float = 1e-3
-    decouple_tol: float | None = None
+    decouple_tol: float | None = 20.0
     sampling: str = "cubic"
     iterations: int = 0
     rim_fill: str = "reflect"
