@@ -242,7 +242,7 @@ class OmniFlowConfig:
         docs/measurements.md, "Matching defaults after the merge".
     decouple_tol : float or None
         Pooled solver: report a point decoupled (result column ``coupled``
-        False) where the two units' equations cannot share one radial flow,
+        0) where the two units' equations cannot share one radial flow,
         eq. (14) failing (motion along the axis: a rolling or tumbling
         object's texture): the F statistic of a separate radial flow per
         unit over the point's pool above this (omniflow.decoupled). There

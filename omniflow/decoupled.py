@@ -32,7 +32,7 @@ larger. The F statistic of that one extra unknown,
 
 is large only where the two units' equations cannot be satisfied with one
 radial flow: there the point is reported decoupled (column ``coupled`` =
-False) with the three-unknown solution. ``n_eff`` is the pool's effective
+0) with the three-unknown solution. ``n_eff`` is the pool's effective
 number of rows, (sum w)^2 / sum w^2 per unit. The threshold is a knob
 (``OmniFlowConfig.decouple_tol``) chosen on the rendered scenes
 (docs/measurements.md, "Movers: decoupled radial flow"): neighbouring
@@ -152,9 +152,8 @@ def decouple(cols: dict[str, NDArray], rig: Rig, config: OmniFlowConfig) -> dict
     assumed).
     """
     n = np.asarray(cols["h1"]).size
-    coupled = np.ones(n, dtype=bool)
     out = dict(cols)
-    out["coupled"] = coupled
+    out["coupled"] = np.ones(n)  # 1.0 / 0.0 like every other column (arithmetic, CSV)
     if config.decouple_tol is None or config.solver != "pooled" or n < 10:
         return out
     h1, h2 = (np.asarray(cols[c], dtype=np.float64) for c in ("h1", "h2"))
@@ -172,7 +171,6 @@ def decouple(cols: dict[str, NDArray], rig: Rig, config: OmniFlowConfig) -> dict
         return out
     from omniflow.solve import _displacement
 
-    coupled = ~switch
     theta = np.asarray(cols["theta"], dtype=np.float64)
     a1 = np.where(switch, fit["a1"], cols["dh1_dt"])
     a2 = np.where(switch, fit["a2"], cols["dh2_dt"])
@@ -181,7 +179,7 @@ def decouple(cols: dict[str, NDArray], rig: Rig, config: OmniFlowConfig) -> dict
     dx2, dy2 = _displacement(rig.cam2, h2, theta, a2, b)
     dr = radial_velocity_stereo(cols["r"], h1, h2, a1, a2, d=rig.d)
     out.update(
-        dh1_dt=a1, dh2_dt=a2, dtheta_dt=b, coupled=coupled,
+        dh1_dt=a1, dh2_dt=a2, dtheta_dt=b, coupled=np.where(switch, 0.0, 1.0),
         dx=np.where(switch, dx, cols["dx"]), dy=np.where(switch, dy, cols["dy"]),
         dx2=np.where(switch, dx2, cols["dx2"]), dy2=np.where(switch, dy2, cols["dy2"]),
         dr_dt=np.where(switch, dr, cols["dr_dt"]),

@@ -47,7 +47,7 @@ COLUMNS: dict[str, str] = {
     "f2_h": "grey/px, df2/dh_2 used in eq. (15)",
     "f2_theta": "grey/rad, df2/dtheta used in eq. (15)",
     "f2_t": "grey/frame, df2/dt used in eq. (15)",
-    "coupled": "bool (1/0), eq. (14) ties dh2_dt to dh1_dt (0: decoupled, omniflow.decoupled)",
+    "coupled": "1/0, eq. (14) ties dh2_dt to dh1_dt (0: decoupled, omniflow.decoupled)",
 }
 
 
