@@ -252,6 +252,13 @@ class OmniFlowConfig:
         default, approach and crossing renders (the largest F there is
         19) and 41 of the 47 points on the ball of independent_movers;
         docs/measurements.md, "Movers: decoupled radial flow".
+    flow_shading : float or None
+        Fit the flow step's series to each frame divided by its Gaussian
+        local mean of this many pixels (omniflow.shading), so that shading
+        that stays put while a curved body turns (a rolling ball, a spinning
+        pillar) does not shorten its flow; the matcher keeps the frames as
+        given. None: the frames as given. Costs a second fit of both units.
+        :func:`omniflow.pipeline.estimate` only (OmniFlowStream ignores it).
     sampling : {"cubic", "linear", "exact"}
         How gradients and the fitted images are read at the matched points:
         cv2.remap of the pixel grids, or the series evaluated exactly.
@@ -324,6 +331,7 @@ class OmniFlowConfig:
     min_conditioning: float = 0.0
     pool_min_conditioning: float = 1e-3
     decouple_tol: float | None = 20.0
+    flow_shading: float | None = None
     sampling: str = "cubic"
     iterations: int = 0
     rim_fill: str = "reflect"

@@ -58,6 +58,7 @@ from omniflow.series import (
     unit_frames,
     unit_noise_sigma,
 )
+from omniflow.shading import flow_units
 from omniflow.solve import flow_at_matches
 
 __all__ = [
@@ -137,6 +138,8 @@ def estimate(
     flow_band = choose_flow_band(fits, sigmas, config)
     cam1 = unit_frames(fits[0], rig.cam1, config, flow_band)
     cam2 = unit_frames(fits[1], rig.cam2, config, flow_band)
+    if config.flow_shading is not None:  # the flow step on shading-flattened frames
+        cam1, cam2 = flow_units(frames1, frames2, t, rig, config, flow_band, (cam1, cam2))
     for cam, s in zip((cam1, cam2), sigmas, strict=True):
         cam["noise_var"] = noise_variance(s, cam["g"].fit, config)
     diagnostics = {"flow_band": flow_band, "noise_sigma1": sigmas[0], "noise_sigma2": sigmas[1]}
