@@ -1,13 +1,15 @@
-"""Score the default configuration with ``decouple_tol`` set, and the F statistics seen.
+"""Score the default configuration with ``decouple_tol`` (and other knobs) set.
 
 The command behind docs/measurements.md, "Movers: decoupled radial flow"::
 
     python benchmarks/movers_decouple.py TOL DATASET OUT [omnivalidate options]
+    python benchmarks/movers_decouple.py decouple_tol=20,flow_shading=8 DATASET OUT [...]
 
 runs ``omnivalidate DATASET --out OUT --variants default`` with every
-default OmniFlowConfig carrying ``decouple_tol=TOL`` ('none' for None) and
-writes OUT/decouple.json: the share of points switched to the decoupled
-model and the quantiles of the F statistic (omniflow.decoupled.model_fits).
+default OmniFlowConfig carrying ``decouple_tol=TOL`` ('none' for None; or
+the NAME=VALUE fields given) and writes OUT/decouple.json: the share of
+points switched to the decoupled model and the quantiles of the F statistic
+(omniflow.decoupled.model_fits).
 """
 
 from __future__ import annotations
@@ -27,7 +29,9 @@ def main(argv: list[str]) -> int:
     tol, dataset, out = argv[0], argv[1], argv[2]
     names = [p for p in inspect.signature(config.OmniFlowConfig.__init__).parameters][1:]
     defaults = list(config.OmniFlowConfig.__init__.__defaults__)
-    defaults[names.index("decouple_tol")] = None if tol == "none" else float(tol)
+    pairs = [kv.split("=") for kv in tol.split(",")] if "=" in tol else [("decouple_tol", tol)]
+    for name, value in pairs:
+        defaults[names.index(name)] = None if value == "none" else float(value)
     config.OmniFlowConfig.__init__.__defaults__ = tuple(defaults)
     seen: list[np.ndarray] = []
     fits = decoupled.model_fits
