@@ -66,6 +66,13 @@ def test_the_shading_check_fails_without_flattening(shaded):
     assert abs(dh2 - 1.0) > 0.05  # measured 0.687
 
 
+def test_the_stream_refuses_flow_shading(shaded):
+    from omniflow.stream import OmniFlowStream
+
+    with pytest.raises(ValueError, match="flow_shading"):
+        OmniFlowStream(shaded[0], OmniFlowConfig(flow_shading=8.0))
+
+
 def test_flatten_shading_divides_a_slow_ramp_away():
     rng = np.random.default_rng(0)
     const = np.full((64, 64), 0.4, np.float32)
