@@ -46,6 +46,8 @@ gives dr/dt = -(d + r)(dh_2/dt - dh_1/dt) / (h_2 - h_1)
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -137,7 +139,9 @@ def _solve(M: NDArray, v: NDArray) -> NDArray:
     return out
 
 
-def decouple(cols: dict[str, NDArray], rig: Rig, config: OmniFlowConfig) -> dict[str, NDArray]:
+def decouple(
+    cols: dict[str, NDArray], rig: Rig, config: OmniFlowConfig, displacement: Callable
+) -> dict[str, NDArray]:
     """Add the ``coupled`` column and, where eq. (14) fails, the decoupled flow.
 
     ``cols`` are the result columns of :func:`omniflow.solve.flow_at_matches`
@@ -149,7 +153,9 @@ def decouple(cols: dict[str, NDArray], rig: Rig, config: OmniFlowConfig) -> dict
     ``dh2_dt`` and ``dtheta_dt`` from their own pool, the displacements
     from those, and ``dr_dt`` from both radial flows
     (:func:`omniflow.applications.radial_velocity_stereo`, eq. (14) not
-    assumed).
+    assumed). ``displacement(unit, h_i, theta, dh, dtheta)`` gives the pixel
+    flow (dx, dy) of a polar flow, the solver's own (passed in, so that this
+    module does not import the solver that calls it).
     """
     n = np.asarray(cols["h1"]).size
     out = dict(cols)
@@ -169,14 +175,12 @@ def decouple(cols: dict[str, NDArray], rig: Rig, config: OmniFlowConfig) -> dict
         switch = (fit["F"] > config.decouple_tol) & np.isfinite(fit["a1"] + fit["a2"] + fit["b"])
     if not switch.any():
         return out
-    from omniflow.solve import _displacement
-
     theta = np.asarray(cols["theta"], dtype=np.float64)
     a1 = np.where(switch, fit["a1"], cols["dh1_dt"])
     a2 = np.where(switch, fit["a2"], cols["dh2_dt"])
     b = np.where(switch, fit["b"], cols["dtheta_dt"])
-    dx, dy = _displacement(rig.cam1, h1, theta, a1, b)
-    dx2, dy2 = _displacement(rig.cam2, h2, theta, a2, b)
+    dx, dy = displacement(rig.cam1, h1, theta, a1, b)
+    dx2, dy2 = displacement(rig.cam2, h2, theta, a2, b)
     dr = radial_velocity_stereo(cols["r"], h1, h2, a1, a2, d=rig.d)
     out.update(
         dh1_dt=a1, dh2_dt=a2, dtheta_dt=b, coupled=np.where(switch, 0.0, 1.0),

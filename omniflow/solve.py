@@ -133,7 +133,7 @@ def flow_at_matches(
         "f2_t": f2_t,
         "_t_sample": t1 - t0,
     }
-    return decouple(cols, rig, config)  # eq. (14) tested per point (omniflow.decoupled)
+    return decouple(cols, rig, config, _displacement)  # eq. (14) tested (omniflow.decoupled)
 
 
 def make_solver(
