@@ -11,7 +11,7 @@ and temporal derivatives at the matched points and solves for the flow
 Output per point (:class:`OmniFlowResult`, columns in :data:`COLUMNS`): cam1
 position (x, y, theta, h1), its match h2 and cam2 position (x2, y2), range
 and height (r, h; eq. 5), the polar flow (dh1_dt, dtheta_dt;
-dh2_dt = (h2/h1) dh1_dt, eq. 14, except where ``coupled`` is False:
+dh2_dt = (h2/h1) dh1_dt, eq. 14, except where ``coupled`` is 0:
 :mod:`omniflow.decoupled`), dr_dt = -(d + r) dh1_dt / h1, the pixel
 flow of both units (dx, dy; dx2, dy2), the determinant D of eq. (16), a
 confidence in [0, 1] and the derivatives that entered eq. (9) and (15). The
