@@ -208,6 +208,8 @@ KNOB_LIMITS: dict[str, tuple[float, float, bool, bool]] = {
     "dense_reach": (0.0, math.inf, False, False),  # patch radii
     "short_patch": (0.0, 1.0, True, False),  # a fraction of patch_radius; 0 = off
     "pool_flow_tol": (0.0, math.inf, False, False),
+    "decouple_tol": (0.0, math.inf, False, False),  # an F statistic (omniflow.decoupled)
+    "flow_shading": (0.0, math.inf, False, False),  # px, Gaussian sigma (omniflow.shading)
     "pool_edge_tol": (0.0, math.inf, False, False),  # a factor on the median edge at the matches
     "pool_residual_tol": (0.0, math.inf, False, False),  # robust standard deviations
     "pool_min_info": (0.0, math.inf, False, False),  # in typical single points' information
@@ -350,7 +352,9 @@ def build_parser() -> argparse.ArgumentParser:
                                x, y (cam1 px), theta (rad),
                                h1, h2 (px), r, h (m), dh1_dt (px/frame), dtheta_dt (rad/frame),
                                dr_dt (m/frame), dx, dy (cam1 px/frame), cam2 columns x2, y2,
-                               dh2_dt, dx2, dy2, confidence, D, time_to_contact (frames)
+                               dh2_dt, dx2, dy2, confidence, D, coupled (1: eq. 14 holds,
+                               0: each camera's radial flow solved on its own),
+                               time_to_contact (frames)
               flow.json        units of every column, the config, the rig, the inputs and timings
               regions.csv      with --region / --auto-regions: per region its point count,
                                mean flow, dr/dt, time to contact and steering headings

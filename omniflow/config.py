@@ -262,6 +262,25 @@ class OmniFlowConfig:
         drops good points on anisotropic texture (closed-form striped walls,
         whose pools are legitimately ill-conditioned along the stripes);
         docs/measurements.md, "Matching defaults after the merge".
+    decouple_tol : float or None
+        Pooled solver: report a point decoupled (result column ``coupled``
+        0) where the two units' equations cannot share one radial flow,
+        eq. (14) failing (motion along the axis: a rolling or tumbling
+        object's texture): the F statistic of a separate radial flow per
+        unit over the point's pool above this (omniflow.decoupled). There
+        dh1_dt, dh2_dt and dtheta_dt come from eq. (9) and (10) with one
+        shared dtheta/dt, and dr_dt from both radial flows. None: every
+        point coupled (the paper's model). 20 switches no point of the
+        default, approach and crossing renders (the largest F there is
+        19) and 41 of the 47 points on the ball of independent_movers;
+        docs/measurements.md, "Movers: decoupled radial flow".
+    flow_shading : float or None
+        Fit the flow step's series to each frame divided by its Gaussian
+        local mean of this many pixels (omniflow.shading), so that shading
+        that stays put while a curved body turns (a rolling ball, a spinning
+        pillar) does not shorten its flow; the matcher keeps the frames as
+        given. None: the frames as given. Costs a second fit of both units.
+        :func:`omniflow.pipeline.estimate` only (OmniFlowStream ignores it).
     sampling : {"cubic", "linear", "exact"}
         How gradients and the fitted images are read at the matched points:
         cv2.remap of the pixel grids, or the series evaluated exactly.
@@ -336,6 +355,8 @@ class OmniFlowConfig:
     pool_min_info: float | None = None
     min_conditioning: float = 0.0
     pool_min_conditioning: float = 1e-3
+    decouple_tol: float | None = 20.0
+    flow_shading: float | None = None
     sampling: str = "cubic"
     iterations: int = 0
     rim_fill: str = "reflect"

@@ -16,6 +16,7 @@ from numpy.typing import NDArray
 
 from omniflow.applications import radial_velocity
 from omniflow.config import OmniFlowConfig
+from omniflow.decoupled import decouple
 from omniflow.flow import conditioning as direct_conditioning
 from omniflow.flow import (
     consistent_neighbours,
@@ -104,7 +105,7 @@ def flow_at_matches(
     k = h2 / h1
     dx, dy = _displacement(rig.cam1, h1, theta, a, b)
     dx2, dy2 = _displacement(rig.cam2, h2, theta, k * a, b)
-    return {
+    cols = {
         "x": x1,
         "y": y1,
         "theta": theta,
@@ -133,6 +134,7 @@ def flow_at_matches(
         "f2_t": f2_t,
         "_t_sample": t1 - t0,
     }
+    return decouple(cols, rig, config, _displacement)  # eq. (14) tested (omniflow.decoupled)
 
 
 def make_solver(
