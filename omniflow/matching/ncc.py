@@ -1,0 +1,244 @@
+"""Compiled kernel (Numba) of the robust matcher's edge-to-edge NCC search.
+
+:func:`robust_lines` runs the rule of :func:`omniflow.matching.robust.match_robust`
+line by line: the edges of both polar tables, the NCC of each significant
+edge of image 1 with the edges of image 2 inside its disparity window only,
+the best and second-best candidates, the polarity, uniqueness,
+self-similarity, periodic-alias and left-right tests, and the NCC at the
+neighbouring columns for the sub-pixel step. In numpy the same rule formed
+a dense (lines, edges, edges) NCC array by batched products and then masked
+everything outside the window; here nothing outside the window is scored.
+
+The profiles are those of :class:`omniflow.matching.robust.Descriptors`,
+value for value: each window's sum and sum of squares are summed in double
+and rounded to float32, as OpenCV's box filter does for float32 images, and
+the profile is (x - mean) * inv_norm in float32. Only the NCC's own sum
+differs: one dot product summed in double here, a float32 BLAS product in
+numpy, so an NCC can differ in its last float32 bit or two.
+
+The kernel compiles on first use; ``cache=True`` keeps the machine code
+between runs where the package folder (or Numba's user cache) is writable.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+from numpy.typing import NDArray
+
+__all__ = ["robust_lines"]
+
+
+@numba.njit(cache=True, nogil=True)
+def _edges(a, low, pad, n_h, out):  # pragma: no cover - compiled
+    """Columns j in [pad, pad + n_h) where |f_h| peaks along the line and exceeds ``low``
+    (tables.local_maxima: a plateau counts once, at its right end); returns the count."""
+    n = 0
+    for j in range(pad, pad + n_h):
+        v = abs(a[j])
+        if v >= abs(a[j - 1]) and v > abs(a[j + 1]) and v > low:
+            out[n] = j
+            n += 1
+    return n
+
+
+@numba.njit(cache=True, nogil=True)
+def _profile(t, k, j, w, stride, lines, out):  # pragma: no cover - compiled
+    """The zero-mean, unit-norm profile of table ``t`` at (line k, column j) into ``out``."""
+    n_lines = t.shape[0]
+    m = 2 * w + 1
+    j0 = j - w * stride
+    s1 = 0.0
+    s2 = 0.0
+    i = 0
+    for dk in range(-lines, lines + 1):
+        row = (k + dk) % n_lines
+        r1 = 0.0
+        r2 = 0.0
+        for q in range(m):
+            x = t[row, j0 + q * stride]
+            out[i] = x
+            r1 += x
+            r2 += x * x  # float32 square, summed in double (box filter of dec * dec)
+            i += 1
+        s1 += r1
+        s2 += r2
+    s1f = np.float32(s1)
+    s2f = np.float32(s2)
+    mean = s1f / np.float32(i)
+    var = s2f - s1f * mean
+    if var < np.float32(0.0):
+        var = np.float32(0.0)
+    sd = np.sqrt(var)
+    if sd < np.float32(1e-12):
+        sd = np.float32(1e-12)
+    inv = np.float32(1.0) / sd
+    for q in range(i):
+        out[q] = (out[q] - mean) * inv
+
+
+# reassociation lets the compiler split the double sum into vector lanes (the
+# float32 products are exact in double, so only the last bits of the sum move)
+@numba.njit(cache=True, nogil=True, fastmath={"reassoc", "contract"})
+def _dot(a, b):  # pragma: no cover - compiled
+    s = 0.0
+    for q in range(a.size):
+        s += a[q] * b[q]
+    return np.float32(s)
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _robust_lines(t1, t2, fh1, fh2, low, thr, pad, n_h, lo, hi, w, stride, lines, floor,
+                  uniqueness, self_similarity, alias_score, tests, left_right,
+                  ok, j2_out, s_out, n_sig):  # pragma: no cover - compiled  # fmt: skip
+    n_theta, n_cols = t1.shape
+    length = (2 * lines + 1) * (2 * w + 1)
+    cols1 = np.empty((n_theta, n_h), dtype=np.int64)
+    cols2 = np.empty((n_theta, n_h), dtype=np.int64)
+    n1 = np.zeros(n_theta, dtype=np.int64)
+    n2 = np.zeros(n_theta, dtype=np.int64)
+    for k in numba.prange(n_theta):
+        n1[k] = _edges(fh1[k], low, pad, n_h, cols1[k])
+        n2[k] = _edges(fh2[k], low, pad, n_h, cols2[k])
+    # numpy's rule takes the uniqueness test only when some line has two edges in image 2
+    do_uniqueness = tests[0] and n2.max() > 1
+    lag_lo = (w * stride) // 2  # the self-similarity and alias tests' shortest lag
+    lag_hi = hi - lo
+    lo_col = w * stride
+    hi_col = n_cols - 1 - w * stride
+    one = np.float32(1.0)
+    for k in numba.prange(n_theta):
+        c1 = cols1[k, : n1[k]]
+        c2 = cols2[k, : n2[k]]
+        d1 = np.empty((c1.size, length), dtype=np.float32)
+        d2 = np.empty((c2.size, length), dtype=np.float32)
+        for i in range(c1.size):
+            _profile(t1, k, c1[i], w, stride, lines, d1[i])
+        for i in range(c2.size):
+            _profile(t2, k, c2[i], w, stride, lines, d2[i])
+        cand = np.empty(c2.size, dtype=np.float32)
+        side = np.empty(c1.size, dtype=np.float32)
+        p = np.empty(length, dtype=np.float32)
+        count = 0
+        first = 0  # first edge of image 2 at or after the window's start (columns ascend)
+        for i in range(c1.size):
+            j1 = c1[i]
+            g1 = fh1[k, j1]
+            if not abs(g1) > thr:
+                continue
+            count += 1
+            while first < c2.size and c2[first] < j1 + lo:
+                first += 1
+            stop = first
+            while stop < c2.size and c2[stop] <= j1 + hi:
+                stop += 1
+            if stop == first:
+                continue
+            b = first
+            for m in range(first, stop):
+                cand[m] = _dot(d1[i], d2[m])
+                if cand[m] > cand[b]:
+                    b = m
+            best = cand[b]
+            if not best >= floor:
+                continue
+            if (g1 > 0) != (fh2[k, c2[b]] > 0):
+                continue
+            if do_uniqueness:
+                second = np.float32(-1.0)
+                for m in range(first, stop):
+                    if m != b and cand[m] > second:
+                        second = cand[m]
+                if not (one - best) <= uniqueness * (one - second):
+                    continue
+            if tests[1]:
+                self_best = np.float32(-1.0)
+                for m in range(c1.size):
+                    lag = abs(c1[m] - j1)
+                    if lag >= lag_lo and lag <= lag_hi:
+                        a = _dot(d1[i], d1[m])
+                        if a > self_best:
+                            self_best = a
+                if not (one - best) <= self_similarity * (one - self_best):
+                    continue
+            if tests[2]:
+                # walk outward from j1 on each side: the profile recurs when its NCC
+                # exceeds alias_score at a lag >= lag_lo after falling below 0 nearer in
+                recurs = False
+                for m in range(c1.size):
+                    side[m] = _dot(d1[i], d1[m]) if abs(c1[m] - j1) <= lag_hi else 0.0
+                for direction in (1, -1):
+                    low_so_far = np.float32(np.inf)
+                    m = i + direction
+                    while 0 <= m < c1.size and not recurs:
+                        lag = abs(c1[m] - j1)
+                        if lag > lag_hi:
+                            break
+                        if low_so_far < 0.0 and lag >= lag_lo and side[m] > alias_score:
+                            recurs = True
+                        if side[m] < low_so_far:
+                            low_so_far = side[m]
+                        m += direction
+                if recurs:
+                    continue
+            if left_right:
+                j2 = c2[b]
+                back = -1
+                back_s = np.float32(0.0)
+                for m in range(c1.size):
+                    if c1[m] >= j2 - hi and c1[m] <= j2 - lo:
+                        s = _dot(d2[b], d1[m])
+                        if back < 0 or s > back_s:
+                            back, back_s = m, s
+                if back != i:
+                    continue
+            # the NCC at columns j2 - 2 .. j2 + 2 for the sub-pixel step
+            j2 = c2[b]
+            for q in range(5):
+                if q == 2:
+                    s_out[k, j1, q] = best
+                    continue
+                jj = min(max(j2 + q - 2, lo_col), hi_col)
+                _profile(t2, k, jj, w, stride, lines, p)
+                s_out[k, j1, q] = _dot(d1[i], p)
+            ok[k, j1] = True
+            j2_out[k, j1] = j2
+        n_sig[k] = count
+
+
+def robust_lines(
+    t1: NDArray, t2: NDArray, fh1: NDArray, fh2: NDArray, *, low: float, thr: float,
+    pad: int, n_h: int, win: tuple[int, int], w: int, stride: int, lines: int,
+    floor: float, uniqueness: float, self_similarity: float, alias_score: float,
+    left_right: bool,
+) -> tuple[NDArray, NDArray, NDArray, int]:  # fmt: skip
+    """The matches of :func:`~omniflow.matching.robust.match_robust` before its sub-pixel step.
+
+    ``t1``, ``t2``: the polar tables (float32, lines x columns); ``fh1``,
+    ``fh2``: their radial derivatives; ``low``: the candidate floor
+    (candidate_fraction * thr); ``win``: the disparity window in columns;
+    the other arguments as in match_robust (``floor``: the whole-column NCC
+    floor). The thresholds are compared in float32, as numpy compares a
+    float32 array with a Python float.
+
+    Returns (ok, j2, s, n_sig): ok (lines, columns) bool marks the kept
+    significant edges of image 1 by their column, j2 the column of their
+    match in image 2, s (lines, columns, 5) float32 the NCC at columns
+    j2 - 2 .. j2 + 2 (each clipped to the table's profile range; s[..., 2]
+    is the best whole-column NCC), and n_sig the significant edges tried.
+    """
+    n_theta, n_cols = t1.shape
+    ok = np.zeros((n_theta, n_cols), dtype=bool)
+    j2 = np.zeros((n_theta, n_cols), dtype=np.int64)
+    s = np.zeros((n_theta, n_cols, 5), dtype=np.float32)
+    n_sig = np.zeros(n_theta, dtype=np.int64)
+    f32 = np.float32
+    _robust_lines(
+        np.ascontiguousarray(t1, dtype=f32), np.ascontiguousarray(t2, dtype=f32),
+        np.ascontiguousarray(fh1, dtype=f32), np.ascontiguousarray(fh2, dtype=f32),
+        f32(low), f32(thr), int(pad), int(n_h), int(win[0]), int(win[1]), int(w), int(stride),
+        int(lines), f32(floor), f32(uniqueness), f32(self_similarity), f32(alias_score),
+        (uniqueness < 1.0, self_similarity < 1.0, alias_score < 1.0), bool(left_right),
+        ok, j2, s, n_sig,
+    )  # fmt: skip
+    return ok, j2, s, int(n_sig.sum())
