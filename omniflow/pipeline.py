@@ -29,7 +29,12 @@ in :mod:`omniflow.series`, the stereo matching in :mod:`omniflow.matching`,
 reading the series at the points in :mod:`omniflow.sampling` and the solvers
 in :mod:`omniflow.solve`; this module only runs them in order.
 
-Speed: the stage timings are in :attr:`OmniFlowResult.timings`;
+Speed: the two units' work that does not need the other unit (fits, the
+grids matched on and the grids the flow step samples) runs in two threads
+(:func:`omniflow.parallel.map_tasks`); each grid is
+the same computation as in one thread, so the columns do not change. The
+stage timings are in :attr:`OmniFlowResult.timings` (``grids`` holds both
+the matching grids and the flow step's grids, made before matching);
 benchmarks/bench_omniflow.py compares the whole step with OpenCV DIS.
 """
 
@@ -43,6 +48,7 @@ from numpy.typing import NDArray
 
 from omniflow.config import OmniFlowConfig
 from omniflow.matching import Matches, PolarGrids, match_radial
+from omniflow.parallel import map_tasks
 from omniflow.result import COLUMNS, NoMatchesWarning, OmniFlowResult, no_points
 from omniflow.rig import Rig
 from omniflow.series import (
@@ -70,6 +76,27 @@ __all__ = [
     "matching_grids",
     "stereo_matches",
 ]
+
+
+def _unit_series(frames, t: int, unit, config: OmniFlowConfig, what: str):
+    """One unit's noise level (0 when not read) and series (:func:`unit_fits`)."""
+    sigma = unit_noise_sigma(frames[t], unit, config) if needs_noise_sigma(config) else 0.0
+    return sigma, unit_fits(frames, t, unit, config, what, fit_band(config))
+
+
+def _unit_grids(cam: dict, config: OmniFlowConfig, matching: bool) -> PolarGrids | None:
+    """Make one unit's grids before matching: the grid matched on (returned when
+    ``matching``) and the grids :func:`flow_at_matches` samples (kept in the Frames)."""
+    grid = matching_grid(cam["a"], config) if matching else None
+    if config.sampling != "exact":
+        needed = [("g", "grad_xy"), ("t", "f")]
+        if config.iterations > 0:
+            needed += [("b", "grad_xy"), ("b", "fine"), ("af", "fine")]
+            if config.gradients == "average":
+                needed.append(("af", "grad_xy"))
+        for key, grid_name in needed:
+            getattr(cam[key], grid_name)  # a lazy property: made and kept in the Frame
+    return grid
 
 
 def _check_inputs(frames1, frames2, rig: Rig, t: int) -> None:
@@ -121,18 +148,12 @@ def estimate(
     timings: dict[str, float] = {}
     t_start = time.perf_counter()
 
-    sigmas = (
-        (
-            unit_noise_sigma(frames1[t], rig.cam1, config),
-            unit_noise_sigma(frames2[t], rig.cam2, config),
-        )
-        if needs_noise_sigma(config)
-        else (0.0, 0.0)
+    (s1, fits1), (s2, fits2) = map_tasks(
+        _unit_series,
+        (frames1, t, rig.cam1, config, "frames1"),
+        (frames2, t, rig.cam2, config, "frames2"),
     )
-    fits = (
-        unit_fits(frames1, t, rig.cam1, config, "frames1", fit_band(config)),
-        unit_fits(frames2, t, rig.cam2, config, "frames2", fit_band(config)),
-    )
+    sigmas, fits = (s1, s2), (fits1, fits2)
     flow_band = choose_flow_band(fits, sigmas, config)
     cam1 = unit_frames(fits[0], rig.cam1, config, flow_band)
     cam2 = unit_frames(fits[1], rig.cam2, config, flow_band)
@@ -142,16 +163,16 @@ def estimate(
     t_fit = time.perf_counter()
     timings["fit"] = t_fit - t_start
 
+    grids = tuple(map_tasks(_unit_grids, (cam1, config, matches is None),
+                           (cam2, config, matches is None)))  # fmt: skip
+    timings["grids"] = time.perf_counter() - t_fit
     n_sig = 0
     if matches is None:
-        grids = matching_grids(cam1["a"], cam2["a"], config)
-        timings["grids"] = time.perf_counter() - t_fit
         t_m = time.perf_counter()
         matches = stereo_matches(grids, rig, config)
         n_sig = matches.n_significant
         timings["match"] = time.perf_counter() - t_m
     else:
-        timings["grids"] = 0.0
         timings["match"] = 0.0
     if len(matches.theta) == 0:
         return no_points(timings, t_start, config, n_sig)
@@ -172,10 +193,15 @@ def estimate(
 
 def matching_grids(a1: Frame, a2: Frame, config: OmniFlowConfig) -> tuple[PolarGrids, PolarGrids]:
     """The grids the matcher reads from frame t of each unit (``a`` of :func:`unit_frames`)."""
+    return matching_grid(a1, config), matching_grid(a2, config)
+
+
+def matching_grid(a: Frame, config: OmniFlowConfig) -> PolarGrids:
+    """The grids the matcher reads from one unit's frame t."""
     if config.match_method == "paper":  # the polar edge finder's f_h, f_theta
-        return tuple(PolarGrids(f=a.f, f_h=a.grad[0], f_theta=a.grad[1]) for a in (a1, a2))
+        return PolarGrids(f=a.f, f_h=a.grad[0], f_theta=a.grad[1])
     # the robust matcher differentiates its polar table of f
-    return tuple(PolarGrids(f=match_frame(a, config).f, f_h=None) for a in (a1, a2))
+    return PolarGrids(f=match_frame(a, config).f, f_h=None)
 
 
 def stereo_matches(

@@ -42,6 +42,21 @@ def _edges(a, low, pad, n_h, out):  # pragma: no cover - compiled
     return n
 
 
+@numba.njit(cache=True, nogil=True, fastmath={"reassoc"})
+def _row_sums(t, row, j0, m, stride, out, i):  # pragma: no cover - compiled
+    """Copy m samples of ``t[row]`` from column j0 (every ``stride``-th) into ``out[i:]``;
+    their sum and sum of float32 squares, in double (any order: the box filter's
+    double sums are rounded to float32 afterwards)."""
+    r1 = 0.0
+    r2 = 0.0
+    for q in range(m):
+        x = t[row, j0 + q * stride]
+        out[i + q] = x
+        r1 += x
+        r2 += x * x
+    return r1, r2
+
+
 @numba.njit(cache=True, nogil=True)
 def _profile(t, k, j, w, stride, lines, out):  # pragma: no cover - compiled
     """The zero-mean, unit-norm profile of table ``t`` at (line k, column j) into ``out``."""
@@ -52,17 +67,10 @@ def _profile(t, k, j, w, stride, lines, out):  # pragma: no cover - compiled
     s2 = 0.0
     i = 0
     for dk in range(-lines, lines + 1):
-        row = (k + dk) % n_lines
-        r1 = 0.0
-        r2 = 0.0
-        for q in range(m):
-            x = t[row, j0 + q * stride]
-            out[i] = x
-            r1 += x
-            r2 += x * x  # float32 square, summed in double (box filter of dec * dec)
-            i += 1
+        r1, r2 = _row_sums(t, (k + dk) % n_lines, j0, m, stride, out, i)
         s1 += r1
         s2 += r2
+        i += m
     s1f = np.float32(s1)
     s2f = np.float32(s2)
     mean = s1f / np.float32(i)
@@ -87,27 +95,26 @@ def _dot(a, b):  # pragma: no cover - compiled
     return np.float32(s)
 
 
-@numba.njit(cache=True, nogil=True, parallel=True)
-def _robust_lines(t1, t2, fh1, fh2, low, thr, pad, n_h, lo, hi, w, stride, lines, floor,
-                  uniqueness, self_similarity, alias_score, tests, left_right,
-                  ok, j2_out, s_out, n_sig):  # pragma: no cover - compiled  # fmt: skip
-    n_theta, n_cols = t1.shape
-    length = (2 * lines + 1) * (2 * w + 1)
-    cols1 = np.empty((n_theta, n_h), dtype=np.int64)
-    cols2 = np.empty((n_theta, n_h), dtype=np.int64)
-    n1 = np.zeros(n_theta, dtype=np.int64)
-    n2 = np.zeros(n_theta, dtype=np.int64)
-    for k in numba.prange(n_theta):
+@numba.njit(cache=True, nogil=True)
+def _all_edges(fh1, fh2, low, pad, n_h, cols1, n1, cols2, n2):  # pragma: no cover - compiled
+    for k in range(fh1.shape[0]):
         n1[k] = _edges(fh1[k], low, pad, n_h, cols1[k])
         n2[k] = _edges(fh2[k], low, pad, n_h, cols2[k])
-    # numpy's rule takes the uniqueness test only when some line has two edges in image 2
-    do_uniqueness = tests[0] and n2.max() > 1
+
+
+@numba.njit(cache=True, nogil=True)
+def _robust_lines(t1, t2, fh1, fh2, cols1, n1, cols2, n2, k0, k1, thr, lo, hi, w, stride,
+                  lines, floor, uniqueness, self_similarity, alias_score, tests, left_right,
+                  ok, j2_out, s_out, n_sig):  # pragma: no cover - compiled  # fmt: skip
+    n_cols = t1.shape[1]
+    length = (2 * lines + 1) * (2 * w + 1)
+    do_uniqueness = tests[0]
     lag_lo = (w * stride) // 2  # the self-similarity and alias tests' shortest lag
     lag_hi = hi - lo
     lo_col = w * stride
     hi_col = n_cols - 1 - w * stride
     one = np.float32(1.0)
-    for k in numba.prange(n_theta):
+    for k in range(k0, k1):
         c1 = cols1[k, : n1[k]]
         c2 = cols2[k, : n2[k]]
         d1 = np.empty((c1.size, length), dtype=np.float32)
@@ -210,7 +217,7 @@ def robust_lines(
     t1: NDArray, t2: NDArray, fh1: NDArray, fh2: NDArray, *, low: float, thr: float,
     pad: int, n_h: int, win: tuple[int, int], w: int, stride: int, lines: int,
     floor: float, uniqueness: float, self_similarity: float, alias_score: float,
-    left_right: bool,
+    left_right: bool, threads: int = 1, per_range=None,
 ) -> tuple[NDArray, NDArray, NDArray, int]:  # fmt: skip
     """The matches of :func:`~omniflow.matching.robust.match_robust` before its sub-pixel step.
 
@@ -226,6 +233,8 @@ def robust_lines(
     match in image 2, s (lines, columns, 5) float32 the NCC at columns
     j2 - 2 .. j2 + 2 (each clipped to the table's profile range; s[..., 2]
     is the best whole-column NCC), and n_sig the significant edges tried.
+    With ``threads`` > 1 the lines are split into that many ranges, run by
+    ``per_range(fn, (k0, k1), ...)`` (:func:`omniflow.parallel.map_tasks`).
     """
     n_theta, n_cols = t1.shape
     ok = np.zeros((n_theta, n_cols), dtype=bool)
@@ -233,12 +242,26 @@ def robust_lines(
     s = np.zeros((n_theta, n_cols, 5), dtype=np.float32)
     n_sig = np.zeros(n_theta, dtype=np.int64)
     f32 = np.float32
-    _robust_lines(
-        np.ascontiguousarray(t1, dtype=f32), np.ascontiguousarray(t2, dtype=f32),
-        np.ascontiguousarray(fh1, dtype=f32), np.ascontiguousarray(fh2, dtype=f32),
-        f32(low), f32(thr), int(pad), int(n_h), int(win[0]), int(win[1]), int(w), int(stride),
-        int(lines), f32(floor), f32(uniqueness), f32(self_similarity), f32(alias_score),
-        (uniqueness < 1.0, self_similarity < 1.0, alias_score < 1.0), bool(left_right),
-        ok, j2, s, n_sig,
-    )  # fmt: skip
+    t1, t2, fh1, fh2 = (np.ascontiguousarray(a, dtype=f32) for a in (t1, t2, fh1, fh2))
+    cols1 = np.empty((n_theta, n_h), dtype=np.int64)
+    cols2 = np.empty((n_theta, n_h), dtype=np.int64)
+    n1 = np.zeros(n_theta, dtype=np.int64)
+    n2 = np.zeros(n_theta, dtype=np.int64)
+    _all_edges(fh1, fh2, f32(low), int(pad), int(n_h), cols1, n1, cols2, n2)
+    # numpy's rule took the uniqueness test only when some line has two edges in image 2
+    tests = (uniqueness < 1.0 and int(n2.max()) > 1, self_similarity < 1.0, alias_score < 1.0)
+
+    def run(k0: int, k1: int) -> None:
+        _robust_lines(
+            t1, t2, fh1, fh2, cols1, n1, cols2, n2, k0, k1, f32(thr), int(win[0]), int(win[1]),
+            int(w), int(stride), int(lines), f32(floor), f32(uniqueness), f32(self_similarity),
+            f32(alias_score), tests, bool(left_right), ok, j2, s, n_sig,
+        )  # fmt: skip
+
+    if threads > 1 and n_theta >= 2 * threads:
+        # the lines are independent: split them between threads (the kernel drops the GIL)
+        cuts = np.linspace(0, n_theta, threads + 1).astype(int)
+        per_range(run, *zip(cuts[:-1].tolist(), cuts[1:].tolist(), strict=True))
+    else:
+        run(0, n_theta)
     return ok, j2, s, int(n_sig.sum())

@@ -11,6 +11,7 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 from numpy.typing import NDArray
 
+from omniflow import parallel
 from omniflow.matching.ncc import robust_lines
 from omniflow.matching.tables import TableGeometry, parabola_offset, sharp_peak
 
@@ -123,7 +124,7 @@ def match_robust(
         t1, t2, fh1, fh2, low=candidate_fraction * thr, thr=thr, pad=pad, n_h=n_h,
         win=tab.win, w=w, stride=stride, lines=patch_lines, floor=floor,
         uniqueness=uniqueness, self_similarity=self_similarity, alias_score=alias_score,
-        left_right=left_right,
+        left_right=left_right, threads=parallel.THREADS, per_range=parallel.map_tasks,
     )  # fmt: skip
     ks, jj1 = np.nonzero(ok)  # by line, then column: numpy's order of the edges
     jj2 = j2[ks, jj1]
