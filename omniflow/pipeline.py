@@ -73,6 +73,8 @@ __all__ = [
     "estimate",
     "fill_outside_rim",
     "flow_at_matches",
+    "flow_grids",
+    "matching_grid",
     "matching_grids",
     "stereo_matches",
 ]
@@ -85,9 +87,20 @@ def _unit_series(frames, t: int, unit, config: OmniFlowConfig, what: str):
 
 
 def _unit_grids(cam: dict, config: OmniFlowConfig, matching: bool) -> PolarGrids | None:
-    """Make one unit's grids before matching: the grid matched on (returned when
-    ``matching``) and the grids :func:`flow_at_matches` samples (kept in the Frames)."""
+    """One unit's grid matched on (when ``matching``; else None) and its flow grids
+    (:func:`flow_grids`)."""
     grid = matching_grid(cam["a"], config) if matching else None
+    flow_grids(cam, config)
+    return grid
+
+
+def flow_grids(cam: dict, config: OmniFlowConfig) -> dict:
+    """Make the grids :func:`flow_at_matches` samples in one unit's Frames (``cam``, as
+    :func:`unit_frames` gives), so they can be made off the thread that samples them.
+
+    Each is a lazy property of its Frame, made once: making it here changes no value.
+    Returns ``cam``.
+    """
     if config.sampling != "exact":
         needed = [("g", "grad_xy"), ("t", "f")]
         if config.iterations > 0:
@@ -95,8 +108,8 @@ def _unit_grids(cam: dict, config: OmniFlowConfig, matching: bool) -> PolarGrids
             if config.gradients == "average":
                 needed.append(("af", "grad_xy"))
         for key, grid_name in needed:
-            getattr(cam[key], grid_name)  # a lazy property: made and kept in the Frame
-    return grid
+            getattr(cam[key], grid_name)
+    return cam
 
 
 def _check_inputs(frames1, frames2, rig: Rig, t: int) -> None:

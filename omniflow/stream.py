@@ -36,7 +36,8 @@ from numpy.typing import ArrayLike
 
 from omniflow.config import OmniFlowConfig
 from omniflow.dct import DCTFit, fit_dct
-from omniflow.pipeline import estimate, matching_grids, stereo_matches
+from omniflow.parallel import map_tasks
+from omniflow.pipeline import estimate, flow_grids, matching_grid, stereo_matches
 from omniflow.result import OmniFlowResult, no_points
 from omniflow.rig import Rig, Unit
 from omniflow.series import (
@@ -83,11 +84,13 @@ class StereoFrame:
                  index: int):  # fmt: skip
         self.index = index
         need_sigma = needs_noise_sigma(config)
-        units = []
-        for what, frame, unit in (("frame1", frame1, rig.cam1), ("frame2", frame2, rig.cam2)):
+
+        def fit(what, frame, unit):
             image = grey_input(frame, f"{what} of push {index}", unit, config)
             sigma = unit_noise_sigma(frame, unit, config) if need_sigma else 0.0
-            units.append(_UnitFrame(fit_dct(image, band=fit_band(config)), unit, sigma))
+            return _UnitFrame(fit_dct(image, band=fit_band(config)), unit, sigma)
+
+        units = map_tasks(fit, ("frame1", frame1, rig.cam1), ("frame2", frame2, rig.cam2))
         self.units: tuple[_UnitFrame, _UnitFrame] = (units[0], units[1])
         self.flow_band = choose_flow_band(
             [{"a": u.fit} for u in self.units], [u.sigma for u in self.units], config
@@ -166,8 +169,9 @@ class OmniFlowStream:
             None for the first frame after construction or :meth:`reset` (and,
             with ``temporal="dct3d"``, until ``temporal_frames`` frames are in).
             ``timings["fit"]`` is the new frame's fit; ``grids`` includes the
-            gradient mean of the pair (made here, not while sampling); the
-            other stages as in :func:`~omniflow.pipeline.estimate`.
+            gradient mean of the pair and the other grids the flow step
+            samples (made here, the units in two threads, not while
+            sampling); the other stages as in :func:`~omniflow.pipeline.estimate`.
         """
         index = self.frames_pushed
         if self.config.temporal == "dct3d":
@@ -216,9 +220,10 @@ class OmniFlowStream:
         # prev's frames are touched here only after its matching is done (no thread shares them)
         flow_band = prev.flow_band
         t_g = time.perf_counter()
-        cams = [
-            _unit_pair(a, b, config, flow_band) for a, b in zip(prev.units, cur.units, strict=True)
-        ]
+        cams = map_tasks(
+            lambda a, b: flow_grids(_unit_pair(a, b, config, flow_band), config),
+            *zip(prev.units, cur.units, strict=True),
+        )
         diagnostics = {"flow_band": flow_band, "noise_sigma1": prev.units[0].sigma,
                        "noise_sigma2": prev.units[1].sigma}  # fmt: skip
         timings["grids"] = t_grids + time.perf_counter() - t_g
@@ -237,7 +242,8 @@ class OmniFlowStream:
 def _frame_matches(frame: StereoFrame, rig: Rig, config: OmniFlowConfig):
     """(stereo matches of one frame, seconds for its grids, seconds for the matching)."""
     t0 = time.perf_counter()
-    grids = matching_grids(*(u.frame(config.band) for u in frame.units), config)
+    grids = tuple(map_tasks(lambda u: matching_grid(u.frame(config.band), config),
+                            *((u,) for u in frame.units)))  # fmt: skip
     t1 = time.perf_counter()
     matches = stereo_matches(grids, rig, config)
     return matches, t1 - t0, time.perf_counter() - t1

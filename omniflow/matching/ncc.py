@@ -34,11 +34,15 @@ def _edges(a, low, pad, n_h, out):  # pragma: no cover - compiled
     """Columns j in [pad, pad + n_h) where |f_h| peaks along the line and exceeds ``low``
     (tables.local_maxima: a plateau counts once, at its right end); returns the count."""
     n = 0
+    prev = abs(a[pad - 1])
+    cur = abs(a[pad])
     for j in range(pad, pad + n_h):
-        v = abs(a[j])
-        if v >= abs(a[j - 1]) and v > abs(a[j + 1]) and v > low:
+        nxt = abs(a[j + 1])
+        if cur >= prev and cur > nxt and cur > low:
             out[n] = j
             n += 1
+        prev = cur
+        cur = nxt
     return n
 
 
@@ -96,6 +100,14 @@ def _dot(a, b):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True)
+def _need(t, k, cols, m, w, stride, lines, d, have):  # pragma: no cover - compiled
+    """Make the profile of edge m of a line once (``have`` marks those made)."""
+    if not have[m]:
+        _profile(t, k, cols[m], w, stride, lines, d[m])
+        have[m] = True
+
+
+@numba.njit(cache=True, nogil=True)
 def _all_edges(fh1, fh2, low, pad, n_h, cols1, n1, cols2, n2):  # pragma: no cover - compiled
     for k in range(fh1.shape[0]):
         n1[k] = _edges(fh1[k], low, pad, n_h, cols1[k])
@@ -117,14 +129,17 @@ def _robust_lines(t1, t2, fh1, fh2, cols1, n1, cols2, n2, k0, k1, thr, lo, hi, w
     for k in range(k0, k1):
         c1 = cols1[k, : n1[k]]
         c2 = cols2[k, : n2[k]]
+        # image 1's profiles are made when first read (the tests of the kept matches
+        # read some non-significant edges, most are never read); image 2's all are
         d1 = np.empty((c1.size, length), dtype=np.float32)
+        have1 = np.zeros(c1.size, dtype=np.bool_)
         d2 = np.empty((c2.size, length), dtype=np.float32)
-        for i in range(c1.size):
-            _profile(t1, k, c1[i], w, stride, lines, d1[i])
-        for i in range(c2.size):
-            _profile(t2, k, c2[i], w, stride, lines, d2[i])
-        cand = np.empty(c2.size, dtype=np.float32)
-        side = np.empty(c1.size, dtype=np.float32)
+        for m in range(c2.size):
+            _profile(t2, k, c2[m], w, stride, lines, d2[m])
+        # NCC of edge pairs (image 1, image 2) once scored: the left-right check
+        # rereads most of them
+        ncc = np.empty((c1.size, c2.size), dtype=np.float32)
+        scored = np.zeros((c1.size, c2.size), dtype=np.bool_)
         p = np.empty(length, dtype=np.float32)
         count = 0
         first = 0  # first edge of image 2 at or after the window's start (columns ascend)
@@ -141,12 +156,14 @@ def _robust_lines(t1, t2, fh1, fh2, cols1, n1, cols2, n2, k0, k1, thr, lo, hi, w
                 stop += 1
             if stop == first:
                 continue
+            _need(t1, k, c1, i, w, stride, lines, d1, have1)
             b = first
             for m in range(first, stop):
-                cand[m] = _dot(d1[i], d2[m])
-                if cand[m] > cand[b]:
+                ncc[i, m] = _dot(d1[i], d2[m])
+                scored[i, m] = True
+                if ncc[i, m] > ncc[i, b]:
                     b = m
-            best = cand[b]
+            best = ncc[i, b]
             if not best >= floor:
                 continue
             if (g1 > 0) != (fh2[k, c2[b]] > 0):
@@ -154,8 +171,8 @@ def _robust_lines(t1, t2, fh1, fh2, cols1, n1, cols2, n2, k0, k1, thr, lo, hi, w
             if do_uniqueness:
                 second = np.float32(-1.0)
                 for m in range(first, stop):
-                    if m != b and cand[m] > second:
-                        second = cand[m]
+                    if m != b and ncc[i, m] > second:
+                        second = ncc[i, m]
                 if not (one - best) <= uniqueness * (one - second):
                     continue
             if tests[1]:
@@ -163,6 +180,7 @@ def _robust_lines(t1, t2, fh1, fh2, cols1, n1, cols2, n2, k0, k1, thr, lo, hi, w
                 for m in range(c1.size):
                     lag = abs(c1[m] - j1)
                     if lag >= lag_lo and lag <= lag_hi:
+                        _need(t1, k, c1, m, w, stride, lines, d1, have1)
                         a = _dot(d1[i], d1[m])
                         if a > self_best:
                             self_best = a
@@ -172,8 +190,6 @@ def _robust_lines(t1, t2, fh1, fh2, cols1, n1, cols2, n2, k0, k1, thr, lo, hi, w
                 # walk outward from j1 on each side: the profile recurs when its NCC
                 # exceeds alias_score at a lag >= lag_lo after falling below 0 nearer in
                 recurs = False
-                for m in range(c1.size):
-                    side[m] = _dot(d1[i], d1[m]) if abs(c1[m] - j1) <= lag_hi else 0.0
                 for direction in (1, -1):
                     low_so_far = np.float32(np.inf)
                     m = i + direction
@@ -181,10 +197,12 @@ def _robust_lines(t1, t2, fh1, fh2, cols1, n1, cols2, n2, k0, k1, thr, lo, hi, w
                         lag = abs(c1[m] - j1)
                         if lag > lag_hi:
                             break
-                        if low_so_far < 0.0 and lag >= lag_lo and side[m] > alias_score:
+                        _need(t1, k, c1, m, w, stride, lines, d1, have1)
+                        a = _dot(d1[i], d1[m])
+                        if low_so_far < 0.0 and lag >= lag_lo and a > alias_score:
                             recurs = True
-                        if side[m] < low_so_far:
-                            low_so_far = side[m]
+                        if a < low_so_far:
+                            low_so_far = a
                         m += direction
                 if recurs:
                     continue
@@ -194,9 +212,12 @@ def _robust_lines(t1, t2, fh1, fh2, cols1, n1, cols2, n2, k0, k1, thr, lo, hi, w
                 back_s = np.float32(0.0)
                 for m in range(c1.size):
                     if c1[m] >= j2 - hi and c1[m] <= j2 - lo:
-                        s = _dot(d2[b], d1[m])
-                        if back < 0 or s > back_s:
-                            back, back_s = m, s
+                        if not scored[m, b]:
+                            _need(t1, k, c1, m, w, stride, lines, d1, have1)
+                            ncc[m, b] = _dot(d1[m], d2[b])
+                            scored[m, b] = True
+                        if back < 0 or ncc[m, b] > back_s:
+                            back, back_s = m, ncc[m, b]
                 if back != i:
                     continue
             # the NCC at columns j2 - 2 .. j2 + 2 for the sub-pixel step
