@@ -134,3 +134,29 @@ if __name__ == "__main__":
         _write()
     else:
         sys.exit("usage: PYTHONPATH=<checkout of 77434fb> python " + __file__ + " --write")
+
+
+@pytest.mark.parametrize("rig_name", ["paper", "asymmetric"])
+def test_rim_fill_equals_whole_image_remap(rig_name):
+    """fill_outside_rim remaps only the pixels beyond the rim: bit for bit main's whole-image
+    remap (whose map is the identity inside, an exact copy there)."""
+    import cv2
+
+    from omniflow.series import fill_outside_rim
+    from tests.helpers.scenes import asymmetric_rig, paper_rig
+
+    rig = paper_rig(256) if rig_name == "paper" else asymmetric_rig(256)
+    rng = np.random.default_rng(5)
+    for unit in (rig.cam1, rig.cam2):
+        image = cv2.GaussianBlur(rng.random((256, 256)).astype(np.float32), (5, 5), 1.0)
+        # main 77434fb's fill_outside_rim, verbatim: a map over the whole image
+        x, y = unit.pixel_centres()
+        h_i, theta = unit.polar_of_pixel(x, y)
+        edge = unit.r_m - 1.0
+        src = np.where(h_i > edge, np.maximum(2.0 * edge - h_i, 0.0), h_i)
+        xs, ys = unit.pixel_of_polar(src, theta)
+        mx, my = (xs - 0.5).astype(np.float32), (ys - 0.5).astype(np.float32)
+        ref = cv2.remap(image, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+        out = fill_outside_rim(image, unit)
+        assert np.count_nonzero(ref != image) > 1000  # the fill changed the corners
+        np.testing.assert_array_equal(out, ref)
