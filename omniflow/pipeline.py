@@ -29,12 +29,12 @@ in :mod:`omniflow.series`, the stereo matching in :mod:`omniflow.matching`,
 reading the series at the points in :mod:`omniflow.sampling` and the solvers
 in :mod:`omniflow.solve`; this module only runs them in order.
 
-Speed: the two units' work that does not need the other unit (fits, the
-grids matched on and the grids the flow step samples) runs in two threads
-(:func:`omniflow.parallel.map_tasks`); each grid is
-the same computation as in one thread, so the columns do not change. The
-stage timings are in :attr:`OmniFlowResult.timings` (``grids`` holds both
-the matching grids and the flow step's grids, made before matching);
+Speed: the two units' fits run in two threads, and the grids the flow step
+samples are made on the second thread while the first matches
+(:mod:`omniflow.parallel`); each is the same computation as in one thread,
+so the columns do not change. The stage timings are in
+:attr:`OmniFlowResult.timings` (``grids``: the grids matched on; ``match``
+overlaps the flow step's grids, whose wait, if any, counts in ``sample``);
 benchmarks/bench_omniflow.py compares the whole step with OpenCV DIS.
 """
 
@@ -48,7 +48,7 @@ from numpy.typing import NDArray
 
 from omniflow.config import OmniFlowConfig
 from omniflow.matching import Matches, PolarGrids, match_radial
-from omniflow.parallel import map_tasks
+from omniflow.parallel import map_tasks, submit
 from omniflow.result import COLUMNS, NoMatchesWarning, OmniFlowResult, no_points
 from omniflow.rig import Rig
 from omniflow.series import (
@@ -84,14 +84,6 @@ def _unit_series(frames, t: int, unit, config: OmniFlowConfig, what: str):
     """One unit's noise level (0 when not read) and series (:func:`unit_fits`)."""
     sigma = unit_noise_sigma(frames[t], unit, config) if needs_noise_sigma(config) else 0.0
     return sigma, unit_fits(frames, t, unit, config, what, fit_band(config))
-
-
-def _unit_grids(cam: dict, config: OmniFlowConfig, matching: bool) -> PolarGrids | None:
-    """One unit's grid matched on (when ``matching``; else None) and its flow grids
-    (:func:`flow_grids`)."""
-    grid = matching_grid(cam["a"], config) if matching else None
-    flow_grids(cam, config)
-    return grid
 
 
 def flow_grids(cam: dict, config: OmniFlowConfig) -> dict:
@@ -176,8 +168,12 @@ def estimate(
     t_fit = time.perf_counter()
     timings["fit"] = t_fit - t_start
 
-    grids = tuple(map_tasks(_unit_grids, (cam1, config, matches is None),
-                           (cam2, config, matches is None)))  # fmt: skip
+    # the flow step's grids do not need the matches: made on the other thread while
+    # this one matches (sampling waits for them)
+    flow = [submit(flow_grids, cam, config) for cam in (cam1, cam2)]
+    grids = None
+    if matches is None:
+        grids = (matching_grid(cam1["a"], config), matching_grid(cam2["a"], config))
     timings["grids"] = time.perf_counter() - t_fit
     n_sig = 0
     if matches is None:
@@ -187,12 +183,14 @@ def estimate(
         timings["match"] = time.perf_counter() - t_m
     else:
         timings["match"] = 0.0
+    t_s = time.perf_counter()
+    for f in flow:
+        f.result()
     if len(matches.theta) == 0:
         return no_points(timings, t_start, config, n_sig)
-
-    t_s = time.perf_counter()
+    t_wait = time.perf_counter() - t_s
     result = flow_at_matches(matches, rig, cam1, cam2, config)
-    timings["sample"] = result.pop("_t_sample")
+    timings["sample"] = result.pop("_t_sample") + t_wait
     timings["solve"] = time.perf_counter() - t_s - timings["sample"]
     timings["total"] = time.perf_counter() - t_start
     return OmniFlowResult(
