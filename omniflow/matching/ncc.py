@@ -22,6 +22,8 @@ between runs where the package folder (or Numba's user cache) is writable.
 
 from __future__ import annotations
 
+import math
+
 import numba
 import numpy as np
 from numpy.typing import NDArray
@@ -46,24 +48,14 @@ def _edges(a, low, pad, n_h, out):  # pragma: no cover - compiled
     return n
 
 
-@numba.njit(cache=True, nogil=True, fastmath={"reassoc"})
-def _row_sums(t, row, j0, m, stride, out, i):  # pragma: no cover - compiled
-    """Copy m samples of ``t[row]`` from column j0 (every ``stride``-th) into ``out[i:]``;
-    their sum and sum of float32 squares, in double (any order: the box filter's
-    double sums are rounded to float32 afterwards)."""
-    r1 = 0.0
-    r2 = 0.0
-    for q in range(m):
-        x = t[row, j0 + q * stride]
-        out[i + q] = x
-        r1 += x
-        r2 += x * x
-    return r1, r2
-
-
 @numba.njit(cache=True, nogil=True)
 def _profile(t, k, j, w, stride, lines, out):  # pragma: no cover - compiled
-    """The zero-mean, unit-norm profile of table ``t`` at (line k, column j) into ``out``."""
+    """The zero-mean, unit-norm profile of table ``t`` at (line k, column j) into ``out``.
+
+    Each line's sum and sum of float32 squares are summed in double, then the
+    lines', and rounded to float32: OpenCV's box filter of a float32 image
+    (Descriptors' mean and norm) sums in double too.
+    """
     n_lines = t.shape[0]
     m = 2 * w + 1
     j0 = j - w * stride
@@ -71,19 +63,23 @@ def _profile(t, k, j, w, stride, lines, out):  # pragma: no cover - compiled
     s2 = 0.0
     i = 0
     for dk in range(-lines, lines + 1):
-        r1, r2 = _row_sums(t, (k + dk) % n_lines, j0, m, stride, out, i)
+        row = t[(k + dk) % n_lines]
+        r1 = 0.0
+        r2 = 0.0
+        for q in range(m):
+            x = row[j0 + q * stride]
+            out[i + q] = x
+            r1 += x
+            r2 += x * x
         s1 += r1
         s2 += r2
         i += m
     s1f = np.float32(s1)
     s2f = np.float32(s2)
     mean = s1f / np.float32(i)
-    var = s2f - s1f * mean
-    if var < np.float32(0.0):
-        var = np.float32(0.0)
-    sd = np.sqrt(var)
-    if sd < np.float32(1e-12):
-        sd = np.float32(1e-12)
+    var = max(s2f - s1f * mean, np.float32(0.0))
+    # sqrt in double, then rounded: the float32 square root, correctly rounded
+    sd = max(np.float32(math.sqrt(var)), np.float32(1e-12))
     inv = np.float32(1.0) / sd
     for q in range(i):
         out[q] = (out[q] - mean) * inv
