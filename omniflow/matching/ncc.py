@@ -40,9 +40,8 @@ def _edges(a, low, pad, n_h, out):  # pragma: no cover - compiled
     cur = abs(a[pad])
     for j in range(pad, pad + n_h):
         nxt = abs(a[j + 1])
-        if cur >= prev and cur > nxt and cur > low:
-            out[n] = j
-            n += 1
+        out[n] = j  # kept only when n moves on (no branch to mispredict)
+        n += (cur >= prev) & (cur > nxt) & (cur > low)
         prev = cur
         cur = nxt
     return n
