@@ -15,7 +15,7 @@ import threading
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 
-__all__ = ["THREADS", "map_tasks", "submit"]
+__all__ = ["THREADS", "Task", "map_tasks", "submit"]
 
 #: Threads for the independent tasks of one flow step (1: all in the caller's thread).
 #: Read at each call, so it can be changed at run time.
@@ -44,36 +44,56 @@ def _nested() -> bool:
     return threading.current_thread().name.startswith(_NAME)
 
 
-def submit(fn: Callable, *args) -> Future:
-    """``fn(*args)`` on the pool's thread while the caller goes on (run at once, in the
-    caller's thread, when :data:`THREADS` < 2); its Future."""
+class Task:
+    """``fn(*args)`` handed to the pool's thread; :meth:`result` runs it in the caller's
+    thread instead when the pool has not started it yet (the pool may be busy with
+    earlier work), else waits for it."""
+
+    def __init__(self, fn: Callable, args: tuple, future: Future | None):
+        self._fn, self._args, self._future = fn, args, future
+        self._done = False
+        self._value = None
+
+    def result(self):
+        if not self._done:
+            if self._future is None or self._future.cancel():
+                self._value = self._fn(*self._args)
+            else:
+                self._value = self._future.result()
+            self._done = True
+        return self._value
+
+    def cancel(self) -> None:
+        """Drop the task if not started; wait for it if it is (its result is ignored)."""
+        if self._future is not None and not self._future.cancel():
+            self._future.exception()
+        self._done = True
+
+
+def submit(fn: Callable, *args) -> Task:
+    """``fn(*args)`` on the pool's thread while the caller goes on (when :data:`THREADS`
+    < 2, in the caller's thread when its result is asked for)."""
     if THREADS < 2 or _nested():
-        done: Future = Future()
-        try:
-            done.set_result(fn(*args))
-        except BaseException as exc:  # raised by done.result(), as from the pool
-            done.set_exception(exc)
-        return done
-    return _get_pool().submit(fn, *args)
+        return Task(fn, args, None)
+    return Task(fn, args, _get_pool().submit(fn, *args))
 
 
 def map_tasks(fn: Callable, *args_per_task: tuple) -> list:
     """``[fn(*args) for args in args_per_task]``, run on :data:`THREADS` threads.
 
-    Results come in task order; the first task's exception (in task order) is
-    raised. The caller's thread runs the first task itself.
+    Results come in task order; the first exception in task order is raised
+    (the other tasks finished or dropped first). The caller's thread runs the
+    first task, then any the pool has not started.
     """
     if THREADS < 2 or len(args_per_task) < 2 or _nested():
         return [fn(*a) for a in args_per_task]
-    pool = _get_pool()
-    futures = [pool.submit(fn, *a) for a in args_per_task[1:]]
+    tasks = [submit(fn, *a) for a in args_per_task[1:]]
     try:
-        first = fn(*args_per_task[0])
+        out = [fn(*args_per_task[0])]
+        for t in tasks:
+            out.append(t.result())
     except BaseException:
-        for f in futures:
-            f.cancel()
-        for f in futures:
-            if not f.cancelled():
-                f.exception()  # wait: no task outlives the call
+        for t in tasks:
+            t.cancel()
         raise
-    return [first, *(f.result() for f in futures)]
+    return out

@@ -169,20 +169,25 @@ def estimate(
     timings["fit"] = t_fit - t_start
 
     # the flow step's grids do not need the matches: made on the other thread while
-    # this one matches (sampling waits for them)
+    # this one matches (sampling waits for them, or makes those not yet started)
+    grid2 = submit(matching_grid, cam2["a"], config) if matches is None else None
     flow = [submit(flow_grids, cam, config) for cam in (cam1, cam2)]
-    grids = None
-    if matches is None:
-        grids = (matching_grid(cam1["a"], config), matching_grid(cam2["a"], config))
-    timings["grids"] = time.perf_counter() - t_fit
     n_sig = 0
-    if matches is None:
-        t_m = time.perf_counter()
-        matches = stereo_matches(grids, rig, config)
-        n_sig = matches.n_significant
-        timings["match"] = time.perf_counter() - t_m
-    else:
-        timings["match"] = 0.0
+    try:
+        if matches is None:
+            grids = (matching_grid(cam1["a"], config), grid2.result())
+            timings["grids"] = time.perf_counter() - t_fit
+            t_m = time.perf_counter()
+            matches = stereo_matches(grids, rig, config)
+            n_sig = matches.n_significant
+            timings["match"] = time.perf_counter() - t_m
+        else:
+            timings["grids"] = timings["match"] = 0.0
+    except BaseException:
+        for task in (grid2, *flow):
+            if task is not None:
+                task.cancel()  # no task outlives the call
+        raise
     t_s = time.perf_counter()
     for f in flow:
         f.result()
