@@ -36,7 +36,7 @@ from numpy.typing import ArrayLike
 
 from omniflow.config import OmniFlowConfig
 from omniflow.dct import DCTFit, fit_dct
-from omniflow.parallel import map_tasks
+from omniflow.parallel import map_tasks, submit
 from omniflow.pipeline import estimate, flow_grids, matching_grid, stereo_matches
 from omniflow.result import OmniFlowResult, no_points
 from omniflow.rig import Rig, Unit
@@ -207,9 +207,22 @@ class OmniFlowStream:
               t_fit: float) -> OmniFlowResult:  # fmt: skip
         config = self.config
         timings: dict[str, float] = {"fit": t_fit}
+        flow_band = prev.flow_band
         t_m = time.perf_counter()
         if prev.matching is None:  # a frame starts one pair only: matched once, here
-            matches, t_grids, t_match = _frame_matches(prev, self.rig, config)
+            # the pair's flow grids on the other thread while this one matches; every
+            # Frame either reads is made here first, so the threads share no lazy dict entry
+            for u in (*prev.units, *cur.units):
+                u.frame(config.band)
+                u.frame(flow_band, config.flow_taper)
+            flow = [submit(_unit_flow, a, b, config, flow_band)
+                    for a, b in zip(prev.units, cur.units, strict=True)]  # fmt: skip
+            try:
+                matches, t_grids, t_match = _frame_matches(prev, self.rig, config)
+            except BaseException:
+                for task in flow:
+                    task.cancel()
+                raise
             timings["match"] = t_match
         else:  # matched in the background since prev was pushed: the wait is what counts
             matches, t_grids, t_match = prev.matching.result()
@@ -217,13 +230,11 @@ class OmniFlowStream:
             timings["match"] = time.perf_counter() - t_m
             timings["match_background"] = t_grids + t_match
             t_grids = 0.0
-        # prev's frames are touched here only after its matching is done (no thread shares them)
-        flow_band = prev.flow_band
+            # prev's frames are touched here only after its matching is done
+            flow = [submit(_unit_flow, a, b, config, flow_band)
+                    for a, b in zip(prev.units, cur.units, strict=True)]  # fmt: skip
         t_g = time.perf_counter()
-        cams = map_tasks(
-            lambda a, b: flow_grids(_unit_pair(a, b, config, flow_band), config),
-            *zip(prev.units, cur.units, strict=True),
-        )
+        cams = [task.result() for task in flow]
         diagnostics = {"flow_band": flow_band, "noise_sigma1": prev.units[0].sigma,
                        "noise_sigma2": prev.units[1].sigma}  # fmt: skip
         timings["grids"] = t_grids + time.perf_counter() - t_g
@@ -247,6 +258,11 @@ def _frame_matches(frame: StereoFrame, rig: Rig, config: OmniFlowConfig):
     t1 = time.perf_counter()
     matches = stereo_matches(grids, rig, config)
     return matches, t1 - t0, time.perf_counter() - t1
+
+
+def _unit_flow(a: _UnitFrame, b: _UnitFrame, config: OmniFlowConfig, flow_band: float) -> dict:
+    """:func:`_unit_pair` with the grids the flow step samples made (pipeline.flow_grids)."""
+    return flow_grids(_unit_pair(a, b, config, flow_band), config)
 
 
 def _unit_pair(a: _UnitFrame, b: _UnitFrame, config: OmniFlowConfig, flow_band: float) -> dict:
