@@ -121,21 +121,26 @@ def _robust_lines(t1, t2, fh1, fh2, cols1, n1, cols2, n2, k0, k1, thr, lo, hi, w
     lo_col = w * stride
     hi_col = n_cols - 1 - w * stride
     one = np.float32(1.0)
+    # scratch for one line at a time, sized for the longest line of the range
+    most1 = max(n1[k0:k1].max(), 1)
+    most2 = max(n2[k0:k1].max(), 1)
+    d1 = np.empty((most1, length), dtype=np.float32)
+    have1 = np.empty(most1, dtype=np.bool_)
+    d2 = np.empty((most2, length), dtype=np.float32)
+    ncc = np.empty((most1, most2), dtype=np.float32)
+    scored = np.empty((most1, most2), dtype=np.bool_)
+    p = np.empty(length, dtype=np.float32)
     for k in range(k0, k1):
         c1 = cols1[k, : n1[k]]
         c2 = cols2[k, : n2[k]]
         # image 1's profiles are made when first read (the tests of the kept matches
         # read some non-significant edges, most are never read); image 2's all are
-        d1 = np.empty((c1.size, length), dtype=np.float32)
-        have1 = np.zeros(c1.size, dtype=np.bool_)
-        d2 = np.empty((c2.size, length), dtype=np.float32)
+        have1[: c1.size] = False
         for m in range(c2.size):
             _profile(t2, k, c2[m], w, stride, lines, d2[m])
         # NCC of edge pairs (image 1, image 2) once scored: the left-right check
         # rereads most of them
-        ncc = np.empty((c1.size, c2.size), dtype=np.float32)
-        scored = np.zeros((c1.size, c2.size), dtype=np.bool_)
-        p = np.empty(length, dtype=np.float32)
+        scored[: c1.size, : c2.size] = False
         count = 0
         first = 0  # first edge of image 2 at or after the window's start (columns ascend)
         for i in range(c1.size):
@@ -254,8 +259,9 @@ def robust_lines(
     """
     n_theta, n_cols = t1.shape
     ok = np.zeros((n_theta, n_cols), dtype=bool)
-    j2 = np.zeros((n_theta, n_cols), dtype=np.int64)
-    s = np.zeros((n_theta, n_cols, 5), dtype=np.float32)
+    # read only where ok: left unset elsewhere (no pages written for them)
+    j2 = np.empty((n_theta, n_cols), dtype=np.int64)
+    s = np.empty((n_theta, n_cols, 5), dtype=np.float32)
     n_sig = np.zeros(n_theta, dtype=np.int64)
     f32 = np.float32
     t1, t2, fh1, fh2 = (np.ascontiguousarray(a, dtype=f32) for a in (t1, t2, fh1, fh2))
