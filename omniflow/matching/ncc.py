@@ -254,7 +254,7 @@ def robust_lines(
     match in image 2, s (lines, columns, 5) float32 the NCC at columns
     j2 - 2 .. j2 + 2 (each clipped to the table's profile range; s[..., 2]
     is the best whole-column NCC), and n_sig the significant edges tried.
-    With ``threads`` > 1 the lines are split into that many ranges, run by
+    With ``threads`` > 1 the lines are split into 4 ``threads`` ranges, run by
     ``per_range(fn, (k0, k1), ...)`` (:func:`omniflow.parallel.map_tasks`).
     """
     n_theta, n_cols = t1.shape
@@ -280,9 +280,10 @@ def robust_lines(
             f32(alias_score), tests, bool(left_right), ok, j2, s, n_sig,
         )  # fmt: skip
 
-    if threads > 1 and n_theta >= 2 * threads:
+    chunks = 4 * threads  # a few per thread: a thread busy elsewhere delays only one
+    if threads > 1 and n_theta >= 2 * chunks:
         # the lines are independent: split them between threads (the kernel drops the GIL)
-        cuts = np.linspace(0, n_theta, threads + 1).astype(int)
+        cuts = np.linspace(0, n_theta, chunks + 1).astype(int)
         per_range(run, *zip(cuts[:-1].tolist(), cuts[1:].tolist(), strict=True))
     else:
         run(0, n_theta)
