@@ -81,19 +81,26 @@ def submit(fn: Callable, *args) -> Task:
 def map_tasks(fn: Callable, *args_per_task: tuple) -> list:
     """``[fn(*args) for args in args_per_task]``, run on :data:`THREADS` threads.
 
-    Results come in task order; the first exception in task order is raised
-    (the other tasks finished or dropped first). The caller's thread runs the
-    first task, then any the pool has not started.
+    Results come in task order; every task runs, then the first exception in
+    task order is raised. The caller's thread runs the first task, then takes
+    back the others from the end of the queue while the pool's thread works
+    from its front (so the two meet in the middle, neither waiting idle).
     """
     if THREADS < 2 or len(args_per_task) < 2 or _nested():
         return [fn(*a) for a in args_per_task]
     tasks = [submit(fn, *a) for a in args_per_task[1:]]
-    try:
-        out = [fn(*args_per_task[0])]
-        for t in tasks:
-            out.append(t.result())
-    except BaseException:
-        for t in tasks:
-            t.cancel()
-        raise
-    return out
+    outcomes: list = [None] * len(args_per_task)
+
+    def attempt(i: int, call: Callable) -> None:
+        try:
+            outcomes[i] = (True, call())
+        except BaseException as exc:
+            outcomes[i] = (False, exc)
+
+    attempt(0, lambda: fn(*args_per_task[0]))
+    for i in range(len(tasks) - 1, -1, -1):
+        attempt(i + 1, tasks[i].result)
+    for ok, value in outcomes:
+        if not ok:
+            raise value
+    return [value for _, value in outcomes]

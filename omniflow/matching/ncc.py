@@ -48,8 +48,8 @@ def _edges(a, low, pad, n_h, out):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True)
-def _profile(t, k, j, w, stride, lines, out):  # pragma: no cover - compiled
-    """The zero-mean, unit-norm profile of table ``t`` at (line k, column j) into ``out``.
+def _profile(t, k, j, w, stride, lines, out, r):  # pragma: no cover - compiled
+    """The zero-mean, unit-norm profile of table ``t`` at (line k, column j) into ``out[r]``.
 
     Each line's sum and sum of float32 squares are summed in double, then the
     lines', and rounded to float32: OpenCV's box filter of a float32 image
@@ -62,12 +62,12 @@ def _profile(t, k, j, w, stride, lines, out):  # pragma: no cover - compiled
     s2 = 0.0
     i = 0
     for dk in range(-lines, lines + 1):
-        row = t[(k + dk) % n_lines]
-        r1 = 0.0
+        row = (k + dk) % n_lines  # an index, not a view: views of the shared tables
+        r1 = 0.0  # would count references atomically, and the threads would queue on them
         r2 = 0.0
         for q in range(m):
-            x = row[j0 + q * stride]
-            out[i + q] = x
+            x = t[row, j0 + q * stride]
+            out[r, i + q] = x
             r1 += x
             r2 += x * x
         s1 += r1
@@ -81,16 +81,18 @@ def _profile(t, k, j, w, stride, lines, out):  # pragma: no cover - compiled
     sd = max(np.float32(math.sqrt(var)), np.float32(1e-12))
     inv = np.float32(1.0) / sd
     for q in range(i):
-        out[q] = (out[q] - mean) * inv
+        out[r, q] = (out[r, q] - mean) * inv
 
 
 # reassociation lets the compiler split the double sum into vector lanes (the
 # float32 products are exact in double, so only the last bits of the sum move)
 @numba.njit(cache=True, nogil=True, fastmath={"reassoc", "contract"})
-def _dot(a, b):  # pragma: no cover - compiled
+def _dot(a, i, b, j):  # pragma: no cover - compiled
+    """a[i] . b[j], summed in double (rows by index: no views, whose reference counts
+    are atomic operations)."""
     s = 0.0
-    for q in range(a.size):
-        s += a[q] * b[q]
+    for q in range(a.shape[1]):
+        s += a[i, q] * b[j, q]
     return np.float32(s)
 
 
@@ -98,7 +100,7 @@ def _dot(a, b):  # pragma: no cover - compiled
 def _need(t, k, cols, m, w, stride, lines, d, have):  # pragma: no cover - compiled
     """Make the profile of edge m of a line once (``have`` marks those made)."""
     if not have[m]:
-        _profile(t, k, cols[m], w, stride, lines, d[m])
+        _profile(t, k, cols[m], w, stride, lines, d, m)
         have[m] = True
 
 
@@ -129,7 +131,7 @@ def _robust_lines(t1, t2, fh1, fh2, cols1, n1, cols2, n2, k0, k1, thr, lo, hi, w
     d2 = np.empty((most2, length), dtype=np.float32)
     ncc = np.empty((most1, most2), dtype=np.float32)
     scored = np.empty((most1, most2), dtype=np.bool_)
-    p = np.empty(length, dtype=np.float32)
+    p = np.empty((1, length), dtype=np.float32)
     for k in range(k0, k1):
         c1 = cols1[k, : n1[k]]
         c2 = cols2[k, : n2[k]]
@@ -137,7 +139,7 @@ def _robust_lines(t1, t2, fh1, fh2, cols1, n1, cols2, n2, k0, k1, thr, lo, hi, w
         # read some non-significant edges, most are never read); image 2's all are
         have1[: c1.size] = False
         for m in range(c2.size):
-            _profile(t2, k, c2[m], w, stride, lines, d2[m])
+            _profile(t2, k, c2[m], w, stride, lines, d2, m)
         # NCC of edge pairs (image 1, image 2) once scored: the left-right check
         # rereads most of them
         scored[: c1.size, : c2.size] = False
@@ -159,7 +161,7 @@ def _robust_lines(t1, t2, fh1, fh2, cols1, n1, cols2, n2, k0, k1, thr, lo, hi, w
             _need(t1, k, c1, i, w, stride, lines, d1, have1)
             b = first
             for m in range(first, stop):
-                ncc[i, m] = _dot(d1[i], d2[m])
+                ncc[i, m] = _dot(d1, i, d2, m)
                 scored[i, m] = True
                 if ncc[i, m] > ncc[i, b]:
                     b = m
@@ -181,7 +183,7 @@ def _robust_lines(t1, t2, fh1, fh2, cols1, n1, cols2, n2, k0, k1, thr, lo, hi, w
                     lag = abs(c1[m] - j1)
                     if lag >= lag_lo and lag <= lag_hi:
                         _need(t1, k, c1, m, w, stride, lines, d1, have1)
-                        a = _dot(d1[i], d1[m])
+                        a = _dot(d1, i, d1, m)
                         if a > self_best:
                             self_best = a
                 if not (one - best) <= self_similarity * (one - self_best):
@@ -198,7 +200,7 @@ def _robust_lines(t1, t2, fh1, fh2, cols1, n1, cols2, n2, k0, k1, thr, lo, hi, w
                         if lag > lag_hi:
                             break
                         _need(t1, k, c1, m, w, stride, lines, d1, have1)
-                        a = _dot(d1[i], d1[m])
+                        a = _dot(d1, i, d1, m)
                         if low_so_far < 0.0 and lag >= lag_lo and a > alias_score:
                             recurs = True
                         if a < low_so_far:
@@ -214,7 +216,7 @@ def _robust_lines(t1, t2, fh1, fh2, cols1, n1, cols2, n2, k0, k1, thr, lo, hi, w
                     if c1[m] >= j2 - hi and c1[m] <= j2 - lo:
                         if not scored[m, b]:
                             _need(t1, k, c1, m, w, stride, lines, d1, have1)
-                            ncc[m, b] = _dot(d1[m], d2[b])
+                            ncc[m, b] = _dot(d1, m, d2, b)
                             scored[m, b] = True
                         if back < 0 or ncc[m, b] > back_s:
                             back, back_s = m, ncc[m, b]
@@ -227,8 +229,8 @@ def _robust_lines(t1, t2, fh1, fh2, cols1, n1, cols2, n2, k0, k1, thr, lo, hi, w
                     s_out[k, j1, q] = best
                     continue
                 jj = min(max(j2 + q - 2, lo_col), hi_col)
-                _profile(t2, k, jj, w, stride, lines, p)
-                s_out[k, j1, q] = _dot(d1[i], p)
+                _profile(t2, k, jj, w, stride, lines, p, 0)
+                s_out[k, j1, q] = _dot(d1, i, p, 0)
             ok[k, j1] = True
             j2_out[k, j1] = j2
         n_sig[k] = count

@@ -178,5 +178,5 @@ def test_kernel_profiles_equal_descriptors(w, stride, lines):
     ref = Descriptors(table, w, stride, lines)(k, j)
     out = np.empty_like(ref)
     for i in range(k.size):
-        _profile(table, k[i], j[i], w, stride, lines, out[i])
+        _profile(table, k[i], j[i], w, stride, lines, out, i)
     np.testing.assert_array_equal(out, ref)
