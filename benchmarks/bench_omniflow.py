@@ -365,7 +365,7 @@ def main(argv: list[str] | None = None) -> int:
     wall, cpu, last = time_interleaved(fns, args.repeats, args.warmup)
     import cv2
 
-    stage_runs = stage_runs[args.warmup :]  # the stage split of the default-thread runs
+    pair_stages = stage_runs[args.warmup :]  # the stage split of the default-thread runs
     from omniflow import parallel
 
     threads, omni_threads = cv2.getNumThreads(), parallel.THREADS
@@ -383,8 +383,8 @@ def main(argv: list[str] | None = None) -> int:
     last.update(one[2])
 
     stages = {}
-    for key in stage_runs[0] if stage_runs else {}:
-        vals = [s[key] for s in stage_runs if isinstance(s.get(key), int | float)]
+    for key in pair_stages[0] if pair_stages else {}:
+        vals = [s[key] for s in pair_stages if isinstance(s.get(key), int | float)]
         if vals:
             stages[key] = statistics.median(vals)
     points = {"omniflow pair": len(last["omniflow pair"]),
