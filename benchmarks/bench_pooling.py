@@ -13,7 +13,10 @@ truth at the points; pools as the default solver builds them); with
 ``--outline``, each mover's radial flow at its matched points within 3 px of its
 outline and inside (first variant); with ``--boundary BAND_MEAN``, the
 closed-form motion boundary of tests/omniflow/test_pooling.py instead of (or
-before) the datasets. Run from the repository root (it imports tests.helpers)::
+before) the datasets; with ``--table``, a Markdown row per dataset and variant
+(density, EPE mean/median per camera and its ratio to DIS-medium at the same points,
+radial gain, time-to-contact error, each mover's error). Run from the repository root
+(it imports tests.helpers)::
 
     PYTHONPATH=$PWD python3 benchmarks/bench_pooling.py /work/data/crossing \\
         /work/data/independent_movers default: res5:pool_residual_tol=5.0 edge3:pool_edge_tol=3.0
@@ -74,6 +77,51 @@ def mover_rows(summary: dict) -> list[str]:
     return lines
 
 
+def table_rows(summary: dict) -> list[str]:
+    """Markdown rows per method: density, EPE mean/median per camera and their ratio to
+    DIS-medium at the same points, radial gain, time to contact, each mover's error."""
+    scene = summary["dataset"]["scene"]
+    movers = [summary["dataset"]["objects"][str(i)] for i in summary["dataset"]["moving_objects"]]
+    rows = []
+    for m in summary["methods"]:
+        if m["kind"] != "omniflow":
+            continue
+        cells = []
+        for cam in ("cam1", "cam2"):
+            e = m["flow"][cam]["all"]["epe"]
+            d = (m.get("baselines_at_same_points") or {}).get("DIS-medium", {}).get(cam)
+            cells.append(f"{e['mean']:.3f}/{e['median']:.3f}")
+            cells.append(f"{e['mean'] / d['mean']:.2f}/{e['median'] / d['median']:.2f}"
+                         if d else "-")  # fmt: skip
+        dens = m["flow"]["cam1"]["density"]
+        gains = "/".join(f"{m['flow'][c]['all']['radial']['gain']:.2f}" for c in ("cam1", "cam2"))
+        errs = []
+        for name in movers:
+            o = m["flow"]["cam1"]["objects"][name]
+            if not o["n"]:
+                errs.append(f"{name} n=0")
+                continue
+            re_, rt = o["radial"]["mean_est"], o["radial"]["mean_true"]
+            te, tt = o["tangential"]["mean_est"], o["tangential"]["mean_true"]
+            err = math.hypot(re_ - rt, te - tt) / max(math.hypot(rt, tt), 1e-12)
+            errs.append(f"{name} {100 * err:.1f} (n {o['n']})")
+        ttc = (m["derived"].get("ttc_relative_error") or {}).get("median")
+        ttc_cell = "-" if ttc is None else f"{ttc:.3f}"
+        outl = m["stereo"]["all"]["outliers"]
+        rows.append(f"| {scene} | {m['name']} | {100 * dens['of_valid_pixels']:.2f} | "
+                    f"{dens['points_per_frame']:.0f} | " + " | ".join(cells) + f" | {gains} | "
+                    + ("; ".join(errs) or "-") + " | "
+                    + f"{ttc_cell} | {100 * outl:.1f} |")  # fmt: skip
+    return rows
+
+
+TABLE_HEAD = (
+    "| scene | variant | dens % | pts/fr | cam1 EPE mean/med | ratio DIS | cam2 EPE mean/med "
+    "| ratio DIS | gain r cam1/cam2 | movers: mean-flow error % (cam1) | TTC med rel "
+    "| stereo outliers % |\n" + "|---" * 12 + "|"
+)
+
+
 def mixing(dataset: str) -> list[str]:
     """Share of the default pools' weight that each mover's points draw from other objects."""
     from omniflow.config import OmniFlowConfig
@@ -107,7 +155,7 @@ def mixing(dataset: str) -> list[str]:
             f"{np.mean(v) if v else float('nan'):.3f}" for i, v in share.items()]  # fmt: skip
 
 
-def boundary(variants: list, band_mean: float) -> list[str]:
+def boundary(variants: list, band_mean: float, share: float = 0.1) -> list[str]:
     """The closed-form motion boundary of tests/omniflow/test_pooling.py, per variant."""
     from omniflow.flow import neighbourhoods
     from omniflow.pipeline import estimate
@@ -116,7 +164,7 @@ def boundary(variants: list, band_mean: float) -> list[str]:
     rig = paper_rig(256)
     scene = band_scene(rig, yaw=0.01, band_mean=band_mean)
     f1, f2 = frames(scene, 2)
-    m, gt = sparse_true_matches(scene, 0.1)
+    m, gt = sparse_true_matches(scene, share)  # true matches at this share of the pixels
     lines = [f"band mean {band_mean}: variant | band mean flow / true | band points whose "
              "pool never reaches the wall | wall mean EPE"]  # fmt: skip
     for name, config in variants:
@@ -184,6 +232,11 @@ def main() -> None:
                         help="each mover's radial flow near its outline and inside")  # fmt: skip
     parser.add_argument("--boundary", type=float, metavar="BAND_MEAN", action="append",
                         help="the closed-form motion boundary, this band brightness")  # fmt: skip
+    parser.add_argument("--share", type=float, default=0.1,
+                        help="--boundary: share of the pixels with a true match (0.1)")  # fmt: skip
+    parser.add_argument("--table", action="store_true",
+                        help="a Markdown table instead (density, EPE and its ratio to "
+                             "DIS-medium at the same points, gain, TTC, movers)")  # fmt: skip
     args = parser.parse_args()
     datasets = [a for a in args.datasets if ":" not in a]
     variants = [parse_variant(a) for a in args.datasets if ":" in a] or [parse_variant("default:")]
@@ -194,10 +247,14 @@ def main() -> None:
     warnings.simplefilter("ignore")
     for mean in args.boundary or []:
         plain = [(n, c.config if hasattr(c, "percentile") else c) for n, c in variants]
-        print("\n".join(boundary(plain, mean)), flush=True)
+        print("\n".join(boundary(plain, mean, args.share)), flush=True)
+    if args.table:
+        print(TABLE_HEAD, flush=True)
     for ds in datasets:
-        res = run_validation(ds, variants=variants, baselines=[], progress=False)
-        print("\n".join(mover_rows(jsonable(summarize(res)))), flush=True)
+        res = run_validation(ds, variants=variants, progress=False,
+                             baselines=["DIS-medium"] if args.table else [])  # fmt: skip
+        rows = table_rows if args.table else mover_rows
+        print("\n".join(rows(jsonable(summarize(res)))), flush=True)
         if args.mixing:
             print("\n".join(mixing(ds)), flush=True)
         if args.outline:

@@ -27,6 +27,7 @@ import traceback
 import types
 import typing
 import warnings
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -188,6 +189,7 @@ KNOB_LIMITS: dict[str, tuple[float, float, bool, bool]] = {
     "temporal_frames": (3, math.inf, True, False),
     "pool_radius": (0.0, math.inf, False, False),
     "pool_k": (1, math.inf, True, False),
+    "pool_grid": (0.0, 1.0, False, True),  # grid cell / pool radius
     "pool_range_tol": (0.0, math.inf, False, False),
     "min_conditioning": (0.0, 1.0, True, True),  # lambda_min / lambda_max
     "pool_min_conditioning": (0.0, 1.0, True, True),  # lambda_min / lambda_max
@@ -199,11 +201,15 @@ KNOB_LIMITS: dict[str, tuple[float, float, bool, bool]] = {
     "noise_sigma": (0.0, math.inf, True, False),  # grey levels of the [0, 1] image
     "self_similarity": (0.0, 1.0, False, True),  # a factor on 1 - NCC; 1 = off
     "alias_score": (-1.0, 1.0, True, True),  # an NCC; 1 = off
+    "alias_image2": (-1.0, 1.0, True, True),  # an NCC
+    "alias_period": (-1.0, 1.0, True, True),  # an NCC
     "flatness": (0.0, math.inf, True, False),  # (1 - NCC) per unit of peak curvature; 0 = off
     "dense_percentile": (0.0, 100.0, True, True),  # a percentile of |df/dh|; 100 = off
     "dense_reach": (0.0, math.inf, False, False),  # patch radii
     "short_patch": (0.0, 1.0, True, False),  # a fraction of patch_radius; 0 = off
     "pool_flow_tol": (0.0, math.inf, False, False),
+    "decouple_tol": (0.0, math.inf, False, False),  # an F statistic (omniflow.decoupled)
+    "flow_shading": (0.0, math.inf, False, False),  # px, Gaussian sigma (omniflow.shading)
     "pool_edge_tol": (0.0, math.inf, False, False),  # a factor on the median edge at the matches
     "pool_residual_tol": (0.0, math.inf, False, False),  # robust standard deviations
     "pool_min_info": (0.0, math.inf, False, False),  # in typical single points' information
@@ -346,7 +352,9 @@ def build_parser() -> argparse.ArgumentParser:
                                x, y (cam1 px), theta (rad),
                                h1, h2 (px), r, h (m), dh1_dt (px/frame), dtheta_dt (rad/frame),
                                dr_dt (m/frame), dx, dy (cam1 px/frame), cam2 columns x2, y2,
-                               dh2_dt, dx2, dy2, confidence, D, time_to_contact (frames)
+                               dh2_dt, dx2, dy2, confidence, D, coupled (1: eq. 14 holds,
+                               0: each camera's radial flow solved on its own),
+                               time_to_contact (frames)
               flow.json        units of every column, the config, the rig, the inputs and timings
               regions.csv      with --region / --auto-regions: per region its point count,
                                mean flow, dr/dt, time to contact and steering headings
@@ -643,6 +651,54 @@ def _make_config(args, config_fields: list[str]):
         raise CLIError(f"bad algorithm option: {_one_line(exc)}") from exc
     check_knobs(config)
     return config
+
+
+class _SettingsParser(argparse.ArgumentParser):
+    """Parser of NAME=VALUE settings: a usage error is a :class:`CLIError`, not an exit."""
+
+    def error(self, message: str) -> typing.NoReturn:
+        raise CLIError(message)
+
+
+def config_from_settings(settings: str | Sequence[str], *, paper: bool = False) -> Any:
+    """An OmniFlowConfig from ``NAME=VALUE`` settings, checked as the CLI's options are.
+
+    ``settings`` is a comma-separated string (``"flow_taper=0,eiv=none"``) or a
+    list of ``NAME=VALUE`` strings; NAME is an OmniFlowConfig field (``-`` or
+    ``_``), VALUE parsed as its option would be (``none`` for None, ``true`` /
+    ``false`` for a switch, space-separated numbers for a tuple). The other
+    fields keep their defaults (``paper``: those of ``OmniFlowConfig.paper()``).
+    Raises :class:`CLIError` with one line naming the setting and what was expected.
+    """
+    items = settings.split(",") if isinstance(settings, str) else list(settings)
+    parser = _SettingsParser(prog="settings", add_help=False, allow_abbrev=False)
+    fields = _add_config_options(parser)
+    argv: list[str] = []
+    for item in (i.strip() for i in items):
+        if not item:
+            continue
+        name, sep, value = item.partition("=")
+        name = name.strip().replace("-", "_")
+        if not sep or name not in fields:
+            raise CLIError(
+                f"{item!r}: expected NAME=VALUE with NAME an OmniFlowConfig field, e.g. "
+                "flow_taper=0 (omniflow --help lists them)"
+            )
+        action = next(a for a in parser._actions if a.dest == f"cfg_{name}")
+        if isinstance(action, argparse.BooleanOptionalAction):
+            if value.strip().lower() not in ("true", "false", "1", "0", "yes", "no"):
+                raise CLIError(f"{item!r}: expected {name}=true or {name}=false")
+            on = value.strip().lower() in ("true", "1", "yes")
+            argv.append(_flag(name) if on else "--no-" + name.replace("_", "-"))
+        else:
+            argv += [f"{_flag(name)}={value.strip()}"] if action.nargs is None else [
+                _flag(name), *value.split()]  # fmt: skip
+    try:
+        args = parser.parse_args(argv)
+    except CLIError as exc:
+        raise CLIError(f"{', '.join(items)}: {exc}") from None
+    args.paper = paper
+    return _make_config(args, fields)
 
 
 def _check_options(args) -> None:
@@ -1047,7 +1103,7 @@ def run(args: argparse.Namespace, config_fields: list[str], argv: list[str]) -> 
         if with_regions:
             rows, outlines, regions_block = _regions(args, cols, masks, fit, rig, frame_interval)
             atomic_write_text(stage / "regions.csv", regions_csv_text(rows))
-        result.to_csv(stage / "flow.csv")
+        result.to_csv(stage / "flow.csv", _column_units())
         if not args.no_pictures:
             _pictures(stage, f1[t], rig.cam1, cols, args.arrow_scale, outlines)
         t_write = time.perf_counter() - t2

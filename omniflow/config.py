@@ -149,6 +149,16 @@ class OmniFlowConfig:
         after falling below 0 at a smaller lag) within the disparity window's
         width; 1 disables it. Cheaper than self_similarity (only the matches
         that passed the other tests are compared) and on by default.
+    alias_image2 : float
+        Robust matcher: the alias test (omniflow.matching.periodic) drops a
+        match whose profile recurs at lag L only when image 2 holds the alias
+        too (NCC with image 2's profile at h_2 +- L above this). On low
+        texture a lone step edge recurs in image 1 with no alias in image 2.
+        <= -1: any recurrence drops the match (the rule before).
+    alias_period : float
+        Robust matcher: where image 2's columns a recurrence away are past
+        its rim, the match is dropped only when its profile also recurs at a
+        second lag with NCC above this (a period, not a lone recurrence).
     flatness : float
         Robust matcher: keep a match only when its NCC peak is sharp enough
         to place to sub-pixel, (1 - NCC_peak) <= flatness x the peak's
@@ -159,8 +169,10 @@ class OmniFlowConfig:
         percentile near each match on its line, at that match's disparity
         (omniflow.matching.dense); 100 disables it (the default: edges only).
         60 gives ~4 % of the valid pixels on the rendered scenes, but with
-        the pooled solver's default pool the flow is less accurate and the
-        step ~3x slower (docs/measurements.md, "Matching").
+        the pooled solver's default pool (the ``pool_k`` nearest) the flow is
+        less accurate and the step ~3x slower (docs/measurements.md,
+        "Matching"); with ``pool_grid`` the pools keep their area and the
+        flow is more accurate than without the densification ("Density").
     dense_reach : float
         Robust matcher: how far along the line a match's disparity is tried
         on its neighbours, in patch radii.
@@ -185,6 +197,16 @@ class OmniFlowConfig:
     pool_k : int
         Pooled solver: most neighbours, the point itself included
         (docs/measurements.md has 48 against 24).
+    pool_grid : float or None
+        Pooled solver: pool by filtering on a grid (omniflow.gridpool)
+        with cells of this fraction of ``pool_radius``, so each pool holds
+        every match within the radius (not the ``pool_k`` nearest) at a cost
+        that does not grow with the number of matches; points whose window
+        mixes ranges (``pool_range_tol``) keep the k-d tree's pools. Only for
+        the one-pass equal-weight solver (``pool_edge_tol``,
+        ``pool_residual_tol``, ``pool_flow_tol``, ``pool_min_info`` all None,
+        ``pool_unit_weighting="equal"``); otherwise the tree pools. None: the
+        k-d tree everywhere.
     pool_range_tol : float or None
         Pooled solver: neighbours whose range differs by more than this
         fraction (another surface) are left out; None keeps them.
@@ -240,6 +262,25 @@ class OmniFlowConfig:
         drops good points on anisotropic texture (closed-form striped walls,
         whose pools are legitimately ill-conditioned along the stripes);
         docs/measurements.md, "Matching defaults after the merge".
+    decouple_tol : float or None
+        Pooled solver: report a point decoupled (result column ``coupled``
+        0) where the two units' equations cannot share one radial flow,
+        eq. (14) failing (motion along the axis: a rolling or tumbling
+        object's texture): the F statistic of a separate radial flow per
+        unit over the point's pool above this (omniflow.decoupled). There
+        dh1_dt, dh2_dt and dtheta_dt come from eq. (9) and (10) with one
+        shared dtheta/dt, and dr_dt from both radial flows. None: every
+        point coupled (the paper's model). 20 switches no point of the
+        default, approach and crossing renders (the largest F there is
+        19) and 41 of the 47 points on the ball of independent_movers;
+        docs/measurements.md, "Movers: decoupled radial flow".
+    flow_shading : float or None
+        Fit the flow step's series to each frame divided by its Gaussian
+        local mean of this many pixels (omniflow.shading), so that shading
+        that stays put while a curved body turns (a rolling ball, a spinning
+        pillar) does not shorten its flow; the matcher keeps the frames as
+        given. None: the frames as given. Costs a second fit of both units.
+        :func:`omniflow.pipeline.estimate` only (OmniFlowStream ignores it).
     sampling : {"cubic", "linear", "exact"}
         How gradients and the fitted images are read at the matched points:
         cv2.remap of the pixel grids, or the series evaluated exactly.
@@ -292,6 +333,8 @@ class OmniFlowConfig:
     consistency_support: int = 2
     self_similarity: float = 1.0
     alias_score: float = 0.9
+    alias_image2: float = 0.9
+    alias_period: float = 0.8
     flatness: float = 0.5
     dense_percentile: float = 100.0
     dense_reach: float = 1.0
@@ -302,6 +345,7 @@ class OmniFlowConfig:
     solver: str = "pooled"
     pool_radius: float | None = None
     pool_k: int = 48
+    pool_grid: float | None = None
     pool_range_tol: float | None = 0.1
     pool_model: str = "linear"
     pool_flow_tol: float | None = None
@@ -311,6 +355,8 @@ class OmniFlowConfig:
     pool_min_info: float | None = None
     min_conditioning: float = 0.0
     pool_min_conditioning: float = 1e-3
+    decouple_tol: float | None = 20.0
+    flow_shading: float | None = None
     sampling: str = "cubic"
     iterations: int = 0
     rim_fill: str = "reflect"
@@ -348,7 +394,7 @@ class OmniFlowConfig:
                 f"OmniFlowConfig.flow_band_gain = {self.flow_band_gain!r}: "
                 "expected a fraction in (0, 1)"
             )
-        for name in ("pool_edge_tol", "pool_residual_tol", "pool_min_info"):
+        for name in ("pool_edge_tol", "pool_residual_tol", "pool_min_info", "pool_grid"):
             val = getattr(self, name)
             if val is not None and not val > 0:
                 raise ValueError(f"OmniFlowConfig.{name} = {val!r}: expected > 0 or None")

@@ -54,6 +54,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
+from omniflow.gridpool import GridPools
 from omniflow.kernels import pooled_sums
 
 __all__ = [
@@ -227,6 +228,7 @@ def neighbourhoods(
     edge_map: NDArray | None = None,
     edge_tol: float | None = None,
     min_count: int = 8,
+    query: NDArray | None = None,
 ) -> tuple[NDArray, NDArray]:
     """The k nearest matched points within ``radius`` px of each (itself included).
 
@@ -252,6 +254,9 @@ def neighbourhoods(
     min_count : int
         A pool that the edge test would leave with fewer neighbours than
         this keeps them all (its solve would be near-singular).
+    query : ndarray of bool, shape (N,), optional
+        Search the pools of these points only (the others get none: index
+        N, weight 0); :class:`omniflow.gridpool.GridPools` pools the rest.
 
     Returns
     -------
@@ -266,9 +271,12 @@ def neighbourhoods(
         return np.zeros((0, k), dtype=np.intp), np.zeros((0, k))
     kk = min(k, n)
     tree = cKDTree(pts, balanced_tree=False, compact_nodes=False)  # faster to build here
-    dist, idx = tree.query(pts, k=kk, distance_upper_bound=radius)
-    dist = dist.reshape(n, kk)
-    idx = idx.reshape(n, kk)
+    rows = np.arange(n) if query is None else np.flatnonzero(query)
+    dist = np.full((n, kk), np.inf)
+    idx = np.full((n, kk), n, dtype=np.intp)
+    if rows.size:
+        d_q, i_q = tree.query(pts[rows], k=kk, distance_upper_bound=radius)
+        dist[rows], idx[rows] = d_q.reshape(rows.size, kk), i_q.reshape(rows.size, kk)
     found = idx < n
     sigma = radius / 2.0
     w = np.where(found, np.exp(-0.5 * (np.where(found, dist, 0.0) / sigma) ** 2), 0.0)
@@ -518,8 +526,8 @@ def pooled_solution(
     f2_t: ArrayLike,
     h1: ArrayLike,
     h2: ArrayLike,
-    idx: NDArray,
-    w: NDArray,
+    idx: NDArray | None,
+    w: NDArray | None,
     *,
     theta: ArrayLike | None = None,
     model: str = "constant",
@@ -530,6 +538,7 @@ def pooled_solution(
     noise2: float = 0.0,
     residual_noise: bool = False,
     unit_weighting: str = "equal",
+    grid: GridPools | None = None,
 ) -> tuple[NDArray, NDArray, NDArray]:
     """Eq. (9) and (15) of neighbouring matches pooled in weighted least squares.
 
@@ -573,7 +582,8 @@ def pooled_solution(
     f1_h ... h2 : array_like, shape (N,)
         As in :func:`direct_solution`, at every match.
     idx, w : ndarray, shape (N, K)
-        From :func:`neighbourhoods` (index N = no neighbour, weight 0).
+        From :func:`neighbourhoods` (index N = no neighbour, weight 0); None
+        with ``grid``.
     theta : array_like, shape (N,), optional
         Azimuth of the matches (for ``model="linear"``).
     model : {"constant", "linear"}
@@ -603,6 +613,11 @@ def pooled_solution(
         centre, where the texture is compressed tangentially and its radial
         derivative carries little but error) gives way there to the other.
         Generalised least squares with the noise measured, not assumed.
+    grid : GridPools, optional
+        Pool by filtering on a grid (:mod:`omniflow.gridpool`) instead of over
+        ``idx``, ``w`` (``relative`` model, ``"equal"`` weighting only); the
+        tangential offset u is then the tangential component of the pixel
+        offset, equal to h_1,i (theta_j - theta_i) to first order.
 
     Returns
     -------
@@ -618,6 +633,8 @@ def pooled_solution(
         raise ValueError(f"unit_weighting = {unit_weighting!r}: expected one of {UNIT_WEIGHTINGS}")
     if model == "linear" and theta is None:
         raise ValueError("model='linear' needs theta")
+    if grid is not None and (unit_weighting != "equal" or not relative):
+        raise ValueError("grid pools need unit_weighting='equal' and relative=True")
     f1_h, f1_theta, f1_t, f2_h, f2_theta, f2_t, h1, h2 = (
         np.append(np.asarray(v, dtype=np.float64).ravel(), 0.0)
         for v in (f1_h, f1_theta, f1_t, f2_h, f2_theta, f2_t, h1, h2)
@@ -634,7 +651,14 @@ def pooled_solution(
     th = np.append(np.asarray(theta, dtype=np.float64).ravel(), 0.0) if theta is not None else None
     derivs6 = (f1_h, f1_theta, f1_t, k * f2_h, f2_theta, f2_t)
     kw = dict(relative=relative, linear=model == "linear", scale=scale)
-    sums, wsum = pooled_sums(idx, w, derivs6, h1, th, **kw)
+    if grid is None:
+        sums, wsum = pooled_sums(idx, w, derivs6, h1, th, **kw)
+    else:
+        sums, wsum = grid.sums(tuple(v[:n] for v in derivs6), h1[:n], linear=kw["linear"],
+                               scale=scale)  # fmt: skip
+        if grid.idx is not None:  # the points whose window mixes ranges: their tree pools
+            t_sums, t_wsum = pooled_sums(grid.idx, grid.w, derivs6, h1, th, **kw)
+            sums, wsum = sums + t_sums, wsum + t_wsum
     # sums (N, 1 or 3, 5): sum_j w u^m (pp, pq, qq, pf, qf); wsum: sum_j w u^m
     a, c, conf = _solve_sums(sums, model, min_conditioning)
     derivs = (f1_h, f1_theta, f1_t, f2_h, f2_theta, f2_t)
@@ -759,50 +783,32 @@ def _solve_sums(
     with ``positive``, where the matrix is not positive definite.
     """
     pp, pq, qq, pf, qf = (sums[:, :, c] for c in range(5))
-    if model == "constant":
-        M = np.stack([np.stack([pp[:, 0], pq[:, 0]], -1), np.stack([pq[:, 0], qq[:, 0]], -1)], 1)
-        v = -np.stack([pf[:, 0], qf[:, 0]], -1)
-    else:
-        M = np.stack(
-            [
-                np.stack([pp[:, 0], pq[:, 0], pp[:, 1], pq[:, 1]], -1),
-                np.stack([pq[:, 0], qq[:, 0], pq[:, 1], qq[:, 1]], -1),
-                np.stack([pp[:, 1], pq[:, 1], pp[:, 2], pq[:, 2]], -1),
-                np.stack([pq[:, 1], qq[:, 1], pq[:, 2], qq[:, 2]], -1),
-            ],
-            axis=1,
-        )
-        v = -np.stack([pf[:, 0], qf[:, 0], pf[:, 1], qf[:, 1]], -1)
-    pd = np.ones(M.shape[0], bool)
-    if model == "constant":
-        S = M
-    else:  # Schur complement on (a, c): the two slopes solved out
-        B = M[:, 2:, 2:]
-        det_b = B[:, 0, 0] * B[:, 1, 1] - B[:, 0, 1] * B[:, 1, 0]
-        pd &= (det_b > 0) & (B[:, 0, 0] > 0)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            inv_b = (
-                np.stack(
-                    [
-                        np.stack([B[:, 1, 1], -B[:, 0, 1]], -1),
-                        np.stack([-B[:, 1, 0], B[:, 0, 0]], -1),
-                    ],
-                    axis=-2,
-                )
-                / np.where(det_b > 0, det_b, np.nan)[:, None, None]
-            )
-        C = M[:, :2, 2:] @ inv_b
-        S = M[:, :2, :2] - C @ M[:, 2:, :2]
-        v = v[:, :2] - (C @ v[:, 2:, None])[..., 0]
-    m11, m12, m22 = S[:, 0, 0], S[:, 0, 1], S[:, 1, 1]
+    pd = np.ones(sums.shape[0], bool)
+    # the blocks of the normal matrix are symmetric 2x2: [[pp_m, pq_m], [pq_m, qq_m]] for
+    # the powers m = 0 (on (a, c)), 1 (coupling to the slopes), 2 (on the slopes)
+    m11, m12, m22 = pp[:, 0], pq[:, 0], qq[:, 0]
+    v = [-pf[:, 0], -qf[:, 0]]
+    if model != "constant":  # Schur complement on (a, c): the two slopes solved out
+        b11, b12, b22 = pp[:, 2], pq[:, 2], qq[:, 2]
+        det_b = b11 * b22 - b12 * b12
+        pd &= (det_b > 0) & (b11 > 0)
+        inv = 1.0 / np.where(det_b > 0, det_b, np.nan)
+        k11, k12, k22 = pp[:, 1], pq[:, 1], qq[:, 1]
+        # C = K B^-1, K the coupling block
+        c11, c12 = (k11 * b22 - k12 * b12) * inv, (k12 * b11 - k11 * b12) * inv
+        c21, c22 = (k12 * b22 - k22 * b12) * inv, (k22 * b11 - k12 * b12) * inv
+        m11 = m11 - (c11 * k11 + c12 * k12)
+        m12 = m12 - (c11 * k12 + c12 * k22)
+        m22 = m22 - (c21 * k12 + c22 * k22)
+        v = [v[0] + (c11 * pf[:, 1] + c12 * qf[:, 1]), v[1] + (c21 * pf[:, 1] + c22 * qf[:, 1])]
     det = m11 * m22 - m12 * m12
     conf = np.nan_to_num(_eig_ratio(m11, m12, m22))
     ok = (det > 0) & (conf >= min_conditioning) & (conf > 0)
     if positive:
         ok &= pd & (m11 > 0)
     with np.errstate(divide="ignore", invalid="ignore"):
-        a = np.where(ok, (m22 * v[:, 0] - m12 * v[:, 1]) / det, np.nan)
-        c = np.where(ok, (m11 * v[:, 1] - m12 * v[:, 0]) / det, np.nan)
+        a = np.where(ok, (m22 * v[0] - m12 * v[1]) / det, np.nan)
+        c = np.where(ok, (m11 * v[1] - m12 * v[0]) / det, np.nan)
     return a, c, conf
 
 

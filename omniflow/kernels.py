@@ -9,6 +9,16 @@ the sums. The arithmetic of each term is numpy's, term by term; only the
 order of the additions over the K neighbours differs (a batched matrix
 product there, a running sum here), so the sums agree to rounding.
 
+:func:`ncc_offsets` scores a radial profile of table 1 against profiles of table
+2 at a few columns (the densification's short search, omniflow.matching.dense):
+the normalised cross-correlation of the same profiles as
+omniflow.matching.robust.Descriptors, summed straight from the tables instead of
+gathering every profile first.
+
+:func:`grid_scatter` and :func:`grid_read` put the grid pooling's point terms
+into a cell image and read filtered images back bilinearly at the points
+(:mod:`omniflow.gridpool`), without numpy's (N, C) temporaries per corner.
+
 The kernels compile on first use; ``cache=True`` keeps the machine code
 between runs where the package folder (or Numba's user cache) is writable.
 """
@@ -21,7 +31,7 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["pooled_sums"]
+__all__ = ["grid_read", "grid_scatter", "ncc_offsets", "pooled_sums"]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -107,3 +117,75 @@ def pooled_sums(
         *f, np.ascontiguousarray(h1, dtype=np.float64), th, bool(relative),
         3 if linear else 1, float(scale),
     )  # fmt: skip
+
+
+@numba.njit(cache=True, nogil=True)
+def grid_scatter(img, iy, ix, parts, members):  # pragma: no cover - compiled
+    """Add ``parts[i]`` (C,) into ``img[iy[i], ix[i]]`` (img (H, W, C)) for i in ``members``."""
+    for t in range(members.size):
+        i = members[t]
+        for c in range(parts.shape[1]):
+            img[iy[i], ix[i], c] += parts[i, c]
+
+
+@numba.njit(cache=True, nogil=True)
+def grid_read(f, gx, gy, readers, coef, out):  # pragma: no cover - compiled
+    """Add ``coef[i]`` times the bilinear sample of ``f`` (H, W, C), H, W >= 2, at cell
+    coordinates (gx[i], gy[i]) (centres at integers, clamped to the grid) to ``out[i]``
+    (C,) for i in ``readers``."""
+    h, w, nc = f.shape
+    for t in range(readers.size):
+        i = readers[t]
+        x = min(max(gx[i], 0.0), w - 1.0)
+        y = min(max(gy[i], 0.0), h - 1.0)
+        x0 = min(int(x), w - 2)  # x >= 0: truncation is the floor
+        y0 = min(int(y), h - 2)
+        fx = x - x0
+        fy = y - y0
+        c = coef[i]
+        w00 = (1.0 - fx) * (1.0 - fy) * c
+        w01 = fx * (1.0 - fy) * c
+        w10 = (1.0 - fx) * fy * c
+        w11 = fx * fy * c
+        for k in range(nc):
+            out[i, k] += (w00 * f[y0, x0, k] + w01 * f[y0, x0 + 1, k]
+                          + w10 * f[y0 + 1, x0, k] + w11 * f[y0 + 1, x0 + 1, k])  # fmt: skip
+
+
+@numba.njit(cache=True, nogil=True)
+def ncc_offsets(t1, t2, k, j, cols, w, stride, lines, out):  # pragma: no cover - compiled
+    """NCC of the profile of ``t1`` at (k[i], j[i]) with those of ``t2`` at (k[i], cols[i, s]).
+
+    A profile: the 2 w + 1 samples every ``stride`` columns centred on the column, on
+    the 2 ``lines`` + 1 lines around k (wrapping in theta); zero-mean, unit-norm (a
+    flat profile has norm 1e-12). Columns must keep the profile inside the table.
+    Writes out[i, s].
+    """
+    n_lines = t1.shape[0]
+    length = (2 * w + 1) * (2 * lines + 1)
+    for i in range(k.size):
+        s1 = 0.0
+        s2 = 0.0
+        for dk in range(-lines, lines + 1):
+            row = (k[i] + dk) % n_lines
+            for q in range(-w, w + 1):
+                v = np.float64(t1[row, j[i] + q * stride])  # float64 products
+                s1 += v
+                s2 += v * v
+        mean1 = s1 / length
+        inv1 = 1.0 / max(math.sqrt(max(s2 - s1 * mean1, 0.0)), 1e-12)
+        for s in range(cols.shape[1]):
+            c = cols[i, s]
+            dot = 0.0
+            b1 = 0.0
+            b2 = 0.0
+            for dk in range(-lines, lines + 1):
+                row = (k[i] + dk) % n_lines
+                for q in range(-w, w + 1):
+                    v2 = np.float64(t2[row, c + q * stride])
+                    dot += (np.float64(t1[row, j[i] + q * stride]) - mean1) * v2
+                    b1 += v2
+                    b2 += v2 * v2
+            # sum (v1 - mean1)(v2 - mean2) = sum (v1 - mean1) v2: the first is zero-mean
+            inv2 = 1.0 / max(math.sqrt(max(b2 - b1 * (b1 / length), 0.0)), 1e-12)
+            out[i, s] = dot * inv1 * inv2

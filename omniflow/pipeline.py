@@ -11,7 +11,8 @@ and temporal derivatives at the matched points and solves for the flow
 Output per point (:class:`OmniFlowResult`, columns in :data:`COLUMNS`): cam1
 position (x, y, theta, h1), its match h2 and cam2 position (x2, y2), range
 and height (r, h; eq. 5), the polar flow (dh1_dt, dtheta_dt;
-dh2_dt = (h2/h1) dh1_dt, eq. 14), dr_dt = -(d + r) dh1_dt / h1, the pixel
+dh2_dt = (h2/h1) dh1_dt, eq. 14, except where ``coupled`` is 0:
+:mod:`omniflow.decoupled`), dr_dt = -(d + r) dh1_dt / h1, the pixel
 flow of both units (dx, dy; dx2, dy2), the determinant D of eq. (16), a
 confidence in [0, 1] and the derivatives that entered eq. (9) and (15). The
 pixel flow is the displacement of the point's image over one frame,
@@ -63,6 +64,7 @@ from omniflow.series import (
     unit_frames,
     unit_noise_sigma,
 )
+from omniflow.shading import flow_units
 from omniflow.solve import flow_at_matches
 
 __all__ = [
@@ -162,6 +164,8 @@ def estimate(
     flow_band = choose_flow_band(fits, sigmas, config)
     cam1 = unit_frames(fits[0], rig.cam1, config, flow_band)
     cam2 = unit_frames(fits[1], rig.cam2, config, flow_band)
+    if config.flow_shading is not None:  # the flow step on shading-flattened frames
+        cam1, cam2 = flow_units(frames1, frames2, t, rig, config, flow_band, (cam1, cam2))
     for cam, s in zip((cam1, cam2), sigmas, strict=True):
         cam["noise_var"] = noise_variance(s, cam["g"].fit, config)
     diagnostics = {"flow_band": flow_band, "noise_sigma1": sigmas[0], "noise_sigma2": sigmas[1]}
@@ -250,6 +254,8 @@ def stereo_matches(
         self_similarity=config.self_similarity,
         flatness=config.flatness,
         alias_score=config.alias_score,
+        alias_image2=config.alias_image2,
+        alias_period=config.alias_period,
         dense_percentile=config.dense_percentile,
         dense_reach=config.dense_reach,
         short_patch=config.short_patch,

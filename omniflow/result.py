@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import time
 import warnings
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -30,12 +31,12 @@ COLUMNS: dict[str, str] = {
     "h": "m, height above cam2's tip (eq. 4)",
     "dh1_dt": "px/frame, cam1 radial flow",
     "dtheta_dt": "rad/frame, angular flow",
-    "dr_dt": "m/frame, radial velocity -(d + r) dh1_dt / h1",
+    "dr_dt": "m/frame, radial velocity -(d + r) dh1_dt / h1 (decoupled: from dh1_dt and dh2_dt)",
     "dx": "px/frame, cam1 flow along x",
     "dy": "px/frame, cam1 flow along y",
     "x2": "px, cam2 column coordinate",
     "y2": "px, cam2 row coordinate",
-    "dh2_dt": "px/frame, cam2 radial flow (h2/h1) dh1_dt (eq. 14)",
+    "dh2_dt": "px/frame, cam2 radial flow: (h2/h1) dh1_dt (eq. 14) where coupled, else its own",
     "dx2": "px/frame, cam2 flow along x",
     "dy2": "px/frame, cam2 flow along y",
     "score": "1, stereo match score (NCC or gradient similarity)",
@@ -47,6 +48,7 @@ COLUMNS: dict[str, str] = {
     "f2_h": "grey/px, df2/dh_2 used in eq. (15)",
     "f2_theta": "grey/rad, df2/dtheta used in eq. (15)",
     "f2_t": "grey/frame, df2/dt used in eq. (15)",
+    "coupled": "1/0, eq. (14) ties dh2_dt to dh1_dt (0: decoupled, omniflow.decoupled)",
 }
 
 
@@ -82,8 +84,13 @@ class OmniFlowResult:
     def __getitem__(self, key: str) -> NDArray:
         return self.columns[key]
 
-    def to_csv(self, path: str | Path) -> Path:
-        """Write the columns to CSV atomically, with a '#' header line of units."""
+    def to_csv(self, path: str | Path, units: Mapping[str, str] | None = None) -> Path:
+        """Write the columns to CSV atomically, with a '#' header line of units.
+
+        ``units`` names the unit of columns added after :func:`estimate` (the
+        CLI's ``odometry_inlier``, ``auto_region``, ...); :data:`COLUMNS` gives
+        the rest.
+        """
         from omniflow.imageio import atomic_output
 
         names = list(self.columns)
@@ -92,10 +99,11 @@ class OmniFlowResult:
             if names
             else np.zeros((0, 0))
         )
-        units = "; ".join(f"{k}: {COLUMNS.get(k, '')}" for k in names)
+        known = {**COLUMNS, **(units or {})}
+        line = "; ".join(f"{k}: {known.get(k, '')}" for k in names)
         path = Path(path)
         with atomic_output(path) as tmp, open(tmp, "w") as fh:
-            fh.write(f"# omniflow per-point results; {units}\n")
+            fh.write(f"# omniflow per-point results; {line}\n")
             fh.write(",".join(names) + "\n")
             np.savetxt(fh, data, delimiter=",", fmt="%.9g")
         return path

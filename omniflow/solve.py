@@ -16,6 +16,7 @@ from numpy.typing import NDArray
 
 from omniflow.applications import radial_velocity
 from omniflow.config import OmniFlowConfig
+from omniflow.decoupled import decouple
 from omniflow.flow import conditioning as direct_conditioning
 from omniflow.flow import (
     consistent_neighbours,
@@ -25,6 +26,7 @@ from omniflow.flow import (
     neighbourhoods,
     pooled_solution,
 )
+from omniflow.gridpool import GridPools
 from omniflow.matching import Matches
 from omniflow.rig import Rig, Unit
 from omniflow.sampling import sample_f, sample_fine, sample_polar_grad
@@ -103,7 +105,7 @@ def flow_at_matches(
     k = h2 / h1
     dx, dy = _displacement(rig.cam1, h1, theta, a, b)
     dx2, dy2 = _displacement(rig.cam2, h2, theta, k * a, b)
-    return {
+    cols = {
         "x": x1,
         "y": y1,
         "theta": theta,
@@ -132,6 +134,7 @@ def flow_at_matches(
         "f2_t": f2_t,
         "_t_sample": t1 - t0,
     }
+    return decouple(cols, rig, config, _displacement)  # eq. (14) tested (omniflow.decoupled)
 
 
 def make_solver(
@@ -171,10 +174,21 @@ def make_solver(
 
         return solve
     pool_radius = rig.cam1.r_m / 8.0 if config.pool_radius is None else config.pool_radius
-    idx, w = neighbourhoods(
-        x1, y1, k=config.pool_k, radius=pool_radius, r=r, range_tol=config.pool_range_tol,
-        edge_map=edge_map, edge_tol=config.pool_edge_tol,
-    )  # fmt: skip
+    tree = dict(k=config.pool_k, radius=pool_radius, r=r, range_tol=config.pool_range_tol)
+    grid = None
+    if _grid_pooling(config):
+        idx = w = None
+        eps = 1e-3  # rad: the tangent d(x, y)/dtheta / h_1 by central differences
+        xp, yp = rig.cam1.pixel_of_polar(h1, theta + eps)
+        xm, ym = rig.cam1.pixel_of_polar(h1, theta - eps)
+        tangent = np.column_stack([xp - xm, yp - ym]) / (2.0 * eps * h1[:, None])
+        grid = GridPools(
+            x1, y1, tangent, (rig.cam1.height, rig.cam1.width), radius=pool_radius,
+            cell=config.pool_grid * pool_radius, r=r, range_tol=config.pool_range_tol,
+            tree_pools=lambda mask: neighbourhoods(x1, y1, **tree, query=mask),
+        )  # fmt: skip
+    else:
+        idx, w = neighbourhoods(x1, y1, **tree, edge_map=edge_map, edge_tol=config.pool_edge_tol)
 
     floor = max(config.min_conditioning, config.pool_min_conditioning)
     kw = dict(theta=theta, model=config.pool_model, scale=pool_radius,
@@ -184,6 +198,7 @@ def make_solver(
         return pooled_solution(
             *derivs, h1, h2, idx, weights, **kw, noise1=noise[0], noise2=noise[1],
             residual_noise=config.eiv == "residual", unit_weighting=config.pool_unit_weighting,
+            grid=grid,
         )  # fmt: skip
 
     def solve(f1_h, f1_th, f1_t, f2_h, f2_th, f2_t):
@@ -203,6 +218,19 @@ def make_solver(
         return solve_w(derivs, _same_motion(weights, idx, a, b, h1, config.pool_flow_tol))
 
     return solve
+
+
+def _grid_pooling(config: OmniFlowConfig) -> bool:
+    """Whether the pools are grid filters (``config.pool_grid``): only for the one-pass,
+    equal-weight solver; the knobs that thin each pool by its neighbours need the tree's."""
+    return (
+        config.pool_grid is not None
+        and config.pool_unit_weighting == "equal"
+        and config.pool_edge_tol is None
+        and config.pool_residual_tol is None
+        and config.pool_flow_tol is None
+        and config.pool_min_info is None
+    )
 
 
 def _same_motion(

@@ -128,6 +128,8 @@ class OmniFlowStream:
     def __init__(self, rig: Rig, config: OmniFlowConfig | None = None, *, background: bool = False):
         self.rig = rig
         self.config = OmniFlowConfig() if config is None else config
+        if self.config.flow_shading is not None:  # a second fit per frame, not kept here yet
+            raise ValueError("flow_shading: not supported by OmniFlowStream; use estimate()")
         self._prev: StereoFrame | None = None
         window = self.config.temporal_frames if self.config.temporal == "dct3d" else 0
         self._window: collections.deque = collections.deque(maxlen=max(window, 1))

@@ -244,7 +244,10 @@ def run(args: argparse.Namespace, config_fields: list[str], argv: list[str]) -> 
     # the CSVs are renamed into place whole, so one that exists is complete
     todo = [k for k in wanted if not (out / pair_name(k - 1, k)).is_file()]
     present = len(wanted) - len(todo)
-    stream = OmniFlowStream(source.rig, config, background=args.background)
+    try:
+        stream = OmniFlowStream(source.rig, config, background=args.background)
+    except ValueError as exc:  # an option the stream does not support (flow_shading)
+        raise CLIError(str(exc)) from exc
     from tqdm import tqdm
 
     bar = tqdm(total=len(todo), desc=PROG, unit="frame", disable=args.quiet, file=sys.stderr)

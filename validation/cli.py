@@ -12,6 +12,7 @@ import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 __all__ = ["main"]
 
@@ -68,6 +69,15 @@ def _parser() -> argparse.ArgumentParser:
         "the default plus one choice changed at a time; both also run the paper's "
         "exact configuration and the flow step on the true matches; 'default' only "
         "the default configuration (default: %(default)s)",
+    )
+    ap.add_argument(
+        "--row",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE[,NAME=VALUE...]",
+        help="one more omniflow row: the default configuration with these OmniFlowConfig "
+        "fields changed (e.g. --row flow_taper=0 --row eiv=none,sampling=exact); the row is "
+        "named after the fields that differ; repeatable",
     )
     ap.add_argument(
         "--baselines",
@@ -197,6 +207,22 @@ def main(argv: Sequence[str] | None = None) -> int:
             )
     if len(args.method_name) > len(args.method_output):
         return fail("--method-name: more names than --method-output directories")
+    variants: Any = args.variants
+    if args.row:
+        from omniflow.cli import CLIError, config_from_settings
+
+        from .variants import omniflow_variants, variant_name
+
+        variants = omniflow_variants(args.variants, true_matches=args.variants != "default")
+        for text in args.row:
+            try:
+                config = config_from_settings(text)
+            except CLIError as exc:
+                return fail(f"--row {text}: {exc}")
+            name = variant_name(config)
+            if name in dict(variants):
+                return fail(f"--row {text}: the row {name} is already scored")
+            variants.append((name, config))
     levels: list[list[str]] = [[]]
     if args.camera_sweep is not None:
         key, sep, vals = args.camera_sweep.partition("=")
@@ -217,7 +243,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         for level in levels:
             res = run_validation(
                 args.dataset,
-                variants=args.variants,
+                variants=variants,
                 baselines=names,
                 frames=frames,
                 progress=not args.no_progress,

@@ -6,7 +6,7 @@ every other textured sample near a matched edge can be matched by a short
 search around that edge's disparity: :func:`densify` tries each sample of
 image 1 whose |df1/dh_1| passes a (lower) threshold and that lies within
 ``reach`` columns of a match on its line, with the NCC of its own radial
-profile (the same descriptors as the robust rule) at the seed's disparity
+profile (the same profiles as the robust rule's descriptors) at the seed's disparity
 +- ``search`` columns. Between two seeds the guess is interpolated, and a
 sample between two seeds that disagree by more than one column (a depth edge
 between them) is not tried. A sample is kept where its NCC peaks inside the
@@ -16,10 +16,11 @@ searched range, scores at least ``min_score`` and is sharp enough
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from omniflow.matching.robust import Descriptors
+from omniflow.kernels import ncc_offsets
 from omniflow.matching.tables import TableGeometry, parabola_offset, sharp_peak
 
 __all__ = ["densify"]
@@ -100,21 +101,30 @@ def densify(
     cand[:, :pad] = False
     cand[:, pad + n_h :] = False
     jj = j1.astype(np.int64) + pad
+    empty = (np.zeros(0, np.intp), np.zeros(0, np.intp), np.zeros(0), np.zeros(0), 0)
+    if k.size == 0:
+        return empty
+    # only samples within ``reach`` columns of a seed on their line can be tried: a
+    # dilation of the seeds along the lines cuts the candidates before the search
+    seeded = np.zeros(fh1.shape, np.uint8)
+    seeded[k, jj] = 1
+    cand &= cv2.dilate(seeded, np.ones((1, 2 * reach + 1), np.uint8)).astype(bool)
     cand[k, jj] = False  # the seeds themselves
     ck, cj = np.nonzero(cand)
-    empty = (np.zeros(0, np.intp), np.zeros(0, np.intp), np.zeros(0), np.zeros(0), 0)
-    if ck.size == 0 or k.size == 0:
+    if ck.size == 0:
         return empty
     usable, guess = _seed_guess(k, jj, c2 - j1, ck, cj, fh1.shape[1], reach)
     ck, cj, guess = ck[usable], cj[usable], guess[usable]
     if ck.size == 0:
         return empty
-    d1 = Descriptors(t1, w, stride, lines)(ck, cj)  # (N, L)
-    desc2 = Descriptors(t2, w, stride, lines)
     base = np.rint(guess).astype(np.intp)
     offs = np.arange(-search - 1, search + 2)  # one more each side for the parabola
     cols = np.clip(cj[:, None] + base[:, None] + offs, w * stride, t2.shape[1] - 1 - w * stride)
-    S = np.einsum("nl,nsl->ns", d1, desc2(np.broadcast_to(ck[:, None], cols.shape), cols))
+    # the NCC of the robust rule's profiles (Descriptors), summed from the tables
+    S = np.empty(cols.shape)
+    ncc_offsets(np.ascontiguousarray(t1, np.float32), np.ascontiguousarray(t2, np.float32),
+                ck.astype(np.int64), cj.astype(np.int64), cols.astype(np.int64),
+                int(w), int(stride), int(lines), S)  # fmt: skip
     b = np.argmax(S[:, 1:-1], axis=1) + 1
     r = np.arange(ck.size)
     s_m, s_0, s_p = S[r, b - 1], S[r, b], S[r, b + 1]

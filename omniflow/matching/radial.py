@@ -44,13 +44,15 @@ Two methods:
     parabola through the NCC at the neighbouring samples, and the match is
     kept only where that peak is sharp enough to place (``flatness``) and
     its image-1 profile does not recur on its own line within the window
-    (``alias_score``: on a periodic texture an alias can outscore the
-    truth). Then a disparity consistency vote (``consistency``) keeps a
-    match only where enough of its neighbours in (theta, h_1) agree with its
-    disparity. The matches then grow to the textured samples near them on
-    their lines (``dense_percentile``, :mod:`omniflow.matching.dense`), and a
-    second pass with shorter profiles (``short_patch``) adds matches where
-    the first has none (small objects, inclined surfaces). The profiles
+    with an alias in image 2 a recurrence away (``alias_score``,
+    ``alias_image2``, ``alias_period``, :mod:`omniflow.matching.periodic`:
+    on a periodic texture an alias can outscore the truth). Then a disparity
+    consistency vote (``consistency``) keeps a match only where enough of its
+    neighbours in (theta, h_1) agree with its disparity. The matches then
+    grow to the textured samples near them on their lines
+    (``dense_percentile``, :mod:`omniflow.matching.dense`), and a second pass
+    with shorter profiles (``short_patch``) adds matches where the first has
+    none (small objects, inclined surfaces). The profiles
     compare equal radial scales, which is exact for vertical surfaces (both
     units map dh to dh_i = v dh / (d + r)); on inclined surfaces the scales
     differ by up to h_2 / h_1 and the NCC drops.
@@ -78,11 +80,13 @@ from numpy.typing import NDArray
 from omniflow.dct import DCTFit
 from omniflow.matching.dense import densify
 from omniflow.matching.paper import match_paper
+from omniflow.matching.periodic import not_periodic
 from omniflow.matching.robust import match_robust
 from omniflow.matching.tables import (
     PolarGrids,
     TableGeometry,
     blur_lines,
+    local_maxima,
     polar_grids,
     polar_maps,
     polar_table,
@@ -184,6 +188,8 @@ def match_radial(
     self_similarity: float = 1.0,
     flatness: float = 0.5,
     alias_score: float = 0.9,
+    alias_image2: float = 0.9,
+    alias_period: float = 0.8,
     dense_percentile: float = 100.0,
     dense_reach: float = 1.0,
     short_patch: float = 0.5,
@@ -288,6 +294,18 @@ def match_radial(
         score better than the truth, so the uniqueness test, the left-right
         check and the vote all confirm it; a smooth ramp (recurring without
         falling) is left to them. 1 disables it.
+        (:func:`omniflow.matching.periodic.not_periodic`.)
+    alias_image2 : float
+        ``robust``: the alias test drops a match whose profile recurs at lag
+        L only when image 2 holds the alias, i.e. the NCC of the image-1
+        profile with image 2's at h_2 +- L (inside the window) exceeds this.
+        A lone recurrence on low texture has no alias in image 2. <= -1:
+        any recurrence drops the match (the rule before).
+    alias_period : float
+        ``robust``: where image 2's columns a recurrence away are in the
+        window but past its rim (the alias cannot be looked at), the match
+        is dropped only when its profile recurs at two lags at least, one
+        above ``alias_score`` and another above this (a period).
     dense_percentile : float
         ``robust``: after the vote, also match every sample of image 1 whose
         |df1/dh_1| is above this percentile (same annulus as
@@ -403,9 +421,23 @@ def match_radial(
             candidate_fraction=candidate_fraction,
             self_similarity=self_similarity,
             flatness=flatness,
-            alias_score=alias_score,
+            alias_score=1.0,  # the alias test below (omniflow.matching.periodic)
         )
     k1, j1, c2, score, n_sig = res
+    if method == "robust" and alias_score < 1.0 and k1.size:
+        a1 = np.abs(fh1)
+        edges1 = local_maxima(a1) & (a1 > candidate_fraction * thr)
+        edges1[:, :pad] = False
+        edges1[:, pad + n_h :] = False
+        keep = not_periodic(
+            t1, edges1, k1, j1 + pad, w=w, stride=stride, lines=patch_lines,
+            lags=((w * stride) // 2, win[1] - win[0]), alias_score=alias_score,
+            **({} if alias_image2 <= -1.0 else dict(
+                table2=t2, j2=c2 + pad, window=win, alias2_score=alias_image2,
+                columns2=_profile_columns(h0, h_step, cam2.r_m / scale2, w * stride),
+                confirm_score=alias_period)),
+        )  # fmt: skip
+        k1, j1, c2, score = k1[keep], j1[keep], c2[keep], score[keep]
     theta = -np.pi + (2.0 * np.pi / n_theta) * (k1 + 0.5)
     h1 = h_min + h_step * j1  # j1, c2: columns from the first core column
     h2 = scale2 * (h_min + h_step * c2)
@@ -446,6 +478,12 @@ def match_radial(
             second["profile_step"] = min(second["profile_step"], second["patch_radius"] / 2)
         out = _union(out, match_radial(None, None, rig, **second), n_theta, h_step)
     return out
+
+
+def _profile_columns(h0: float, h_step: float, rim: float, half: int) -> tuple[int, int]:
+    """Table columns (h = h0 + col h_step) whose profile of +-``half`` columns
+    lies between the image centre (h >= 0) and ``rim`` (in table radius)."""
+    return int(np.ceil(-h0 / h_step)) + half, int(np.floor((rim - h0) / h_step)) - half
 
 
 def _union(a: Matches, b: Matches, n_theta: int, h_step: float) -> Matches:

@@ -416,8 +416,13 @@ def test_zero_matches_with_regions_is_an_empty_answer(base, tmp_path):
     meta = json.loads((out / "flow.json").read_text())
     assert "error" in meta["odometry"] and "error" in meta["regions"]["auto"]
     assert "hold no matched point" in meta["position_fix"]["error"]
-    header = (out / "flow.csv").read_text().splitlines()[1].split(",")
-    assert "odometry_inlier" in header and "auto_region" in header
+    units, header = (out / "flow.csv").read_text().splitlines()[:2]
+    assert "odometry_inlier" in header.split(",") and "auto_region" in header.split(",")
+    # the '#' line gives every column a unit, the CLI's own columns included
+    for name in header.split(","):
+        assert f"; {name}: " in units or f"results; {name}: " in units, name
+        unit = units.split(f"{name}: ", 1)[1].split(";")[0]
+        assert unit.strip(), f"no unit for {name}"
 
 
 def test_auto_min_speed_keeps_static_points_out(mover, tmp_path):

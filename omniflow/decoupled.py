@@ -1,0 +1,191 @@
+"""Where eq. (14) fails: detect it and solve each unit's radial flow on its own.
+
+The coaxial solution couples the two units' radial flows through
+dh_2 = (h_2 / h_1) dh_1 (eq. 14), which holds only for a scene point that
+does not move along the axis. Differentiating eq. (3) and (4)::
+
+    dr h_1 + (d + r) dh_1 = v dh                                (eq. 3, d/dt)
+    dr h_2 + (d + r) dh_2 = v dh                                (eq. 4, d/dt)
+
+so for dh != 0 (an object rising or falling, or a rolling ball or tumbling
+ring whose texture moves vertically) the two radial flows are independent
+unknowns, and a solve that ties them answers a wrong radial flow on both
+cameras. Solving the two for the flows, dh_i/dt = U - h_i W in either unit
+with U = v dh / (d + r) and W = dr / (d + r): U is the axial motion's share,
+the same in both units, and W the range's, scaling with each unit's h_i
+(U = 0 is eq. (14)). The azimuth is still shared (theta_1 = theta_2 for every
+point of a coaxial rig), so the decoupled model has three unknowns,
+(U, W, dtheta/dt), in eq. (9) of unit 1 and eq. (10) of unit 2, pooled over
+the same neighbours as the coupled solve (U, W and dtheta/dt shared by the
+pool, a rigid patch at one range)::
+
+    f1_h (U - h_1 W) + f1_theta b = -f1_t                       # eq. (9)
+    f2_h (U - h_2 W) + f2_theta b = -f2_t                       # eq. (10)
+
+Detection (:func:`decouple`). Both models are fitted in weighted least
+squares over each point's pool (constant model; with U = 0 the radial flow
+scales with the image radius as in :func:`omniflow.flow.pooled_solution`);
+the decoupled one has one more unknown, so its residual sum is never
+larger. The F statistic of that one extra unknown,
+
+    F = (RSS_coupled - RSS_decoupled) / (RSS_decoupled / (n_eff - 3)),
+
+is large only where the two units' equations cannot be satisfied with one
+radial flow: there the point is reported decoupled (column ``coupled`` =
+0) with the three-unknown solution. ``n_eff`` is the pool's effective
+number of rows, (sum w)^2 / sum w^2 per unit. The threshold is a knob
+(``OmniFlowConfig.decouple_tol``) chosen on the rendered scenes
+(docs/measurements.md, "Movers: decoupled radial flow"): neighbouring
+residuals are correlated by the DCT fit, so F is not F-distributed and the
+textbook quantile would switch static points.
+
+Range rate without eq. (14): subtracting the two differentiated equations
+gives dr/dt = -(d + r)(dh_2/dt - dh_1/dt) / (h_2 - h_1)
+(:func:`omniflow.applications.radial_velocity_stereo`), exact whatever dh/dt.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from omniflow.applications import radial_velocity_stereo
+from omniflow.config import OmniFlowConfig
+from omniflow.flow import neighbourhoods
+from omniflow.rig import Rig
+
+__all__ = ["decouple", "model_fits"]
+
+
+def model_fits(
+    derivs: tuple[NDArray, ...],
+    h1: NDArray,
+    h2: NDArray,
+    idx: NDArray,
+    w: NDArray,
+) -> dict[str, NDArray]:
+    """Coupled and decoupled pooled least-squares fits at every point.
+
+    Parameters
+    ----------
+    derivs : six ndarrays, shape (N,)
+        f1_h, f1_theta, f1_t, f2_h, f2_theta, f2_t at the matches.
+    h1, h2 : ndarray, shape (N,)
+        Matched image radii, pixels.
+    idx, w : ndarray, shape (N, K)
+        Pools as :func:`omniflow.flow.neighbourhoods` returns them (index N:
+        no neighbour, weight 0).
+
+    Returns
+    -------
+    dict
+        ``a1``, ``a2`` (dh_1/dt and dh_2/dt of the decoupled fit, px/frame),
+        ``b`` (its dtheta/dt, rad/frame), ``U`` (v dh / (d + r), the axial
+        motion's share of either unit's radial flow, px/frame),
+        ``coupled_a``, ``coupled_b`` (the fit with U = 0, eq. 14), ``F``
+        (the statistic of the extra unknown; NaN where either fit is
+        singular), ``n_eff``.
+    """
+    ext = lambda v: np.append(np.asarray(v, dtype=np.float64), 0.0)[idx]  # noqa: E731
+    f1_h, f1_th, f1_t, f2_h, f2_th, f2_t = (ext(v) for v in derivs)
+    hi = h1[:, None]
+    # Unknowns (U, W, c): dh_i/dt = U - h_i W in either unit (eq. 3-4 differentiated,
+    # U = v dh / (d + r), W = dr / (d + r), both shared by a pool on one surface), W
+    # scaled by h_1,i and c = h_1,i dtheta/dt. Unit u's row of neighbour j:
+    # (f_h, -f_h h_u,j / h_1,i, f_theta / h_1,i) . (U, h_1,i W, c) = -f_t; U = 0 is the
+    # coupled model (eq. 14), whose W column is pooled_solution's relative radial one.
+    u1, w1, q1 = f1_h, -f1_h * ext(h1) / hi, f1_th / hi
+    u2, w2, q2 = f2_h, -f2_h * ext(h2) / hi, f2_th / hi
+    s = lambda x, y: (w * (x * y)).sum(axis=1)  # noqa: E731
+    cols = ((u1, u2), (w1, w2), (q1, q2))
+    M3 = np.stack(
+        [np.stack([s(a1, b1) + s(a2, b2) for b1, b2 in cols], -1) for a1, a2 in cols], axis=1
+    )
+    g3 = np.stack([s(a1, f1_t) + s(a2, f2_t) for a1, a2 in cols], -1)
+    tt = s(f1_t, f1_t) + s(f2_t, f2_t)
+    M2, g2 = M3[:, 1:, 1:], g3[:, 1:]
+    x3 = _solve(M3, -g3)
+    x2 = _solve(M2, -g2)
+    rss3 = tt + np.einsum("ij,ij->i", x3, g3)  # min of sum w (A x + t)^2 = tt + g . x
+    rss2 = tt + np.einsum("ij,ij->i", x2, g2)
+    wsum, w2sum = w.sum(axis=1), (w * w).sum(axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        n_eff = 2.0 * wsum * wsum / w2sum  # two rows (one per unit) per neighbour
+        F = (rss2 - rss3) / (rss3 / (n_eff - 3.0))
+    F = np.where((n_eff > 4.0) & (rss3 > 0), F, np.nan)
+    k = h2 / h1
+    return {
+        "a1": x3[:, 0] - x3[:, 1],
+        "a2": x3[:, 0] - k * x3[:, 1],
+        "b": x3[:, 2] / h1,
+        "U": x3[:, 0],
+        "coupled_a": -x2[:, 0],
+        "coupled_b": x2[:, 1] / h1,
+        "F": F,
+        "n_eff": n_eff,
+    }
+
+
+def _solve(M: NDArray, v: NDArray) -> NDArray:
+    """Batched solve of M x = v, NaN rows where M is singular or ill-conditioned."""
+    out = np.full(v.shape, np.nan)
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        cond = np.linalg.cond(M)
+    ok = np.isfinite(cond) & (cond < 1e8)
+    if ok.any():
+        out[ok] = np.linalg.solve(M[ok], v[ok][..., None])[..., 0]
+    return out
+
+
+def decouple(
+    cols: dict[str, NDArray], rig: Rig, config: OmniFlowConfig, displacement: Callable
+) -> dict[str, NDArray]:
+    """Add the ``coupled`` column and, where eq. (14) fails, the decoupled flow.
+
+    ``cols`` are the result columns of :func:`omniflow.solve.flow_at_matches`
+    (the six derivatives, ``x``, ``y``, ``h1``, ``h2``, ``r``, ``theta``
+    among them). With ``config.decouple_tol`` None, or the direct solver,
+    every point stays coupled and only the column is added. Otherwise the
+    points whose F statistic (:func:`model_fits`) exceeds
+    ``config.decouple_tol`` get the three-unknown solution: ``dh1_dt``,
+    ``dh2_dt`` and ``dtheta_dt`` from their own pool, the displacements
+    from those, and ``dr_dt`` from both radial flows
+    (:func:`omniflow.applications.radial_velocity_stereo`, eq. (14) not
+    assumed). ``displacement(unit, h_i, theta, dh, dtheta)`` gives the pixel
+    flow (dx, dy) of a polar flow, the solver's own (passed in, so that this
+    module does not import the solver that calls it).
+    """
+    n = np.asarray(cols["h1"]).size
+    out = dict(cols)
+    out["coupled"] = np.ones(n)  # 1.0 / 0.0 like every other column (arithmetic, CSV)
+    if config.decouple_tol is None or config.solver != "pooled" or n < 10:
+        return out
+    h1, h2 = (np.asarray(cols[c], dtype=np.float64) for c in ("h1", "h2"))
+    radius = rig.cam1.r_m / 8.0 if config.pool_radius is None else config.pool_radius
+    idx, w = neighbourhoods(
+        cols["x"], cols["y"], k=config.pool_k, radius=radius, r=cols["r"],
+        range_tol=config.pool_range_tol,
+    )  # fmt: skip
+    derivs = tuple(np.asarray(cols[c], dtype=np.float64)
+                   for c in ("f1_h", "f1_theta", "f1_t", "f2_h", "f2_theta", "f2_t"))  # fmt: skip
+    fit = model_fits(derivs, h1, h2, idx, w)
+    with np.errstate(invalid="ignore"):
+        switch = (fit["F"] > config.decouple_tol) & np.isfinite(fit["a1"] + fit["a2"] + fit["b"])
+    if not switch.any():
+        return out
+    theta = np.asarray(cols["theta"], dtype=np.float64)
+    a1 = np.where(switch, fit["a1"], cols["dh1_dt"])
+    a2 = np.where(switch, fit["a2"], cols["dh2_dt"])
+    b = np.where(switch, fit["b"], cols["dtheta_dt"])
+    dx, dy = displacement(rig.cam1, h1, theta, a1, b)
+    dx2, dy2 = displacement(rig.cam2, h2, theta, a2, b)
+    dr = radial_velocity_stereo(cols["r"], h1, h2, a1, a2, d=rig.d)
+    out.update(
+        dh1_dt=a1, dh2_dt=a2, dtheta_dt=b, coupled=np.where(switch, 0.0, 1.0),
+        dx=np.where(switch, dx, cols["dx"]), dy=np.where(switch, dy, cols["dy"]),
+        dx2=np.where(switch, dx2, cols["dx2"]), dy2=np.where(switch, dy2, cols["dy2"]),
+        dr_dt=np.where(switch, dr, cols["dr_dt"]),
+    )  # fmt: skip
+    return out

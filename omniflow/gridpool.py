@@ -1,0 +1,187 @@
+"""Pooling by filtering on a grid: the pooled solver's sums without a neighbour search.
+
+:func:`omniflow.flow.pooled_solution` needs, for every matched point i, the
+Gaussian-weighted sums over its neighbours j of the products of their
+derivatives (pp, pq, qq, pf, qf) times 1, u and u^2, u the tangential offset.
+With the ``relative`` model every product factors into a part of j alone and a
+power of h_1,i (p_j = f_h,j h_1,j / h_1,i, q_j = f_theta,j / h_1,i), and the
+offset u_ij is, to first order in the pool's size, the tangential component of
+the pixel offset, u_ij = t_i . (x_j - x_i) / scale with t_i the unit's
+d(x, y)/dtheta / h_1 at point i. So every sum is a correlation of an image
+holding j's part at j's pixel with the kernel g(d), d_x g(d), d_y g(d),
+d_x^2 g(d), d_x d_y g(d) or d_y^2 g(d) (g the pool's Gaussian, d the offset
+from the point), read back at the point: a few separable OpenCV filters on a
+coarse grid (cells of ``cell`` px), O(pixels) whatever the number of points
+or the size of the pools. A pool then holds every point within its radius
+(the k-d tree's keeps the ``pool_k`` nearest), so denser matches pool more
+equations on the same area.
+
+The range test of :func:`omniflow.flow.neighbourhoods` (neighbours whose range
+differs from the point's by more than ``range_tol``, another surface, left out)
+becomes a third axis of the grid, as in a bilateral grid: the points are
+binned by log r in bins of delta = log(1 + range_tol), each bin's image is
+filtered on its own, and point i at log r_i = (b + f) delta reads
+(1 - f) F[b - 1] + F[b] + f F[b + 1]: each bin weighted by the share of it
+inside the window |log r_j - log r_i| <= delta, so the expected weight over
+neighbours spread evenly in their bins is the tree's test; a neighbour in the
+point's own bin always counts, one more than 2 delta away (about twice
+``range_tol``) never does. Points without a finite range get the k-d tree's pools.
+"""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from omniflow.kernels import grid_read, grid_scatter
+
+__all__ = ["GridPools"]
+
+
+class GridPools:
+    """The pools of every matched point as grid filters (plus k-d tree pools where ranges mix).
+
+    Parameters
+    ----------
+    x, y : ndarray, shape (N,)
+        cam1 pixel coordinates of the matches (centres at j + 1/2).
+    tangent : ndarray, shape (N, 2)
+        d(x, y)/dtheta / h_1 at each point (a unit vector for a polar image).
+    shape : (H, W)
+        cam1's image size, pixels.
+    radius : float
+        Pool radius, pixels; weights Gaussian with sigma = radius / 2, cut at
+        ``radius`` (on a square: the filters are separable).
+    cell : float
+        Grid cell, pixels (positions are binned to it: a neighbour's offset
+        is off by at most cell / 2).
+    r : ndarray, shape (N,), optional
+        Triangulated range; with ``range_tol``, points whose window mixes
+        ranges go to the tree (``tree_pools``).
+    range_tol : float, optional
+    tree_pools : callable, optional
+        ``tree_pools(mask) -> (idx, w)``: the k-d tree pools of the masked
+        points (rows of the others unused), for the points that leave the grid.
+    """
+
+    def __init__(
+        self,
+        x: NDArray,
+        y: NDArray,
+        tangent: NDArray,
+        shape: tuple[int, int],
+        *,
+        radius: float,
+        cell: float,
+        r: NDArray | None = None,
+        range_tol: float | None = None,
+        tree_pools=None,
+    ) -> None:
+        self.n = n = np.size(x)
+        self.cell = float(cell)
+        self.gh = max(math.ceil(shape[0] / cell), 2)
+        self.gw = max(math.ceil(shape[1] / cell), 2)
+        x = np.asarray(x, dtype=np.float64).ravel()
+        y = np.asarray(y, dtype=np.float64).ravel()
+        ix = np.clip(np.floor(x / cell).astype(np.intp), 0, self.gw - 1)
+        iy = np.clip(np.floor(y / cell).astype(np.intp), 0, self.gh - 1)
+        self.flat = iy * self.gw + ix
+        self.gx, self.gy = x / cell - 0.5, y / cell - 0.5  # cell coordinates, centres at integers
+        self.tangent = np.asarray(tangent, dtype=np.float64).reshape(n, 2)
+        half = max(round(radius / cell), 1)
+        d = np.arange(-half, half + 1) * cell  # offsets, pixels
+        g = np.exp(-0.5 * (d / (radius / 2.0)) ** 2)
+        self.kernels = [(g * d**m).astype(np.float32) for m in range(3)]  # g, d g, d^2 g
+        self.half = half
+        self.on_grid = np.ones(n, dtype=bool)
+        self.idx = self.w = None
+        self.bins = np.zeros(n, dtype=np.intp)
+        self.frac = np.zeros(n)
+        if r is not None and range_tol is not None and n:
+            r = np.asarray(r, dtype=np.float64).ravel()
+            self.on_grid = np.isfinite(r) & (r > 0)
+            pos = np.log(np.where(self.on_grid, r, 1.0)) / math.log1p(range_tol)
+            self.bins = np.floor(pos).astype(np.intp)
+            self.frac = pos - self.bins
+            if tree_pools is not None and not self.on_grid.all():
+                self.idx, self.w = tree_pools(~self.on_grid)
+                self.w = np.where(self.on_grid[:, None], 0.0, self.w)
+
+    def sums(
+        self, derivs6: tuple[NDArray, ...], h1: NDArray, *, linear: bool, scale: float
+    ) -> tuple[NDArray, NDArray]:
+        """Pooled sums of :func:`omniflow.flow.pooled_solution` (``relative`` model).
+
+        ``derivs6``: f1_h, f1_theta, f1_t, (h2/h1) f2_h, f2_theta, f2_t and ``h1``,
+        shape (N,) (no sentinel). Returns sums (N, 1 or 3, 5) of
+        w u^m (pp, pq, qq, pf, qf) and wsum (N, 1 or 3) of w u^m, the grid's
+        where the point is on it, zero elsewhere (the caller adds the tree's).
+        """
+        f1h, f1th, f1t, f2h, f2th, f2t = (np.asarray(v, np.float64).ravel() for v in derivs6)
+        h1 = np.asarray(h1, np.float64).ravel()
+        n = self.n
+        m_pow = 3 if linear else 1
+        sums = np.zeros((n, m_pow, 5))
+        wsum = np.zeros((n, m_pow))
+        on = self.on_grid
+        if not on.any():
+            return sums, wsum
+        a1, a2 = f1h * h1, f2h * h1  # p_j h_1,i: the relative model's rel h_1,i
+        parts = np.stack(
+            [
+                np.ones(n),
+                a1 * a1 + a2 * a2,  # pp h_1,i^2
+                a1 * f1th + a2 * f2th,  # pq h_1,i^2
+                f1th * f1th + f2th * f2th,  # qq h_1,i^2
+                a1 * f1t + a2 * f2t,  # pf h_1,i
+                f1th * f1t + f2th * f2t,  # qf h_1,i
+            ],
+            axis=1,
+        )
+        # per-channel scale so that float32 holds every channel near 1
+        norm = np.maximum(np.abs(parts[on]).max(axis=0), 1e-300)
+        parts = (parts / norm).astype(np.float32)
+        g0, g1, g2 = self.kernels
+        pairs = [(g0, g0)]
+        if linear:
+            pairs += [(g1, g0), (g0, g1), (g2, g0), (g1, g1), (g0, g2)]
+        read = np.zeros((len(pairs), n, 6))
+        ix, iy = self.flat % self.gw, self.flat // self.gw
+        margin = self.half + 1
+        for c in np.unique(self.bins[on]):
+            members = np.flatnonzero(on & (self.bins == c))
+            # readers: the points of bins c - 1, c, c + 1, weighted by the share of
+            # bin c inside their window (1 - f, 1, f; see the module's docstring)
+            db = self.bins - c
+            coef = np.where(db == 0, 1.0, np.where(db == 1, 1.0 - self.frac, self.frac))
+            readers = np.flatnonzero(on & (np.abs(db) <= 1))
+            x0 = max(int(ix[members].min()) - margin, 0)
+            y0 = max(int(iy[members].min()) - margin, 0)
+            x1 = min(int(ix[members].max()) + margin + 1, self.gw)
+            y1 = min(int(iy[members].max()) + margin + 1, self.gh)
+            cw, ch = max(x1 - x0, 2), max(y1 - y0, 2)
+            img = np.zeros((ch, cw, 6), np.float32)
+            grid_scatter(img, iy - y0, ix - x0, parts, members)
+            # a reader outside the crop reads its border, which is 0 (margin > kernel half)
+            gx, gy = self.gx - x0, self.gy - y0
+            for m, (kx, ky) in enumerate(pairs):
+                f = cv2.sepFilter2D(img, cv2.CV_32F, kx, ky, borderType=cv2.BORDER_CONSTANT)
+                grid_read(f, gx, gy, readers, coef, read[m])
+        sel = slice(None) if on.all() else on
+        read = [r_m[sel] * norm for r_m in read]
+        if linear:
+            tx, ty = self.tangent[sel, 0:1], self.tangent[sel, 1:2]
+            m0, mx, my, mxx, mxy, myy = read
+            mom = [m0, (tx * mx + ty * my) / scale,
+                   (tx * tx * mxx + 2.0 * tx * ty * mxy + ty * ty * myy) / scale**2]  # fmt: skip
+        else:
+            mom = read
+        hi = h1[sel, None]
+        fac = np.concatenate([1.0 / hi**2] * 3 + [1.0 / hi] * 2, axis=1)  # (M, 5)
+        for m in range(m_pow):
+            wsum[sel, m] = mom[m][:, 0]
+            sums[sel, m, :] = mom[m][:, 1:] * fac
+        return sums, wsum
