@@ -28,7 +28,7 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["robust_lines"]
+__all__ = ["profiles", "robust_lines"]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -82,6 +82,14 @@ def _profile(t, k, j, w, stride, lines, out, r):  # pragma: no cover - compiled
     inv = np.float32(1.0) / sd
     for q in range(i):
         out[r, q] = (out[r, q] - mean) * inv
+
+
+@numba.njit(cache=True, nogil=True)
+def profiles(t, k, j, w, stride, lines, out):  # pragma: no cover - compiled
+    """The profiles of table ``t`` at (k[i], j[i]) into out[i] (see :func:`_profile`;
+    every window must lie inside the table)."""
+    for i in range(k.size):
+        _profile(t, k[i], j[i], w, stride, lines, out, i)
 
 
 # reassociation lets the compiler split the double sum into vector lanes (the

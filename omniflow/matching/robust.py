@@ -12,14 +12,52 @@ from numpy.lib.stride_tricks import sliding_window_view
 from numpy.typing import NDArray
 
 from omniflow import parallel
-from omniflow.matching.ncc import robust_lines
+from omniflow.matching.ncc import profiles, robust_lines
 from omniflow.matching.tables import TableGeometry, parabola_offset, sharp_peak
 
 __all__ = ["Descriptors", "match_robust"]
 
 
 class Descriptors:
-    """Zero-mean, unit-norm polar patches of one table.
+    """Zero-mean, unit-norm polar patches of one table (the robust rule's profiles).
+
+    A patch at (line k, column j) holds the radial profile at columns
+    j - w stride .. j + w stride, every ``stride``-th, on lines
+    k - lines .. k + lines (wrapping around theta); L = (2 lines + 1)(2 w + 1)
+    values. Each is made when asked for, by the compiled
+    :func:`omniflow.matching.ncc.profiles` (the same values as the whole-table
+    form :class:`TableDescriptors`, bit for bit); indices whose window leaves
+    the table go to that form.
+    """
+
+    def __init__(self, table: NDArray, w: int, stride: int, lines: int):
+        self.w, self.stride, self.lines = w, stride, lines
+        self.table = np.ascontiguousarray(table, dtype=np.float32)
+        self.n_lines, self.n_cols = self.table.shape
+        self.length = (2 * lines + 1) * (2 * w + 1)
+        self._whole: TableDescriptors | None = None
+
+    def __call__(self, k: NDArray, j: NDArray) -> NDArray:
+        """Patches at (k, j) of any equal shapes S; returns S + (L,), float32."""
+        k = np.asarray(k, dtype=np.int64)
+        j = np.asarray(j, dtype=np.int64)
+        reach = self.w * self.stride
+        if k.size and (
+            k.min() < 0 or k.max() >= self.n_lines or j.min() < reach
+            or j.max() >= self.n_cols - reach
+        ):  # fmt: skip
+            if self._whole is None:
+                self._whole = TableDescriptors(self.table, self.w, self.stride, self.lines)
+            return self._whole(k, j)
+        out = np.empty((*k.shape, self.length), dtype=np.float32)
+        profiles(self.table, k.ravel(), j.ravel(), self.w, self.stride, self.lines,
+                 out.reshape(-1, self.length))  # fmt: skip
+        return out
+
+
+class TableDescriptors:
+    """Zero-mean, unit-norm polar patches of one table, every window's mean and norm
+    made at once (box filters): :class:`Descriptors`' reference form.
 
     A patch at (line k, column j) holds the radial profile at columns
     j - w stride .. j + w stride, every ``stride``-th, on lines

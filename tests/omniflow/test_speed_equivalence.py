@@ -165,19 +165,29 @@ def test_rim_fill_equals_whole_image_remap(rig_name):
 
 @pytest.mark.parametrize(("w", "stride", "lines"), [(16, 1, 0), (16, 2, 0), (8, 3, 2)])
 def test_kernel_profiles_equal_descriptors(w, stride, lines):
-    """The compiled matcher's profiles are Descriptors' (main's), bit for bit."""
+    """The compiled profiles (the matcher's, and Descriptors') are main's whole-table
+    Descriptors' (now TableDescriptors), bit for bit; so are indices off the table's
+    profile range (Descriptors hands them to TableDescriptors)."""
     import cv2
 
     from omniflow.matching.ncc import _profile
-    from omniflow.matching.robust import Descriptors
+    from omniflow.matching.robust import Descriptors, TableDescriptors
 
     rng = np.random.default_rng(1)
     table = (0.5 + 0.05 * rng.standard_normal((90, 200))).astype(np.float32)
     table = cv2.GaussianBlur(table, (1, 9), 0)
     k = rng.integers(0, 90, 3000)
     j = rng.integers(w * stride, 200 - w * stride, 3000)
-    ref = Descriptors(table, w, stride, lines)(k, j)
+    ref = TableDescriptors(table, w, stride, lines)(k, j)
     out = np.empty_like(ref)
     for i in range(k.size):
         _profile(table, k[i], j[i], w, stride, lines, out, i)
     np.testing.assert_array_equal(out, ref)
+    desc = Descriptors(table, w, stride, lines)
+    np.testing.assert_array_equal(
+        desc(k.reshape(50, 60), j.reshape(50, 60)), ref.reshape(50, 60, -1)
+    )
+    edge = np.array([0, w * stride - 1, 200 - w * stride])  # windows leaving the table
+    np.testing.assert_array_equal(
+        desc(k[:3], edge), TableDescriptors(table, w, stride, lines)(k[:3], edge)
+    )
