@@ -167,12 +167,13 @@ class OmniFlowConfig:
     dense_percentile : float
         Robust matcher: also match the samples whose |df1/dh_1| is above this
         percentile near each match on its line, at that match's disparity
-        (omniflow.matching.dense); 100 disables it (the default: edges only).
-        60 gives ~4 % of the valid pixels on the rendered scenes, but with
-        the pooled solver's default pool (the ``pool_k`` nearest) the flow is
-        less accurate and the step ~3x slower (docs/measurements.md,
-        "Matching"); with ``pool_grid`` the pools keep their area and the
-        flow is more accurate than without the densification ("Density").
+        (omniflow.matching.dense); 100 disables it (edges only). The default,
+        60, scores ~4 % of the valid pixels on the rendered scenes (edges
+        alone: ~0.4 %). It needs ``pool_grid``: with the ``pool_k`` nearest
+        neighbours the denser pools shrink, the flow is less accurate and the
+        step ~3x slower (docs/measurements.md, "Matching"); with the grid the
+        pools keep their area and the flow is more accurate than on the
+        edges alone ("Density", "Defaults after the density merge").
     dense_reach : float
         Robust matcher: how far along the line a match's disparity is tried
         on its neighbours, in patch radii.
@@ -206,7 +207,7 @@ class OmniFlowConfig:
         the one-pass equal-weight solver (``pool_edge_tol``,
         ``pool_residual_tol``, ``pool_flow_tol``, ``pool_min_info`` all None,
         ``pool_unit_weighting="equal"``); otherwise the tree pools. None: the
-        k-d tree everywhere.
+        k-d tree everywhere. Default 0.125 (cells of 4 px at 512 px).
     pool_range_tol : float or None
         Pooled solver: neighbours whose range differs by more than this
         fraction (another surface) are left out; None keeps them.
@@ -270,10 +271,14 @@ class OmniFlowConfig:
         unit over the point's pool above this (omniflow.decoupled). There
         dh1_dt, dh2_dt and dtheta_dt come from eq. (9) and (10) with one
         shared dtheta/dt, and dr_dt from both radial flows. None: every
-        point coupled (the paper's model). 20 switches no point of the
-        default, approach and crossing renders (the largest F there is
-        19) and 41 of the 47 points on the ball of independent_movers;
-        docs/measurements.md, "Movers: decoupled radial flow".
+        point coupled (the paper's model). With the edges alone (pools of
+        ~0.4 % of the pixels) 20 switched no point of the static renders
+        and 41 of the 47 on the ball of independent_movers ("Movers:
+        decoupled radial flow"); with the default densified matches the
+        neighbour residuals are more correlated and 20 switches 8 % of
+        the points of the static renders, so the default is 60: 0.4-0.9 %
+        of their points, and 125 of the ball's ~160 points per frame
+        (docs/measurements.md, "Defaults after the density merge").
     flow_shading : float or None
         Fit the flow step's series to each frame divided by its Gaussian
         local mean of this many pixels (omniflow.shading), so that shading
@@ -336,7 +341,7 @@ class OmniFlowConfig:
     alias_image2: float = 0.9
     alias_period: float = 0.8
     flatness: float = 0.5
-    dense_percentile: float = 100.0
+    dense_percentile: float = 60.0
     dense_reach: float = 1.0
     short_patch: float = 0.5
     gradients: str = "average"
@@ -345,7 +350,7 @@ class OmniFlowConfig:
     solver: str = "pooled"
     pool_radius: float | None = None
     pool_k: int = 48
-    pool_grid: float | None = None
+    pool_grid: float | None = 0.125
     pool_range_tol: float | None = 0.1
     pool_model: str = "linear"
     pool_flow_tol: float | None = None
@@ -355,7 +360,7 @@ class OmniFlowConfig:
     pool_min_info: float | None = None
     min_conditioning: float = 0.0
     pool_min_conditioning: float = 1e-3
-    decouple_tol: float | None = 20.0
+    decouple_tol: float | None = 60.0
     flow_shading: float | None = None
     sampling: str = "cubic"
     iterations: int = 0

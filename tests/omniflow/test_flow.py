@@ -291,12 +291,14 @@ def flow_table():
     return table
 
 
-#: measured: the default (band 1/2 rolled off over its outer half, averaged, pooled, units
-#: weighted equally) is within 1.55x of the best variant in every case: 0.0031 / 0.0032 px
-#: against 0.0020 / 0.0021 on the striped wall's drive / both (the sharp truncation with the
-#: units weighted locally), 0.0031 / 0.0042 against 0.0023 / 0.0029 on the room's (the
-#: default with the units weighted locally)
-DEFAULT_MARGIN = 1.7
+#: measured: the default (band 1/2 rolled off over its outer half, averaged, pooled on the
+#: grid, units weighted equally) is within 2.0x of the best variant in every case: 0.0040 /
+#: 0.0041 px against 0.0020 / 0.0021 on the striped wall's drive / both (the sharp truncation
+#: with the units weighted locally, k-d tree pools); on the room it is the best (0.0017 /
+#: 0.0029). With the k-d tree's pools (pool_grid None, the default before 225482a) it was
+#: 0.0031 / 0.0032 on the wall and 0.0031 / 0.0042 on the room: on these noise-free frames
+#: the grid's larger pools cost the stripes' drive what they gain on the room texture
+DEFAULT_MARGIN = 2.2
 #: px: below this the medians are at rounding level (striped turn: 0.0000 to 4 digits)
 DEFAULT_SLACK = 0.0005
 
@@ -583,10 +585,12 @@ def test_radial_gain_on_closed_form_frames():
     motion = MOTIONS["both"]
     room, wall = _scene("room", motion), _scene("striped", motion)
     sharp = OmniFlowConfig(flow_taper=0.0)
-    # measured: room 1.0072 default, 0.9520 sharp (the previous default), 0.9908 sharp with
-    # blur 0.8; striped wall 1.0021 default, 1.0061 sharp. Bounds: 1 % around 1 where
-    # unbiased. (With pool_unit_weighting="local": 1.0071, 0.9621, 0.9925, 1.0052.)
+    # measured (grid pools, the default since 225482a): room 1.0011 default, 0.9510 sharp,
+    # 0.9880 sharp with blur 0.8; striped wall 0.9946 default. With the k-d tree's pools:
+    # 1.0063, 0.9520, 0.9908; wall 1.0021. (With pool_unit_weighting="local", tree: 1.0071,
+    # 0.9621, 0.9925, 1.0052.) Bounds: 1 % around 1 where unbiased, 1.5 % for the blurred
+    # sharp series (the blur leaves a residual 1.2 % shrink on the grid).
     assert abs(_radial_gain(room, OmniFlowConfig()) - 1) < 0.01
     assert _radial_gain(room, sharp) < 0.975
-    assert abs(_radial_gain(room, sharp, blur=0.8) - 1) < 0.01
+    assert abs(_radial_gain(room, sharp, blur=0.8) - 1) < 0.015
     assert abs(_radial_gain(wall, OmniFlowConfig()) - 1) < 0.01

@@ -117,8 +117,10 @@ def test_empty_pool():
 # mutation test below) moves the flow by far more.
 FLOW_TOL = 1e-10
 
+# the kernel sums the k-d tree's pools: the default grid pools (pool_grid) do not call it
+TREE = OmniFlowConfig(pool_grid=None)
 CONFIGS = {
-    "default": OmniFlowConfig(),
+    "tree pools": TREE,
     "eiv correct, constant model": OmniFlowConfig(
         eiv="correct", pool_model="constant", noise_sigma=0.01
     ),
@@ -156,7 +158,7 @@ def test_flow_columns_unchanged_by_the_kernel(name, pair, monkeypatch):
 def test_flow_check_catches_a_changed_sum(pair, monkeypatch):
     """Sums off by one part in 1e6 (a dropped term would be far more) fail FLOW_TOL."""
     f1, f2, rig = pair
-    fast = estimate(f1, f2, rig)
+    fast = estimate(f1, f2, rig, TREE)
 
     def perturbed(*args, **kw):
         sums, wsum = numpy_pooled_sums(*args, **kw)
@@ -164,4 +166,4 @@ def test_flow_check_catches_a_changed_sum(pair, monkeypatch):
         return sums, wsum
 
     monkeypatch.setattr(omniflow.flow, "pooled_sums", perturbed)
-    assert _worst(fast, estimate(f1, f2, rig)) > 100 * FLOW_TOL
+    assert _worst(fast, estimate(f1, f2, rig, TREE)) > 100 * FLOW_TOL
