@@ -10,12 +10,13 @@ clock and CPU time, median of ``--repeats`` rounds after ``--warmup``):
   new stereo frame of a sequence (each frame fitted once);
 - OpenCV DIS optical flow (presets ultrafast and medium) and Farneback, each
   on the cam1 pair and the cam2 pair (both pairs per call: the work omni
-  flow does per stereo frame); DIS medium also on one thread (OpenCV uses
-  every core by default, omni flow mostly one), the like-for-like figure,
-  timed after the interleaved block, so the other rows run with OpenCV's
-  default thread count. DIS's own use of the second core varies from run to
-  run on a shared machine (CPU / wall 1.0-2.0 measured): compare CPU times,
-  or against the one-thread row.
+  flow does per stereo frame); DIS medium and the omniflow pair also on one
+  thread (OpenCV uses every core by default, omni flow two threads:
+  :mod:`omniflow.parallel`), the like-for-like figure, timed interleaved
+  after the main block, so the other rows run with the default thread
+  counts. The use of the second core varies from run to run on a shared
+  machine (DIS: CPU / wall 1.0-2.0 measured): compare CPU times, or the
+  one-thread rows.
 
 Omni flow answers at its matched points only and DIS at every pixel, so the
 points per frame and the milliseconds per 1000 points are printed beside the
@@ -364,23 +365,30 @@ def main(argv: list[str] | None = None) -> int:
     wall, cpu, last = time_interleaved(fns, args.repeats, args.warmup)
     import cv2
 
-    threads = cv2.getNumThreads()
+    pair_stages = stage_runs[args.warmup :]  # the stage split of the default-thread runs
+    from omniflow import parallel
+
+    threads, omni_threads = cv2.getNumThreads(), parallel.THREADS
     cv2.setNumThreads(1)
+    parallel.THREADS = 1
     try:
-        one = time_interleaved({"DIS medium 1 thr": fns["DIS medium"]}, args.repeats, args.warmup)
+        one_fns = {"omniflow pair 1 thr": omni_pair, "DIS medium 1 thr": fns["DIS medium"]}
+        one = time_interleaved(one_fns, args.repeats, args.warmup)
     finally:
         cv2.setNumThreads(threads)
+        parallel.THREADS = omni_threads
     wall.update(one[0])
     cpu.update(one[1])
-    fns["DIS medium 1 thr"] = fns["DIS medium"]
+    fns.update(one_fns)
+    last.update(one[2])
 
-    stage_runs = stage_runs[args.warmup :]
     stages = {}
-    for key in stage_runs[0] if stage_runs else {}:
-        vals = [s[key] for s in stage_runs if isinstance(s.get(key), int | float)]
+    for key in pair_stages[0] if pair_stages else {}:
+        vals = [s[key] for s in pair_stages if isinstance(s.get(key), int | float)]
         if vals:
             stages[key] = statistics.median(vals)
     points = {"omniflow pair": len(last["omniflow pair"]),
+              "omniflow pair 1 thr": len(last["omniflow pair 1 thr"]),
               "omniflow stream": statistics.median(stream_points[args.warmup :])}  # fmt: skip
     rows: list[dict] = []
     for name in fns:
@@ -434,13 +442,13 @@ def main(argv: list[str] | None = None) -> int:
     print(f"frames: {source}")
     print(f"median of {args.repeats} interleaved runs after {args.warmup} warm-up; both camera "
           "pairs per run (stream: per new stereo frame); CPU = process time")  # fmt: skip
-    print(f"{'method':<17}{'median ms':>10}{'min ms':>8}{'CPU ms':>8}{'vs DIS-m':>9}"
+    print(f"{'method':<20}{'median ms':>10}{'min ms':>8}{'CPU ms':>8}{'vs DIS-m':>9}"
           f"{'CPU vs':>8}{'points':>8}{'ms/1000 pts':>12}")  # fmt: skip
     for r in rows:
         pts = f"{r['points']:>8.0f}" if "points" in r else f"{'all px':>8}"
         per = r.get("ms_per_1000_points")
         per_text = f"{per:>12.1f}" if per is not None else f"{'-':>12}"
-        print(f"{r['method']:<17}{1e3 * r['median_s']:>10.1f}{1e3 * r['min_s']:>8.1f}"
+        print(f"{r['method']:<20}{1e3 * r['median_s']:>10.1f}{1e3 * r['min_s']:>8.1f}"
               f"{1e3 * r['cpu_median_s']:>8.1f}{r['ratio_to_dis_medium']:>8.2f}x"
               f"{r['cpu_ratio_to_dis_medium']:>7.2f}x{pts}{per_text}")  # fmt: skip
     omni_row = rows[0]

@@ -30,7 +30,12 @@ in :mod:`omniflow.series`, the stereo matching in :mod:`omniflow.matching`,
 reading the series at the points in :mod:`omniflow.sampling` and the solvers
 in :mod:`omniflow.solve`; this module only runs them in order.
 
-Speed: the stage timings are in :attr:`OmniFlowResult.timings`;
+Speed: the two units' fits run in two threads, and the grids the flow step
+samples are made on the second thread while the first matches
+(:mod:`omniflow.parallel`); each is the same computation as in one thread,
+so the columns do not change. The stage timings are in
+:attr:`OmniFlowResult.timings` (``grids``: the grids matched on; ``match``
+overlaps the flow step's grids, whose wait, if any, counts in ``sample``);
 benchmarks/bench_omniflow.py compares the whole step with OpenCV DIS.
 """
 
@@ -44,6 +49,7 @@ from numpy.typing import NDArray
 
 from omniflow.config import OmniFlowConfig
 from omniflow.matching import Matches, PolarGrids, match_radial
+from omniflow.parallel import map_tasks, submit
 from omniflow.result import COLUMNS, NoMatchesWarning, OmniFlowResult, no_points
 from omniflow.rig import Rig
 from omniflow.series import (
@@ -69,9 +75,35 @@ __all__ = [
     "estimate",
     "fill_outside_rim",
     "flow_at_matches",
+    "flow_grids",
+    "matching_grid",
     "matching_grids",
     "stereo_matches",
 ]
+
+
+def _unit_series(frames, t: int, unit, config: OmniFlowConfig, what: str):
+    """One unit's noise level (0 when not read) and series (:func:`unit_fits`)."""
+    sigma = unit_noise_sigma(frames[t], unit, config) if needs_noise_sigma(config) else 0.0
+    return sigma, unit_fits(frames, t, unit, config, what, fit_band(config))
+
+
+def flow_grids(cam: dict, config: OmniFlowConfig) -> dict:
+    """Make the grids :func:`flow_at_matches` samples in one unit's Frames (``cam``, as
+    :func:`unit_frames` gives), so they can be made off the thread that samples them.
+
+    Each is a lazy property of its Frame, made once: making it here changes no value.
+    Returns ``cam``.
+    """
+    if config.sampling != "exact":
+        needed = [("g", "grad_xy"), ("t", "f")]
+        if config.iterations > 0:
+            needed += [("b", "grad_xy"), ("b", "fine"), ("af", "fine")]
+            if config.gradients == "average":
+                needed.append(("af", "grad_xy"))
+        for key, grid_name in needed:
+            getattr(cam[key], grid_name)
+    return cam
 
 
 def _check_inputs(frames1, frames2, rig: Rig, t: int) -> None:
@@ -123,18 +155,12 @@ def estimate(
     timings: dict[str, float] = {}
     t_start = time.perf_counter()
 
-    sigmas = (
-        (
-            unit_noise_sigma(frames1[t], rig.cam1, config),
-            unit_noise_sigma(frames2[t], rig.cam2, config),
-        )
-        if needs_noise_sigma(config)
-        else (0.0, 0.0)
+    (s1, fits1), (s2, fits2) = map_tasks(
+        _unit_series,
+        (frames1, t, rig.cam1, config, "frames1"),
+        (frames2, t, rig.cam2, config, "frames2"),
     )
-    fits = (
-        unit_fits(frames1, t, rig.cam1, config, "frames1", fit_band(config)),
-        unit_fits(frames2, t, rig.cam2, config, "frames2", fit_band(config)),
-    )
+    sigmas, fits = (s1, s2), (fits1, fits2)
     flow_band = choose_flow_band(fits, sigmas, config)
     cam1 = unit_frames(fits[0], rig.cam1, config, flow_band)
     cam2 = unit_frames(fits[1], rig.cam2, config, flow_band)
@@ -146,23 +172,34 @@ def estimate(
     t_fit = time.perf_counter()
     timings["fit"] = t_fit - t_start
 
+    # the flow step's grids do not need the matches: made on the other thread while
+    # this one matches (sampling waits for them, or makes those not yet started)
+    grid2 = submit(matching_grid, cam2["a"], config) if matches is None else None
+    flow = [submit(flow_grids, cam, config) for cam in (cam1, cam2)]
     n_sig = 0
-    if matches is None:
-        grids = matching_grids(cam1["a"], cam2["a"], config)
-        timings["grids"] = time.perf_counter() - t_fit
-        t_m = time.perf_counter()
-        matches = stereo_matches(grids, rig, config)
-        n_sig = matches.n_significant
-        timings["match"] = time.perf_counter() - t_m
-    else:
-        timings["grids"] = 0.0
-        timings["match"] = 0.0
+    try:
+        if matches is None:
+            grids = (matching_grid(cam1["a"], config), grid2.result())
+            timings["grids"] = time.perf_counter() - t_fit
+            t_m = time.perf_counter()
+            matches = stereo_matches(grids, rig, config)
+            n_sig = matches.n_significant
+            timings["match"] = time.perf_counter() - t_m
+        else:
+            timings["grids"] = timings["match"] = 0.0
+    except BaseException:
+        for task in (grid2, *flow):
+            if task is not None:
+                task.cancel()  # no task outlives the call
+        raise
+    t_s = time.perf_counter()
+    for f in flow:
+        f.result()
     if len(matches.theta) == 0:
         return no_points(timings, t_start, config, n_sig)
-
-    t_s = time.perf_counter()
+    t_wait = time.perf_counter() - t_s
     result = flow_at_matches(matches, rig, cam1, cam2, config)
-    timings["sample"] = result.pop("_t_sample")
+    timings["sample"] = result.pop("_t_sample") + t_wait
     timings["solve"] = time.perf_counter() - t_s - timings["sample"]
     timings["total"] = time.perf_counter() - t_start
     return OmniFlowResult(
@@ -176,10 +213,15 @@ def estimate(
 
 def matching_grids(a1: Frame, a2: Frame, config: OmniFlowConfig) -> tuple[PolarGrids, PolarGrids]:
     """The grids the matcher reads from frame t of each unit (``a`` of :func:`unit_frames`)."""
+    return matching_grid(a1, config), matching_grid(a2, config)
+
+
+def matching_grid(a: Frame, config: OmniFlowConfig) -> PolarGrids:
+    """The grids the matcher reads from one unit's frame t."""
     if config.match_method == "paper":  # the polar edge finder's f_h, f_theta
-        return tuple(PolarGrids(f=a.f, f_h=a.grad[0], f_theta=a.grad[1]) for a in (a1, a2))
+        return PolarGrids(f=a.f, f_h=a.grad[0], f_theta=a.grad[1])
     # the robust matcher differentiates its polar table of f
-    return tuple(PolarGrids(f=match_frame(a, config).f, f_h=None) for a in (a1, a2))
+    return PolarGrids(f=match_frame(a, config).f, f_h=None)
 
 
 def stereo_matches(

@@ -62,14 +62,30 @@ def grey_input(frame, what: str, unit: Unit, config: OmniFlowConfig) -> NDArray:
     return arr
 
 
+_RIM_MAP_WIDTH = 512  # cv2.remap maps are at most 32767 wide: the outside pixels in rows
+
+
 @lru_cache(maxsize=8)
-def _rim_maps(unit: Unit, margin: float) -> tuple[NDArray, NDArray]:
+def _rim_maps(unit: Unit, margin: float) -> tuple[NDArray, NDArray, NDArray]:
+    """(flat indices of the pixels beyond r_m - margin, their source x and y maps).
+
+    The maps list only those pixels (padded to whole rows of ``_RIM_MAP_WIDTH``
+    with copies of the last one): inside, the mirror map is the identity.
+    """
     x, y = unit.pixel_centres()
     h_i, theta = unit.polar_of_pixel(x, y)
     edge = unit.r_m - margin
-    src = np.where(h_i > edge, np.maximum(2.0 * edge - h_i, 0.0), h_i)
-    xs, ys = unit.pixel_of_polar(src, theta)
-    return (xs - 0.5).astype(np.float32), (ys - 0.5).astype(np.float32)
+    index = np.flatnonzero(h_i > edge)
+    h_o, th_o = h_i.reshape(-1)[index], theta.reshape(-1)[index]
+    xs, ys = unit.pixel_of_polar(np.maximum(2.0 * edge - h_o, 0.0), th_o)
+    pad = (-index.size) % _RIM_MAP_WIDTH
+    maps = []
+    for m in (xs, ys):
+        m = np.concatenate([m, np.repeat(m[-1:], pad)]) if index.size else m
+        maps.append((m - 0.5).astype(np.float32).reshape(-1, _RIM_MAP_WIDTH))
+    for a in (index, *maps):
+        a.setflags(write=False)
+    return index, maps[0], maps[1]
 
 
 def fill_outside_rim(image: NDArray, unit: Unit, *, margin: float = 1.0) -> NDArray:
@@ -79,18 +95,16 @@ def fill_outside_rim(image: NDArray, unit: Unit, *, margin: float = 1.0) -> NDAr
     at radius 2 e - h_i on the same radial line, so the image continues
     smoothly across the rim instead of stepping to the background; the DCT
     fit of eq. (17) then does not ring near the rim. Pixels inside are
-    unchanged. Returns float32 (H, W).
+    unchanged (only the pixels beyond are interpolated). Returns float32 (H, W).
     """
     import cv2
 
-    mx, my = _rim_maps(unit, float(margin))
-    return cv2.remap(
-        np.ascontiguousarray(image, dtype=np.float32),
-        mx,
-        my,
-        cv2.INTER_LINEAR,
-        borderMode=cv2.BORDER_REFLECT,
-    )
+    index, mx, my = _rim_maps(unit, float(margin))
+    out = np.array(image, dtype=np.float32, order="C", copy=True)
+    if index.size:
+        values = cv2.remap(out, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+        out.reshape(-1)[index] = values.reshape(-1)[: index.size]
+    return out
 
 
 class Frame:

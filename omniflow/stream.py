@@ -36,7 +36,8 @@ from numpy.typing import ArrayLike
 
 from omniflow.config import OmniFlowConfig
 from omniflow.dct import DCTFit, fit_dct
-from omniflow.pipeline import estimate, matching_grids, stereo_matches
+from omniflow.parallel import map_tasks, submit
+from omniflow.pipeline import estimate, flow_grids, matching_grid, stereo_matches
 from omniflow.result import OmniFlowResult, no_points
 from omniflow.rig import Rig, Unit
 from omniflow.series import (
@@ -83,11 +84,13 @@ class StereoFrame:
                  index: int):  # fmt: skip
         self.index = index
         need_sigma = needs_noise_sigma(config)
-        units = []
-        for what, frame, unit in (("frame1", frame1, rig.cam1), ("frame2", frame2, rig.cam2)):
+
+        def fit(what, frame, unit):
             image = grey_input(frame, f"{what} of push {index}", unit, config)
             sigma = unit_noise_sigma(frame, unit, config) if need_sigma else 0.0
-            units.append(_UnitFrame(fit_dct(image, band=fit_band(config)), unit, sigma))
+            return _UnitFrame(fit_dct(image, band=fit_band(config)), unit, sigma)
+
+        units = map_tasks(fit, ("frame1", frame1, rig.cam1), ("frame2", frame2, rig.cam2))
         self.units: tuple[_UnitFrame, _UnitFrame] = (units[0], units[1])
         self.flow_band = choose_flow_band(
             [{"a": u.fit} for u in self.units], [u.sigma for u in self.units], config
@@ -168,8 +171,9 @@ class OmniFlowStream:
             None for the first frame after construction or :meth:`reset` (and,
             with ``temporal="dct3d"``, until ``temporal_frames`` frames are in).
             ``timings["fit"]`` is the new frame's fit; ``grids`` includes the
-            gradient mean of the pair (made here, not while sampling); the
-            other stages as in :func:`~omniflow.pipeline.estimate`.
+            gradient mean of the pair and the other grids the flow step
+            samples (made here, the units in two threads, not while
+            sampling); the other stages as in :func:`~omniflow.pipeline.estimate`.
         """
         index = self.frames_pushed
         if self.config.temporal == "dct3d":
@@ -205,9 +209,22 @@ class OmniFlowStream:
               t_fit: float) -> OmniFlowResult:  # fmt: skip
         config = self.config
         timings: dict[str, float] = {"fit": t_fit}
+        flow_band = prev.flow_band
         t_m = time.perf_counter()
         if prev.matching is None:  # a frame starts one pair only: matched once, here
-            matches, t_grids, t_match = _frame_matches(prev, self.rig, config)
+            # the pair's flow grids on the other thread while this one matches; every
+            # Frame either reads is made here first, so the threads share no lazy dict entry
+            for u in (*prev.units, *cur.units):
+                u.frame(config.band)
+                u.frame(flow_band, config.flow_taper)
+            flow = [submit(_unit_flow, a, b, config, flow_band)
+                    for a, b in zip(prev.units, cur.units, strict=True)]  # fmt: skip
+            try:
+                matches, t_grids, t_match = _frame_matches(prev, self.rig, config)
+            except BaseException:
+                for task in flow:
+                    task.cancel()
+                raise
             timings["match"] = t_match
         else:  # matched in the background since prev was pushed: the wait is what counts
             matches, t_grids, t_match = prev.matching.result()
@@ -215,12 +232,11 @@ class OmniFlowStream:
             timings["match"] = time.perf_counter() - t_m
             timings["match_background"] = t_grids + t_match
             t_grids = 0.0
-        # prev's frames are touched here only after its matching is done (no thread shares them)
-        flow_band = prev.flow_band
+            # prev's frames are touched here only after its matching is done
+            flow = [submit(_unit_flow, a, b, config, flow_band)
+                    for a, b in zip(prev.units, cur.units, strict=True)]  # fmt: skip
         t_g = time.perf_counter()
-        cams = [
-            _unit_pair(a, b, config, flow_band) for a, b in zip(prev.units, cur.units, strict=True)
-        ]
+        cams = [task.result() for task in flow]
         diagnostics = {"flow_band": flow_band, "noise_sigma1": prev.units[0].sigma,
                        "noise_sigma2": prev.units[1].sigma}  # fmt: skip
         timings["grids"] = t_grids + time.perf_counter() - t_g
@@ -239,10 +255,16 @@ class OmniFlowStream:
 def _frame_matches(frame: StereoFrame, rig: Rig, config: OmniFlowConfig):
     """(stereo matches of one frame, seconds for its grids, seconds for the matching)."""
     t0 = time.perf_counter()
-    grids = matching_grids(*(u.frame(config.band) for u in frame.units), config)
+    grids = tuple(map_tasks(lambda u: matching_grid(u.frame(config.band), config),
+                            *((u,) for u in frame.units)))  # fmt: skip
     t1 = time.perf_counter()
     matches = stereo_matches(grids, rig, config)
     return matches, t1 - t0, time.perf_counter() - t1
+
+
+def _unit_flow(a: _UnitFrame, b: _UnitFrame, config: OmniFlowConfig, flow_band: float) -> dict:
+    """:func:`_unit_pair` with the grids the flow step samples made (pipeline.flow_grids)."""
+    return flow_grids(_unit_pair(a, b, config, flow_band), config)
 
 
 def _unit_pair(a: _UnitFrame, b: _UnitFrame, config: OmniFlowConfig, flow_band: float) -> dict:

@@ -1,0 +1,119 @@
+"""Interleaved A/B timing of omniflow.pipeline.estimate from several checkouts, with DIS.
+
+One worker process per variant (a checkout on PYTHONPATH, optionally with
+``omniflow.parallel.THREADS`` set, or OpenCV DIS medium on one or all
+threads), driven in rounds so a change of load on a shared machine hits
+every variant alike; prints the median wall and CPU (process) time per call,
+both camera pairs of the first two frames per call. Run::
+
+    git worktree add --detach /tmp/ref 77434fb
+    python benchmarks/ab_checkouts.py --dataset /work/data/default \\
+        ref=/tmp/ref new=. new1=.:threads=1 dis=dis dis1=dis:threads=1
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import time
+
+
+def worker(dataset: str, dis: bool, threads: int | None) -> None:
+    """Answer each line N on stdin with the wall and CPU seconds of N calls (JSON)."""
+    import cv2
+
+    from omniflow.dataset import open_dataset
+    from omniflow.imageio import to_uint8
+
+    ds = open_dataset(dataset)
+    f1 = [ds.read_grey(j, "cam1") for j in range(2)]
+    f2 = [ds.read_grey(j, "cam2") for j in range(2)]
+    if dis:
+        if threads is not None:
+            cv2.setNumThreads(threads)
+        flow = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+        u8 = [(to_uint8(a[0]), to_uint8(a[1])) for a in (f1, f2)]
+
+        def fn():
+            return [flow.calc(a, b, None) for a, b in u8]
+    else:
+        from omniflow.pipeline import OmniFlowConfig, estimate
+
+        if threads is not None:
+            try:
+                from omniflow import parallel
+            except ImportError:  # a checkout before omniflow.parallel: one thread anyway
+                pass
+            else:
+                parallel.THREADS = threads
+
+        def fn():
+            return estimate(f1, f2, ds.rig, OmniFlowConfig())
+
+    for _ in range(3):
+        fn()
+    print("ready", flush=True)
+    for line in sys.stdin:
+        wall, cpu = [], []
+        for _ in range(int(line)):
+            t0, c0 = time.perf_counter(), time.process_time()
+            fn()
+            wall.append(time.perf_counter() - t0)
+            cpu.append(time.process_time() - c0)
+        print(json.dumps([wall, cpu]), flush=True)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="ab_checkouts", description=__doc__.split("\n")[0])
+    parser.add_argument(
+        "variants", nargs="+", metavar="NAME=CHECKOUT[:threads=N]",
+        help="a checkout folder (put on PYTHONPATH), or 'dis' for DIS medium",
+    )  # fmt: skip
+    parser.add_argument("--dataset", default="/work/data/default")
+    parser.add_argument("--rounds", type=int, default=6)
+    parser.add_argument("--per-round", type=int, default=3)
+    parser.add_argument("--worker", nargs=3, help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.worker:
+        dataset, kind, threads = args.worker
+        worker(dataset, kind == "dis", None if threads == "-" else int(threads))
+        return 0
+    procs = {}
+    for spec in args.variants:
+        name, _, rest = spec.partition("=")
+        where, _, opt = rest.partition(":")
+        threads = opt.removeprefix("threads=") if opt else "-"
+        kind = "dis" if where == "dis" else "omniflow"
+        path = os.path.abspath(os.path.dirname(__file__) + "/.." if kind == "dis" else where)
+        env = dict(os.environ, PYTHONPATH=path)
+        cmd = [sys.executable, os.path.abspath(__file__), "x", "--worker", args.dataset, kind,
+               threads]  # fmt: skip
+        p = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+                             env=env, cwd="/")  # fmt: skip
+        if p.stdout.readline().strip() != "ready":
+            raise SystemExit(f"ab_checkouts: {name}: the worker did not start")
+        procs[name] = p
+    times = {k: ([], []) for k in procs}
+    for _ in range(args.rounds):
+        for name, p in procs.items():
+            p.stdin.write(f"{args.per_round}\n")
+            p.stdin.flush()
+            wall, cpu = json.loads(p.stdout.readline())
+            times[name][0].extend(wall)
+            times[name][1].extend(cpu)
+    print(f"load average {os.getloadavg()}; medians of {args.rounds} x {args.per_round} calls")
+    for name, (wall, cpu) in times.items():
+        print(f"{name:12s} wall {1e3 * statistics.median(wall):6.1f} ms (min "
+              f"{1e3 * min(wall):5.1f})  CPU {1e3 * statistics.median(cpu):6.1f} ms")  # fmt: skip
+    for p in procs.values():
+        p.stdin.close()
+        p.wait()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

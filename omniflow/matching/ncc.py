@@ -1,0 +1,300 @@
+"""Compiled kernel (Numba) of the robust matcher's edge-to-edge NCC search.
+
+:func:`robust_lines` runs the rule of :func:`omniflow.matching.robust.match_robust`
+line by line: the edges of both polar tables, the NCC of each significant
+edge of image 1 with the edges of image 2 inside its disparity window only,
+the best and second-best candidates, the polarity, uniqueness,
+self-similarity, periodic-alias and left-right tests, and the NCC at the
+neighbouring columns for the sub-pixel step. In numpy the same rule formed
+a dense (lines, edges, edges) NCC array by batched products and then masked
+everything outside the window; here nothing outside the window is scored.
+
+The profiles are those of :class:`omniflow.matching.robust.Descriptors`,
+value for value: each window's sum and sum of squares are summed in double
+and rounded to float32, as OpenCV's box filter does for float32 images, and
+the profile is (x - mean) * inv_norm in float32. Only the NCC's own sum
+differs: one dot product summed in double here, a float32 BLAS product in
+numpy, so an NCC can differ in its last float32 bit or two.
+
+The kernel compiles on first use; ``cache=True`` keeps the machine code
+between runs where the package folder (or Numba's user cache) is writable.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+from numpy.typing import NDArray
+
+__all__ = ["profiles", "robust_lines"]
+
+
+@numba.njit(cache=True, nogil=True)
+def _edges(a, low, pad, n_h, out):  # pragma: no cover - compiled
+    """Columns j in [pad, pad + n_h) where |f_h| peaks along the line and exceeds ``low``
+    (tables.local_maxima: a plateau counts once, at its right end); returns the count."""
+    n = 0
+    prev = abs(a[pad - 1])
+    cur = abs(a[pad])
+    for j in range(pad, pad + n_h):
+        nxt = abs(a[j + 1])
+        out[n] = j  # kept only when n moves on (no branch to mispredict)
+        n += (cur >= prev) & (cur > nxt) & (cur > low)
+        prev = cur
+        cur = nxt
+    return n
+
+
+@numba.njit(cache=True, nogil=True)
+def _profile(t, k, j, w, stride, lines, out, r):  # pragma: no cover - compiled
+    """The zero-mean, unit-norm profile of table ``t`` at (line k, column j) into ``out[r]``.
+
+    Each line's sum and sum of float32 squares are summed in double, then the
+    lines', and rounded to float32: OpenCV's box filter of a float32 image
+    (Descriptors' mean and norm) sums in double too.
+    """
+    n_lines = t.shape[0]
+    m = 2 * w + 1
+    j0 = j - w * stride
+    s1 = 0.0
+    s2 = 0.0
+    i = 0
+    for dk in range(-lines, lines + 1):
+        row = (k + dk) % n_lines  # an index, not a view: views of the shared tables
+        r1 = 0.0  # would count references atomically, and the threads would queue on them
+        r2 = 0.0
+        for q in range(m):
+            x = t[row, j0 + q * stride]
+            out[r, i + q] = x
+            r1 += x
+            r2 += x * x
+        s1 += r1
+        s2 += r2
+        i += m
+    s1f = np.float32(s1)
+    s2f = np.float32(s2)
+    mean = s1f / np.float32(i)
+    var = max(s2f - s1f * mean, np.float32(0.0))
+    # sqrt in double, then rounded: the float32 square root, correctly rounded
+    sd = max(np.float32(math.sqrt(var)), np.float32(1e-12))
+    inv = np.float32(1.0) / sd
+    for q in range(i):
+        out[r, q] = (out[r, q] - mean) * inv
+
+
+@numba.njit(cache=True, nogil=True)
+def profiles(t, k, j, w, stride, lines, out):  # pragma: no cover - compiled
+    """The profiles of table ``t`` at (k[i], j[i]) into out[i] (see :func:`_profile`;
+    every window must lie inside the table)."""
+    for i in range(k.size):
+        _profile(t, k[i], j[i], w, stride, lines, out, i)
+
+
+# reassociation lets the compiler split the double sum into vector lanes (the
+# float32 products are exact in double, so only the last bits of the sum move)
+@numba.njit(cache=True, nogil=True, fastmath={"reassoc", "contract"})
+def _dot(a, i, b, j):  # pragma: no cover - compiled
+    """a[i] . b[j], summed in double (rows by index: no views, whose reference counts
+    are atomic operations)."""
+    s = 0.0
+    for q in range(a.shape[1]):
+        s += a[i, q] * b[j, q]
+    return np.float32(s)
+
+
+@numba.njit(cache=True, nogil=True)
+def _need(t, k, cols, m, w, stride, lines, d, have):  # pragma: no cover - compiled
+    """Make the profile of edge m of a line once (``have`` marks those made)."""
+    if not have[m]:
+        _profile(t, k, cols[m], w, stride, lines, d, m)
+        have[m] = True
+
+
+@numba.njit(cache=True, nogil=True)
+def _all_edges(fh1, fh2, low, pad, n_h, cols1, n1, cols2, n2):  # pragma: no cover - compiled
+    for k in range(fh1.shape[0]):
+        n1[k] = _edges(fh1[k], low, pad, n_h, cols1[k])
+        n2[k] = _edges(fh2[k], low, pad, n_h, cols2[k])
+
+
+@numba.njit(cache=True, nogil=True)
+def _robust_lines(t1, t2, fh1, fh2, cols1, n1, cols2, n2, k0, k1, thr, lo, hi, w, stride,
+                  lines, floor, uniqueness, self_similarity, alias_score, tests, left_right,
+                  ok, j2_out, s_out, n_sig):  # pragma: no cover - compiled  # fmt: skip
+    n_cols = t1.shape[1]
+    length = (2 * lines + 1) * (2 * w + 1)
+    do_uniqueness = tests[0]
+    lag_lo = (w * stride) // 2  # the self-similarity and alias tests' shortest lag
+    lag_hi = hi - lo
+    lo_col = w * stride
+    hi_col = n_cols - 1 - w * stride
+    one = np.float32(1.0)
+    # scratch for one line at a time, sized for the longest line of the range
+    most1 = max(n1[k0:k1].max(), 1)
+    most2 = max(n2[k0:k1].max(), 1)
+    d1 = np.empty((most1, length), dtype=np.float32)
+    have1 = np.empty(most1, dtype=np.bool_)
+    d2 = np.empty((most2, length), dtype=np.float32)
+    ncc = np.empty((most1, most2), dtype=np.float32)
+    scored = np.empty((most1, most2), dtype=np.bool_)
+    p = np.empty((1, length), dtype=np.float32)
+    for k in range(k0, k1):
+        c1 = cols1[k, : n1[k]]
+        c2 = cols2[k, : n2[k]]
+        # image 1's profiles are made when first read (the tests of the kept matches
+        # read some non-significant edges, most are never read); image 2's all are
+        have1[: c1.size] = False
+        for m in range(c2.size):
+            _profile(t2, k, c2[m], w, stride, lines, d2, m)
+        # NCC of edge pairs (image 1, image 2) once scored: the left-right check
+        # rereads most of them
+        scored[: c1.size, : c2.size] = False
+        count = 0
+        first = 0  # first edge of image 2 at or after the window's start (columns ascend)
+        for i in range(c1.size):
+            j1 = c1[i]
+            g1 = fh1[k, j1]
+            if not abs(g1) > thr:
+                continue
+            count += 1
+            while first < c2.size and c2[first] < j1 + lo:
+                first += 1
+            stop = first
+            while stop < c2.size and c2[stop] <= j1 + hi:
+                stop += 1
+            if stop == first:
+                continue
+            _need(t1, k, c1, i, w, stride, lines, d1, have1)
+            b = first
+            for m in range(first, stop):
+                ncc[i, m] = _dot(d1, i, d2, m)
+                scored[i, m] = True
+                if ncc[i, m] > ncc[i, b]:
+                    b = m
+            best = ncc[i, b]
+            if not best >= floor:
+                continue
+            if (g1 > 0) != (fh2[k, c2[b]] > 0):
+                continue
+            if do_uniqueness:
+                second = np.float32(-1.0)
+                for m in range(first, stop):
+                    if m != b and ncc[i, m] > second:
+                        second = ncc[i, m]
+                if not (one - best) <= uniqueness * (one - second):
+                    continue
+            if tests[1]:
+                self_best = np.float32(-1.0)
+                for m in range(c1.size):
+                    lag = abs(c1[m] - j1)
+                    if lag >= lag_lo and lag <= lag_hi:
+                        _need(t1, k, c1, m, w, stride, lines, d1, have1)
+                        a = _dot(d1, i, d1, m)
+                        if a > self_best:
+                            self_best = a
+                if not (one - best) <= self_similarity * (one - self_best):
+                    continue
+            if tests[2]:
+                # walk outward from j1 on each side: the profile recurs when its NCC
+                # exceeds alias_score at a lag >= lag_lo after falling below 0 nearer in
+                recurs = False
+                for direction in (1, -1):
+                    low_so_far = np.float32(np.inf)
+                    m = i + direction
+                    while 0 <= m < c1.size and not recurs:
+                        lag = abs(c1[m] - j1)
+                        if lag > lag_hi:
+                            break
+                        _need(t1, k, c1, m, w, stride, lines, d1, have1)
+                        a = _dot(d1, i, d1, m)
+                        if low_so_far < 0.0 and lag >= lag_lo and a > alias_score:
+                            recurs = True
+                        if a < low_so_far:
+                            low_so_far = a
+                        m += direction
+                if recurs:
+                    continue
+            if left_right:
+                j2 = c2[b]
+                back = -1
+                back_s = np.float32(0.0)
+                for m in range(c1.size):
+                    if c1[m] >= j2 - hi and c1[m] <= j2 - lo:
+                        if not scored[m, b]:
+                            _need(t1, k, c1, m, w, stride, lines, d1, have1)
+                            ncc[m, b] = _dot(d1, m, d2, b)
+                            scored[m, b] = True
+                        if back < 0 or ncc[m, b] > back_s:
+                            back, back_s = m, ncc[m, b]
+                if back != i:
+                    continue
+            # the NCC at columns j2 - 2 .. j2 + 2 for the sub-pixel step
+            j2 = c2[b]
+            for q in range(5):
+                if q == 2:
+                    s_out[k, j1, q] = best
+                    continue
+                jj = min(max(j2 + q - 2, lo_col), hi_col)
+                _profile(t2, k, jj, w, stride, lines, p, 0)
+                s_out[k, j1, q] = _dot(d1, i, p, 0)
+            ok[k, j1] = True
+            j2_out[k, j1] = j2
+        n_sig[k] = count
+
+
+def robust_lines(
+    t1: NDArray, t2: NDArray, fh1: NDArray, fh2: NDArray, *, low: float, thr: float,
+    pad: int, n_h: int, win: tuple[int, int], w: int, stride: int, lines: int,
+    floor: float, uniqueness: float, self_similarity: float, alias_score: float,
+    left_right: bool, threads: int = 1, per_range=None,
+) -> tuple[NDArray, NDArray, NDArray, int]:  # fmt: skip
+    """The matches of :func:`~omniflow.matching.robust.match_robust` before its sub-pixel step.
+
+    ``t1``, ``t2``: the polar tables (float32, lines x columns); ``fh1``,
+    ``fh2``: their radial derivatives; ``low``: the candidate floor
+    (candidate_fraction * thr); ``win``: the disparity window in columns;
+    the other arguments as in match_robust (``floor``: the whole-column NCC
+    floor). The thresholds are compared in float32, as numpy compares a
+    float32 array with a Python float.
+
+    Returns (ok, j2, s, n_sig): ok (lines, columns) bool marks the kept
+    significant edges of image 1 by their column, j2 the column of their
+    match in image 2, s (lines, columns, 5) float32 the NCC at columns
+    j2 - 2 .. j2 + 2 (each clipped to the table's profile range; s[..., 2]
+    is the best whole-column NCC), and n_sig the significant edges tried.
+    With ``threads`` > 1 the lines are split into 4 ``threads`` ranges, run by
+    ``per_range(fn, (k0, k1), ...)`` (:func:`omniflow.parallel.map_tasks`).
+    """
+    n_theta, n_cols = t1.shape
+    ok = np.zeros((n_theta, n_cols), dtype=bool)
+    # read only where ok: left unset elsewhere (no pages written for them)
+    j2 = np.empty((n_theta, n_cols), dtype=np.int64)
+    s = np.empty((n_theta, n_cols, 5), dtype=np.float32)
+    n_sig = np.zeros(n_theta, dtype=np.int64)
+    f32 = np.float32
+    t1, t2, fh1, fh2 = (np.ascontiguousarray(a, dtype=f32) for a in (t1, t2, fh1, fh2))
+    cols1 = np.empty((n_theta, n_h), dtype=np.int64)
+    cols2 = np.empty((n_theta, n_h), dtype=np.int64)
+    n1 = np.zeros(n_theta, dtype=np.int64)
+    n2 = np.zeros(n_theta, dtype=np.int64)
+    _all_edges(fh1, fh2, f32(low), int(pad), int(n_h), cols1, n1, cols2, n2)
+    # numpy's rule took the uniqueness test only when some line has two edges in image 2
+    tests = (uniqueness < 1.0 and int(n2.max()) > 1, self_similarity < 1.0, alias_score < 1.0)
+
+    def run(k0: int, k1: int) -> None:
+        _robust_lines(
+            t1, t2, fh1, fh2, cols1, n1, cols2, n2, k0, k1, f32(thr), int(win[0]), int(win[1]),
+            int(w), int(stride), int(lines), f32(floor), f32(uniqueness), f32(self_similarity),
+            f32(alias_score), tests, bool(left_right), ok, j2, s, n_sig,
+        )  # fmt: skip
+
+    chunks = 4 * threads  # a few per thread: a thread busy elsewhere delays only one
+    if threads > 1 and n_theta >= 2 * chunks:
+        # the lines are independent: split them between threads (the kernel drops the GIL)
+        cuts = np.linspace(0, n_theta, chunks + 1).astype(int)
+        per_range(run, *zip(cuts[:-1].tolist(), cuts[1:].tolist(), strict=True))
+    else:
+        run(0, n_theta)
+    return ok, j2, s, int(n_sig.sum())
