@@ -2,11 +2,12 @@
 
 The reference (tests/data/speed_reference.npz) holds every column of
 :func:`omniflow.pipeline.estimate` on the closed-form frames of :func:`cases`,
-computed by main's code without the speed work of issue 10 (main at ed286b6, with
-the densification on by default; first made from 77434fb and 1769dfa, where the same
-kind of figures held), from a clean checkout of it::
+computed by main's code without the speed work of issue 10 (main at 902d84e, the
+edges-only defaults; earlier made from 77434fb, 1769dfa and ed286b6, the last with the
+densification on by default, where the same kind of figures held), from a clean
+checkout of it::
 
-    git worktree add --detach /tmp/speed_ref ed286b6
+    git worktree add --detach /tmp/speed_ref 902d84e
     PYTHONPATH=/tmp/speed_ref python tests/omniflow/test_speed_equivalence.py --write
 
 (run from this repository's root; the script imports omniflow and the test
@@ -37,8 +38,8 @@ SIZE = 512
 # The compiled matcher (omniflow.matching.ncc) sums each NCC in double where main used
 # a float32 BLAS product, so an NCC moves by a float32 ulp or two and the sub-pixel
 # parabola through three of them amplifies that into h2 (1.4e-4 px at most on the
-# rendered scenes). Measured with this file's cases against main ed286b6: 1.6e-5
-# (f2_theta, room_pole); against 1769dfa (edges only) 3.4e-5 (confidence); on the 12
+# rendered scenes). Measured with this file's cases against main 902d84e: 3.4e-5
+# (confidence, room_pole); against ed286b6 (densified) 1.6e-5 (f2_theta); on the 12
 # pairs of /work/data/{default,approach,crossing,independent_movers} (103,579 points
 # against ed286b6, 9,959 against 1769dfa, the same points): 3.5e-5 and 4.2e-5 (D).
 # Every matched sample (theta, h1) must be identical.
