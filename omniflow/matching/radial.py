@@ -57,10 +57,11 @@ Two methods:
     units map dh to dh_i = v dh / (d + r)); on inclined surfaces the scales
     differ by up to h_2 / h_1 and the NCC drops.
 
-    Vectorised: the edges of each line are laid out left-aligned in
-    (n_theta, c) arrays, so the NCC of every pair of edges on every line is
-    one batched matrix product; the window is a contiguous range of slots
-    per row.
+    Compiled: :func:`~omniflow.matching.robust.match_robust` scores each
+    significant edge only against the image-2 edges inside its disparity
+    window, one Numba loop over the radial lines
+    (:mod:`omniflow.matching.ncc`), the lines split over two threads
+    (:mod:`omniflow.parallel`).
 
 Measured on closed-form scenes (``omniflow.synthetic``, see
 ``tests/omniflow/test_matching.py``): see that file's module docstring for the
