@@ -15,7 +15,9 @@ h_2 / h_1 times cam1's, eq. 14) comes out 8-9 % too fast in both components
 displacement in either unit is at least ``OmniFlowConfig.iterate_min_px``
 pixels, and pools each refined point's increment equations over the other
 refined points only (a mover's points pool with each other, not with the
-background that stays put). At so few points the fitted series are
+background that stays put), and only where at least ``MIN_NEIGHBOURS`` other
+fast points lie within the pool radius, so that a lone wrong match whose first
+step happens to be fast is left as it is. At so few points the fitted series are
 evaluated exactly (:meth:`omniflow.dct.DCTFit.evaluate`) rather than read off
 pixel grids, so the step builds no grid. Static points keep the first-order
 answer, which the extra step only makes noisier where the motion is small
@@ -28,6 +30,7 @@ from collections.abc import Callable
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial import cKDTree
 
 from omniflow.config import OmniFlowConfig
 from omniflow.edges import polar_from_cartesian
@@ -35,7 +38,7 @@ from omniflow.rig import Rig
 
 __all__ = ["moving_far", "refine_moving"]
 
-MIN_POINTS = 3  # fewer refined points than this: the pooled increment is not worth a solve
+MIN_NEIGHBOURS = 8  # other fast points within the pool radius: a moving surface, not a stray
 
 
 def moving_far(a: NDArray, b: NDArray, h1: NDArray, h2: NDArray, min_px: float) -> NDArray:
@@ -86,8 +89,16 @@ def refine_moving(
         The points that took the refinement.
     """
     sel = moving_far(a, b, h1, h2, config.iterate_min_px)
-    if config.iterations == 0 or sel.sum() < MIN_POINTS:
+    if config.iterations == 0 or sel.sum() <= MIN_NEIGHBOURS:
         return a, b, conf, np.zeros_like(sel)
+    # only where the fast points form a surface: a point whose first step alone is
+    # fast (a wrong match, a stray equation) has no pool of fast neighbours to refine in
+    radius = rig.cam1.r_m / 8.0 if config.pool_radius is None else config.pool_radius
+    xy = np.column_stack([x1[sel], y1[sel]])
+    near = cKDTree(xy).query_ball_point(xy, radius, return_length=True) - 1
+    sel[np.flatnonzero(sel)[near < MIN_NEIGHBOURS]] = False
+    if not sel.any():
+        return a, b, conf, sel
     i = np.flatnonzero(sel)
     th, g1, g2 = theta[i], h1[i], h2[i]
     solve = make_solver(rig, config, x1[i], y1[i], th, g1, g2, r[i], noise)

@@ -21,7 +21,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+import omniflow.refine as refine
 from omniflow.config import OmniFlowConfig
+from omniflow.matching import Matches
 from omniflow.pipeline import estimate
 from omniflow.refine import moving_far
 from omniflow.synthetic import Cylinder, Motion, SyntheticScene, Texture
@@ -81,3 +83,23 @@ def test_moving_far_reads_either_unit():
 def test_iterate_min_px_is_checked():
     with pytest.raises(ValueError, match="iterate_min_px"):
         OmniFlowConfig(iterate_min_px=-1.0)
+
+
+def test_a_lone_fast_point_is_not_refined(turning_wall, monkeypatch):
+    """Fast points without MIN_NEIGHBOURS fast neighbours in the pool radius keep the
+    first step (a wrong match's flow is not refined); with the rule off they do not."""
+    rig, f1, f2, m, _ = turning_wall
+    first = estimate(f1, f2, rig, OmniFlowConfig(iterations=0), matches=m)
+    assert len(first) == len(m.theta)  # every true match answers, in order
+    fast = moving_far(first["dh1_dt"], first["dtheta_dt"], first["h1"], first["h2"], 1.0)
+    # the slow points and every 60th fast one (a few, far apart: 2-3 per pool radius)
+    keep = ~fast | ((np.cumsum(fast) % 60 == 1) & fast)
+    assert 15 <= (keep & fast).sum() <= 30
+    sub = Matches.from_polar(rig, m.theta[keep], m.h1[keep], m.h2[keep])
+    knobs = dict(iterations=1, iterate_min_px=1.0)
+    base = estimate(f1, f2, rig, OmniFlowConfig(iterations=0), matches=sub)
+    lone = estimate(f1, f2, rig, OmniFlowConfig(**knobs), matches=sub)
+    np.testing.assert_array_equal(lone["dtheta_dt"], base["dtheta_dt"])
+    monkeypatch.setattr(refine, "MIN_NEIGHBOURS", 0)
+    mutated = estimate(f1, f2, rig, OmniFlowConfig(**knobs), matches=sub)
+    assert np.any(mutated["dtheta_dt"] != base["dtheta_dt"])
