@@ -298,8 +298,9 @@ class OmniFlowConfig:
         and hurts where noise is (docs/measurements.md).
     iterate_min_px : float
         With ``iterations`` > 0: refine only the points whose first-step
-        flow moves them at least this many pixels in cam1 or cam2, pooling
-        each refined point over the other refined points, with the series
+        flow moves them at least this many pixels in cam1 or cam2 and that
+        have 8 such points within the pool radius (a moving surface, not a
+        stray wrong match), pooling each over the others, with the series
         evaluated exactly (:mod:`omniflow.refine`). The first-order step
         overstates a large motion (by about (k d)^2 / 12 for a texture
         wavenumber k and displacement d); the refinement removes that where
