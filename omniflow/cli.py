@@ -194,6 +194,7 @@ KNOB_LIMITS: dict[str, tuple[float, float, bool, bool]] = {
     "min_conditioning": (0.0, 1.0, True, True),  # lambda_min / lambda_max
     "pool_min_conditioning": (0.0, 1.0, True, True),  # lambda_min / lambda_max
     "iterations": (0, math.inf, True, False),
+    "iterate_min_px": (0.0, math.inf, True, False),  # px of first-step flow
     "flow_band": (0.0, 1.0, False, True),
     "flow_taper": (0.0, 1.0, True, True),  # fraction of the flow band rolled off
     "flow_band_tolerance": (1.0, math.inf, True, False),

@@ -296,6 +296,16 @@ class OmniFlowConfig:
         of eq. (8); the paper does not iterate. Off by default: it helps
         where the linearisation is the error (exact frames, large motion)
         and hurts where noise is (docs/measurements.md).
+    iterate_min_px : float
+        With ``iterations`` > 0: refine only the points whose first-step
+        flow moves them at least this many pixels in cam1 or cam2 and that
+        have 8 such points within the pool radius (a moving surface, not a
+        stray wrong match), pooling each over the others, with the series
+        evaluated exactly (:mod:`omniflow.refine`). The first-order step
+        overstates a large motion (by about (k d)^2 / 12 for a texture
+        wavenumber k and displacement d); the refinement removes that where
+        it matters and leaves the small flows, where it adds only noise,
+        alone. 0: every point refined, read off pixel grids.
     rim_fill : {"reflect", "none"}
         Before the DCT fit, replace the pixels beyond the mirror's rim by the
         image reflected radially about the rim ("reflect"), or keep them
@@ -359,6 +369,7 @@ class OmniFlowConfig:
     flow_shading: float | None = None
     sampling: str = "cubic"
     iterations: int = 0
+    iterate_min_px: float = 0.0
     rim_fill: str = "reflect"
 
     def __post_init__(self) -> None:
@@ -411,6 +422,10 @@ class OmniFlowConfig:
             )
         if self.temporal_frames < 3:
             raise ValueError("OmniFlowConfig.temporal_frames must be >= 3")
+        if not (self.iterate_min_px >= 0.0):
+            raise ValueError(
+                f"OmniFlowConfig.iterate_min_px = {self.iterate_min_px!r}: expected >= 0 (pixels)"
+            )
         if not (isinstance(self.iterations, int) and self.iterations >= 0):
             raise ValueError(
                 f"OmniFlowConfig.iterations = {self.iterations!r}: expected an integer >= 0"

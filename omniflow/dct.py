@@ -206,6 +206,18 @@ class DCTFit:
         f_y = np.einsum("np,np->n", dcy @ self.coeffs, cx)
         return f_x.reshape(shape), f_y.reshape(shape)
 
+    def value_and_gradient(self, x: ArrayLike, y: ArrayLike) -> tuple[NDArray, NDArray, NDArray]:
+        """:meth:`evaluate` and :meth:`gradient` together, sharing the bases: (f, f_x, f_y)."""
+        xs, ys, shape = self._points(x, y)
+        cx, dcx = _bases(xs, self.P, self.width)
+        cy, dcy = _bases(ys, self.Q, self.height)
+        coeffs = self.coeffs.astype(np.float64, copy=False)  # a mixed-type matmul skips BLAS
+        rows = cy @ coeffs
+        f = np.einsum("np,np->n", rows, cx)
+        f_x = np.einsum("np,np->n", rows, dcx)
+        f_y = np.einsum("np,np->n", dcy @ coeffs, cx)
+        return f.reshape(shape), f_x.reshape(shape), f_y.reshape(shape)
+
     def grid(self) -> NDArray:
         """Eq. (18) on every pixel centre, shape (H, W), by a DCT-III (fast path)."""
         c = self.coeffs.astype(self.dtype, copy=False)

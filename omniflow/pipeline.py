@@ -97,7 +97,7 @@ def flow_grids(cam: dict, config: OmniFlowConfig) -> dict:
     """
     if config.sampling != "exact":
         needed = [("g", "grad_xy"), ("t", "f")]
-        if config.iterations > 0:
+        if config.iterations > 0 and config.iterate_min_px == 0.0:  # grids read off-pixel
             needed += [("b", "grad_xy"), ("b", "fine"), ("af", "fine")]
             if config.gradients == "average":
                 needed.append(("af", "grad_xy"))

@@ -28,6 +28,7 @@ from omniflow.flow import (
 )
 from omniflow.gridpool import GridPools
 from omniflow.matching import Matches
+from omniflow.refine import refine_moving
 from omniflow.rig import Rig, Unit
 from omniflow.sampling import sample_f, sample_fine, sample_polar_grad
 
@@ -63,7 +64,12 @@ def flow_at_matches(
     a, b, conf = solve(f1_h, f1_th, f1_t, f2_h, f2_th, f2_t)
     D = determinant(f1_h, f1_th, f2_h, f2_th, h1, h2)
     k = h2 / h1  # eq. (14)
-    for _ in range(config.iterations):
+    if config.iterate_min_px > 0.0:  # refine only the points that move far (omniflow.refine)
+        a, b, conf, _ = refine_moving(
+            a, b, conf, cam1=cam1, cam2=cam2, rig=rig, x1=x1, y1=y1, x2=x2, y2=y2,
+            theta=theta, h1=h1, h2=h2, r=r, config=config, make_solver=make_solver, noise=noise,
+        )  # fmt: skip
+    for _ in range(config.iterations if config.iterate_min_px == 0.0 else 0):
         # Gauss-Newton on eq. (8)'s linearisation: the residual of brightness
         # constancy at the displaced points, solved again for the increment.
         ok = np.isfinite(a) & np.isfinite(b)

@@ -1,0 +1,127 @@
+"""One more Gauss-Newton step, only at the points that move far.
+
+The first-order step of eq. (8) reads the temporal derivative as the
+difference of frames t + 1 and t, and (``gradients="average"``) the gradient
+as their mean. For one texture component of wavenumber k (rad/px) displaced
+by d pixels, that pair of finite differences answers (2 / k) tan(k d / 2)
+instead of d: too long by about (k d)^2 / 12, a fraction that grows with the
+square of the motion. Below half a pixel it is lost in the noise; an object
+crossing at 0.7 px per frame in cam1 (1.2 px in cam2, whose radial flow is
+h_2 / h_1 times cam1's, eq. 14) comes out 8-9 % too fast in both components
+(docs/measurements.md, "Large motion: refine where it moves").
+
+:func:`refine_moving` re-linearises eq. (8) at the displaced points, as
+``OmniFlowConfig.iterations`` always did, but only where the first step's
+displacement in either unit is at least ``OmniFlowConfig.iterate_min_px``
+pixels, and pools each refined point's increment equations over the other
+refined points only (a mover's points pool with each other, not with the
+background that stays put), and only where at least ``MIN_NEIGHBOURS`` other
+fast points lie within the pool radius, so that a lone wrong match whose first
+step happens to be fast is left as it is. At so few points the fitted series are
+evaluated exactly (:meth:`omniflow.dct.DCTFit.evaluate`) rather than read off
+pixel grids, so the step builds no grid. Static points keep the first-order
+answer, which the extra step only makes noisier where the motion is small
+(the same measurements).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+from omniflow.config import OmniFlowConfig
+from omniflow.edges import polar_from_cartesian
+from omniflow.rig import Rig
+
+__all__ = ["moving_far", "refine_moving"]
+
+MIN_NEIGHBOURS = 8  # other fast points within the pool radius: a moving surface, not a stray
+
+
+def moving_far(a: NDArray, b: NDArray, h1: NDArray, h2: NDArray, min_px: float) -> NDArray:
+    """Points whose polar flow moves them at least ``min_px`` pixels in cam1 or cam2.
+
+    The displacement is |(dh_i, h_i dtheta)| per unit, with dh_2 = (h_2 / h_1) dh_1
+    (eq. 14); a NaN flow is never selected.
+    """
+    with np.errstate(invalid="ignore"):
+        d1 = np.hypot(a, h1 * b)
+        d2 = np.hypot((h2 / h1) * a, h2 * b)
+        return np.isfinite(d1 + d2) & (np.maximum(d1, d2) >= min_px)
+
+
+def refine_moving(
+    a: NDArray,
+    b: NDArray,
+    conf: NDArray,
+    *,
+    cam1: dict,
+    cam2: dict,
+    rig: Rig,
+    x1: NDArray,
+    y1: NDArray,
+    x2: NDArray,
+    y2: NDArray,
+    theta: NDArray,
+    h1: NDArray,
+    h2: NDArray,
+    r: NDArray,
+    config: OmniFlowConfig,
+    make_solver: Callable,
+    noise: tuple[float, float] = (0.0, 0.0),
+) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+    """``config.iterations`` Gauss-Newton steps at the points :func:`moving_far` selects.
+
+    ``cam1``, ``cam2`` are the per-unit frames of :func:`omniflow.series.unit_frames`
+    (``b``: frame t + 1, ``af``: frame t, both at the flow band);
+    ``make_solver(rig, config, x1, y1, theta, h1, h2, r, noise)`` builds the
+    configured solver for a subset (:func:`omniflow.solve.make_solver`, passed
+    in so that this module does not import the module that calls it).
+
+    Returns
+    -------
+    a, b, conf : ndarray
+        dh_1/dt, dtheta/dt and confidence, refined where selected.
+    refined : ndarray of bool
+        The points that took the refinement.
+    """
+    sel = moving_far(a, b, h1, h2, config.iterate_min_px)
+    if config.iterations == 0 or sel.sum() <= MIN_NEIGHBOURS:
+        return a, b, conf, np.zeros_like(sel)
+    # only where the fast points form a surface: a point whose first step alone is
+    # fast (a wrong match, a stray equation) has no pool of fast neighbours to refine in
+    radius = rig.cam1.r_m / 8.0 if config.pool_radius is None else config.pool_radius
+    xy = np.column_stack([x1[sel], y1[sel]])
+    near = cKDTree(xy).query_ball_point(xy, radius, return_length=True) - 1
+    sel[np.flatnonzero(sel)[near < MIN_NEIGHBOURS]] = False
+    if not sel.any():
+        return a, b, conf, sel
+    i = np.flatnonzero(sel)
+    th, g1, g2 = theta[i], h1[i], h2[i]
+    solve = make_solver(rig, config, x1[i], y1[i], th, g1, g2, r[i], noise)
+    ai, bi, ci = a[i].copy(), b[i].copy(), conf[i].copy()
+    k = g2 / g1  # eq. (14)
+    for _ in range(config.iterations):
+        rows = []
+        for fr, x, y, h_i, dh in ((cam1, x1[i], y1[i], g1, ai), (cam2, x2[i], y2[i], g2, k * ai)):
+            unit = fr["a"].unit  # polar gradients below: eq. (19)-(20)
+            xd, yd = unit.pixel_of_polar(h_i + dh, th + bi)
+            fb, g_x, g_y = fr["b"].fit.value_and_gradient(xd, yd)  # frame t + 1, displaced
+            fa, a_x, a_y = fr["af"].fit.value_and_gradient(x, y)  # frame t, at the point
+            g_h, g_th = polar_from_cartesian(g_x, g_y, xd - unit.x_c, yd - unit.y_c)
+            if config.gradients == "average":
+                a_h, a_th = polar_from_cartesian(a_x, a_y, x - unit.x_c, y - unit.y_c)
+                g_h, g_th = 0.5 * (g_h + a_h), 0.5 * (g_th + a_th)
+            rows.append((g_h, g_th, fb - fa))  # brightness constancy's residual (eq. 8)
+        (q1_h, q1_th, e1), (q2_h, q2_th, e2) = rows
+        da, db, cc = solve(q1_h, q1_th, e1, q2_h, q2_th, e2)
+        step = np.isfinite(da) & np.isfinite(db)
+        ai = np.where(step, ai + da, ai)
+        bi = np.where(step, bi + db, bi)
+        ci = np.where(step, cc, ci)
+    a, b, conf = a.copy(), b.copy(), conf.copy()
+    a[i], b[i], conf[i] = ai, bi, ci
+    return a, b, conf, sel
