@@ -134,7 +134,9 @@ def flow_at_matches(
         "f2_t": f2_t,
         "_t_sample": t1 - t0,
     }
-    return decouple(cols, rig, config, _displacement)  # eq. (14) tested (omniflow.decoupled)
+    pools = None if solve.pools is None else (*solve.pools, keep)
+    # eq. (14) tested (omniflow.decoupled) over the solver's own pools
+    return decouple(cols, rig, config, _displacement, pools=pools)
 
 
 def make_solver(
@@ -155,7 +157,11 @@ def make_solver(
 
     ``noise``: the variance of each unit's gradient components, subtracted by
     the pooled solver (``eiv="correct"``). ``edge_map``: cam1's edge strength
-    on the pixel grid, for ``config.pool_edge_tol``."""
+    on the pixel grid, for ``config.pool_edge_tol``.
+
+    The returned function's attribute ``pools``: the (idx, w) of
+    :func:`omniflow.flow.neighbourhoods` where the solver pools over them as
+    searched (k-d tree pools, no edge test), else None."""
     if config.solver == "direct":
 
         def solve(f1_h, f1_th, f1_t, f2_h, f2_th, f2_t):
@@ -172,7 +178,9 @@ def make_solver(
             )
             return a, b, direct_conditioning(f1_h, f1_th, f2_h, f2_th, h1, h2)
 
+        solve.pools = None
         return solve
+
     pool_radius = rig.cam1.r_m / 8.0 if config.pool_radius is None else config.pool_radius
     tree = dict(k=config.pool_k, radius=pool_radius, r=r, range_tol=config.pool_range_tol)
     grid = None
@@ -217,6 +225,8 @@ def make_solver(
             return a, b, conf
         return solve_w(derivs, _same_motion(weights, idx, a, b, h1, config.pool_flow_tol))
 
+    # the plain k-nearest pools (no edge test), which omniflow.decoupled would search again
+    solve.pools = (idx, w) if grid is None and edge_map is None else None
     return solve
 
 
