@@ -9,6 +9,10 @@ both camera pairs of the first two frames per call. Run::
     git worktree add --detach /tmp/ref 77434fb
     python benchmarks/ab_checkouts.py --dataset /work/data/default \\
         ref=/tmp/ref new=. new1=.:threads=1 dis=dis dis1=dis:threads=1
+
+``--set NAME=VALUE`` (repeatable) gives every omniflow variant that
+OmniFlowConfig field (parsed as the CLI's ``--set``), e.g. the densified
+configuration: ``--set dense_percentile=60 --set pool_grid=0.125 --set decouple_tol=60``.
 """
 
 from __future__ import annotations
@@ -22,7 +26,7 @@ import sys
 import time
 
 
-def worker(dataset: str, dis: bool, threads: int | None) -> None:
+def worker(dataset: str, dis: bool, threads: int | None, settings: str = "") -> None:
     """Answer each line N on stdin with the wall and CPU seconds of N calls (JSON)."""
     import cv2
 
@@ -43,6 +47,12 @@ def worker(dataset: str, dis: bool, threads: int | None) -> None:
     else:
         from omniflow.pipeline import OmniFlowConfig, estimate
 
+        config = OmniFlowConfig()
+        if settings:
+            from omniflow.cli import config_from_settings
+
+            config = config_from_settings(settings)
+
         if threads is not None:
             try:
                 from omniflow import parallel
@@ -52,7 +62,7 @@ def worker(dataset: str, dis: bool, threads: int | None) -> None:
                 parallel.THREADS = threads
 
         def fn():
-            return estimate(f1, f2, ds.rig, OmniFlowConfig())
+            return estimate(f1, f2, ds.rig, config)
 
     for _ in range(3):
         fn()
@@ -76,11 +86,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--dataset", default="/work/data/default")
     parser.add_argument("--rounds", type=int, default=6)
     parser.add_argument("--per-round", type=int, default=3)
-    parser.add_argument("--worker", nargs=3, help=argparse.SUPPRESS)
+    parser.add_argument(
+        "--set", action="append", default=[], metavar="NAME=VALUE",
+        help="an OmniFlowConfig field for every omniflow variant (repeatable)",
+    )  # fmt: skip
+    parser.add_argument("--worker", nargs=4, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.worker:
-        dataset, kind, threads = args.worker
-        worker(dataset, kind == "dis", None if threads == "-" else int(threads))
+        dataset, kind, threads, settings = args.worker
+        worker(dataset, kind == "dis", None if threads == "-" else int(threads), settings)
         return 0
     procs = {}
     for spec in args.variants:
@@ -91,7 +105,7 @@ def main(argv: list[str] | None = None) -> int:
         path = os.path.abspath(os.path.dirname(__file__) + "/.." if kind == "dis" else where)
         env = dict(os.environ, PYTHONPATH=path)
         cmd = [sys.executable, os.path.abspath(__file__), "x", "--worker", args.dataset, kind,
-               threads]  # fmt: skip
+               threads, ",".join(args.set)]  # fmt: skip
         p = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
                              env=env, cwd="/")  # fmt: skip
         if p.stdout.readline().strip() != "ready":
