@@ -17,7 +17,8 @@ the same in both units, and W the range's, scaling with each unit's h_i
 point of a coaxial rig), so the decoupled model has three unknowns,
 (U, W, dtheta/dt), in eq. (9) of unit 1 and eq. (10) of unit 2, pooled over
 the same neighbours as the coupled solve (U, W and dtheta/dt shared by the
-pool, a rigid patch at one range)::
+pool, a rigid patch at one range; with ``pool_grid`` the solver's grid windows,
+:meth:`omniflow.gridpool.GridPools.decouple_sums`)::
 
     f1_h (U - h_1 W) + f1_theta b = -f1_t                       # eq. (9)
     f2_h (U - h_2 W) + f2_theta b = -f2_t                       # eq. (10)
@@ -54,6 +55,7 @@ from numpy.typing import NDArray
 from omniflow.applications import radial_velocity_stereo
 from omniflow.config import OmniFlowConfig
 from omniflow.flow import neighbourhoods
+from omniflow.gridpool import GridPools, grid_pooling
 from omniflow.kernels import decouple_fits, decouple_sums
 from omniflow.rig import Rig
 
@@ -166,10 +168,18 @@ def decouple(
         cols["x"], cols["y"], k=config.pool_k, radius=radius, r=cols["r"],
         range_tol=config.pool_range_tol, query=query,
     )  # fmt: skip
-    idx, w = search() if pools is None else kept_pools(*pools, search)
     derivs = tuple(np.asarray(cols[c], dtype=np.float64)
                    for c in ("f1_h", "f1_theta", "f1_t", "f2_h", "f2_theta", "f2_t"))  # fmt: skip
-    fit = model_fits(derivs, h1, h2, idx, w)
+    if grid_pooling(config):  # the solver's grid windows, the k-d tree's where ranges mix
+        grid = GridPools(
+            cols["x"], cols["y"], None, (rig.cam1.height, rig.cam1.width), radius=radius,
+            cell=config.pool_grid * radius, r=cols["r"], range_tol=config.pool_range_tol,
+            tree_pools=lambda mask: search(query=mask),
+        )  # fmt: skip
+        fit = fits_from_sums(grid.decouple_sums(derivs, h1, h2), h1, h2)
+    else:
+        idx, w = search() if pools is None else kept_pools(*pools, search)
+        fit = model_fits(derivs, h1, h2, idx, w)
     with np.errstate(invalid="ignore"):
         switch = (fit["F"] > config.decouple_tol) & np.isfinite(fit["a1"] + fit["a2"] + fit["b"])
     if not switch.any():

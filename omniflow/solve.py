@@ -26,7 +26,7 @@ from omniflow.flow import (
     neighbourhoods,
     pooled_solution,
 )
-from omniflow.gridpool import GridPools
+from omniflow.gridpool import GridPools, grid_pooling
 from omniflow.matching import Matches
 from omniflow.rig import Rig, Unit
 from omniflow.sampling import sample_f, sample_fine, sample_polar_grad
@@ -184,7 +184,7 @@ def make_solver(
     pool_radius = rig.cam1.r_m / 8.0 if config.pool_radius is None else config.pool_radius
     tree = dict(k=config.pool_k, radius=pool_radius, r=r, range_tol=config.pool_range_tol)
     grid = None
-    if _grid_pooling(config):
+    if grid_pooling(config):
         idx = w = None
         eps = 1e-3  # rad: the tangent d(x, y)/dtheta / h_1 by central differences
         xp, yp = rig.cam1.pixel_of_polar(h1, theta + eps)
@@ -228,19 +228,6 @@ def make_solver(
     # the plain k-nearest pools (no edge test), which omniflow.decoupled would search again
     solve.pools = (idx, w) if grid is None and edge_map is None else None
     return solve
-
-
-def _grid_pooling(config: OmniFlowConfig) -> bool:
-    """Whether the pools are grid filters (``config.pool_grid``): only for the one-pass,
-    equal-weight solver; the knobs that thin each pool by its neighbours need the tree's."""
-    return (
-        config.pool_grid is not None
-        and config.pool_unit_weighting == "equal"
-        and config.pool_edge_tol is None
-        and config.pool_residual_tol is None
-        and config.pool_flow_tol is None
-        and config.pool_min_info is None
-    )
 
 
 def _same_motion(
