@@ -19,6 +19,15 @@ gathering every profile first.
 into a cell image and read filtered images back bilinearly at the points
 (:mod:`omniflow.gridpool`), without numpy's (N, C) temporaries per corner.
 
+:func:`cell_knn` finds the k nearest points within a radius
+(:func:`omniflow.flow.neighbourhoods`) by binning the points into square cells of
+half the radius and visiting the cells around each query point ring by ring,
+keeping the nearest so far in a max-heap whose top bounds the cells still worth
+visiting. It answers what scipy's k-d tree answers (the same squared distances,
+the same strict bound, nearest first) except in how points at exactly the same
+distance are ordered, which the tree decides by its traversal; it flags the rows
+where that decides which points are in, and the caller asks the tree for those.
+
 :func:`decouple_sums` and :func:`decouple_fits` are the two-model test of eq. (14)
 (:func:`omniflow.decoupled.model_fits`): the weighted sums of each point's 3x3
 normal equations in one pass over its pool, then per point the conditioning test
@@ -45,6 +54,7 @@ from numpy.typing import NDArray
 
 __all__ = [
     "DECOUPLE_SUMS",
+    "cell_knn",
     "decouple_fits",
     "decouple_sums",
     "grid_read",
@@ -407,3 +417,344 @@ def decouple_fits(sums: NDArray, h1: NDArray, *, limit: float = 1e8) -> tuple[ND
         np.ascontiguousarray(h1, dtype=np.float64),
         float(limit),
     )
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _heap_push(hd, hj, m, d2, j):  # pragma: no cover - compiled
+    """Add (d2, j) to the max-heap hd[:m], hj[:m]."""
+    pos = m
+    while pos > 0:
+        parent = (pos - 1) // 2
+        if hd[parent] >= d2:
+            break
+        hd[pos] = hd[parent]
+        hj[pos] = hj[parent]
+        pos = parent
+    hd[pos] = d2
+    hj[pos] = j
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _heap_replace_top(hd, hj, m, d2, j):  # pragma: no cover - compiled
+    """Replace the top of the max-heap hd[:m], hj[:m] by (d2, j)."""
+    pos = 0
+    while True:
+        child = 2 * pos + 1
+        if child >= m:
+            break
+        if child + 1 < m and hd[child + 1] > hd[child]:
+            child += 1
+        if hd[child] <= d2:
+            break
+        hd[pos] = hd[child]
+        hj[pos] = hj[child]
+        pos = child
+    hd[pos] = d2
+    hj[pos] = j
+
+
+@numba.njit(cache=True, nogil=True)
+def _cell_knn(x, y, rows, k, radius, split):  # pragma: no cover - compiled
+    n = x.size
+    dist = np.full((n, k), np.inf)
+    idx = np.full((n, k), n, dtype=np.int64)
+    tie = np.zeros(n, np.bool_)
+    if n == 0:
+        return dist, idx, tie
+    cell = radius / split
+    x0 = x.min()
+    y0 = y.min()
+    gw = int((x.max() - x0) / cell) + 1
+    gh = int((y.max() - y0) / cell) + 1
+    cx = np.empty(n, np.int64)
+    cy = np.empty(n, np.int64)
+    start = np.zeros(gw * gh + 1, np.int64)
+    for j in range(n):
+        cx[j] = min(int((x[j] - x0) / cell), gw - 1)
+        cy[j] = min(int((y[j] - y0) / cell), gh - 1)
+        start[cy[j] * gw + cx[j] + 1] += 1
+    for c in range(gw * gh):
+        start[c + 1] += start[c]
+    order = np.empty(n, np.int64)
+    fill = start[:-1].copy()
+    for j in range(n):  # points by cell, in index order within a cell
+        c = cy[j] * gw + cx[j]
+        order[fill[c]] = j
+        fill[c] += 1
+    r2 = radius * radius
+    hd = np.empty(k)  # one row's nearest so far, a max-heap on the squared distance
+    hj = np.empty(k, np.int64)
+    for t in range(rows.size):
+        i = rows[t]
+        xi = x[i]
+        yi = y[i]
+        m = 0
+        bound = r2
+        ties = 0  # points outside a full heap at its top's squared distance
+        # the cells ring by ring around the point's own (nearest first, so the bound
+        # shrinks early and prunes the outer cells)
+        for ring in range(split + 1):
+            for off in range(8 * ring if ring else 1):
+                if ring == 0:
+                    ox, oy = 0, 0
+                else:  # walk the square ring's 8 ring cells
+                    side, step = off // (2 * ring), off % (2 * ring)
+                    if side == 0:
+                        ox, oy = -ring + step, -ring
+                    elif side == 1:
+                        ox, oy = ring, -ring + step
+                    elif side == 2:
+                        ox, oy = ring - step, ring
+                    else:
+                        ox, oy = -ring, ring - step
+                gx = cx[i] + ox
+                gy = cy[i] + oy
+                if gx < 0 or gy < 0 or gx >= gw or gy >= gh:
+                    continue
+                ex = max(x0 + gx * cell - xi, xi - (x0 + (gx + 1) * cell), 0.0)
+                ey = max(y0 + gy * cell - yi, yi - (y0 + (gy + 1) * cell), 0.0)
+                if ex * ex + ey * ey > bound:  # nothing in this cell can enter or tie
+                    continue
+                c = gy * gw + gx
+                for s in range(start[c], start[c + 1]):
+                    j = order[s]
+                    dx = x[j] - xi
+                    dy = y[j] - yi
+                    d2 = dx * dx + dy * dy
+                    if d2 < bound:
+                        if m < k:
+                            _heap_push(hd, hj, m, d2, j)
+                            m += 1
+                        else:  # the top (the k-th) drops out
+                            last = hd[0]
+                            _heap_replace_top(hd, hj, k, d2, j)
+                            ties = ties + 1 if last == hd[0] else 0
+                        if m == k:
+                            bound = hd[0]
+                    elif d2 == bound and m == k:
+                        ties += 1
+        for q in range(m - 1, -1, -1):  # pop the farthest into the last place
+            dist[i, q] = math.sqrt(hd[0])
+            idx[i, q] = hj[0]
+            _heap_replace_top(hd, hj, q + 1, hd[q], hj[q])
+        # another point at the same place (which comes first), or one outside the list
+        # at the k-th's distance (which of them is in)
+        tie[i] = (m >= 2 and dist[i, 1] == 0.0) or ties > 0
+    return dist, idx, tie
+    cell = radius / split
+    x0 = x.min()
+    y0 = y.min()
+    gw = int((x.max() - x0) / cell) + 1
+    gh = int((y.max() - y0) / cell) + 1
+    cx = np.empty(n, np.int64)
+    cy = np.empty(n, np.int64)
+    start = np.zeros(gw * gh + 1, np.int64)
+    for j in range(n):
+        cx[j] = min(int((x[j] - x0) / cell), gw - 1)
+        cy[j] = min(int((y[j] - y0) / cell), gh - 1)
+        start[cy[j] * gw + cx[j] + 1] += 1
+    for c in range(gw * gh):
+        start[c + 1] += start[c]
+    order = np.empty(n, np.int64)
+    fill = start[:-1].copy()
+    for j in range(n):  # points by cell, in index order within a cell
+        c = cy[j] * gw + cx[j]
+        order[fill[c]] = j
+        fill[c] += 1
+    r2 = radius * radius
+    bd = np.empty(k)  # one row's nearest so far: squared distances (ascending), indices
+    bi = np.empty(k, np.int64)
+    for t in range(rows.size):
+        i = rows[t]
+        xi = x[i]
+        yi = y[i]
+        m = 0
+        bound = r2
+        ties = 0  # points outside the list at the k-th's squared distance
+        for gy in range(max(cy[i] - split, 0), min(cy[i] + split + 1, gh)):
+            # the cell row's nearest offset along y (0 in the point's own row)
+            ey = max(y0 + gy * cell - yi, yi - (y0 + (gy + 1) * cell), 0.0)
+            for gx in range(max(cx[i] - split, 0), min(cx[i] + split + 1, gw)):
+                ex = max(x0 + gx * cell - xi, xi - (x0 + (gx + 1) * cell), 0.0)
+                if ex * ex + ey * ey > bound:  # nothing in this cell can enter or tie
+                    continue
+                c = gy * gw + gx
+                for s in range(start[c], start[c + 1]):
+                    j = order[s]
+                    dx = x[j] - xi
+                    dy = y[j] - yi
+                    d2 = dx * dx + dy * dy
+                    if d2 < bound:
+                        last = bd[k - 1]  # with a full list: the k-th, dropping out
+                        pos = m if m < k else k - 1
+                        while pos > 0 and bd[pos - 1] > d2:  # after any equal one
+                            if pos < k:
+                                bd[pos] = bd[pos - 1]
+                                bi[pos] = bi[pos - 1]
+                            pos -= 1
+                        bd[pos] = d2
+                        bi[pos] = j
+                        if m < k:
+                            m += 1
+                        else:  # the ones outside at the old k-th's distance, it included
+                            ties = ties + 1 if last == bd[k - 1] else 0
+                        if m == k:
+                            bound = bd[k - 1]
+                    elif d2 == bound and m == k:
+                        ties += 1
+        for q in range(m):
+            dist[i, q] = math.sqrt(bd[q])
+            idx[i, q] = bi[q]
+        # another point at the same place (which comes first), or one beyond the k-th
+        # at the k-th's distance (which of them is in)
+        tie[i] = (m >= 2 and bd[1] == 0.0) or ties > 0
+    return dist, idx, tie
+    cell = radius / split
+    x0 = x.min()
+    y0 = y.min()
+    gw = int((x.max() - x0) / cell) + 1
+    gh = int((y.max() - y0) / cell) + 1
+    cx = np.empty(n, np.int64)
+    cy = np.empty(n, np.int64)
+    start = np.zeros(gw * gh + 1, np.int64)
+    for j in range(n):
+        cx[j] = min(int((x[j] - x0) / cell), gw - 1)
+        cy[j] = min(int((y[j] - y0) / cell), gh - 1)
+        start[cy[j] * gw + cx[j] + 1] += 1
+    for c in range(gw * gh):
+        start[c + 1] += start[c]
+    order = np.empty(n, np.int64)
+    fill = start[:-1].copy()
+    for j in range(n):  # points by cell, in index order within a cell
+        c = cy[j] * gw + cx[j]
+        order[fill[c]] = j
+        fill[c] += 1
+    r2 = radius * radius
+    cd = np.empty(n)  # candidates of one row: squared distances, indices
+    ci = np.empty(n, np.int64)
+    for t in range(rows.size):
+        i = rows[t]
+        xi = x[i]
+        yi = y[i]
+        m = 0
+        for gy in range(max(cy[i] - split, 0), min(cy[i] + split + 1, gh)):
+            # the cell row's nearest offset along y (0 in the point's own row)
+            ey = max(y0 + gy * cell - yi, yi - (y0 + (gy + 1) * cell), 0.0)
+            for gx in range(max(cx[i] - split, 0), min(cx[i] + split + 1, gw)):
+                ex = max(x0 + gx * cell - xi, xi - (x0 + (gx + 1) * cell), 0.0)
+                if ex * ex + ey * ey >= r2:  # the cell lies outside the radius
+                    continue
+                c = gy * gw + gx
+                for s in range(start[c], start[c + 1]):
+                    j = order[s]
+                    dx = x[j] - xi
+                    dy = y[j] - yi
+                    d2 = dx * dx + dy * dy
+                    if d2 < r2:
+                        cd[m] = d2
+                        ci[m] = j
+                        m += 1
+        srt = np.argsort(cd[:m])
+        for q in range(min(m, k)):
+            dist[i, q] = math.sqrt(cd[srt[q]])
+            idx[i, q] = ci[srt[q]]
+        # another point at the same place (which comes first), or one beyond the k-th
+        # at the k-th's distance (which of them is in)
+        tie[i] = (m >= 2 and cd[srt[1]] == 0.0) or (m > k and cd[srt[k]] == cd[srt[k - 1]])
+    return dist, idx, tie
+    cell = radius / split
+    x0 = x.min()
+    y0 = y.min()
+    gw = int((x.max() - x0) / cell) + 1
+    gh = int((y.max() - y0) / cell) + 1
+    cx = np.empty(n, np.int64)
+    cy = np.empty(n, np.int64)
+    start = np.zeros(gw * gh + 1, np.int64)
+    for j in range(n):
+        cx[j] = min(int((x[j] - x0) / cell), gw - 1)
+        cy[j] = min(int((y[j] - y0) / cell), gh - 1)
+        start[cy[j] * gw + cx[j] + 1] += 1
+    for c in range(gw * gh):
+        start[c + 1] += start[c]
+    order = np.empty(n, np.int64)
+    fill = start[:-1].copy()
+    for j in range(n):  # points by cell, in index order within a cell
+        c = cy[j] * gw + cx[j]
+        order[fill[c]] = j
+        fill[c] += 1
+    r2 = radius * radius
+    bd = np.empty(k)
+    bi = np.empty(k, np.int64)
+    for t in range(rows.size):
+        i = rows[t]
+        xi = x[i]
+        yi = y[i]
+        m = 0  # found so far; bd[:m] ascending
+        bound = r2
+        for gy in range(max(cy[i] - split, 0), min(cy[i] + split + 1, gh)):
+            # the cell row's nearest offset along y (0 in the point's own row)
+            ey = max(y0 + gy * cell - yi, yi - (y0 + (gy + 1) * cell), 0.0)
+            if ey * ey >= bound:
+                continue
+            for gx in range(max(cx[i] - split, 0), min(cx[i] + split + 1, gw)):
+                ex = max(x0 + gx * cell - xi, xi - (x0 + (gx + 1) * cell), 0.0)
+                if ex * ex + ey * ey >= bound:  # nothing in this cell can enter
+                    continue
+                c = gy * gw + gx
+                for s in range(start[c], start[c + 1]):
+                    j = order[s]
+                    dx = x[j] - xi
+                    dy = y[j] - yi
+                    d2 = dx * dx + dy * dy
+                    if d2 < bound:
+                        pos = m if m < k else k - 1
+                        while pos > 0 and bd[pos - 1] > d2:  # after any equal one
+                            if pos < k:
+                                bd[pos] = bd[pos - 1]
+                                bi[pos] = bi[pos - 1]
+                            pos -= 1
+                        bd[pos] = d2
+                        bi[pos] = j
+                        if m < k:
+                            m += 1
+                        if m == k:
+                            bound = bd[k - 1]
+        for q in range(m):
+            dist[i, q] = math.sqrt(bd[q])
+            idx[i, q] = bi[q]
+        if m >= 2 and bd[1] == 0.0:  # another point at the same place: which comes first
+            tie[i] = True
+        elif m == k:  # another point as far as the k-th: which of them is in
+            count = 0
+            for gy in range(max(cy[i] - split, 0), min(cy[i] + split + 1, gh)):
+                for gx in range(max(cx[i] - split, 0), min(cx[i] + split + 1, gw)):
+                    c = gy * gw + gx
+                    for s in range(start[c], start[c + 1]):
+                        j = order[s]
+                        dx = x[j] - xi
+                        dy = y[j] - yi
+                        if dx * dx + dy * dy <= bound:
+                            count += 1
+            tie[i] = count > k
+    return dist, idx, tie
+
+
+def cell_knn(
+    x: NDArray, y: NDArray, k: int, radius: float, rows: NDArray | None = None, *, split: int = 2
+) -> tuple[NDArray, NDArray, NDArray]:
+    """The ``k`` nearest of the points (x, y) closer than ``radius`` to each, nearest first.
+
+    As ``scipy.spatial.cKDTree(pts).query(pts[rows], k, distance_upper_bound=radius)``
+    for finite coordinates, on the full (N, k) rows (the rows not in ``rows``, and
+    the places beyond the neighbours found, hold distance inf and index N), with
+    the cells ``radius / split`` wide. Returns (dist, idx, tie): ``tie`` (N,) bool
+    marks the rows whose answer depends on how equal distances are ordered, which
+    the tree decides by its own traversal: a point left out at the k-th's
+    distance (pixel coordinates make equal distances common), or a second point
+    at distance 0. Elsewhere the same neighbours at the same distances
+    (the order within equal distances aside).
+    """
+    x = np.ascontiguousarray(x, dtype=np.float64).ravel()
+    y = np.ascontiguousarray(y, dtype=np.float64).ravel()
+    rows = np.arange(x.size) if rows is None else np.ascontiguousarray(rows, dtype=np.int64)
+    return _cell_knn(x, y, rows, int(k), float(radius), int(split))

@@ -13,7 +13,7 @@ import pytest
 import omniflow.decoupled
 from omniflow.decoupled import kept_pools, model_fits
 from omniflow.flow import neighbourhoods
-from omniflow.kernels import decouple_fits
+from omniflow.kernels import cell_knn, decouple_fits
 
 
 def numpy_model_fits(derivs, h1, h2, idx, w):
@@ -180,3 +180,54 @@ def test_kept_pools_equal_a_new_search(n):
     short = kept_pools(idx, w, keep, lambda query: (np.full((keep.sum(), 48), keep.sum()),
                                                     np.zeros((keep.sum(), 48))))  # fmt: skip
     assert _same_pools(short, search()) == (n < 48)
+
+
+# -- omniflow.kernels.cell_knn: the k-d tree's neighbours from a cell search --------------
+
+
+def _tree_pools(x, y, k, radius, rows=None):
+    """scipy's answer, as omniflow.flow.neighbourhoods took it before the cell search."""
+    from scipy.spatial import cKDTree
+
+    pts = np.column_stack([x, y])
+    rows = np.arange(x.size) if rows is None else rows
+    dist = np.full((x.size, k), np.inf)
+    idx = np.full((x.size, k), x.size)
+    tree = cKDTree(pts, balanced_tree=False, compact_nodes=False)
+    dist[rows], idx[rows] = tree.query(pts[rows], k=k, distance_upper_bound=radius)
+    return dist, idx
+
+
+def _cases():
+    rng = np.random.default_rng(2)
+    uniform = rng.uniform(0, 300, (2, 3000))
+    # pixel centres (many equal distances), about a quarter of a 120 px square
+    centres = np.unique(rng.integers(0, 120, (4000, 2)), axis=0).T + 0.5
+    return {"uniform": uniform, "pixel centres": centres}
+
+
+@pytest.mark.parametrize("case", ["uniform", "pixel centres"])
+def test_cell_knn_is_the_trees_answer(case):
+    x, y = _cases()[case]
+    rows = np.flatnonzero(np.arange(x.size) % 3 != 0)
+    ref_d, ref_i = _tree_pools(x, y, 48, 16.0, rows)
+    dist, idx, tie = cell_knn(x, y, 48, 16.0, rows)
+    assert np.array_equal(dist, ref_d)  # the same squared distances, the same bound
+    same = [np.array_equal(np.sort(idx[i]), np.sort(ref_i[i])) for i in range(x.size)]
+    assert all(s for s, t in zip(same, tie, strict=True) if not t)
+    if case == "pixel centres":  # measured: 1,219 rows flagged, 811 of them differ
+        assert tie.sum() > 100 and not all(same)
+    else:
+        assert tie.sum() == 0
+
+
+def test_neighbourhoods_equal_the_trees_with_ties():
+    """omniflow.flow.neighbourhoods (cell search, the tree where distances tie) against the
+    tree alone; the mutation: ignoring the tie flag changes pools of the pixel-centre case."""
+    x, y = _cases()["pixel centres"]
+    idx, _ = neighbourhoods(x, y, k=48, radius=16.0, r=None)
+    _, ref_i = _tree_pools(x, y, 48, 16.0)
+    for i in range(x.size):
+        assert np.array_equal(np.sort(idx[i]), np.sort(ref_i[i]))
+    _, c_idx, _ = cell_knn(x, y, 48, 16.0)
+    assert any(not np.array_equal(np.sort(c_idx[i]), np.sort(ref_i[i])) for i in range(x.size))
