@@ -481,6 +481,8 @@ def _cell_knn(x, y, rows, k, radius, split):  # pragma: no cover - compiled
         c = cy[j] * gw + cx[j]
         order[fill[c]] = j
         fill[c] += 1
+    xs = x[order]  # the coordinates in cell order: a cell's candidates are contiguous
+    ys = y[order]
     r2 = radius * radius
     hd = np.empty(k)  # one row's nearest so far, a max-heap on the squared distance
     hj = np.empty(k, np.int64)
@@ -517,17 +519,16 @@ def _cell_knn(x, y, rows, k, radius, split):  # pragma: no cover - compiled
                     continue
                 c = gy * gw + gx
                 for s in range(start[c], start[c + 1]):
-                    j = order[s]
-                    dx = x[j] - xi
-                    dy = y[j] - yi
+                    dx = xs[s] - xi
+                    dy = ys[s] - yi
                     d2 = dx * dx + dy * dy
                     if d2 < bound:
                         if m < k:
-                            _heap_push(hd, hj, m, d2, j)
+                            _heap_push(hd, hj, m, d2, order[s])
                             m += 1
                         else:  # the top (the k-th) drops out
                             last = hd[0]
-                            _heap_replace_top(hd, hj, k, d2, j)
+                            _heap_replace_top(hd, hj, k, d2, order[s])
                             ties = ties + 1 if last == hd[0] else 0
                         if m == k:
                             bound = hd[0]
@@ -536,206 +537,10 @@ def _cell_knn(x, y, rows, k, radius, split):  # pragma: no cover - compiled
         for q in range(m - 1, -1, -1):  # pop the farthest into the last place
             dist[i, q] = math.sqrt(hd[0])
             idx[i, q] = hj[0]
-            _heap_replace_top(hd, hj, q + 1, hd[q], hj[q])
+            _heap_replace_top(hd, hj, q, hd[q], hj[q])
         # another point at the same place (which comes first), or one outside the list
         # at the k-th's distance (which of them is in)
         tie[i] = (m >= 2 and dist[i, 1] == 0.0) or ties > 0
-    return dist, idx, tie
-    cell = radius / split
-    x0 = x.min()
-    y0 = y.min()
-    gw = int((x.max() - x0) / cell) + 1
-    gh = int((y.max() - y0) / cell) + 1
-    cx = np.empty(n, np.int64)
-    cy = np.empty(n, np.int64)
-    start = np.zeros(gw * gh + 1, np.int64)
-    for j in range(n):
-        cx[j] = min(int((x[j] - x0) / cell), gw - 1)
-        cy[j] = min(int((y[j] - y0) / cell), gh - 1)
-        start[cy[j] * gw + cx[j] + 1] += 1
-    for c in range(gw * gh):
-        start[c + 1] += start[c]
-    order = np.empty(n, np.int64)
-    fill = start[:-1].copy()
-    for j in range(n):  # points by cell, in index order within a cell
-        c = cy[j] * gw + cx[j]
-        order[fill[c]] = j
-        fill[c] += 1
-    r2 = radius * radius
-    bd = np.empty(k)  # one row's nearest so far: squared distances (ascending), indices
-    bi = np.empty(k, np.int64)
-    for t in range(rows.size):
-        i = rows[t]
-        xi = x[i]
-        yi = y[i]
-        m = 0
-        bound = r2
-        ties = 0  # points outside the list at the k-th's squared distance
-        for gy in range(max(cy[i] - split, 0), min(cy[i] + split + 1, gh)):
-            # the cell row's nearest offset along y (0 in the point's own row)
-            ey = max(y0 + gy * cell - yi, yi - (y0 + (gy + 1) * cell), 0.0)
-            for gx in range(max(cx[i] - split, 0), min(cx[i] + split + 1, gw)):
-                ex = max(x0 + gx * cell - xi, xi - (x0 + (gx + 1) * cell), 0.0)
-                if ex * ex + ey * ey > bound:  # nothing in this cell can enter or tie
-                    continue
-                c = gy * gw + gx
-                for s in range(start[c], start[c + 1]):
-                    j = order[s]
-                    dx = x[j] - xi
-                    dy = y[j] - yi
-                    d2 = dx * dx + dy * dy
-                    if d2 < bound:
-                        last = bd[k - 1]  # with a full list: the k-th, dropping out
-                        pos = m if m < k else k - 1
-                        while pos > 0 and bd[pos - 1] > d2:  # after any equal one
-                            if pos < k:
-                                bd[pos] = bd[pos - 1]
-                                bi[pos] = bi[pos - 1]
-                            pos -= 1
-                        bd[pos] = d2
-                        bi[pos] = j
-                        if m < k:
-                            m += 1
-                        else:  # the ones outside at the old k-th's distance, it included
-                            ties = ties + 1 if last == bd[k - 1] else 0
-                        if m == k:
-                            bound = bd[k - 1]
-                    elif d2 == bound and m == k:
-                        ties += 1
-        for q in range(m):
-            dist[i, q] = math.sqrt(bd[q])
-            idx[i, q] = bi[q]
-        # another point at the same place (which comes first), or one beyond the k-th
-        # at the k-th's distance (which of them is in)
-        tie[i] = (m >= 2 and bd[1] == 0.0) or ties > 0
-    return dist, idx, tie
-    cell = radius / split
-    x0 = x.min()
-    y0 = y.min()
-    gw = int((x.max() - x0) / cell) + 1
-    gh = int((y.max() - y0) / cell) + 1
-    cx = np.empty(n, np.int64)
-    cy = np.empty(n, np.int64)
-    start = np.zeros(gw * gh + 1, np.int64)
-    for j in range(n):
-        cx[j] = min(int((x[j] - x0) / cell), gw - 1)
-        cy[j] = min(int((y[j] - y0) / cell), gh - 1)
-        start[cy[j] * gw + cx[j] + 1] += 1
-    for c in range(gw * gh):
-        start[c + 1] += start[c]
-    order = np.empty(n, np.int64)
-    fill = start[:-1].copy()
-    for j in range(n):  # points by cell, in index order within a cell
-        c = cy[j] * gw + cx[j]
-        order[fill[c]] = j
-        fill[c] += 1
-    r2 = radius * radius
-    cd = np.empty(n)  # candidates of one row: squared distances, indices
-    ci = np.empty(n, np.int64)
-    for t in range(rows.size):
-        i = rows[t]
-        xi = x[i]
-        yi = y[i]
-        m = 0
-        for gy in range(max(cy[i] - split, 0), min(cy[i] + split + 1, gh)):
-            # the cell row's nearest offset along y (0 in the point's own row)
-            ey = max(y0 + gy * cell - yi, yi - (y0 + (gy + 1) * cell), 0.0)
-            for gx in range(max(cx[i] - split, 0), min(cx[i] + split + 1, gw)):
-                ex = max(x0 + gx * cell - xi, xi - (x0 + (gx + 1) * cell), 0.0)
-                if ex * ex + ey * ey >= r2:  # the cell lies outside the radius
-                    continue
-                c = gy * gw + gx
-                for s in range(start[c], start[c + 1]):
-                    j = order[s]
-                    dx = x[j] - xi
-                    dy = y[j] - yi
-                    d2 = dx * dx + dy * dy
-                    if d2 < r2:
-                        cd[m] = d2
-                        ci[m] = j
-                        m += 1
-        srt = np.argsort(cd[:m])
-        for q in range(min(m, k)):
-            dist[i, q] = math.sqrt(cd[srt[q]])
-            idx[i, q] = ci[srt[q]]
-        # another point at the same place (which comes first), or one beyond the k-th
-        # at the k-th's distance (which of them is in)
-        tie[i] = (m >= 2 and cd[srt[1]] == 0.0) or (m > k and cd[srt[k]] == cd[srt[k - 1]])
-    return dist, idx, tie
-    cell = radius / split
-    x0 = x.min()
-    y0 = y.min()
-    gw = int((x.max() - x0) / cell) + 1
-    gh = int((y.max() - y0) / cell) + 1
-    cx = np.empty(n, np.int64)
-    cy = np.empty(n, np.int64)
-    start = np.zeros(gw * gh + 1, np.int64)
-    for j in range(n):
-        cx[j] = min(int((x[j] - x0) / cell), gw - 1)
-        cy[j] = min(int((y[j] - y0) / cell), gh - 1)
-        start[cy[j] * gw + cx[j] + 1] += 1
-    for c in range(gw * gh):
-        start[c + 1] += start[c]
-    order = np.empty(n, np.int64)
-    fill = start[:-1].copy()
-    for j in range(n):  # points by cell, in index order within a cell
-        c = cy[j] * gw + cx[j]
-        order[fill[c]] = j
-        fill[c] += 1
-    r2 = radius * radius
-    bd = np.empty(k)
-    bi = np.empty(k, np.int64)
-    for t in range(rows.size):
-        i = rows[t]
-        xi = x[i]
-        yi = y[i]
-        m = 0  # found so far; bd[:m] ascending
-        bound = r2
-        for gy in range(max(cy[i] - split, 0), min(cy[i] + split + 1, gh)):
-            # the cell row's nearest offset along y (0 in the point's own row)
-            ey = max(y0 + gy * cell - yi, yi - (y0 + (gy + 1) * cell), 0.0)
-            if ey * ey >= bound:
-                continue
-            for gx in range(max(cx[i] - split, 0), min(cx[i] + split + 1, gw)):
-                ex = max(x0 + gx * cell - xi, xi - (x0 + (gx + 1) * cell), 0.0)
-                if ex * ex + ey * ey >= bound:  # nothing in this cell can enter
-                    continue
-                c = gy * gw + gx
-                for s in range(start[c], start[c + 1]):
-                    j = order[s]
-                    dx = x[j] - xi
-                    dy = y[j] - yi
-                    d2 = dx * dx + dy * dy
-                    if d2 < bound:
-                        pos = m if m < k else k - 1
-                        while pos > 0 and bd[pos - 1] > d2:  # after any equal one
-                            if pos < k:
-                                bd[pos] = bd[pos - 1]
-                                bi[pos] = bi[pos - 1]
-                            pos -= 1
-                        bd[pos] = d2
-                        bi[pos] = j
-                        if m < k:
-                            m += 1
-                        if m == k:
-                            bound = bd[k - 1]
-        for q in range(m):
-            dist[i, q] = math.sqrt(bd[q])
-            idx[i, q] = bi[q]
-        if m >= 2 and bd[1] == 0.0:  # another point at the same place: which comes first
-            tie[i] = True
-        elif m == k:  # another point as far as the k-th: which of them is in
-            count = 0
-            for gy in range(max(cy[i] - split, 0), min(cy[i] + split + 1, gh)):
-                for gx in range(max(cx[i] - split, 0), min(cx[i] + split + 1, gw)):
-                    c = gy * gw + gx
-                    for s in range(start[c], start[c + 1]):
-                        j = order[s]
-                        dx = x[j] - xi
-                        dy = y[j] - yi
-                        if dx * dx + dy * dy <= bound:
-                            count += 1
-            tie[i] = count > k
     return dist, idx, tie
 
 
