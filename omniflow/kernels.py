@@ -34,11 +34,12 @@ normal equations in one pass over its pool, then per point the conditioning test
 and the solves of the 3x3 (decoupled) and 2x2 (coupled) systems, without the
 (N, K) temporaries, the batched SVD of ``np.linalg.cond`` and the batched LAPACK
 solve. The condition number is numpy's (the 2-norm one: the ratio of the largest to
-the smallest absolute eigenvalue of a symmetric matrix), from cyclic Jacobi
+the smallest absolute eigenvalue of a symmetric matrix): from the closed-form
+eigenvalues where they put it far below the threshold, else from cyclic Jacobi
 rotations, which give every eigenvalue to an absolute error of a few ulps of the
-largest as the SVD does (a closed-form cubic loses the small ones to sqrt(eps) when
-two are close); the solves are Gaussian elimination with partial pivoting, LAPACK's
-``gesv`` on a 3x3.
+largest as the SVD does (the closed-form cubic loses the small ones to sqrt(eps)
+when two are close); the solves are Gaussian elimination with partial pivoting,
+LAPACK's ``gesv`` on a 3x3.
 
 The kernels compile on first use; ``cache=True`` keeps the machine code
 between runs where the package folder (or Numba's user cache) is writable.
@@ -336,6 +337,47 @@ def _sym_eig_abs_ratio_ok(a, n, limit):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True)
+def _cond_below(a, n, limit):  # pragma: no cover - compiled
+    """:func:`_sym_eig_abs_ratio_ok` (``a`` overwritten), answered first from the
+    closed-form eigenvalues where they leave no doubt: a ratio below 1e5 there. Their
+    error is at most ~1e-7 of the largest (sqrt(eps), where two eigenvalues are
+    close), so the true ratio is then far below any ``limit`` >= 1e6; otherwise the
+    Jacobi rotations decide, as numpy's SVD would."""
+    for p in range(n):
+        for q in range(n):
+            if not math.isfinite(a[p, q]):
+                return False
+    if limit >= 1e6:
+        if n == 2:
+            mean = 0.5 * (a[0, 0] + a[1, 1])
+            rad = math.hypot(0.5 * (a[0, 0] - a[1, 1]), a[0, 1])
+            lo = min(abs(mean - rad), abs(mean + rad))
+            hi = max(abs(mean - rad), abs(mean + rad))
+            if hi < 1e5 * lo:
+                return True
+        else:  # the trigonometric solution of the characteristic cubic
+            p1 = a[0, 1] * a[0, 1] + a[0, 2] * a[0, 2] + a[1, 2] * a[1, 2]
+            q = (a[0, 0] + a[1, 1] + a[2, 2]) / 3.0
+            d0, d1, d2 = a[0, 0] - q, a[1, 1] - q, a[2, 2] - q
+            p = math.sqrt((d0 * d0 + d1 * d1 + d2 * d2 + 2.0 * p1) / 6.0)
+            if p > 0.0:
+                # det((A - q I) / p) / 2
+                det = (d0 * (d1 * d2 - a[1, 2] * a[1, 2])
+                       - a[0, 1] * (a[0, 1] * d2 - a[1, 2] * a[0, 2])
+                       + a[0, 2] * (a[0, 1] * a[1, 2] - d1 * a[0, 2]))  # fmt: skip
+                r = min(max(det / (2.0 * p * p * p), -1.0), 1.0)
+                phi = math.acos(r) / 3.0
+                e1 = q + 2.0 * p * math.cos(phi)
+                e3 = q + 2.0 * p * math.cos(phi + 2.0 * math.pi / 3.0)
+                e2 = 3.0 * q - e1 - e3
+                lo = min(abs(e1), abs(e2), abs(e3))
+                hi = max(abs(e1), abs(e2), abs(e3))
+                if hi < 1e5 * lo:
+                    return True
+    return _sym_eig_abs_ratio_ok(a, n, limit)
+
+
+@numba.njit(cache=True, nogil=True)
 def _gesv(a, b, n):  # pragma: no cover - compiled
     """Solve a x = b in place (b <- x) by Gaussian elimination with partial pivoting."""
     for col in range(n):
@@ -385,7 +427,7 @@ def _decouple_fits(sums, h1, limit):  # pragma: no cover - compiled
         g[2] = s[8] / hi
         tt = s[9]
         e[:, :] = m
-        if _sym_eig_abs_ratio_ok(e, 3, limit):
+        if _cond_below(e, 3, limit):
             e[:, :] = m
             for r in range(3):
                 x[r] = -g[r]
@@ -393,7 +435,7 @@ def _decouple_fits(sums, h1, limit):  # pragma: no cover - compiled
             x3[i] = x
             rss[i, 0] = tt + (g[0] * x[0] + g[1] * x[1] + g[2] * x[2])
         e[:2, :2] = m[1:, 1:]
-        if _sym_eig_abs_ratio_ok(e, 2, limit):
+        if _cond_below(e, 2, limit):
             e[:2, :2] = m[1:, 1:]
             x[0] = -g[1]
             x[1] = -g[2]
