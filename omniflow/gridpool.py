@@ -189,26 +189,35 @@ class GridPools:
         depth = cv2.CV_64F if parts.dtype == np.float64 else cv2.CV_32F
         ix, iy = self.flat % self.gw, self.flat // self.gw
         margin = self.half + 1
-        for c in np.unique(self.bins[on]):
-            members = np.flatnonzero(on & (self.bins == c))
-            # readers: the points of bins c - 1, c, c + 1, weighted by the share of
-            # bin c inside their window (1 - f, 1, f; see the module's docstring)
-            db = self.bins - c
-            coef = np.where(db == 0, 1.0, np.where(db == 1, 1.0 - self.frac, self.frac))
-            readers = np.flatnonzero(on & (np.abs(db) <= 1))
+        # the on-grid points by bin: a bin's members, and the readers of its filtered
+        # image (the points of bins c - 1, c, c + 1), are runs of this order
+        pts = np.flatnonzero(on)
+        pts = pts[np.argsort(self.bins[pts], kind="stable")]
+        ub, first = np.unique(self.bins[pts], return_index=True)
+        last = np.append(first[1:], pts.size)
+        for t, c in enumerate(ub):
+            members = pts[first[t] : last[t]]
+            lo = first[t - 1] if t > 0 and ub[t - 1] == c - 1 else first[t]
+            hi = last[t + 1] if t + 1 < ub.size and ub[t + 1] == c + 1 else last[t]
+            readers = pts[lo:hi]
+            # each reader weighted by the share of bin c inside its window (1 - f, 1,
+            # f for the bins c + 1, c, c - 1; see the module's docstring)
+            db = self.bins[readers] - c
+            frac = self.frac[readers]
+            coef = np.where(db == 0, 1.0, np.where(db == 1, 1.0 - frac, frac))
             x0 = max(int(ix[members].min()) - margin, 0)
             y0 = max(int(iy[members].min()) - margin, 0)
             x1 = min(int(ix[members].max()) + margin + 1, self.gw)
             y1 = min(int(iy[members].max()) + margin + 1, self.gh)
             cw, ch = max(x1 - x0, 2), max(y1 - y0, 2)
             img = np.zeros((ch, cw, nc), parts.dtype)
-            grid_scatter(img, iy - y0, ix - x0, parts, members)
+            grid_scatter(img, iy, ix, y0, x0, parts, members)
             # a reader outside the crop reads its border, which is 0 (margin > kernel half)
-            gx, gy = self.gx - x0, self.gy - y0
             for m, (kx, ky, power) in enumerate(jobs):
                 f = cv2.sepFilter2D(img, depth, kx, ky, borderType=cv2.BORDER_CONSTANT)
                 f = f.reshape(img.shape)  # OpenCV drops a single channel's axis
-                grid_read(f, gx, gy, readers, coef if power == 1 else coef**power, read[m])
+                grid_read(f, self.gx, self.gy, float(x0), float(y0), readers,
+                          coef if power == 1 else coef**power, read[m])  # fmt: skip
         return read
 
     def decouple_sums(self, derivs: tuple[NDArray, ...], h1: NDArray, h2: NDArray) -> NDArray:

@@ -151,36 +151,37 @@ def pooled_sums(
 
 
 @numba.njit(cache=True, nogil=True)
-def grid_scatter(img, iy, ix, parts, members):  # pragma: no cover - compiled
-    """Add ``parts[i]`` (C,) into ``img[iy[i], ix[i]]`` (img (H, W, C)) for i in ``members``."""
+def grid_scatter(img, iy, ix, y0, x0, parts, members):  # pragma: no cover - compiled
+    """Add ``parts[i]`` (C,) into ``img[iy[i] - y0, ix[i] - x0]`` (img (H, W, C)) for i in
+    ``members``."""
     for t in range(members.size):
         i = members[t]
         for c in range(parts.shape[1]):
-            img[iy[i], ix[i], c] += parts[i, c]
+            img[iy[i] - y0, ix[i] - x0, c] += parts[i, c]
 
 
 @numba.njit(cache=True, nogil=True)
-def grid_read(f, gx, gy, readers, coef, out):  # pragma: no cover - compiled
-    """Add ``coef[i]`` times the bilinear sample of ``f`` (H, W, C), H, W >= 2, at cell
-    coordinates (gx[i], gy[i]) (centres at integers, clamped to the grid) to ``out[i]``
-    (C,) for i in ``readers``."""
+def grid_read(f, gx, gy, x0, y0, readers, coef, out):  # pragma: no cover - compiled
+    """Add ``coef[t]`` times the bilinear sample of ``f`` (H, W, C), H, W >= 2, at cell
+    coordinates (gx[i] - x0, gy[i] - y0) (centres at integers, clamped to the grid) to
+    ``out[i]`` (C,) for i = ``readers[t]``."""
     h, w, nc = f.shape
     for t in range(readers.size):
         i = readers[t]
-        x = min(max(gx[i], 0.0), w - 1.0)
-        y = min(max(gy[i], 0.0), h - 1.0)
-        x0 = min(int(x), w - 2)  # x >= 0: truncation is the floor
-        y0 = min(int(y), h - 2)
-        fx = x - x0
-        fy = y - y0
-        c = coef[i]
+        x = min(max(gx[i] - x0, 0.0), w - 1.0)
+        y = min(max(gy[i] - y0, 0.0), h - 1.0)
+        xi = min(int(x), w - 2)  # x >= 0: truncation is the floor
+        yi = min(int(y), h - 2)
+        fx = x - xi
+        fy = y - yi
+        c = coef[t]
         w00 = (1.0 - fx) * (1.0 - fy) * c
         w01 = fx * (1.0 - fy) * c
         w10 = (1.0 - fx) * fy * c
         w11 = fx * fy * c
         for k in range(nc):
-            out[i, k] += (w00 * f[y0, x0, k] + w01 * f[y0, x0 + 1, k]
-                          + w10 * f[y0 + 1, x0, k] + w11 * f[y0 + 1, x0 + 1, k])  # fmt: skip
+            out[i, k] += (w00 * f[yi, xi, k] + w01 * f[yi, xi + 1, k]
+                          + w10 * f[yi + 1, xi, k] + w11 * f[yi + 1, xi + 1, k])  # fmt: skip
 
 
 @numba.njit(cache=True, nogil=True)
