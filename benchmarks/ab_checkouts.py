@@ -13,6 +13,7 @@ both camera pairs of the first two frames per call. Run::
 ``--set NAME=VALUE`` (repeatable) gives every omniflow variant that
 OmniFlowConfig field (parsed as the CLI's ``--set``), e.g. the densified
 configuration: ``--set dense_percentile=60 --set pool_grid=0.125 --set decouple_tol=60``.
+``--stage solve`` (repeatable) adds the median wall time of that stage of estimate().
 """
 
 from __future__ import annotations
@@ -68,13 +69,14 @@ def worker(dataset: str, dis: bool, threads: int | None, settings: str = "") -> 
         fn()
     print("ready", flush=True)
     for line in sys.stdin:
-        wall, cpu = [], []
+        wall, cpu, stages = [], [], []
         for _ in range(int(line)):
             t0, c0 = time.perf_counter(), time.process_time()
-            fn()
+            out = fn()
             wall.append(time.perf_counter() - t0)
             cpu.append(time.process_time() - c0)
-        print(json.dumps([wall, cpu]), flush=True)
+            stages.append(getattr(out, "timings", {}))  # omniflow's per-stage seconds
+        print(json.dumps([wall, cpu, stages]), flush=True)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -89,6 +91,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--set", action="append", default=[], metavar="NAME=VALUE",
         help="an OmniFlowConfig field for every omniflow variant (repeatable)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--stage", action="append", default=[], metavar="NAME",
+        help="also the median of this stage's wall time (estimate()'s timings: match, "
+        "solve, ...; repeatable)",
     )  # fmt: skip
     parser.add_argument("--worker", nargs=4, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -111,18 +118,24 @@ def main(argv: list[str] | None = None) -> int:
         if p.stdout.readline().strip() != "ready":
             raise SystemExit(f"ab_checkouts: {name}: the worker did not start")
         procs[name] = p
-    times = {k: ([], []) for k in procs}
+    times = {k: ([], [], []) for k in procs}
     for _ in range(args.rounds):
         for name, p in procs.items():
             p.stdin.write(f"{args.per_round}\n")
             p.stdin.flush()
-            wall, cpu = json.loads(p.stdout.readline())
+            wall, cpu, stages = json.loads(p.stdout.readline())
             times[name][0].extend(wall)
             times[name][1].extend(cpu)
+            times[name][2].extend(stages)
     print(f"load average {os.getloadavg()}; medians of {args.rounds} x {args.per_round} calls")
-    for name, (wall, cpu) in times.items():
+    for name, (wall, cpu, stages) in times.items():
+        split = ""
+        for stage in args.stage:
+            got = [t[stage] for t in stages if stage in t]
+            split += f"  {stage} {1e3 * statistics.median(got):5.1f} ms" if got else ""
         print(f"{name:12s} wall {1e3 * statistics.median(wall):6.1f} ms (min "
-              f"{1e3 * min(wall):5.1f})  CPU {1e3 * statistics.median(cpu):6.1f} ms")  # fmt: skip
+              f"{1e3 * min(wall):5.1f})  CPU {1e3 * statistics.median(cpu):6.1f} ms"
+              + split)  # fmt: skip
     for p in procs.values():
         p.stdin.close()
         p.wait()
