@@ -9,6 +9,11 @@ both camera pairs of the first two frames per call. Run::
     git worktree add --detach /tmp/ref 77434fb
     python benchmarks/ab_checkouts.py --dataset /work/data/default \\
         ref=/tmp/ref new=. new1=.:threads=1 dis=dis dis1=dis:threads=1
+
+``--set NAME=VALUE`` (repeatable) gives every omniflow variant that
+OmniFlowConfig field (parsed as the CLI's ``--set``), e.g. the densified
+configuration: ``--set dense_percentile=60 --set pool_grid=0.125 --set decouple_tol=60``.
+``--stage solve`` (repeatable) adds the median wall time of that stage of estimate().
 """
 
 from __future__ import annotations
@@ -22,7 +27,7 @@ import sys
 import time
 
 
-def worker(dataset: str, dis: bool, threads: int | None) -> None:
+def worker(dataset: str, dis: bool, threads: int | None, settings: str = "") -> None:
     """Answer each line N on stdin with the wall and CPU seconds of N calls (JSON)."""
     import cv2
 
@@ -43,6 +48,12 @@ def worker(dataset: str, dis: bool, threads: int | None) -> None:
     else:
         from omniflow.pipeline import OmniFlowConfig, estimate
 
+        config = OmniFlowConfig()
+        if settings:
+            from omniflow.cli import config_from_settings
+
+            config = config_from_settings(settings)
+
         if threads is not None:
             try:
                 from omniflow import parallel
@@ -52,19 +63,20 @@ def worker(dataset: str, dis: bool, threads: int | None) -> None:
                 parallel.THREADS = threads
 
         def fn():
-            return estimate(f1, f2, ds.rig, OmniFlowConfig())
+            return estimate(f1, f2, ds.rig, config)
 
     for _ in range(3):
         fn()
     print("ready", flush=True)
     for line in sys.stdin:
-        wall, cpu = [], []
+        wall, cpu, stages = [], [], []
         for _ in range(int(line)):
             t0, c0 = time.perf_counter(), time.process_time()
-            fn()
+            out = fn()
             wall.append(time.perf_counter() - t0)
             cpu.append(time.process_time() - c0)
-        print(json.dumps([wall, cpu]), flush=True)
+            stages.append(getattr(out, "timings", {}))  # omniflow's per-stage seconds
+        print(json.dumps([wall, cpu, stages]), flush=True)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -76,11 +88,20 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--dataset", default="/work/data/default")
     parser.add_argument("--rounds", type=int, default=6)
     parser.add_argument("--per-round", type=int, default=3)
-    parser.add_argument("--worker", nargs=3, help=argparse.SUPPRESS)
+    parser.add_argument(
+        "--set", action="append", default=[], metavar="NAME=VALUE",
+        help="an OmniFlowConfig field for every omniflow variant (repeatable)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--stage", action="append", default=[], metavar="NAME",
+        help="also the median of this stage's wall time (estimate()'s timings: match, "
+        "solve, ...; repeatable)",
+    )  # fmt: skip
+    parser.add_argument("--worker", nargs=4, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.worker:
-        dataset, kind, threads = args.worker
-        worker(dataset, kind == "dis", None if threads == "-" else int(threads))
+        dataset, kind, threads, settings = args.worker
+        worker(dataset, kind == "dis", None if threads == "-" else int(threads), settings)
         return 0
     procs = {}
     for spec in args.variants:
@@ -91,24 +112,30 @@ def main(argv: list[str] | None = None) -> int:
         path = os.path.abspath(os.path.dirname(__file__) + "/.." if kind == "dis" else where)
         env = dict(os.environ, PYTHONPATH=path)
         cmd = [sys.executable, os.path.abspath(__file__), "x", "--worker", args.dataset, kind,
-               threads]  # fmt: skip
+               threads, ",".join(args.set)]  # fmt: skip
         p = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
                              env=env, cwd="/")  # fmt: skip
         if p.stdout.readline().strip() != "ready":
             raise SystemExit(f"ab_checkouts: {name}: the worker did not start")
         procs[name] = p
-    times = {k: ([], []) for k in procs}
+    times = {k: ([], [], []) for k in procs}
     for _ in range(args.rounds):
         for name, p in procs.items():
             p.stdin.write(f"{args.per_round}\n")
             p.stdin.flush()
-            wall, cpu = json.loads(p.stdout.readline())
+            wall, cpu, stages = json.loads(p.stdout.readline())
             times[name][0].extend(wall)
             times[name][1].extend(cpu)
+            times[name][2].extend(stages)
     print(f"load average {os.getloadavg()}; medians of {args.rounds} x {args.per_round} calls")
-    for name, (wall, cpu) in times.items():
+    for name, (wall, cpu, stages) in times.items():
+        split = ""
+        for stage in args.stage:
+            got = [t[stage] for t in stages if stage in t]
+            split += f"  {stage} {1e3 * statistics.median(got):5.1f} ms" if got else ""
         print(f"{name:12s} wall {1e3 * statistics.median(wall):6.1f} ms (min "
-              f"{1e3 * min(wall):5.1f})  CPU {1e3 * statistics.median(cpu):6.1f} ms")  # fmt: skip
+              f"{1e3 * min(wall):5.1f})  CPU {1e3 * statistics.median(cpu):6.1f} ms"
+              + split)  # fmt: skip
     for p in procs.values():
         p.stdin.close()
         p.wait()

@@ -205,8 +205,9 @@ class OmniFlowConfig:
         mixes ranges (``pool_range_tol``) keep the k-d tree's pools. Only for
         the one-pass equal-weight solver (``pool_edge_tol``,
         ``pool_residual_tol``, ``pool_flow_tol``, ``pool_min_info`` all None,
-        ``pool_unit_weighting="equal"``); otherwise the tree pools. None: the
-        k-d tree everywhere.
+        ``pool_unit_weighting="equal"``); otherwise the tree pools. The
+        decoupling test (``decouple_tol``) pools over the same grid windows.
+        None: the k-d tree everywhere.
     pool_range_tol : float or None
         Pooled solver: neighbours whose range differs by more than this
         fraction (another surface) are left out; None keeps them.

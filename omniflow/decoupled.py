@@ -17,7 +17,8 @@ the same in both units, and W the range's, scaling with each unit's h_i
 point of a coaxial rig), so the decoupled model has three unknowns,
 (U, W, dtheta/dt), in eq. (9) of unit 1 and eq. (10) of unit 2, pooled over
 the same neighbours as the coupled solve (U, W and dtheta/dt shared by the
-pool, a rigid patch at one range)::
+pool, a rigid patch at one range; with ``pool_grid`` the solver's grid windows,
+:meth:`omniflow.gridpool.GridPools.decouple_sums`)::
 
     f1_h (U - h_1 W) + f1_theta b = -f1_t                       # eq. (9)
     f2_h (U - h_2 W) + f2_theta b = -f2_t                       # eq. (10)
@@ -54,9 +55,11 @@ from numpy.typing import NDArray
 from omniflow.applications import radial_velocity_stereo
 from omniflow.config import OmniFlowConfig
 from omniflow.flow import neighbourhoods
+from omniflow.gridpool import GridPools, grid_pooling
+from omniflow.kernels import decouple_fits, decouple_sums
 from omniflow.rig import Rig
 
-__all__ = ["decouple", "model_fits"]
+__all__ = ["decouple", "fits_from_sums", "model_fits"]
 
 
 def model_fits(
@@ -88,29 +91,26 @@ def model_fits(
         (the statistic of the extra unknown; NaN where either fit is
         singular), ``n_eff``.
     """
-    ext = lambda v: np.append(np.asarray(v, dtype=np.float64), 0.0)[idx]  # noqa: E731
-    f1_h, f1_th, f1_t, f2_h, f2_th, f2_t = (ext(v) for v in derivs)
-    hi = h1[:, None]
-    # Unknowns (U, W, c): dh_i/dt = U - h_i W in either unit (eq. 3-4 differentiated,
-    # U = v dh / (d + r), W = dr / (d + r), both shared by a pool on one surface), W
-    # scaled by h_1,i and c = h_1,i dtheta/dt. Unit u's row of neighbour j:
-    # (f_h, -f_h h_u,j / h_1,i, f_theta / h_1,i) . (U, h_1,i W, c) = -f_t; U = 0 is the
-    # coupled model (eq. 14), whose W column is pooled_solution's relative radial one.
-    u1, w1, q1 = f1_h, -f1_h * ext(h1) / hi, f1_th / hi
-    u2, w2, q2 = f2_h, -f2_h * ext(h2) / hi, f2_th / hi
-    s = lambda x, y: (w * (x * y)).sum(axis=1)  # noqa: E731
-    cols = ((u1, u2), (w1, w2), (q1, q2))
-    M3 = np.stack(
-        [np.stack([s(a1, b1) + s(a2, b2) for b1, b2 in cols], -1) for a1, a2 in cols], axis=1
-    )
-    g3 = np.stack([s(a1, f1_t) + s(a2, f2_t) for a1, a2 in cols], -1)
-    tt = s(f1_t, f1_t) + s(f2_t, f2_t)
-    M2, g2 = M3[:, 1:, 1:], g3[:, 1:]
-    x3 = _solve(M3, -g3)
-    x2 = _solve(M2, -g2)
-    rss3 = tt + np.einsum("ij,ij->i", x3, g3)  # min of sum w (A x + t)^2 = tt + g . x
-    rss2 = tt + np.einsum("ij,ij->i", x2, g2)
-    wsum, w2sum = w.sum(axis=1), (w * w).sum(axis=1)
+    h1, h2 = (np.asarray(v, dtype=np.float64) for v in (h1, h2))
+    return fits_from_sums(decouple_sums(idx, w, derivs, h1, h2), h1, h2)
+
+
+def fits_from_sums(sums: NDArray, h1: NDArray, h2: NDArray) -> dict[str, NDArray]:
+    """:func:`model_fits` from the pools' sums (:func:`omniflow.kernels.decouple_sums`
+    or :meth:`omniflow.gridpool.GridPools.decouple_sums`, columns
+    :data:`omniflow.kernels.DECOUPLE_SUMS`).
+
+    Unknowns (U, W, c): dh_i/dt = U - h_i W in either unit (eq. 3-4 differentiated,
+    U = v dh / (d + r), W = dr / (d + r), both shared by a pool on one surface), W
+    scaled by h_1,i and c = h_1,i dtheta/dt. Unit u's row of neighbour j is
+    (f_h, -f_h h_u,j / h_1,i, f_theta / h_1,i) . (U, h_1,i W, c) = -f_t; U = 0 is the
+    coupled model (eq. 14), whose W column is pooled_solution's relative radial one.
+    Each fit is NaN where its normal matrix's condition number is 1e8 or more.
+    """
+    h1, h2 = (np.asarray(v, dtype=np.float64) for v in (h1, h2))
+    x3, x2, rss = decouple_fits(sums, h1)
+    rss3, rss2 = rss[:, 0], rss[:, 1]  # min of sum w (A x + t)^2 = t^T t + g . x
+    wsum, w2sum = sums[:, 10], sums[:, 11]
     with np.errstate(divide="ignore", invalid="ignore"):
         n_eff = 2.0 * wsum * wsum / w2sum  # two rows (one per unit) per neighbour
         F = (rss2 - rss3) / (rss3 / (n_eff - 3.0))
@@ -128,19 +128,13 @@ def model_fits(
     }
 
 
-def _solve(M: NDArray, v: NDArray) -> NDArray:
-    """Batched solve of M x = v, NaN rows where M is singular or ill-conditioned."""
-    out = np.full(v.shape, np.nan)
-    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-        cond = np.linalg.cond(M)
-    ok = np.isfinite(cond) & (cond < 1e8)
-    if ok.any():
-        out[ok] = np.linalg.solve(M[ok], v[ok][..., None])[..., 0]
-    return out
-
-
 def decouple(
-    cols: dict[str, NDArray], rig: Rig, config: OmniFlowConfig, displacement: Callable
+    cols: dict[str, NDArray],
+    rig: Rig,
+    config: OmniFlowConfig,
+    displacement: Callable,
+    *,
+    pools: tuple[NDArray, NDArray, NDArray] | None = None,
 ) -> dict[str, NDArray]:
     """Add the ``coupled`` column and, where eq. (14) fails, the decoupled flow.
 
@@ -156,6 +150,12 @@ def decouple(
     assumed). ``displacement(unit, h_i, theta, dh, dtheta)`` gives the pixel
     flow (dx, dy) of a polar flow, the solver's own (passed in, so that this
     module does not import the solver that calls it).
+
+    ``pools``: (idx, w, keep), the solver's own k-d tree pools of the matches
+    before the points without a solution were dropped (``keep`` False), from the
+    same query (:func:`omniflow.flow.neighbourhoods` with the same k, radius,
+    ranges and no edge test): the pools of the kept points are taken from them
+    (:func:`kept_pools`) instead of searched again.
     """
     n = np.asarray(cols["h1"]).size
     out = dict(cols)
@@ -164,13 +164,22 @@ def decouple(
         return out
     h1, h2 = (np.asarray(cols[c], dtype=np.float64) for c in ("h1", "h2"))
     radius = rig.cam1.r_m / 8.0 if config.pool_radius is None else config.pool_radius
-    idx, w = neighbourhoods(
+    search = lambda query=None: neighbourhoods(  # noqa: E731
         cols["x"], cols["y"], k=config.pool_k, radius=radius, r=cols["r"],
-        range_tol=config.pool_range_tol,
+        range_tol=config.pool_range_tol, query=query,
     )  # fmt: skip
     derivs = tuple(np.asarray(cols[c], dtype=np.float64)
                    for c in ("f1_h", "f1_theta", "f1_t", "f2_h", "f2_theta", "f2_t"))  # fmt: skip
-    fit = model_fits(derivs, h1, h2, idx, w)
+    if grid_pooling(config):  # the solver's grid windows, the k-d tree's where ranges mix
+        grid = GridPools(
+            cols["x"], cols["y"], None, (rig.cam1.height, rig.cam1.width), radius=radius,
+            cell=config.pool_grid * radius, r=cols["r"], range_tol=config.pool_range_tol,
+            tree_pools=lambda mask: search(query=mask),
+        )  # fmt: skip
+        fit = fits_from_sums(grid.decouple_sums(derivs, h1, h2), h1, h2)
+    else:
+        idx, w = search() if pools is None else kept_pools(*pools, search)
+        fit = model_fits(derivs, h1, h2, idx, w)
     with np.errstate(invalid="ignore"):
         switch = (fit["F"] > config.decouple_tol) & np.isfinite(fit["a1"] + fit["a2"] + fit["b"])
     if not switch.any():
@@ -189,3 +198,40 @@ def decouple(
         dr_dt=np.where(switch, dr, cols["dr_dt"]),
     )  # fmt: skip
     return out
+
+
+def kept_pools(
+    idx: NDArray, w: NDArray, keep: NDArray, search: Callable
+) -> tuple[NDArray, NDArray]:
+    """The k-nearest pools of the kept points among themselves, from the pools of all.
+
+    ``idx``, ``w`` (N, K): :func:`omniflow.flow.neighbourhoods` of N points;
+    ``keep`` (N,) bool: the points that stay. The pools :func:`neighbourhoods` would
+    give the M kept points on their own: a row keeps its kept neighbours, in the
+    same order (nearest first) and with the same weights (a weight depends only on
+    the two points' distance and ranges); the row's dropped neighbours leave a gap
+    that nearer points cannot fill, since all of them are listed already, except
+    where the row was full (K found within the radius): there a farther kept point
+    may move in, and those rows are searched again, ``search(query=mask)`` over
+    the kept points (mask (M,) bool).
+    """
+    n = idx.shape[0]
+    keep = np.asarray(keep, dtype=bool)
+    if keep.all():
+        return idx, w
+    m = int(keep.sum())
+    new_id = np.full(n + 1, m, dtype=np.intp)  # index n (no neighbour) and dropped: m
+    new_id[:n][keep] = np.arange(m)
+    sub_idx, sub_w = idx[keep], w[keep]
+    alive = np.append(keep, False)[sub_idx]
+    order = np.argsort(~alive, axis=1, kind="stable")  # kept neighbours first, in order
+    sub_idx = np.take_along_axis(sub_idx, order, axis=1)
+    alive = np.take_along_axis(alive, order, axis=1)
+    out_idx = np.where(alive, new_id[sub_idx], m)
+    out_w = np.where(alive, np.take_along_axis(sub_w, order, axis=1), 0.0)
+    full = (idx[keep] < n).all(axis=1)
+    again = full & ~alive.all(axis=1)
+    if again.any():
+        a_idx, a_w = search(query=again)
+        out_idx[again], out_w[again] = a_idx[again], a_w[again]
+    return out_idx, out_w

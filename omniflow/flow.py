@@ -55,7 +55,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
 from omniflow.gridpool import GridPools
-from omniflow.kernels import pooled_sums
+from omniflow.kernels import cell_knn, pooled_sums
 
 __all__ = [
     "axial_motion_violation",
@@ -270,11 +270,16 @@ def neighbourhoods(
     if n == 0:
         return np.zeros((0, k), dtype=np.intp), np.zeros((0, k))
     kk = min(k, n)
-    tree = cKDTree(pts, balanced_tree=False, compact_nodes=False)  # faster to build here
     rows = np.arange(n) if query is None else np.flatnonzero(query)
-    dist = np.full((n, kk), np.inf)
-    idx = np.full((n, kk), n, dtype=np.intp)
+    if np.isfinite(pts).all():  # the k-d tree's answer from a cell search (compiled) ...
+        dist, idx, tie = cell_knn(pts[:, 0], pts[:, 1], kk, radius, rows)
+        idx = idx.astype(np.intp, copy=False)
+        rows = np.flatnonzero(tie)  # ... but where equal distances decide: the tree's
+    else:
+        dist = np.full((n, kk), np.inf)
+        idx = np.full((n, kk), n, dtype=np.intp)
     if rows.size:
+        tree = cKDTree(pts, balanced_tree=False, compact_nodes=False)  # faster to build here
         d_q, i_q = tree.query(pts[rows], k=kk, distance_upper_bound=radius)
         dist[rows], idx[rows] = d_q.reshape(rows.size, kk), i_q.reshape(rows.size, kk)
     found = idx < n

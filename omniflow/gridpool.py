@@ -31,14 +31,18 @@ point's own bin always counts, one more than 2 delta away (about twice
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from omniflow.kernels import grid_read, grid_scatter
+from omniflow.kernels import DECOUPLE_SUMS, decouple_sums, grid_read, grid_scatter
 
-__all__ = ["GridPools"]
+if TYPE_CHECKING:  # omniflow.config imports omniflow.flow, which imports this module
+    from omniflow.config import OmniFlowConfig
+
+__all__ = ["GridPools", "grid_pooling"]
 
 
 class GridPools:
@@ -48,8 +52,9 @@ class GridPools:
     ----------
     x, y : ndarray, shape (N,)
         cam1 pixel coordinates of the matches (centres at j + 1/2).
-    tangent : ndarray, shape (N, 2)
-        d(x, y)/dtheta / h_1 at each point (a unit vector for a polar image).
+    tangent : ndarray, shape (N, 2), or None
+        d(x, y)/dtheta / h_1 at each point (a unit vector for a polar image);
+        needed by the linear model's sums only.
     shape : (H, W)
         cam1's image size, pixels.
     radius : float
@@ -71,7 +76,7 @@ class GridPools:
         self,
         x: NDArray,
         y: NDArray,
-        tangent: NDArray,
+        tangent: NDArray | None,
         shape: tuple[int, int],
         *,
         radius: float,
@@ -90,11 +95,12 @@ class GridPools:
         iy = np.clip(np.floor(y / cell).astype(np.intp), 0, self.gh - 1)
         self.flat = iy * self.gw + ix
         self.gx, self.gy = x / cell - 0.5, y / cell - 0.5  # cell coordinates, centres at integers
-        self.tangent = np.asarray(tangent, dtype=np.float64).reshape(n, 2)
+        self.tangent = None if tangent is None else np.asarray(tangent, np.float64).reshape(n, 2)
         half = max(round(radius / cell), 1)
         d = np.arange(-half, half + 1) * cell  # offsets, pixels
         g = np.exp(-0.5 * (d / (radius / 2.0)) ** 2)
         self.kernels = [(g * d**m).astype(np.float32) for m in range(3)]  # g, d g, d^2 g
+        self.gauss = g  # float64, for the sums in float64
         self.half = half
         self.on_grid = np.ones(n, dtype=bool)
         self.idx = self.w = None
@@ -148,31 +154,12 @@ class GridPools:
         pairs = [(g0, g0)]
         if linear:
             pairs += [(g1, g0), (g0, g1), (g2, g0), (g1, g1), (g0, g2)]
-        read = np.zeros((len(pairs), n, 6))
-        ix, iy = self.flat % self.gw, self.flat // self.gw
-        margin = self.half + 1
-        for c in np.unique(self.bins[on]):
-            members = np.flatnonzero(on & (self.bins == c))
-            # readers: the points of bins c - 1, c, c + 1, weighted by the share of
-            # bin c inside their window (1 - f, 1, f; see the module's docstring)
-            db = self.bins - c
-            coef = np.where(db == 0, 1.0, np.where(db == 1, 1.0 - self.frac, self.frac))
-            readers = np.flatnonzero(on & (np.abs(db) <= 1))
-            x0 = max(int(ix[members].min()) - margin, 0)
-            y0 = max(int(iy[members].min()) - margin, 0)
-            x1 = min(int(ix[members].max()) + margin + 1, self.gw)
-            y1 = min(int(iy[members].max()) + margin + 1, self.gh)
-            cw, ch = max(x1 - x0, 2), max(y1 - y0, 2)
-            img = np.zeros((ch, cw, 6), np.float32)
-            grid_scatter(img, iy - y0, ix - x0, parts, members)
-            # a reader outside the crop reads its border, which is 0 (margin > kernel half)
-            gx, gy = self.gx - x0, self.gy - y0
-            for m, (kx, ky) in enumerate(pairs):
-                f = cv2.sepFilter2D(img, cv2.CV_32F, kx, ky, borderType=cv2.BORDER_CONSTANT)
-                grid_read(f, gx, gy, readers, coef, read[m])
+        read = self._filter(parts, [(kx, ky, 1) for kx, ky in pairs])
         sel = slice(None) if on.all() else on
         read = [r_m[sel] * norm for r_m in read]
         if linear:
+            if self.tangent is None:
+                raise ValueError("GridPools: the linear model's sums need the tangents")
             tx, ty = self.tangent[sel, 0:1], self.tangent[sel, 1:2]
             m0, mx, my, mxx, mxy, myy = read
             mom = [m0, (tx * mx + ty * my) / scale,
@@ -185,3 +172,97 @@ class GridPools:
             wsum[sel, m] = mom[m][:, 0]
             sums[sel, m, :] = mom[m][:, 1:] * fac
         return sums, wsum
+
+    def _filter(self, parts: NDArray, jobs: list[tuple[NDArray, NDArray, int]]) -> NDArray:
+        """Every on-grid point's filtered sums of ``parts`` (N, C) over its window.
+
+        One job (kx, ky, power): the points' parts scattered into the cells of their
+        range bin, filtered by the separable kernel kx (along x) times ky (along y),
+        read back bilinearly at each point of bins c - 1, c, c + 1 with that bin's
+        share of its window (the module's docstring) raised to ``power`` (2 for sums
+        of squared weights). Filters in the dtype of ``parts`` (float32 or float64).
+        Returns (len(jobs), N, C); rows of off-grid points zero.
+        """
+        n, nc = parts.shape
+        on = self.on_grid
+        read = np.zeros((len(jobs), n, nc))
+        depth = cv2.CV_64F if parts.dtype == np.float64 else cv2.CV_32F
+        ix, iy = self.flat % self.gw, self.flat // self.gw
+        margin = self.half + 1
+        # the on-grid points by bin: a bin's members, and the readers of its filtered
+        # image (the points of bins c - 1, c, c + 1), are runs of this order
+        pts = np.flatnonzero(on)
+        pts = pts[np.argsort(self.bins[pts], kind="stable")]
+        ub, first = np.unique(self.bins[pts], return_index=True)
+        last = np.append(first[1:], pts.size)
+        for t, c in enumerate(ub):
+            members = pts[first[t] : last[t]]
+            lo = first[t - 1] if t > 0 and ub[t - 1] == c - 1 else first[t]
+            hi = last[t + 1] if t + 1 < ub.size and ub[t + 1] == c + 1 else last[t]
+            readers = pts[lo:hi]
+            # each reader weighted by the share of bin c inside its window (1 - f, 1,
+            # f for the bins c + 1, c, c - 1; see the module's docstring)
+            db = self.bins[readers] - c
+            frac = self.frac[readers]
+            coef = np.where(db == 0, 1.0, np.where(db == 1, 1.0 - frac, frac))
+            x0 = max(int(ix[members].min()) - margin, 0)
+            y0 = max(int(iy[members].min()) - margin, 0)
+            x1 = min(int(ix[members].max()) + margin + 1, self.gw)
+            y1 = min(int(iy[members].max()) + margin + 1, self.gh)
+            cw, ch = max(x1 - x0, 2), max(y1 - y0, 2)
+            img = np.zeros((ch, cw, nc), parts.dtype)
+            grid_scatter(img, iy, ix, y0, x0, parts, members)
+            # a reader outside the crop reads its border, which is 0 (margin > kernel half)
+            for m, (kx, ky, power) in enumerate(jobs):
+                f = cv2.sepFilter2D(img, depth, kx, ky, borderType=cv2.BORDER_CONSTANT)
+                f = f.reshape(img.shape)  # OpenCV drops a single channel's axis
+                grid_read(f, self.gx, self.gy, float(x0), float(y0), readers,
+                          coef if power == 1 else coef**power, read[m])  # fmt: skip
+        return read
+
+    def decouple_sums(self, derivs: tuple[NDArray, ...], h1: NDArray, h2: NDArray) -> NDArray:
+        """The two-model test's pool sums (:func:`omniflow.kernels.decouple_sums`) on the grid.
+
+        ``derivs``: f1_h, f1_theta, f1_t, f2_h, f2_theta, f2_t, shape (N,). Every
+        sum of :data:`omniflow.kernels.DECOUPLE_SUMS` is over the neighbours' own
+        terms (the point's h_1 enters afterwards), so each is one channel filtered
+        with the pool's Gaussian; the sum of squared weights (for the pool's
+        effective size) filters the point count with the squared Gaussian and reads
+        it with the squared bin shares. In float64: the 3x3 solves of
+        :func:`omniflow.kernels.decouple_fits` test the condition number against
+        1e8, beyond float32. Off-grid points get their k-d tree pools' sums.
+        Returns (N, 12).
+        """
+        f1h, f1th, f1t, f2h, f2th, f2t = (np.asarray(v, np.float64).ravel() for v in derivs)
+        h1, h2 = (np.asarray(v, np.float64).ravel() for v in (h1, h2))
+        n = self.n
+        out = np.zeros((n, len(DECOUPLE_SUMS)))
+        if self.on_grid.any():
+            b1, b2 = f1h * h1, f2h * h2  # f_h h_u,j
+            cross = lambda x1, x2, y1, y2: x1 * y1 + x2 * y2  # noqa: E731  (both units)
+            terms = [(f1h, f2h), (b1, b2), (f1th, f2th), (f1t, f2t)]  # a, b, q, t
+            parts = [cross(*terms[p], *terms[q]) for p, q in
+                     ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2), (0, 3), (1, 3), (2, 3),
+                      (3, 3))]  # fmt: skip
+            g, g2 = self.gauss, self.gauss**2
+            read = self._filter(np.stack([*parts, np.ones(n)], axis=1), [(g, g, 1)])[0]
+            read2 = self._filter(np.ones((n, 1)), [(g2, g2, 2)])[0]
+            out[:, :11] = read
+            out[:, 11] = read2[:, 0]
+            out[~self.on_grid] = 0.0
+        if self.idx is not None:  # the points whose window mixes ranges: their tree pools
+            out += decouple_sums(self.idx, self.w, (f1h, f1th, f1t, f2h, f2th, f2t), h1, h2)
+        return out
+
+
+def grid_pooling(config: OmniFlowConfig) -> bool:
+    """Whether the pools are grid filters (``config.pool_grid``): only for the one-pass,
+    equal-weight solver; the knobs that thin each pool by its neighbours need the tree's."""
+    return (
+        config.pool_grid is not None
+        and config.pool_unit_weighting == "equal"
+        and config.pool_edge_tol is None
+        and config.pool_residual_tol is None
+        and config.pool_flow_tol is None
+        and config.pool_min_info is None
+    )

@@ -19,6 +19,28 @@ gathering every profile first.
 into a cell image and read filtered images back bilinearly at the points
 (:mod:`omniflow.gridpool`), without numpy's (N, C) temporaries per corner.
 
+:func:`cell_knn` finds the k nearest points within a radius
+(:func:`omniflow.flow.neighbourhoods`) by binning the points into square cells of
+half the radius and visiting the cells around each query point ring by ring,
+keeping the nearest so far in a max-heap whose top bounds the cells still worth
+visiting. It answers what scipy's k-d tree answers (the same squared distances,
+the same strict bound, nearest first) except in how points at exactly the same
+distance are ordered, which the tree decides by its traversal; it flags the rows
+where that decides which points are in, and the caller asks the tree for those.
+
+:func:`decouple_sums` and :func:`decouple_fits` are the two-model test of eq. (14)
+(:func:`omniflow.decoupled.model_fits`): the weighted sums of each point's 3x3
+normal equations in one pass over its pool, then per point the conditioning test
+and the solves of the 3x3 (decoupled) and 2x2 (coupled) systems, without the
+(N, K) temporaries, the batched SVD of ``np.linalg.cond`` and the batched LAPACK
+solve. The condition number is numpy's (the 2-norm one: the ratio of the largest to
+the smallest absolute eigenvalue of a symmetric matrix): from the closed-form
+eigenvalues where they put it far below the threshold, else from cyclic Jacobi
+rotations, which give every eigenvalue to an absolute error of a few ulps of the
+largest as the SVD does (the closed-form cubic loses the small ones to sqrt(eps)
+when two are close); the solves are Gaussian elimination with partial pivoting,
+LAPACK's ``gesv`` on a 3x3.
+
 The kernels compile on first use; ``cache=True`` keeps the machine code
 between runs where the package folder (or Numba's user cache) is writable.
 """
@@ -31,7 +53,16 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["grid_read", "grid_scatter", "ncc_offsets", "pooled_sums"]
+__all__ = [
+    "DECOUPLE_SUMS",
+    "cell_knn",
+    "decouple_fits",
+    "decouple_sums",
+    "grid_read",
+    "grid_scatter",
+    "ncc_offsets",
+    "pooled_sums",
+]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -120,36 +151,37 @@ def pooled_sums(
 
 
 @numba.njit(cache=True, nogil=True)
-def grid_scatter(img, iy, ix, parts, members):  # pragma: no cover - compiled
-    """Add ``parts[i]`` (C,) into ``img[iy[i], ix[i]]`` (img (H, W, C)) for i in ``members``."""
+def grid_scatter(img, iy, ix, y0, x0, parts, members):  # pragma: no cover - compiled
+    """Add ``parts[i]`` (C,) into ``img[iy[i] - y0, ix[i] - x0]`` (img (H, W, C)) for i in
+    ``members``."""
     for t in range(members.size):
         i = members[t]
         for c in range(parts.shape[1]):
-            img[iy[i], ix[i], c] += parts[i, c]
+            img[iy[i] - y0, ix[i] - x0, c] += parts[i, c]
 
 
 @numba.njit(cache=True, nogil=True)
-def grid_read(f, gx, gy, readers, coef, out):  # pragma: no cover - compiled
-    """Add ``coef[i]`` times the bilinear sample of ``f`` (H, W, C), H, W >= 2, at cell
-    coordinates (gx[i], gy[i]) (centres at integers, clamped to the grid) to ``out[i]``
-    (C,) for i in ``readers``."""
+def grid_read(f, gx, gy, x0, y0, readers, coef, out):  # pragma: no cover - compiled
+    """Add ``coef[t]`` times the bilinear sample of ``f`` (H, W, C), H, W >= 2, at cell
+    coordinates (gx[i] - x0, gy[i] - y0) (centres at integers, clamped to the grid) to
+    ``out[i]`` (C,) for i = ``readers[t]``."""
     h, w, nc = f.shape
     for t in range(readers.size):
         i = readers[t]
-        x = min(max(gx[i], 0.0), w - 1.0)
-        y = min(max(gy[i], 0.0), h - 1.0)
-        x0 = min(int(x), w - 2)  # x >= 0: truncation is the floor
-        y0 = min(int(y), h - 2)
-        fx = x - x0
-        fy = y - y0
-        c = coef[i]
+        x = min(max(gx[i] - x0, 0.0), w - 1.0)
+        y = min(max(gy[i] - y0, 0.0), h - 1.0)
+        xi = min(int(x), w - 2)  # x >= 0: truncation is the floor
+        yi = min(int(y), h - 2)
+        fx = x - xi
+        fy = y - yi
+        c = coef[t]
         w00 = (1.0 - fx) * (1.0 - fy) * c
         w01 = fx * (1.0 - fy) * c
         w10 = (1.0 - fx) * fy * c
         w11 = fx * fy * c
         for k in range(nc):
-            out[i, k] += (w00 * f[y0, x0, k] + w01 * f[y0, x0 + 1, k]
-                          + w10 * f[y0 + 1, x0, k] + w11 * f[y0 + 1, x0 + 1, k])  # fmt: skip
+            out[i, k] += (w00 * f[yi, xi, k] + w01 * f[yi, xi + 1, k]
+                          + w10 * f[yi + 1, xi, k] + w11 * f[yi + 1, xi + 1, k])  # fmt: skip
 
 
 @numba.njit(cache=True, nogil=True)
@@ -189,3 +221,388 @@ def ncc_offsets(t1, t2, k, j, cols, w, stride, lines, out):  # pragma: no cover 
             # sum (v1 - mean1)(v2 - mean2) = sum (v1 - mean1) v2: the first is zero-mean
             inv2 = 1.0 / max(math.sqrt(max(b2 - b1 * (b1 / length), 0.0)), 1e-12)
             out[i, s] = dot * inv1 * inv2
+
+
+#: Columns of :func:`decouple_sums`: the 3x3 normal matrix of (U, h_1,i W, c) (six
+#: distinct entries), its right-hand side (A^T t), t^T t, and the sums of w and w^2.
+DECOUPLE_SUMS = ("uu", "uw", "uq", "ww", "wq", "qq", "ut", "wt", "qt", "tt", "w", "w2")
+
+
+@numba.njit(cache=True, nogil=True)
+def _decouple_sums(idx, w, f1_h, f1_th, f1_t, f2_h, f2_th, f2_t, h1, h2):  # pragma: no cover
+    n, kk = idx.shape
+    out = np.zeros((n, 12))
+    for i in range(n):
+        s = np.zeros(12)
+        for k in range(kk):
+            j = idx[i, k]
+            ww = w[i, k]
+            if j >= n:  # no neighbour (a zero weight still multiplies, as numpy's sums do)
+                continue
+            a1, a2 = f1_h[j], f2_h[j]
+            b1, b2 = a1 * h1[j], a2 * h2[j]  # f_h h_u,j: the W column times -h_1,i
+            q1, q2 = f1_th[j], f2_th[j]
+            t1, t2 = f1_t[j], f2_t[j]
+            s[0] += ww * (a1 * a1 + a2 * a2)
+            s[1] += ww * (a1 * b1 + a2 * b2)
+            s[2] += ww * (a1 * q1 + a2 * q2)
+            s[3] += ww * (b1 * b1 + b2 * b2)
+            s[4] += ww * (b1 * q1 + b2 * q2)
+            s[5] += ww * (q1 * q1 + q2 * q2)
+            s[6] += ww * (a1 * t1 + a2 * t2)
+            s[7] += ww * (b1 * t1 + b2 * t2)
+            s[8] += ww * (q1 * t1 + q2 * t2)
+            s[9] += ww * (t1 * t1 + t2 * t2)
+            s[10] += ww
+            s[11] += ww * ww
+        out[i] = s
+    return out
+
+
+def decouple_sums(
+    idx: NDArray, w: NDArray, derivs: tuple[NDArray, ...], h1: NDArray, h2: NDArray
+) -> NDArray:
+    """Pool sums of the two-model test, before the scaling by the point's own h_1.
+
+    Parameters
+    ----------
+    idx, w : ndarray, shape (N, K)
+        Pools (index N or more: no neighbour; weight 0 is skipped).
+    derivs : six ndarrays, shape (N,)
+        f1_h, f1_theta, f1_t, f2_h, f2_theta, f2_t.
+    h1, h2 : ndarray, shape (N,)
+        Image radii.
+
+    Returns
+    -------
+    ndarray, shape (N, 12)
+        Columns :data:`DECOUPLE_SUMS`, each a sum over j of w_ij times a product
+        of j's terms a_u = f_h, b_u = f_h h_u, q_u = f_theta, t_u = f_t summed over
+        the two units u (aa, ab, aq, bb, bq, qq, at, bt, qt, tt, then w and w^2).
+        The point's own h_1,i scales them into the normal equations
+        (:func:`decouple_fits`).
+    """
+    f = [np.ascontiguousarray(v, dtype=np.float64) for v in (*derivs, h1, h2)]
+    return _decouple_sums(
+        np.ascontiguousarray(idx, dtype=np.int64), np.ascontiguousarray(w, dtype=np.float64), *f
+    )
+
+
+@numba.njit(cache=True, nogil=True)
+def _sym_eig_abs_ratio_ok(a, n, limit):  # pragma: no cover - compiled
+    """Whether max|lambda| / min|lambda| < limit for the symmetric n x n ``a`` (n <= 3),
+    its eigenvalues by cyclic Jacobi rotations (``a`` is overwritten). False where an
+    entry is not finite (numpy's cond is then NaN or inf)."""
+    for p in range(n):
+        for q in range(n):
+            if not math.isfinite(a[p, q]):
+                return False
+    for _sweep in range(30):
+        off = 0.0
+        for p in range(n):
+            for q in range(p + 1, n):
+                off += a[p, q] * a[p, q]
+        scale = 0.0
+        for p in range(n):
+            scale += a[p, p] * a[p, p]
+        if not off > 1e-36 * scale:  # converged (or NaN: the test below fails)
+            break
+        for p in range(n - 1):
+            for q in range(p + 1, n):
+                apq = a[p, q]
+                if apq == 0.0:
+                    continue
+                theta = (a[q, q] - a[p, p]) / (2.0 * apq)
+                t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
+                if theta < 0.0:
+                    t = -t
+                c = 1.0 / math.sqrt(t * t + 1.0)
+                s = t * c
+                for r in range(n):  # A <- A J (columns p, q)
+                    arp, arq = a[r, p], a[r, q]
+                    a[r, p] = c * arp - s * arq
+                    a[r, q] = s * arp + c * arq
+                for r in range(n):  # A <- J^T A (rows p, q)
+                    apr, aqr = a[p, r], a[q, r]
+                    a[p, r] = c * apr - s * aqr
+                    a[q, r] = s * apr + c * aqr
+                a[p, q] = 0.0
+                a[q, p] = 0.0
+    lo = math.inf
+    hi = 0.0
+    for p in range(n):
+        v = abs(a[p, p])
+        lo = min(lo, v)
+        hi = max(hi, v)
+    return hi < limit * lo  # False for NaN, for a zero eigenvalue and for the zero matrix
+
+
+@numba.njit(cache=True, nogil=True)
+def _cond_below(a, n, limit):  # pragma: no cover - compiled
+    """:func:`_sym_eig_abs_ratio_ok` (``a`` overwritten), answered first from the
+    closed-form eigenvalues where they leave no doubt: a ratio below 1e5 there. Their
+    error is at most ~1e-7 of the largest (sqrt(eps), where two eigenvalues are
+    close), so the true ratio is then far below any ``limit`` >= 1e6; otherwise the
+    Jacobi rotations decide, as numpy's SVD would."""
+    for p in range(n):
+        for q in range(n):
+            if not math.isfinite(a[p, q]):
+                return False
+    if limit >= 1e6:
+        if n == 2:
+            mean = 0.5 * (a[0, 0] + a[1, 1])
+            rad = math.hypot(0.5 * (a[0, 0] - a[1, 1]), a[0, 1])
+            lo = min(abs(mean - rad), abs(mean + rad))
+            hi = max(abs(mean - rad), abs(mean + rad))
+            if hi < 1e5 * lo:
+                return True
+        else:  # the trigonometric solution of the characteristic cubic
+            p1 = a[0, 1] * a[0, 1] + a[0, 2] * a[0, 2] + a[1, 2] * a[1, 2]
+            q = (a[0, 0] + a[1, 1] + a[2, 2]) / 3.0
+            d0, d1, d2 = a[0, 0] - q, a[1, 1] - q, a[2, 2] - q
+            p = math.sqrt((d0 * d0 + d1 * d1 + d2 * d2 + 2.0 * p1) / 6.0)
+            if p > 0.0:
+                # det((A - q I) / p) / 2
+                det = (d0 * (d1 * d2 - a[1, 2] * a[1, 2])
+                       - a[0, 1] * (a[0, 1] * d2 - a[1, 2] * a[0, 2])
+                       + a[0, 2] * (a[0, 1] * a[1, 2] - d1 * a[0, 2]))  # fmt: skip
+                r = min(max(det / (2.0 * p * p * p), -1.0), 1.0)
+                phi = math.acos(r) / 3.0
+                e1 = q + 2.0 * p * math.cos(phi)
+                e3 = q + 2.0 * p * math.cos(phi + 2.0 * math.pi / 3.0)
+                e2 = 3.0 * q - e1 - e3
+                lo = min(abs(e1), abs(e2), abs(e3))
+                hi = max(abs(e1), abs(e2), abs(e3))
+                if hi < 1e5 * lo:
+                    return True
+    return _sym_eig_abs_ratio_ok(a, n, limit)
+
+
+@numba.njit(cache=True, nogil=True)
+def _gesv(a, b, n):  # pragma: no cover - compiled
+    """Solve a x = b in place (b <- x) by Gaussian elimination with partial pivoting."""
+    for col in range(n):
+        piv = col
+        for r in range(col + 1, n):
+            if abs(a[r, col]) > abs(a[piv, col]):
+                piv = r
+        if piv != col:
+            for c in range(n):
+                a[col, c], a[piv, c] = a[piv, c], a[col, c]
+            b[col], b[piv] = b[piv], b[col]
+        for r in range(col + 1, n):
+            f = a[r, col] / a[col, col]
+            for c in range(col, n):
+                a[r, c] -= f * a[col, c]
+            b[r] -= f * b[col]
+    for r in range(n - 1, -1, -1):
+        v = b[r]
+        for c in range(r + 1, n):
+            v -= a[r, c] * b[c]
+        b[r] = v / a[r, r]
+
+
+@numba.njit(cache=True, nogil=True)
+def _decouple_fits(sums, h1, limit):  # pragma: no cover - compiled
+    n = sums.shape[0]
+    x3 = np.full((n, 3), np.nan)
+    x2 = np.full((n, 2), np.nan)
+    rss = np.full((n, 2), np.nan)
+    m = np.empty((3, 3))
+    e = np.empty((3, 3))
+    g = np.empty(3)
+    x = np.empty(3)
+    for i in range(n):
+        s = sums[i]
+        hi = h1[i]
+        # unknowns (U, h_1,i W, c = h_1,i dtheta/dt); columns f_h, -f_h h_u,j / h_1,i,
+        # f_theta / h_1,i: the sums of j's terms scaled by the point's own h_1,i
+        m[0, 0] = s[0]
+        m[0, 1] = m[1, 0] = -s[1] / hi
+        m[0, 2] = m[2, 0] = s[2] / hi
+        m[1, 1] = s[3] / (hi * hi)
+        m[1, 2] = m[2, 1] = -s[4] / (hi * hi)
+        m[2, 2] = s[5] / (hi * hi)
+        g[0] = s[6]
+        g[1] = -s[7] / hi
+        g[2] = s[8] / hi
+        tt = s[9]
+        e[:, :] = m
+        if _cond_below(e, 3, limit):
+            e[:, :] = m
+            for r in range(3):
+                x[r] = -g[r]
+            _gesv(e, x, 3)
+            x3[i] = x
+            rss[i, 0] = tt + (g[0] * x[0] + g[1] * x[1] + g[2] * x[2])
+        e[:2, :2] = m[1:, 1:]
+        if _cond_below(e, 2, limit):
+            e[:2, :2] = m[1:, 1:]
+            x[0] = -g[1]
+            x[1] = -g[2]
+            _gesv(e, x, 2)
+            x2[i, 0] = x[0]
+            x2[i, 1] = x[1]
+            rss[i, 1] = tt + (g[1] * x[0] + g[2] * x[1])
+    return x3, x2, rss
+
+
+def decouple_fits(sums: NDArray, h1: NDArray, *, limit: float = 1e8) -> tuple[NDArray, ...]:
+    """Solve both models of the two-model test from :func:`decouple_sums`.
+
+    Returns ``x3`` (N, 3): (U, h_1 W, h_1 dtheta/dt) of the decoupled model;
+    ``x2`` (N, 2): (h_1 W, h_1 dtheta/dt) of the coupled one (U = 0); ``rss``
+    (N, 2): the weighted residual sums of both, min sum w (A x + t)^2 = t^T t + g . x.
+    NaN rows where a normal matrix's condition number is not below ``limit``.
+    """
+    return _decouple_fits(
+        np.ascontiguousarray(sums, dtype=np.float64),
+        np.ascontiguousarray(h1, dtype=np.float64),
+        float(limit),
+    )
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _heap_push(hd, hj, m, d2, j):  # pragma: no cover - compiled
+    """Add (d2, j) to the max-heap hd[:m], hj[:m]."""
+    pos = m
+    while pos > 0:
+        parent = (pos - 1) // 2
+        if hd[parent] >= d2:
+            break
+        hd[pos] = hd[parent]
+        hj[pos] = hj[parent]
+        pos = parent
+    hd[pos] = d2
+    hj[pos] = j
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _heap_replace_top(hd, hj, m, d2, j):  # pragma: no cover - compiled
+    """Replace the top of the max-heap hd[:m], hj[:m] by (d2, j)."""
+    pos = 0
+    while True:
+        child = 2 * pos + 1
+        if child >= m:
+            break
+        if child + 1 < m and hd[child + 1] > hd[child]:
+            child += 1
+        if hd[child] <= d2:
+            break
+        hd[pos] = hd[child]
+        hj[pos] = hj[child]
+        pos = child
+    hd[pos] = d2
+    hj[pos] = j
+
+
+@numba.njit(cache=True, nogil=True)
+def _cell_knn(x, y, rows, k, radius, split):  # pragma: no cover - compiled
+    n = x.size
+    dist = np.full((n, k), np.inf)
+    idx = np.full((n, k), n, dtype=np.int64)
+    tie = np.zeros(n, np.bool_)
+    if n == 0:
+        return dist, idx, tie
+    cell = radius / split
+    x0 = x.min()
+    y0 = y.min()
+    gw = int((x.max() - x0) / cell) + 1
+    gh = int((y.max() - y0) / cell) + 1
+    cx = np.empty(n, np.int64)
+    cy = np.empty(n, np.int64)
+    start = np.zeros(gw * gh + 1, np.int64)
+    for j in range(n):
+        cx[j] = min(int((x[j] - x0) / cell), gw - 1)
+        cy[j] = min(int((y[j] - y0) / cell), gh - 1)
+        start[cy[j] * gw + cx[j] + 1] += 1
+    for c in range(gw * gh):
+        start[c + 1] += start[c]
+    order = np.empty(n, np.int64)
+    fill = start[:-1].copy()
+    for j in range(n):  # points by cell, in index order within a cell
+        c = cy[j] * gw + cx[j]
+        order[fill[c]] = j
+        fill[c] += 1
+    xs = x[order]  # the coordinates in cell order: a cell's candidates are contiguous
+    ys = y[order]
+    r2 = radius * radius
+    hd = np.empty(k)  # one row's nearest so far, a max-heap on the squared distance
+    hj = np.empty(k, np.int64)
+    for t in range(rows.size):
+        i = rows[t]
+        xi = x[i]
+        yi = y[i]
+        m = 0
+        bound = r2
+        ties = 0  # points outside a full heap at its top's squared distance
+        # the cells ring by ring around the point's own (nearest first, so the bound
+        # shrinks early and prunes the outer cells)
+        for ring in range(split + 1):
+            for off in range(8 * ring if ring else 1):
+                if ring == 0:
+                    ox, oy = 0, 0
+                else:  # walk the square ring's 8 ring cells
+                    side, step = off // (2 * ring), off % (2 * ring)
+                    if side == 0:
+                        ox, oy = -ring + step, -ring
+                    elif side == 1:
+                        ox, oy = ring, -ring + step
+                    elif side == 2:
+                        ox, oy = ring - step, ring
+                    else:
+                        ox, oy = -ring, ring - step
+                gx = cx[i] + ox
+                gy = cy[i] + oy
+                if gx < 0 or gy < 0 or gx >= gw or gy >= gh:
+                    continue
+                ex = max(x0 + gx * cell - xi, xi - (x0 + (gx + 1) * cell), 0.0)
+                ey = max(y0 + gy * cell - yi, yi - (y0 + (gy + 1) * cell), 0.0)
+                if ex * ex + ey * ey > bound:  # nothing in this cell can enter or tie
+                    continue
+                c = gy * gw + gx
+                for s in range(start[c], start[c + 1]):
+                    dx = xs[s] - xi
+                    dy = ys[s] - yi
+                    d2 = dx * dx + dy * dy
+                    if d2 < bound:
+                        if m < k:
+                            _heap_push(hd, hj, m, d2, order[s])
+                            m += 1
+                        else:  # the top (the k-th) drops out
+                            last = hd[0]
+                            _heap_replace_top(hd, hj, k, d2, order[s])
+                            ties = ties + 1 if last == hd[0] else 0
+                        if m == k:
+                            bound = hd[0]
+                    elif d2 == bound and m == k:
+                        ties += 1
+        for q in range(m - 1, -1, -1):  # pop the farthest into the last place
+            dist[i, q] = math.sqrt(hd[0])
+            idx[i, q] = hj[0]
+            _heap_replace_top(hd, hj, q, hd[q], hj[q])
+        # another point at the same place (which comes first), or one outside the list
+        # at the k-th's distance (which of them is in)
+        tie[i] = (m >= 2 and dist[i, 1] == 0.0) or ties > 0
+    return dist, idx, tie
+
+
+def cell_knn(
+    x: NDArray, y: NDArray, k: int, radius: float, rows: NDArray | None = None, *, split: int = 2
+) -> tuple[NDArray, NDArray, NDArray]:
+    """The ``k`` nearest of the points (x, y) closer than ``radius`` to each, nearest first.
+
+    As ``scipy.spatial.cKDTree(pts).query(pts[rows], k, distance_upper_bound=radius)``
+    for finite coordinates, on the full (N, k) rows (the rows not in ``rows``, and
+    the places beyond the neighbours found, hold distance inf and index N), with
+    the cells ``radius / split`` wide. Returns (dist, idx, tie): ``tie`` (N,) bool
+    marks the rows whose answer depends on how equal distances are ordered, which
+    the tree decides by its own traversal: a point left out at the k-th's
+    distance (pixel coordinates make equal distances common), or a second point
+    at distance 0. Elsewhere the same neighbours at the same distances
+    (the order within equal distances aside).
+    """
+    x = np.ascontiguousarray(x, dtype=np.float64).ravel()
+    y = np.ascontiguousarray(y, dtype=np.float64).ravel()
+    rows = np.arange(x.size) if rows is None else np.ascontiguousarray(rows, dtype=np.int64)
+    return _cell_knn(x, y, rows, int(k), float(radius), int(split))

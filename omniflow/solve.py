@@ -26,7 +26,7 @@ from omniflow.flow import (
     neighbourhoods,
     pooled_solution,
 )
-from omniflow.gridpool import GridPools
+from omniflow.gridpool import GridPools, grid_pooling
 from omniflow.matching import Matches
 from omniflow.refine import refine_moving
 from omniflow.rig import Rig, Unit
@@ -140,7 +140,9 @@ def flow_at_matches(
         "f2_t": f2_t,
         "_t_sample": t1 - t0,
     }
-    return decouple(cols, rig, config, _displacement)  # eq. (14) tested (omniflow.decoupled)
+    pools = None if solve.pools is None else (*solve.pools, keep)
+    # eq. (14) tested (omniflow.decoupled) over the solver's own pools
+    return decouple(cols, rig, config, _displacement, pools=pools)
 
 
 def make_solver(
@@ -161,7 +163,11 @@ def make_solver(
 
     ``noise``: the variance of each unit's gradient components, subtracted by
     the pooled solver (``eiv="correct"``). ``edge_map``: cam1's edge strength
-    on the pixel grid, for ``config.pool_edge_tol``."""
+    on the pixel grid, for ``config.pool_edge_tol``.
+
+    The returned function's attribute ``pools``: the (idx, w) of
+    :func:`omniflow.flow.neighbourhoods` where the solver pools over them as
+    searched (k-d tree pools, no edge test), else None."""
     if config.solver == "direct":
 
         def solve(f1_h, f1_th, f1_t, f2_h, f2_th, f2_t):
@@ -178,11 +184,13 @@ def make_solver(
             )
             return a, b, direct_conditioning(f1_h, f1_th, f2_h, f2_th, h1, h2)
 
+        solve.pools = None
         return solve
+
     pool_radius = rig.cam1.r_m / 8.0 if config.pool_radius is None else config.pool_radius
     tree = dict(k=config.pool_k, radius=pool_radius, r=r, range_tol=config.pool_range_tol)
     grid = None
-    if _grid_pooling(config):
+    if grid_pooling(config):
         idx = w = None
         eps = 1e-3  # rad: the tangent d(x, y)/dtheta / h_1 by central differences
         xp, yp = rig.cam1.pixel_of_polar(h1, theta + eps)
@@ -223,20 +231,9 @@ def make_solver(
             return a, b, conf
         return solve_w(derivs, _same_motion(weights, idx, a, b, h1, config.pool_flow_tol))
 
+    # the plain k-nearest pools (no edge test), which omniflow.decoupled would search again
+    solve.pools = (idx, w) if grid is None and edge_map is None else None
     return solve
-
-
-def _grid_pooling(config: OmniFlowConfig) -> bool:
-    """Whether the pools are grid filters (``config.pool_grid``): only for the one-pass,
-    equal-weight solver; the knobs that thin each pool by its neighbours need the tree's."""
-    return (
-        config.pool_grid is not None
-        and config.pool_unit_weighting == "equal"
-        and config.pool_edge_tol is None
-        and config.pool_residual_tol is None
-        and config.pool_flow_tol is None
-        and config.pool_min_info is None
-    )
 
 
 def _same_motion(
