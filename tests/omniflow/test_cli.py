@@ -125,8 +125,9 @@ def check_against_truth(case, cols, epe_max=0.15):
     # coupled, the two-unit formula where eq. (14) was rejected (omniflow.decoupled).
     # On this scene eq. (14) holds everywhere; with the densified matches
     # (dense_percentile 60, pool_grid 0.125, decouple_tol 60) the test rejected it at
-    # 0.2 % of the points (16-bit PNG), 2.1 % (the dataset mode's frames) and 4.8 %
-    # (JPEG): bound 10 %
+    # 0.7 % of the points (16-bit PNG, EXR) and 4.1 % (JPEG), measured with the CLI on
+    # this fixture's first two frames after the decoupling moved to the grid windows
+    # (tree pools: 0.2 %, 2.1 % in the dataset mode, 4.8 % JPEG): bound 10 %
     c = cols["coupled"] == 1
     np.testing.assert_allclose(
         cols["dr_dt"][c], (-(rig.d + cols["r"]) * cols["dh1_dt"] / cols["h1"])[c], rtol=1e-6,
