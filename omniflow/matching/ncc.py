@@ -28,7 +28,7 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["profiles", "robust_lines"]
+__all__ = ["alias_lines", "profiles", "robust_lines"]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -298,3 +298,141 @@ def robust_lines(
     else:
         run(0, n_theta)
     return ok, j2, s, int(n_sig.sum())
+
+
+@numba.njit(cache=True, nogil=True)
+def _alias_matches(t1, edges, k, j, j2, i0, i1, w, stride, lines, lag_lo, lag_hi, alias_score,
+                   t2, use2, win_lo, win_hi, alias2, confirm, lo_col, hi_col,
+                   keep):  # pragma: no cover - compiled  # fmt: skip
+    """:func:`alias_lines` for the matches i0 .. i1 - 1 (sorted by line)."""
+    n_cols = t1.shape[1]
+    length = (2 * lines + 1) * (2 * w + 1)
+    d = np.empty((1, length), dtype=np.float32)  # the match's profile
+    p = np.empty((1, length), dtype=np.float32)  # image 2's, a recurrence away
+    cols = np.empty(n_cols, dtype=np.int64)  # the edges of the current line
+    ep = np.empty((n_cols, length), dtype=np.float32)  # their profiles, made when first read
+    have = np.zeros(n_cols, dtype=np.bool_)
+    line = -1
+    n_e = 0
+    for i in range(i0, i1):
+        if k[i] != line:
+            line = k[i]
+            n_e = 0
+            for c in range(n_cols):
+                if edges[line, c]:
+                    cols[n_e] = c
+                    have[n_e] = False
+                    n_e += 1
+        ji = j[i]
+        _profile(t1, line, ji, w, stride, lines, d, 0)
+        at = np.int64(np.rint(j2[i])) if use2 else np.int64(0)
+        alias = False
+        hidden = False  # a recurrence whose alias lies in the window but past image 2's rim
+        n_confirm = 0  # recurrences above ``confirm`` (a period: two at least)
+        first_right = 0
+        while first_right < n_e and cols[first_right] <= ji:
+            first_right += 1
+        for direction in (1, -1):
+            # walk outward from j: the NCC must fall below 0 before a recurrence counts
+            low = np.inf
+            m = first_right if direction > 0 else first_right - 1
+            if direction < 0 and m >= 0 and cols[m] == ji:
+                m -= 1  # the match's own edge: lag 0, on neither side
+            while 0 <= m < n_e and not alias:
+                lag = cols[m] - ji
+                if abs(lag) > lag_hi:
+                    break
+                if not have[m]:
+                    _profile(t1, line, cols[m], w, stride, lines, ep, m)
+                    have[m] = True
+                a = np.float64(_dot(d, 0, ep, m))
+                if low < 0.0 and abs(lag) >= lag_lo:
+                    if a > confirm:
+                        n_confirm += 1
+                    if a > alias_score:
+                        if not use2:
+                            alias = True
+                        else:
+                            # image 2 a recurrence away from the match (+-1 column, in the
+                            # window): does it hold the alias?
+                            best = -np.inf
+                            for sign in (1, -1):
+                                for dj in (-1, 0, 1):
+                                    c2 = at + sign * lag + dj
+                                    if c2 - ji < win_lo or c2 - ji > win_hi:
+                                        continue
+                                    if c2 < lo_col or c2 > hi_col:
+                                        hidden = True
+                                        continue
+                                    _profile(t2, line, c2, w, stride, lines, p, 0)
+                                    s = np.float64(_dot(d, 0, p, 0))
+                                    if s > best:
+                                        best = s
+                            if best > alias2:
+                                alias = True
+                if a < low:
+                    low = a
+                m += direction
+        if hidden and n_confirm >= 2:
+            alias = True
+        keep[i] = not alias
+
+
+def alias_lines(
+    t1: NDArray, edges: NDArray, k: NDArray, j: NDArray, *, w: int, stride: int, lines: int,
+    lags: tuple[int, int], alias_score: float, t2: NDArray | None = None,
+    j2: NDArray | None = None, window: tuple[int, int] = (0, 0), alias2_score: float = 0.9,
+    confirm_score: float = 0.8, columns2: tuple[int, int] | None = None, threads: int = 1,
+    per_range=None,
+) -> NDArray:  # fmt: skip
+    """The periodic-alias test of :func:`omniflow.matching.periodic.not_periodic`, compiled.
+
+    Arguments as there (``t1``, ``t2``: ``table``, ``table2``); ``t2`` or
+    ``j2`` None: any recurrence drops the match. For each match the
+    edges of its line are walked outward from it on each side, up to
+    ``lags[1]``, each NCC made only then; image 2 is looked at only where
+    image 1's profile recurs. The NCCs are summed in double and rounded to
+    float32 (the matcher's :func:`_dot`). Returns keep, bool (M,), in the
+    matches' order. With ``threads`` > 1 the matches are split into
+    ``threads`` ranges run by ``per_range(fn, (i0, i1), ...)``
+    (:func:`omniflow.parallel.map_tasks`).
+    """
+    k = np.asarray(k, dtype=np.int64)
+    j = np.asarray(j, dtype=np.int64)
+    m = k.size
+    keep = np.ones(m, dtype=bool)
+    if alias_score >= 1.0 or m == 0:
+        return keep
+    order = np.argsort(k, kind="stable")  # one line's edges are listed once
+    ks, js = k[order], j[order]
+    use2 = t2 is not None and j2 is not None
+    j2s = np.asarray(j2, dtype=np.float64)[order] if use2 else np.zeros(m)
+    f32 = np.float32
+    t1 = np.ascontiguousarray(t1, dtype=f32)
+    t2 = np.ascontiguousarray(t2, dtype=f32) if use2 else t1
+    edges = np.ascontiguousarray(edges, dtype=bool)
+    reach, n_lines, n_cols = w * stride, t1.shape[0], t1.shape[1]
+    if (
+        k.min() < 0 or k.max() >= n_lines or j.min() < reach or j.max() >= n_cols - reach
+        or edges.shape != t1.shape or edges[:, :reach].any() or edges[:, n_cols - reach :].any()
+    ):  # fmt: skip
+        raise ValueError("alias_lines: every match's and edge's profile must lie inside the table")
+    lo_col, hi_col = w * stride, t2.shape[1] - 1 - w * stride  # whole profiles in image 2
+    if columns2 is not None:
+        lo_col, hi_col = max(lo_col, columns2[0]), min(hi_col, columns2[1])
+    out = np.ones(m, dtype=bool)
+
+    def run(i0: int, i1: int) -> None:
+        _alias_matches(
+            t1, edges, ks, js, j2s, i0, i1, int(w), int(stride), int(lines), int(lags[0]),
+            int(lags[1]), float(alias_score), t2, use2, int(window[0]), int(window[1]),
+            float(alias2_score), float(confirm_score), int(lo_col), int(hi_col), out,
+        )  # fmt: skip
+
+    if threads > 1 and per_range is not None and m >= 64:
+        cuts = np.linspace(0, m, threads + 1).astype(int)
+        per_range(run, *zip(cuts[:-1].tolist(), cuts[1:].tolist(), strict=True))
+    else:
+        run(0, m)
+    keep[order] = out
+    return keep

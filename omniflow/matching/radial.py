@@ -78,6 +78,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
+from omniflow import parallel
 from omniflow.dct import DCTFit
 from omniflow.matching.dense import densify
 from omniflow.matching.paper import match_paper
@@ -437,6 +438,7 @@ def match_radial(
                 table2=t2, j2=c2 + pad, window=win, alias2_score=alias_image2,
                 columns2=_profile_columns(h0, h_step, cam2.r_m / scale2, w * stride),
                 confirm_score=alias_period)),
+            threads=parallel.THREADS, per_range=parallel.map_tasks,
         )  # fmt: skip
         k1, j1, c2, score = k1[keep], j1[keep], c2[keep], score[keep]
     theta = -np.pi + (2.0 * np.pi / n_theta) * (k1 + 0.5)
