@@ -22,13 +22,14 @@ between runs where the package folder (or Numba's user cache) is writable.
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numba
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["alias_lines", "profiles", "robust_lines"]
+__all__ = ["LineSearch", "alias_lines", "profiles", "robust_lines"]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -244,6 +245,62 @@ def _robust_lines(t1, t2, fh1, fh2, cols1, n1, cols2, n2, k0, k1, thr, lo, hi, w
         n_sig[k] = count
 
 
+class LineSearch:
+    """The compiled search of :func:`robust_lines`, in pieces a caller can schedule.
+
+    Made with the arguments of :func:`robust_lines` (its edges are found
+    here); :meth:`run` searches lines k0 .. k1 - 1 (ranges are independent:
+    any order, any thread, the kernel drops the GIL); :meth:`result` returns
+    what :func:`robust_lines` returns once every line has been run.
+    """
+
+    def __init__(
+        self, t1: NDArray, t2: NDArray, fh1: NDArray, fh2: NDArray, *, low: float, thr: float,
+        pad: int, n_h: int, win: tuple[int, int], w: int, stride: int, lines: int,
+        floor: float, uniqueness: float, self_similarity: float, alias_score: float,
+        left_right: bool,
+    ):  # fmt: skip
+        self.n_theta, n_cols = t1.shape
+        n_theta = self.n_theta
+        self.ok = np.zeros((n_theta, n_cols), dtype=bool)
+        # read only where ok: left unset elsewhere (no pages written for them)
+        self.j2 = np.empty((n_theta, n_cols), dtype=np.int64)
+        self.s = np.empty((n_theta, n_cols, 5), dtype=np.float32)
+        self.n_sig = np.zeros(n_theta, dtype=np.int64)
+        f32 = np.float32
+        t1, t2, fh1, fh2 = (np.ascontiguousarray(a, dtype=f32) for a in (t1, t2, fh1, fh2))
+        cols1 = np.empty((n_theta, n_h), dtype=np.int64)
+        cols2 = np.empty((n_theta, n_h), dtype=np.int64)
+        n1 = np.zeros(n_theta, dtype=np.int64)
+        n2 = np.zeros(n_theta, dtype=np.int64)
+        _all_edges(fh1, fh2, f32(low), int(pad), int(n_h), cols1, n1, cols2, n2)
+        # numpy's rule took the uniqueness test only when some line has two edges in image 2
+        tests = (uniqueness < 1.0 and int(n2.max()) > 1, self_similarity < 1.0, alias_score < 1.0)
+        self._args = (
+            t1, t2, fh1, fh2, cols1, n1, cols2, n2, f32(thr), int(win[0]), int(win[1]), int(w),
+            int(stride), int(lines), f32(floor), f32(uniqueness), f32(self_similarity),
+            f32(alias_score), tests, bool(left_right), self.ok, self.j2, self.s, self.n_sig,
+        )  # fmt: skip
+
+    def ranges(self, threads: int) -> list[tuple[int, int]]:
+        """The lines in 4 ``threads`` ranges (a few per thread: a thread busy elsewhere
+        delays only one), or one range on one thread or with few lines."""
+        chunks = 4 * threads
+        if threads < 2 or self.n_theta < 2 * chunks:
+            return [(0, self.n_theta)]
+        cuts = np.linspace(0, self.n_theta, chunks + 1).astype(int).tolist()
+        return list(itertools.pairwise(cuts))
+
+    def run(self, k0: int, k1: int) -> None:
+        """Search lines k0 .. k1 - 1."""
+        a = self._args
+        _robust_lines(*a[:8], k0, k1, *a[8:])
+
+    def result(self) -> tuple[NDArray, NDArray, NDArray, int]:
+        """(ok, j2, s, n_sig) of :func:`robust_lines`."""
+        return self.ok, self.j2, self.s, int(self.n_sig.sum())
+
+
 def robust_lines(
     t1: NDArray, t2: NDArray, fh1: NDArray, fh2: NDArray, *, low: float, thr: float,
     pad: int, n_h: int, win: tuple[int, int], w: int, stride: int, lines: int,
@@ -265,39 +322,20 @@ def robust_lines(
     j2 - 2 .. j2 + 2 (each clipped to the table's profile range; s[..., 2]
     is the best whole-column NCC), and n_sig the significant edges tried.
     With ``threads`` > 1 the lines are split into 4 ``threads`` ranges, run by
-    ``per_range(fn, (k0, k1), ...)`` (:func:`omniflow.parallel.map_tasks`).
+    ``per_range(fn, (k0, k1), ...)`` (:func:`omniflow.parallel.map_tasks`);
+    :class:`LineSearch` is the same search in pieces.
     """
-    n_theta, n_cols = t1.shape
-    ok = np.zeros((n_theta, n_cols), dtype=bool)
-    # read only where ok: left unset elsewhere (no pages written for them)
-    j2 = np.empty((n_theta, n_cols), dtype=np.int64)
-    s = np.empty((n_theta, n_cols, 5), dtype=np.float32)
-    n_sig = np.zeros(n_theta, dtype=np.int64)
-    f32 = np.float32
-    t1, t2, fh1, fh2 = (np.ascontiguousarray(a, dtype=f32) for a in (t1, t2, fh1, fh2))
-    cols1 = np.empty((n_theta, n_h), dtype=np.int64)
-    cols2 = np.empty((n_theta, n_h), dtype=np.int64)
-    n1 = np.zeros(n_theta, dtype=np.int64)
-    n2 = np.zeros(n_theta, dtype=np.int64)
-    _all_edges(fh1, fh2, f32(low), int(pad), int(n_h), cols1, n1, cols2, n2)
-    # numpy's rule took the uniqueness test only when some line has two edges in image 2
-    tests = (uniqueness < 1.0 and int(n2.max()) > 1, self_similarity < 1.0, alias_score < 1.0)
-
-    def run(k0: int, k1: int) -> None:
-        _robust_lines(
-            t1, t2, fh1, fh2, cols1, n1, cols2, n2, k0, k1, f32(thr), int(win[0]), int(win[1]),
-            int(w), int(stride), int(lines), f32(floor), f32(uniqueness), f32(self_similarity),
-            f32(alias_score), tests, bool(left_right), ok, j2, s, n_sig,
-        )  # fmt: skip
-
-    chunks = 4 * threads  # a few per thread: a thread busy elsewhere delays only one
-    if threads > 1 and n_theta >= 2 * chunks:
-        # the lines are independent: split them between threads (the kernel drops the GIL)
-        cuts = np.linspace(0, n_theta, chunks + 1).astype(int)
-        per_range(run, *zip(cuts[:-1].tolist(), cuts[1:].tolist(), strict=True))
+    search = LineSearch(
+        t1, t2, fh1, fh2, low=low, thr=thr, pad=pad, n_h=n_h, win=win, w=w, stride=stride,
+        lines=lines, floor=floor, uniqueness=uniqueness, self_similarity=self_similarity,
+        alias_score=alias_score, left_right=left_right,
+    )  # fmt: skip
+    ranges = search.ranges(threads)
+    if len(ranges) > 1:
+        per_range(search.run, *ranges)
     else:
-        run(0, n_theta)
-    return ok, j2, s, int(n_sig.sum())
+        search.run(*ranges[0])
+    return search.result()
 
 
 @numba.njit(cache=True, nogil=True)
