@@ -29,7 +29,7 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["LineSearch", "alias_lines", "profiles", "robust_lines"]
+__all__ = ["EdgeProfiles", "LineSearch", "alias_lines", "profiles", "robust_lines"]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -106,11 +106,12 @@ def _dot(a, i, b, j):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True)
-def _need(t, k, cols, m, w, stride, lines, d, have):  # pragma: no cover - compiled
-    """Make the profile of edge m of a line once (``have`` marks those made)."""
-    if not have[m]:
-        _profile(t, k, cols[m], w, stride, lines, d, m)
-        have[m] = True
+def _need(t, k, cols, m, w, stride, lines, d, have, base):  # pragma: no cover - compiled
+    """Make the profile of edge m of a line once, into row base + m of ``d`` (``have``
+    marks those made)."""
+    if not have[base + m]:
+        _profile(t, k, cols[m], w, stride, lines, d, base + m)
+        have[base + m] = True
 
 
 @numba.njit(cache=True, nogil=True)
@@ -123,7 +124,7 @@ def _all_edges(fh1, fh2, low, pad, n_h, cols1, n1, cols2, n2):  # pragma: no cov
 @numba.njit(cache=True, nogil=True)
 def _robust_lines(t1, t2, fh1, fh2, cols1, n1, cols2, n2, k0, k1, thr, lo, hi, w, stride,
                   lines, floor, uniqueness, self_similarity, alias_score, tests, left_right,
-                  ok, j2_out, s_out, n_sig):  # pragma: no cover - compiled  # fmt: skip
+                  ok, j2_out, s_out, n_sig, d1, have1):  # pragma: no cover - compiled  # fmt: skip
     n_cols = t1.shape[1]
     length = (2 * lines + 1) * (2 * w + 1)
     do_uniqueness = tests[0]
@@ -135,8 +136,7 @@ def _robust_lines(t1, t2, fh1, fh2, cols1, n1, cols2, n2, k0, k1, thr, lo, hi, w
     # scratch for one line at a time, sized for the longest line of the range
     most1 = max(n1[k0:k1].max(), 1)
     most2 = max(n2[k0:k1].max(), 1)
-    d1 = np.empty((most1, length), dtype=np.float32)
-    have1 = np.empty(most1, dtype=np.bool_)
+    per_line = d1.shape[0] // t1.shape[0]  # rows of d1 per line
     d2 = np.empty((most2, length), dtype=np.float32)
     ncc = np.empty((most1, most2), dtype=np.float32)
     scored = np.empty((most1, most2), dtype=np.bool_)
@@ -145,8 +145,9 @@ def _robust_lines(t1, t2, fh1, fh2, cols1, n1, cols2, n2, k0, k1, thr, lo, hi, w
         c1 = cols1[k, : n1[k]]
         c2 = cols2[k, : n2[k]]
         # image 1's profiles are made when first read (the tests of the kept matches
-        # read some non-significant edges, most are never read); image 2's all are
-        have1[: c1.size] = False
+        # read some non-significant edges, most are never read), into rows
+        # base .. base + n1[k] of d1, kept for the alias test; image 2's all are
+        base = k * per_line
         for m in range(c2.size):
             _profile(t2, k, c2[m], w, stride, lines, d2, m)
         # NCC of edge pairs (image 1, image 2) once scored: the left-right check
@@ -167,10 +168,10 @@ def _robust_lines(t1, t2, fh1, fh2, cols1, n1, cols2, n2, k0, k1, thr, lo, hi, w
                 stop += 1
             if stop == first:
                 continue
-            _need(t1, k, c1, i, w, stride, lines, d1, have1)
+            _need(t1, k, c1, i, w, stride, lines, d1, have1, base)
             b = first
             for m in range(first, stop):
-                ncc[i, m] = _dot(d1, i, d2, m)
+                ncc[i, m] = _dot(d1, base + i, d2, m)
                 scored[i, m] = True
                 if ncc[i, m] > ncc[i, b]:
                     b = m
@@ -191,8 +192,8 @@ def _robust_lines(t1, t2, fh1, fh2, cols1, n1, cols2, n2, k0, k1, thr, lo, hi, w
                 for m in range(c1.size):
                     lag = abs(c1[m] - j1)
                     if lag >= lag_lo and lag <= lag_hi:
-                        _need(t1, k, c1, m, w, stride, lines, d1, have1)
-                        a = _dot(d1, i, d1, m)
+                        _need(t1, k, c1, m, w, stride, lines, d1, have1, base)
+                        a = _dot(d1, base + i, d1, base + m)
                         if a > self_best:
                             self_best = a
                 if not (one - best) <= self_similarity * (one - self_best):
@@ -208,8 +209,8 @@ def _robust_lines(t1, t2, fh1, fh2, cols1, n1, cols2, n2, k0, k1, thr, lo, hi, w
                         lag = abs(c1[m] - j1)
                         if lag > lag_hi:
                             break
-                        _need(t1, k, c1, m, w, stride, lines, d1, have1)
-                        a = _dot(d1, i, d1, m)
+                        _need(t1, k, c1, m, w, stride, lines, d1, have1, base)
+                        a = _dot(d1, base + i, d1, base + m)
                         if low_so_far < 0.0 and lag >= lag_lo and a > alias_score:
                             recurs = True
                         if a < low_so_far:
@@ -224,8 +225,8 @@ def _robust_lines(t1, t2, fh1, fh2, cols1, n1, cols2, n2, k0, k1, thr, lo, hi, w
                 for m in range(c1.size):
                     if c1[m] >= j2 - hi and c1[m] <= j2 - lo:
                         if not scored[m, b]:
-                            _need(t1, k, c1, m, w, stride, lines, d1, have1)
-                            ncc[m, b] = _dot(d1, m, d2, b)
+                            _need(t1, k, c1, m, w, stride, lines, d1, have1, base)
+                            ncc[m, b] = _dot(d1, base + m, d2, b)
                             scored[m, b] = True
                         if back < 0 or ncc[m, b] > back_s:
                             back, back_s = m, ncc[m, b]
@@ -239,10 +240,40 @@ def _robust_lines(t1, t2, fh1, fh2, cols1, n1, cols2, n2, k0, k1, thr, lo, hi, w
                     continue
                 jj = min(max(j2 + q - 2, lo_col), hi_col)
                 _profile(t2, k, jj, w, stride, lines, p, 0)
-                s_out[k, j1, q] = _dot(d1, i, p, 0)
+                s_out[k, j1, q] = _dot(d1, base + i, p, 0)
             ok[k, j1] = True
             j2_out[k, j1] = j2
         n_sig[k] = count
+
+
+class EdgeProfiles:
+    """Image 1's edges per line and their profiles, made when first asked for.
+
+    ``cols[k, :n[k]]``: the edge columns of line k, ascending; row
+    k * per_line + m of ``d`` holds the profile (:func:`_profile`, with
+    ``w``, ``stride``, ``lines``) of edge m of line k once ``have`` marks it.
+    :class:`LineSearch` fills it as it searches; :func:`alias_lines` reads
+    what is there and makes the rest.
+    """
+
+    def __init__(self, t: NDArray, cols: NDArray, n: NDArray, d: NDArray, have: NDArray,
+                 w: int, stride: int, lines: int):  # fmt: skip
+        self.t, self.cols, self.n, self.d, self.have = t, cols, n, d, have
+        self.w, self.stride, self.lines = w, stride, lines
+
+    @classmethod
+    def from_mask(cls, t: NDArray, edges: NDArray, w: int, stride: int, lines: int):
+        """The edges marked True in ``edges`` (same shape as the table ``t``)."""
+        t = np.ascontiguousarray(t, dtype=np.float32)
+        ek, ej = np.nonzero(edges)
+        n = np.bincount(ek, minlength=t.shape[0]).astype(np.int64)
+        per_line = max(int(n.max()) if n.size else 0, 1)
+        cols = np.zeros((t.shape[0], per_line), dtype=np.int64)
+        start = np.concatenate([[0], np.cumsum(n)[:-1]])
+        cols[ek, np.arange(ek.size) - start[ek]] = ej
+        length = (2 * lines + 1) * (2 * w + 1)
+        d = np.empty((t.shape[0] * per_line, length), dtype=np.float32)
+        return cls(t, cols, n, d, np.zeros(t.shape[0] * per_line, dtype=bool), w, stride, lines)
 
 
 class LineSearch:
@@ -276,10 +307,17 @@ class LineSearch:
         _all_edges(fh1, fh2, f32(low), int(pad), int(n_h), cols1, n1, cols2, n2)
         # numpy's rule took the uniqueness test only when some line has two edges in image 2
         tests = (uniqueness < 1.0 and int(n2.max()) > 1, self_similarity < 1.0, alias_score < 1.0)
+        # image 1's edges and their profiles, those the search made (kept for the alias test)
+        per_line = max(int(n1.max()), 1)
+        self.edges1 = EdgeProfiles(
+            t1, cols1, n1, np.empty((n_theta * per_line, (2 * lines + 1) * (2 * w + 1)), f32),
+            np.zeros(n_theta * per_line, dtype=bool), int(w), int(stride), int(lines),
+        )  # fmt: skip
         self._args = (
             t1, t2, fh1, fh2, cols1, n1, cols2, n2, f32(thr), int(win[0]), int(win[1]), int(w),
             int(stride), int(lines), f32(floor), f32(uniqueness), f32(self_similarity),
             f32(alias_score), tests, bool(left_right), self.ok, self.j2, self.s, self.n_sig,
+            self.edges1.d, self.edges1.have,
         )  # fmt: skip
 
     def ranges(self, threads: int) -> list[tuple[int, int]]:
@@ -339,51 +377,50 @@ def robust_lines(
 
 
 @numba.njit(cache=True, nogil=True)
-def _alias_matches(t1, edges, k, j, j2, i0, i1, w, stride, lines, lag_lo, lag_hi, alias_score,
-                   t2, use2, win_lo, win_hi, alias2, confirm, lo_col, hi_col,
+def _alias_matches(t1, cols, n, d, have, k, j, j2, i0, i1, w, stride, lines, lag_lo, lag_hi,
+                   alias_score, t2, use2, win_lo, win_hi, alias2, confirm, lo_col, hi_col,
                    keep):  # pragma: no cover - compiled  # fmt: skip
     """:func:`alias_lines` for the matches i0 .. i1 - 1 (sorted by line)."""
-    n_cols = t1.shape[1]
-    length = (2 * lines + 1) * (2 * w + 1)
-    d = np.empty((1, length), dtype=np.float32)  # the match's profile
+    length = d.shape[1]
+    per_line = d.shape[0] // t1.shape[0]
+    own = np.empty((1, length), dtype=np.float32)  # the match's profile
     p = np.empty((1, length), dtype=np.float32)  # image 2's, a recurrence away
-    cols = np.empty(n_cols, dtype=np.int64)  # the edges of the current line
-    ep = np.empty((n_cols, length), dtype=np.float32)  # their profiles, made when first read
-    have = np.zeros(n_cols, dtype=np.bool_)
-    line = -1
-    n_e = 0
     for i in range(i0, i1):
-        if k[i] != line:
-            line = k[i]
-            n_e = 0
-            for c in range(n_cols):
-                if edges[line, c]:
-                    cols[n_e] = c
-                    have[n_e] = False
-                    n_e += 1
+        line = k[i]
+        base = line * per_line
+        c = cols[line]
+        n_e = n[line]
         ji = j[i]
-        _profile(t1, line, ji, w, stride, lines, d, 0)
+        first_right = 0  # the first edge right of the match
+        while first_right < n_e and c[first_right] <= ji:
+            first_right += 1
+        at_edge = first_right > 0 and c[first_right - 1] == ji
+        if at_edge:  # the search made it, most likely
+            r = base + first_right - 1
+            if not have[r]:
+                _profile(t1, line, ji, w, stride, lines, d, r)
+                have[r] = True
+            for q in range(length):
+                own[0, q] = d[r, q]
+        else:
+            _profile(t1, line, ji, w, stride, lines, own, 0)
         at = np.int64(np.rint(j2[i])) if use2 else np.int64(0)
         alias = False
         hidden = False  # a recurrence whose alias lies in the window but past image 2's rim
         n_confirm = 0  # recurrences above ``confirm`` (a period: two at least)
-        first_right = 0
-        while first_right < n_e and cols[first_right] <= ji:
-            first_right += 1
         for direction in (1, -1):
             # walk outward from j: the NCC must fall below 0 before a recurrence counts
             low = np.inf
-            m = first_right if direction > 0 else first_right - 1
-            if direction < 0 and m >= 0 and cols[m] == ji:
-                m -= 1  # the match's own edge: lag 0, on neither side
+            m = first_right if direction > 0 else first_right - 1 - at_edge
             while 0 <= m < n_e and not alias:
-                lag = cols[m] - ji
+                lag = c[m] - ji
                 if abs(lag) > lag_hi:
                     break
-                if not have[m]:
-                    _profile(t1, line, cols[m], w, stride, lines, ep, m)
-                    have[m] = True
-                a = np.float64(_dot(d, 0, ep, m))
+                r = base + m
+                if not have[r]:
+                    _profile(t1, line, c[m], w, stride, lines, d, r)
+                    have[r] = True
+                a = np.float64(_dot(own, 0, d, r))
                 if low < 0.0 and abs(lag) >= lag_lo:
                     if a > confirm:
                         n_confirm += 1
@@ -403,7 +440,7 @@ def _alias_matches(t1, edges, k, j, j2, i0, i1, w, stride, lines, lag_lo, lag_hi
                                         hidden = True
                                         continue
                                     _profile(t2, line, c2, w, stride, lines, p, 0)
-                                    s = np.float64(_dot(d, 0, p, 0))
+                                    s = np.float64(_dot(own, 0, p, 0))
                                     if s > best:
                                         best = s
                             if best > alias2:
@@ -417,22 +454,22 @@ def _alias_matches(t1, edges, k, j, j2, i0, i1, w, stride, lines, lag_lo, lag_hi
 
 
 def alias_lines(
-    t1: NDArray, edges: NDArray, k: NDArray, j: NDArray, *, w: int, stride: int, lines: int,
-    lags: tuple[int, int], alias_score: float, t2: NDArray | None = None,
-    j2: NDArray | None = None, window: tuple[int, int] = (0, 0), alias2_score: float = 0.9,
-    confirm_score: float = 0.8, columns2: tuple[int, int] | None = None, threads: int = 1,
-    per_range=None,
+    edges1: EdgeProfiles, k: NDArray, j: NDArray, *, lags: tuple[int, int], alias_score: float,
+    t2: NDArray | None = None, j2: NDArray | None = None, window: tuple[int, int] = (0, 0),
+    alias2_score: float = 0.9, confirm_score: float = 0.8,
+    columns2: tuple[int, int] | None = None, threads: int = 1, per_range=None,
 ) -> NDArray:  # fmt: skip
     """The periodic-alias test of :func:`omniflow.matching.periodic.not_periodic`, compiled.
 
-    Arguments as there (``t1``, ``t2``: ``table``, ``table2``); ``t2`` or
-    ``j2`` None: any recurrence drops the match. For each match the
-    edges of its line are walked outward from it on each side, up to
-    ``lags[1]``, each NCC made only then; image 2 is looked at only where
-    image 1's profile recurs. The NCCs are summed in double and rounded to
-    float32 (the matcher's :func:`_dot`). Returns keep, bool (M,), in the
-    matches' order. With ``threads`` > 1 the matches are split into
-    ``threads`` ranges run by ``per_range(fn, (i0, i1), ...)``
+    ``edges1``: image 1's table, edges and their profiles (those already made
+    are reused, the others are made and kept); the other arguments as
+    not_periodic's (``t2``: ``table2``); ``t2`` or ``j2`` None: any
+    recurrence drops the match. For each match the edges of its line are
+    walked outward from it on each side, up to ``lags[1]``; image 2 is looked
+    at only where image 1's profile recurs. The NCCs are summed in double and
+    rounded to float32 (the matcher's :func:`_dot`). Returns keep, bool (M,),
+    in the matches' order. With ``threads`` > 1 the matches are split into
+    ``threads`` ranges of whole lines run by ``per_range(fn, (i0, i1), ...)``
     (:func:`omniflow.parallel.map_tasks`).
     """
     k = np.asarray(k, dtype=np.int64)
@@ -441,35 +478,35 @@ def alias_lines(
     keep = np.ones(m, dtype=bool)
     if alias_score >= 1.0 or m == 0:
         return keep
-    order = np.argsort(k, kind="stable")  # one line's edges are listed once
+    e = edges1
+    w, stride, lines = e.w, e.stride, e.lines
+    order = np.argsort(k, kind="stable")  # one line's matches together
     ks, js = k[order], j[order]
     use2 = t2 is not None and j2 is not None
     j2s = np.asarray(j2, dtype=np.float64)[order] if use2 else np.zeros(m)
-    f32 = np.float32
-    t1 = np.ascontiguousarray(t1, dtype=f32)
-    t2 = np.ascontiguousarray(t2, dtype=f32) if use2 else t1
-    edges = np.ascontiguousarray(edges, dtype=bool)
+    t1 = e.t
+    t2 = np.ascontiguousarray(t2, dtype=np.float32) if use2 else t1
     reach, n_lines, n_cols = w * stride, t1.shape[0], t1.shape[1]
-    if (
-        k.min() < 0 or k.max() >= n_lines or j.min() < reach or j.max() >= n_cols - reach
-        or edges.shape != t1.shape or edges[:, :reach].any() or edges[:, n_cols - reach :].any()
-    ):  # fmt: skip
-        raise ValueError("alias_lines: every match's and edge's profile must lie inside the table")
-    lo_col, hi_col = w * stride, t2.shape[1] - 1 - w * stride  # whole profiles in image 2
+    if k.min() < 0 or k.max() >= n_lines or j.min() < reach or j.max() >= n_cols - reach:
+        raise ValueError("alias_lines: every match's profile must lie inside the table")
+    lo_col, hi_col = reach, t2.shape[1] - 1 - reach  # whole profiles in image 2
     if columns2 is not None:
         lo_col, hi_col = max(lo_col, columns2[0]), min(hi_col, columns2[1])
     out = np.ones(m, dtype=bool)
 
     def run(i0: int, i1: int) -> None:
         _alias_matches(
-            t1, edges, ks, js, j2s, i0, i1, int(w), int(stride), int(lines), int(lags[0]),
-            int(lags[1]), float(alias_score), t2, use2, int(window[0]), int(window[1]),
-            float(alias2_score), float(confirm_score), int(lo_col), int(hi_col), out,
+            t1, e.cols, e.n, e.d, e.have, ks, js, j2s, i0, i1, int(w), int(stride), int(lines),
+            int(lags[0]), int(lags[1]), float(alias_score), t2, use2, int(window[0]),
+            int(window[1]), float(alias2_score), float(confirm_score), int(lo_col),
+            int(hi_col), out,
         )  # fmt: skip
 
     if threads > 1 and per_range is not None and m >= 64:
-        cuts = np.linspace(0, m, threads + 1).astype(int)
-        per_range(run, *zip(cuts[:-1].tolist(), cuts[1:].tolist(), strict=True))
+        # whole lines per range: a line's edge profiles are made by one thread
+        cuts = np.searchsorted(ks, ks[np.linspace(0, m - 1, threads + 1).astype(int)[1:-1]])
+        cuts = np.unique(np.concatenate([[0], cuts, [m]])).tolist()
+        per_range(run, *itertools.pairwise(cuts))
     else:
         run(0, m)
     keep[order] = out

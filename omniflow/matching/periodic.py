@@ -28,7 +28,7 @@ import itertools
 import numpy as np
 from numpy.typing import NDArray
 
-from omniflow.matching.ncc import alias_lines
+from omniflow.matching.ncc import EdgeProfiles, alias_lines
 from omniflow.matching.robust import Descriptors
 
 __all__ = ["line_edges", "not_periodic", "not_periodic_numpy", "profiles"]
@@ -132,10 +132,15 @@ def not_periodic(
         ``per_range`` (:func:`omniflow.parallel.map_tasks`); the result does
         not depend on it.
     """
+    reach = w * stride
+    if np.shape(edges) != np.shape(table) or np.any(
+        edges[:, :reach] | edges[:, edges.shape[1] - reach :]
+    ):
+        raise ValueError("not_periodic: every edge's profile must lie inside the table")
     use2 = table2 is not None and j2 is not None and window is not None
     return alias_lines(
-        table, edges, k, j, w=w, stride=stride, lines=lines, lags=lags, alias_score=alias_score,
-        t2=table2 if use2 else None, j2=j2 if use2 else None,
+        EdgeProfiles.from_mask(table, edges, w, stride, lines), k, j, lags=lags,
+        alias_score=alias_score, t2=table2 if use2 else None, j2=j2 if use2 else None,
         window=window if use2 else (0, 0), alias2_score=alias2_score,
         confirm_score=confirm_score, columns2=columns2, threads=threads, per_range=per_range,
     )  # fmt: skip

@@ -81,14 +81,13 @@ from numpy.typing import NDArray
 from omniflow import parallel
 from omniflow.dct import DCTFit
 from omniflow.matching.dense import densify
+from omniflow.matching.ncc import alias_lines
 from omniflow.matching.paper import match_paper
-from omniflow.matching.periodic import not_periodic
 from omniflow.matching.robust import RobustSearch
 from omniflow.matching.tables import (
     PolarGrids,
     TableGeometry,
     blur_lines,
-    local_maxima,
     polar_grids,
     polar_maps,
     polar_table,
@@ -488,18 +487,16 @@ def _finish(p: _Pass) -> Matches:
     method, h_step, h_min, n_theta = o["method"], o["h_step"], o["h_min"], o["n_theta"]
     r_min, r_max, scale2 = o["r_min"], o["r_max"], tab.scale2
     pad, n_h, win, w, stride = tab.pad, tab.n_h, tab.win, p.w, p.stride
-    t1, t2, fh1, thr = p.t1, p.t2, p.fh1, p.thr
+    t1, t2, fh1 = p.t1, p.t2, p.fh1
     k1, j1, c2, score, n_sig = p.paper if method == "paper" else p.search.finish()
     if method == "robust" and o["alias_score"] < 1.0 and k1.size:
-        a1 = np.abs(fh1)
-        edges1 = local_maxima(a1) & (a1 > o["candidate_fraction"] * thr)
-        edges1[:, :pad] = False
-        edges1[:, pad + n_h :] = False
-        keep = not_periodic(
-            t1, edges1, k1, j1 + pad, w=w, stride=stride, lines=o["patch_lines"],
-            lags=((w * stride) // 2, win[1] - win[0]), alias_score=o["alias_score"],
+        # the periodic-alias test (omniflow.matching.periodic.not_periodic) on the
+        # edges the search found, reusing the profiles it made
+        keep = alias_lines(
+            p.search.search.edges1, k1, j1 + pad, lags=((w * stride) // 2, win[1] - win[0]),
+            alias_score=o["alias_score"],
             **({} if o["alias_image2"] <= -1.0 else dict(
-                table2=t2, j2=c2 + pad, window=win, alias2_score=o["alias_image2"],
+                t2=t2, j2=c2 + pad, window=win, alias2_score=o["alias_image2"],
                 columns2=_profile_columns(tab.h0, h_step, cam2.r_m / scale2, w * stride),
                 confirm_score=o["alias_period"])),
             threads=parallel.THREADS, per_range=parallel.map_tasks,
