@@ -106,15 +106,6 @@ def _dot(a, i, b, j):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True)
-def _need(t, k, cols, m, w, stride, lines, d, have, base):  # pragma: no cover - compiled
-    """Make the profile of edge m of a line once, into row base + m of ``d`` (``have``
-    marks those made)."""
-    if not have[base + m]:
-        _profile(t, k, cols[m], w, stride, lines, d, base + m)
-        have[base + m] = True
-
-
-@numba.njit(cache=True, nogil=True)
 def _all_edges(fh1, fh2, low, pad, n_h, cols1, n1, cols2, n2):  # pragma: no cover - compiled
     for k in range(fh1.shape[0]):
         n1[k] = _edges(fh1[k], low, pad, n_h, cols1[k])
@@ -168,7 +159,9 @@ def _robust_lines(t1, t2, fh1, fh2, cols1, n1, cols2, n2, k0, k1, thr, lo, hi, w
                 stop += 1
             if stop == first:
                 continue
-            _need(t1, k, c1, i, w, stride, lines, d1, have1, base)
+            if not have1[base + i]:  # made once, when first read
+                _profile(t1, k, c1[i], w, stride, lines, d1, base + i)
+                have1[base + i] = True
             b = first
             for m in range(first, stop):
                 ncc[i, m] = _dot(d1, base + i, d2, m)
@@ -192,7 +185,9 @@ def _robust_lines(t1, t2, fh1, fh2, cols1, n1, cols2, n2, k0, k1, thr, lo, hi, w
                 for m in range(c1.size):
                     lag = abs(c1[m] - j1)
                     if lag >= lag_lo and lag <= lag_hi:
-                        _need(t1, k, c1, m, w, stride, lines, d1, have1, base)
+                        if not have1[base + m]:  # made once, when first read
+                            _profile(t1, k, c1[m], w, stride, lines, d1, base + m)
+                            have1[base + m] = True
                         a = _dot(d1, base + i, d1, base + m)
                         if a > self_best:
                             self_best = a
@@ -209,7 +204,9 @@ def _robust_lines(t1, t2, fh1, fh2, cols1, n1, cols2, n2, k0, k1, thr, lo, hi, w
                         lag = abs(c1[m] - j1)
                         if lag > lag_hi:
                             break
-                        _need(t1, k, c1, m, w, stride, lines, d1, have1, base)
+                        if not have1[base + m]:  # made once, when first read
+                            _profile(t1, k, c1[m], w, stride, lines, d1, base + m)
+                            have1[base + m] = True
                         a = _dot(d1, base + i, d1, base + m)
                         if low_so_far < 0.0 and lag >= lag_lo and a > alias_score:
                             recurs = True
@@ -225,7 +222,9 @@ def _robust_lines(t1, t2, fh1, fh2, cols1, n1, cols2, n2, k0, k1, thr, lo, hi, w
                 for m in range(c1.size):
                     if c1[m] >= j2 - hi and c1[m] <= j2 - lo:
                         if not scored[m, b]:
-                            _need(t1, k, c1, m, w, stride, lines, d1, have1, base)
+                            if not have1[base + m]:  # made once, when first read
+                                _profile(t1, k, c1[m], w, stride, lines, d1, base + m)
+                                have1[base + m] = True
                             ncc[m, b] = _dot(d1, base + m, d2, b)
                             scored[m, b] = True
                         if back < 0 or ncc[m, b] > back_s:
