@@ -90,6 +90,7 @@ from omniflow.matching.tables import (
     blur_lines,
     polar_grids,
     polar_maps,
+    polar_radii,
     polar_table,
     radial_derivative,
 )
@@ -367,7 +368,7 @@ def match_radial(
         # first pass has none
         short = kw["patch_radius"] = short_patch * patch_radius
         kw["profile_step"] = short / 16.0 if short_step is None else min(short_step, short / 2)
-        passes.append(_prepare(grids, rig, **kw))
+        passes.append(_prepare(grids, rig, **kw, wider=passes[0]))
     if method == "paper":
         return _finish(passes[0])
     # both passes' lines in one list of ranges on the threads, then the second
@@ -417,11 +418,38 @@ class _Pass:
     stride: int
     search: RobustSearch | None = None
     paper: tuple | None = None
+    raw: tuple | None = None  # the tables before the blur
 
 
-def _prepare(grids: tuple[PolarGrids, PolarGrids], rig: Rig, **o) -> _Pass:
+def _sampled_columns(wider: _Pass | None, tab: TableGeometry, n_cols: int) -> tuple | None:
+    """The columns of ``wider``'s tables (before the blur) at the radii of a table of
+    ``n_cols`` columns from ``tab.h0`` (contiguous copies), or None where they differ:
+    equal radii give equal maps (:func:`~omniflow.matching.tables.polar_radii`), and
+    cv2.remap samples each column alike."""
+    if wider is None or wider.raw is None:
+        return None
+    wt = wider.tab
+    off = wt.pad - tab.pad
+    n_wide = wider.raw[0].shape[1]
+    if off < 0 or off + n_cols > n_wide or wt.n_theta != tab.n_theta:
+        return None
+    for scale in (1.0, tab.scale2):  # cam1's radii, cam2's (scaled, as polar_maps is called)
+        wide = polar_radii(scale * wt.h0, scale * wt.h_step, n_wide)[off : off + n_cols]
+        if not np.array_equal(wide, polar_radii(scale * tab.h0, scale * tab.h_step, n_cols)):
+            return None
+    return tuple(np.ascontiguousarray(r[:, off : off + n_cols]) for r in wider.raw)
+
+
+def _prepare(
+    grids: tuple[PolarGrids, PolarGrids], rig: Rig, wider: _Pass | None = None, **o
+) -> _Pass:
     """The polar tables, edges and significance threshold of one pass (match_radial's
-    arguments ``o``, defaults resolved); the robust search is set up, not run."""
+    arguments ``o``, defaults resolved); the robust search is set up, not run.
+
+    ``wider``: a pass whose tables hold this one's columns (the first pass, with
+    longer profiles and so wider padding): where its maps hold this pass's maps
+    (the same values), this pass's tables before the blur are its columns, not
+    sampled again (cv2.remap samples each column alike)."""
     g1, g2 = grids
     cam1, cam2 = rig.cam1, rig.cam2
     method, h_step, h_min, n_theta = o["method"], o["h_step"], o["h_min"], o["n_theta"]
@@ -443,9 +471,12 @@ def _prepare(grids: tuple[PolarGrids, PolarGrids], rig: Rig, **o) -> _Pass:
     maps1 = polar_maps(cam1, n_theta, h0, h_step, n_cols)
     maps2 = polar_maps(cam2, n_theta, scale2 * h0, scale2 * h_step, n_cols)
     tab = TableGeometry(maps1, maps2, pad, n_h, h0, h_step, scale2, n_theta, win)
-    t1 = t2 = None
+    t1 = t2 = raw = None
     if method == "robust":
-        t1, t2 = polar_table(g1.f, maps1), polar_table(g2.f, maps2)
+        raw = _sampled_columns(wider, tab, n_cols)
+        if raw is None:
+            raw = polar_table(g1.f, maps1), polar_table(g2.f, maps2)
+        t1, t2 = raw
         if o["tangential_blur"] > 0:
             sigma = o["tangential_blur"] * n_theta / (2.0 * np.pi)  # in lines
             t1, t2 = blur_lines(t1, sigma), blur_lines(t2, sigma)
@@ -464,7 +495,7 @@ def _prepare(grids: tuple[PolarGrids, PolarGrids], rig: Rig, **o) -> _Pass:
     # the percentile of every other line is the same to well within a percent
     thr = float(np.percentile(np.abs(fh1[::2, core]), o["threshold_percentile"]))
     thr = max(thr, float(o["min_gradient"]))
-    p = _Pass(rig, o, tab, t1, t2, fh1, thr, w, stride)
+    p = _Pass(rig, o, tab, t1, t2, fh1, thr, w, stride, raw=raw)
     if method == "paper":
         ft1, ft2 = polar_table(g1.f_theta, maps1), polar_table(g2.f_theta, maps2)
         p.paper = match_paper(tab, fh1, fh2, ft1, ft2, thr)

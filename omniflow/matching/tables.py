@@ -29,6 +29,7 @@ __all__ = [
     "polar_gradient_fast",
     "polar_grids",
     "polar_maps",
+    "polar_radii",
     "polar_sample",
     "polar_table",
     "radial_derivative",
@@ -148,13 +149,19 @@ def polar_maps(unit: Unit, n_theta: int, h0: float, step: float, n: int) -> tupl
     h_i = h0 + j step; map values are pixel indices (x - 1/2, y - 1/2).
     """
     theta = -np.pi + (2.0 * np.pi / n_theta) * (np.arange(n_theta) + 0.5)
-    h_i = h0 + step * np.arange(n)
+    h_i = polar_radii(h0, step, n)
     mx = (unit.x_c - 0.5) + np.cos(theta)[:, None] * h_i[None, :]
     my = (unit.y_c - 0.5) + np.sin(theta)[:, None] * h_i[None, :]
     mx, my = mx.astype(np.float32), my.astype(np.float32)
     mx.setflags(write=False)
     my.setflags(write=False)
     return mx, my
+
+
+def polar_radii(h0: float, step: float, n: int) -> NDArray:
+    """The image radii of the columns of a polar table, h0 + j step (:func:`polar_maps`):
+    two tables whose radii are equal have equal maps, column for column."""
+    return h0 + step * np.arange(n)
 
 
 def polar_table(image: NDArray, maps: tuple[NDArray, NDArray]) -> NDArray:
