@@ -115,7 +115,9 @@ def _all_edges(fh1, fh2, low, pad, n_h, cols1, n1, cols2, n2):  # pragma: no cov
 @numba.njit(cache=True, nogil=True)
 def _robust_lines(t1, t2, fh1, fh2, cols1, n1, cols2, n2, k0, k1, thr, lo, hi, w, stride,
                   lines, floor, uniqueness, self_similarity, alias_score, tests, left_right,
-                  ok, j2_out, s_out, n_sig, d1, have1):  # pragma: no cover - compiled  # fmt: skip
+                  ok, j2_out, s_out, n_sig, d1, have1, post, min_score, flatness, pad,
+                  periodic, a_score, use2, a_score2, a_confirm, a_lo, a_hi, fin, c2_out,
+                  score_out):  # pragma: no cover - compiled  # fmt: skip
     n_cols = t1.shape[1]
     length = (2 * lines + 1) * (2 * w + 1)
     do_uniqueness = tests[0]
@@ -132,6 +134,7 @@ def _robust_lines(t1, t2, fh1, fh2, cols1, n1, cols2, n2, k0, k1, thr, lo, hi, w
     ncc = np.empty((most1, most2), dtype=np.float32)
     scored = np.empty((most1, most2), dtype=np.bool_)
     p = np.empty((1, length), dtype=np.float32)
+    own = np.empty((1, length), dtype=np.float32)
     for k in range(k0, k1):
         c1 = cols1[k, : n1[k]]
         c2 = cols2[k, : n2[k]]
@@ -243,6 +246,55 @@ def _robust_lines(t1, t2, fh1, fh2, cols1, n1, cols2, n2, k0, k1, thr, lo, hi, w
             ok[k, j1] = True
             j2_out[k, j1] = j2
         n_sig[k] = count
+        if post:
+            _refine_line(t1, t2, k, c1, base, d1, have1, ok, j2_out, s_out, min_score,
+                         flatness, pad, periodic, w, stride, lines, lag_lo, lag_hi, a_score,
+                         use2, lo, hi, a_score2, a_confirm, a_lo, a_hi, own, p, fin, c2_out,
+                         score_out)  # fmt: skip
+
+
+@numba.njit(cache=True, nogil=True)
+def _refine_line(t1, t2, k, c1, base, d1, have1, ok, j2_out, s_out, min_score, flatness, pad,
+                 periodic, w, stride, lines, lag_lo, lag_hi, a_score, use2, lo, hi, a_score2,
+                 a_confirm, a_lo, a_hi, own, p, fin, c2_out,
+                 score_out):  # pragma: no cover - compiled  # fmt: skip
+    """The sub-pixel step of :meth:`omniflow.matching.robust.RobustSearch.finish` and the
+    periodic-alias test (:func:`_alias_at`) on the matches of line k, in float32 as
+    numpy takes them there (a float32 array with a Python float stays float32):
+    ``fin`` marks the kept, ``c2_out`` their sub-pixel image-2 column counted from
+    the first core column, ``score_out`` the NCC at the vertex, clipped to [0, 1]."""
+    f32 = np.float32
+    zero, one, two, half, quarter = f32(0.0), f32(1.0), f32(2.0), f32(0.5), f32(0.25)
+    tiny = f32(1e-12)
+    for i in range(c1.size):
+        j1 = c1[i]
+        if not ok[k, j1]:
+            continue
+        jj2 = j2_out[k, j1]
+        sm, s0, sp = s_out[k, j1, 1], s_out[k, j1, 2], s_out[k, j1, 3]
+        # move one column if a neighbour scores higher (RobustSearch.finish)
+        if sp > s0 and sp >= sm:
+            sm, s0, sp = s0, max(sp, sm), s_out[k, j1, 4]
+            jj2 += 1
+        elif sm > s0:
+            sm, s0, sp = s_out[k, j1, 0], max(sp, sm), s0
+            jj2 -= 1
+        den = sm - two * s0 + sp  # tables.parabola_offset
+        off = half * (sm - sp) / den if abs(den) > tiny else zero
+        off = min(max(off, -one), one)
+        peak = s0 + quarter * (sp - sm) * off  # the parabola's vertex value
+        keep = peak >= min_score
+        if flatness > 0:  # tables.sharp_peak
+            keep = keep and (one - peak) <= flatness * (two * s0 - sm - sp)
+        if keep and periodic:
+            at = np.int64(np.rint(np.float64(jj2) + np.float64(off)))
+            keep = not _alias_at(
+                t1, t2, k, j1, at, c1, c1.size, d1, have1, base, own, p, w, stride, lines,
+                lag_lo, lag_hi, a_score, use2, lo, hi, a_score2, a_confirm, a_lo, a_hi,
+            )  # fmt: skip
+        fin[k, j1] = keep
+        c2_out[k, j1] = np.float64(jj2) + np.float64(off) - pad
+        score_out[k, j1] = min(max(peak, zero), one)
 
 
 class EdgeProfiles:
@@ -282,13 +334,21 @@ class LineSearch:
     here); :meth:`run` searches lines k0 .. k1 - 1 (ranges are independent:
     any order, any thread, the kernel drops the GIL); :meth:`result` returns
     what :func:`robust_lines` returns once every line has been run.
+
+    With ``min_score`` given, each line's matches also take the sub-pixel
+    step of :meth:`omniflow.matching.robust.RobustSearch.finish` (``min_score``,
+    ``flatness``) and, with ``periodic`` given (the keyword arguments of
+    :func:`alias_lines` from ``lags`` on, ``t2`` and ``j2`` excepted; None
+    for no image 2: ``{"image2": False, ...}``), the periodic-alias test, in
+    the same kernel call; :meth:`refined` returns the kept matches.
     """
 
     def __init__(
         self, t1: NDArray, t2: NDArray, fh1: NDArray, fh2: NDArray, *, low: float, thr: float,
         pad: int, n_h: int, win: tuple[int, int], w: int, stride: int, lines: int,
         floor: float, uniqueness: float, self_similarity: float, alias_score: float,
-        left_right: bool,
+        left_right: bool, min_score: float | None = None, flatness: float = 0.0,
+        periodic: dict | None = None,
     ):  # fmt: skip
         self.n_theta, n_cols = t1.shape
         n_theta = self.n_theta
@@ -312,11 +372,29 @@ class LineSearch:
             t1, cols1, n1, np.empty((n_theta * per_line, (2 * lines + 1) * (2 * w + 1)), f32),
             np.zeros(n_theta * per_line, dtype=bool), int(w), int(stride), int(lines),
         )  # fmt: skip
+        self.pad = int(pad)
+        post = min_score is not None
+        shape = (n_theta, n_cols) if post else (1, 1)
+        self.fin = np.zeros(shape, dtype=bool)
+        self.c2 = np.empty(shape, dtype=np.float64)  # read only where fin
+        self.score = np.empty(shape, dtype=np.float32)
+        a = {} if periodic is None else periodic
+        use2 = a.get("image2", True)
+        reach = w * stride
+        a_lo, a_hi = reach, n_cols - 1 - reach  # whole profiles in image 2
+        if a.get("columns2") is not None:
+            a_lo, a_hi = max(a_lo, a["columns2"][0]), min(a_hi, a["columns2"][1])
         self._args = (
             t1, t2, fh1, fh2, cols1, n1, cols2, n2, f32(thr), int(win[0]), int(win[1]), int(w),
             int(stride), int(lines), f32(floor), f32(uniqueness), f32(self_similarity),
             f32(alias_score), tests, bool(left_right), self.ok, self.j2, self.s, self.n_sig,
-            self.edges1.d, self.edges1.have,
+            self.edges1.d, self.edges1.have, post,
+            # numpy compares a float32 array with a Python float in float32
+            f32(min_score if post else 0.0), f32(flatness), self.pad,
+            periodic is not None and a.get("alias_score", 1.0) < 1.0,
+            float(a.get("alias_score", 1.0)), bool(use2), float(a.get("alias2_score", 0.9)),
+            float(a.get("confirm_score", 0.8)), int(a_lo), int(a_hi), self.fin, self.c2,
+            self.score,
         )  # fmt: skip
 
     def ranges(self, threads: int) -> list[tuple[int, int]]:
@@ -336,6 +414,13 @@ class LineSearch:
     def result(self) -> tuple[NDArray, NDArray, NDArray, int]:
         """(ok, j2, s, n_sig) of :func:`robust_lines`."""
         return self.ok, self.j2, self.s, int(self.n_sig.sum())
+
+    def refined(self) -> tuple[NDArray, NDArray, NDArray, NDArray, int]:
+        """With ``min_score`` given: (k, j1, c2, score, n_sig), the kept matches by line
+        then column: line, image-1 and sub-pixel image-2 columns counted from the first
+        core column, NCC at the vertex (float32, clipped to [0, 1])."""
+        ks, jj = np.nonzero(self.fin)
+        return ks, jj - self.pad, self.c2[ks, jj], self.score[ks, jj], int(self.n_sig.sum())
 
 
 def robust_lines(
@@ -376,6 +461,73 @@ def robust_lines(
 
 
 @numba.njit(cache=True, nogil=True)
+def _alias_at(t1, t2, line, ji, at, c, n_e, d, have, base, own, p, w, stride, lines, lag_lo,
+              lag_hi, alias_score, use2, win_lo, win_hi, alias2, confirm, lo_col,
+              hi_col):  # pragma: no cover - compiled  # fmt: skip
+    """Whether the match at (line, column ji; image 2's column ``at``) is a periodic
+    alias (:func:`alias_lines`); ``c[:n_e]`` the line's edges, their profiles in rows
+    base + m of ``d`` (made here where ``have`` is False); ``own``, ``p``: scratch."""
+    length = d.shape[1]
+    first_right = 0  # the first edge right of the match
+    while first_right < n_e and c[first_right] <= ji:
+        first_right += 1
+    at_edge = first_right > 0 and c[first_right - 1] == ji
+    if at_edge:  # the search made it, most likely
+        r = base + first_right - 1
+        if not have[r]:
+            _profile(t1, line, ji, w, stride, lines, d, r)
+            have[r] = True
+        for q in range(length):
+            own[0, q] = d[r, q]
+    else:
+        _profile(t1, line, ji, w, stride, lines, own, 0)
+    alias = False
+    hidden = False  # a recurrence whose alias lies in the window but past image 2's rim
+    n_confirm = 0  # recurrences above ``confirm`` (a period: two at least)
+    for direction in (1, -1):
+        # walk outward from j: the NCC must fall below 0 before a recurrence counts
+        low = np.inf
+        m = first_right if direction > 0 else first_right - 1 - at_edge
+        while 0 <= m < n_e and not alias:
+            lag = c[m] - ji
+            if abs(lag) > lag_hi:
+                break
+            r = base + m
+            if not have[r]:
+                _profile(t1, line, c[m], w, stride, lines, d, r)
+                have[r] = True
+            a = np.float64(_dot(own, 0, d, r))
+            if low < 0.0 and abs(lag) >= lag_lo:
+                if a > confirm:
+                    n_confirm += 1
+                if a > alias_score:
+                    if not use2:
+                        alias = True
+                    else:
+                        # image 2 a recurrence away from the match (+-1 column, in the
+                        # window): does it hold the alias?
+                        best = -np.inf
+                        for sign in (1, -1):
+                            for dj in (-1, 0, 1):
+                                c2 = at + sign * lag + dj
+                                if c2 - ji < win_lo or c2 - ji > win_hi:
+                                    continue
+                                if c2 < lo_col or c2 > hi_col:
+                                    hidden = True
+                                    continue
+                                _profile(t2, line, c2, w, stride, lines, p, 0)
+                                s = np.float64(_dot(own, 0, p, 0))
+                                if s > best:
+                                    best = s
+                        if best > alias2:
+                            alias = True
+            if a < low:
+                low = a
+            m += direction
+    return alias or (hidden and n_confirm >= 2)
+
+
+@numba.njit(cache=True, nogil=True)
 def _alias_matches(t1, cols, n, d, have, k, j, j2, i0, i1, w, stride, lines, lag_lo, lag_hi,
                    alias_score, t2, use2, win_lo, win_hi, alias2, confirm, lo_col, hi_col,
                    keep):  # pragma: no cover - compiled  # fmt: skip
@@ -386,70 +538,12 @@ def _alias_matches(t1, cols, n, d, have, k, j, j2, i0, i1, w, stride, lines, lag
     p = np.empty((1, length), dtype=np.float32)  # image 2's, a recurrence away
     for i in range(i0, i1):
         line = k[i]
-        base = line * per_line
-        c = cols[line]
-        n_e = n[line]
-        ji = j[i]
-        first_right = 0  # the first edge right of the match
-        while first_right < n_e and c[first_right] <= ji:
-            first_right += 1
-        at_edge = first_right > 0 and c[first_right - 1] == ji
-        if at_edge:  # the search made it, most likely
-            r = base + first_right - 1
-            if not have[r]:
-                _profile(t1, line, ji, w, stride, lines, d, r)
-                have[r] = True
-            for q in range(length):
-                own[0, q] = d[r, q]
-        else:
-            _profile(t1, line, ji, w, stride, lines, own, 0)
         at = np.int64(np.rint(j2[i])) if use2 else np.int64(0)
-        alias = False
-        hidden = False  # a recurrence whose alias lies in the window but past image 2's rim
-        n_confirm = 0  # recurrences above ``confirm`` (a period: two at least)
-        for direction in (1, -1):
-            # walk outward from j: the NCC must fall below 0 before a recurrence counts
-            low = np.inf
-            m = first_right if direction > 0 else first_right - 1 - at_edge
-            while 0 <= m < n_e and not alias:
-                lag = c[m] - ji
-                if abs(lag) > lag_hi:
-                    break
-                r = base + m
-                if not have[r]:
-                    _profile(t1, line, c[m], w, stride, lines, d, r)
-                    have[r] = True
-                a = np.float64(_dot(own, 0, d, r))
-                if low < 0.0 and abs(lag) >= lag_lo:
-                    if a > confirm:
-                        n_confirm += 1
-                    if a > alias_score:
-                        if not use2:
-                            alias = True
-                        else:
-                            # image 2 a recurrence away from the match (+-1 column, in the
-                            # window): does it hold the alias?
-                            best = -np.inf
-                            for sign in (1, -1):
-                                for dj in (-1, 0, 1):
-                                    c2 = at + sign * lag + dj
-                                    if c2 - ji < win_lo or c2 - ji > win_hi:
-                                        continue
-                                    if c2 < lo_col or c2 > hi_col:
-                                        hidden = True
-                                        continue
-                                    _profile(t2, line, c2, w, stride, lines, p, 0)
-                                    s = np.float64(_dot(own, 0, p, 0))
-                                    if s > best:
-                                        best = s
-                            if best > alias2:
-                                alias = True
-                if a < low:
-                    low = a
-                m += direction
-        if hidden and n_confirm >= 2:
-            alias = True
-        keep[i] = not alias
+        keep[i] = not _alias_at(
+            t1, t2, line, j[i], at, cols[line], n[line], d, have, line * per_line, own, p, w,
+            stride, lines, lag_lo, lag_hi, alias_score, use2, win_lo, win_hi, alias2, confirm,
+            lo_col, hi_col,
+        )  # fmt: skip
 
 
 def alias_lines(

@@ -81,7 +81,6 @@ from numpy.typing import NDArray
 from omniflow import parallel
 from omniflow.dct import DCTFit
 from omniflow.matching.dense import densify
-from omniflow.matching.ncc import alias_lines
 from omniflow.matching.paper import match_paper
 from omniflow.matching.robust import RobustSearch
 from omniflow.matching.tables import (
@@ -504,35 +503,29 @@ def _prepare(
             tab, fh1, fh2, t1, t2, thr, w=w, stride=stride, patch_lines=o["patch_lines"],
             min_score=o["min_score"], uniqueness=o["uniqueness"], left_right=o["left_right"],
             candidate_fraction=o["candidate_fraction"], self_similarity=o["self_similarity"],
-            flatness=o["flatness"], alias_score=1.0,  # the alias test of _finish
+            # the periodic-alias test (omniflow.matching.periodic.not_periodic) on the
+            # matches that passed the sub-pixel step, not on every candidate
+            flatness=o["flatness"], alias_score=1.0,
+            periodic=None if o["alias_score"] >= 1.0 else dict(
+                alias_score=o["alias_score"], image2=o["alias_image2"] > -1.0,
+                alias2_score=o["alias_image2"], confirm_score=o["alias_period"],
+                columns2=_profile_columns(h0, h_step, cam2.r_m / scale2, w * stride)),
             threads=parallel.THREADS,
         )  # fmt: skip
     return p
 
 
 def _finish(p: _Pass) -> Matches:
-    """One pass's matches once its search has run: the sub-pixel step, the alias
-    test, the disparity window, the consistency vote and the densification."""
+    """One pass's matches once its search has run (which took the sub-pixel step and
+    the alias test): the disparity window, the consistency vote and the
+    densification."""
     o, rig, tab = p.opts, p.rig, p.tab
-    cam1, cam2 = rig.cam1, rig.cam2
+    cam1 = rig.cam1
     method, h_step, h_min, n_theta = o["method"], o["h_step"], o["h_min"], o["n_theta"]
     r_min, r_max, scale2 = o["r_min"], o["r_max"], tab.scale2
-    pad, n_h, win, w, stride = tab.pad, tab.n_h, tab.win, p.w, p.stride
+    pad, n_h, w, stride = tab.pad, tab.n_h, p.w, p.stride
     t1, t2, fh1 = p.t1, p.t2, p.fh1
     k1, j1, c2, score, n_sig = p.paper if method == "paper" else p.search.finish()
-    if method == "robust" and o["alias_score"] < 1.0 and k1.size:
-        # the periodic-alias test (omniflow.matching.periodic.not_periodic) on the
-        # edges the search found, reusing the profiles it made
-        keep = alias_lines(
-            p.search.search.edges1, k1, j1 + pad, lags=((w * stride) // 2, win[1] - win[0]),
-            alias_score=o["alias_score"],
-            **({} if o["alias_image2"] <= -1.0 else dict(
-                t2=t2, j2=c2 + pad, window=win, alias2_score=o["alias_image2"],
-                columns2=_profile_columns(tab.h0, h_step, cam2.r_m / scale2, w * stride),
-                confirm_score=o["alias_period"])),
-            threads=parallel.THREADS, per_range=parallel.map_tasks,
-        )  # fmt: skip
-        k1, j1, c2, score = k1[keep], j1[keep], c2[keep], score[keep]
     theta = -np.pi + (2.0 * np.pi / n_theta) * (k1 + 0.5)
     h1 = h_min + h_step * j1  # j1, c2: columns from the first core column
     h2 = scale2 * (h_min + h_step * c2)
