@@ -16,14 +16,87 @@ searched range, scores at least ``min_score`` and is sharp enough
 
 from __future__ import annotations
 
+import math
+
 import cv2
+import numba
 import numpy as np
 from numpy.typing import NDArray
 
-from omniflow.kernels import ncc_offsets
 from omniflow.matching.tables import TableGeometry, parabola_offset, sharp_peak
 
-__all__ = ["densify"]
+__all__ = ["densify", "ncc_offsets"]
+
+
+@numba.njit(cache=True, nogil=True)
+def _ncc(dot, b1, b2, inv1, length):  # pragma: no cover - compiled
+    """The NCC from sum (v1 - mean1) v2, sum v2 and sum v2^2 (the first is zero-mean,
+    so sum (v1 - mean1)(v2 - mean2) = sum (v1 - mean1) v2)."""
+    return dot * inv1 * (1.0 / max(math.sqrt(max(b2 - b1 * (b1 / length), 0.0)), 1e-12))
+
+
+@numba.njit(cache=True, nogil=True)
+def ncc_offsets(t1, t2, k, j, cols, w, stride, lines, out):  # pragma: no cover - compiled
+    """NCC of the profile of ``t1`` at (k[i], j[i]) with those of ``t2`` at (k[i], cols[i, s]).
+
+    A profile: the 2 w + 1 samples every ``stride`` columns centred on the column, on
+    the 2 ``lines`` + 1 lines around k (wrapping in theta); zero-mean, unit-norm (a
+    flat profile has norm 1e-12). Columns must keep the profile inside the table.
+    Writes out[i, s]. :func:`omniflow.kernels.ncc_offsets`, value for value: each
+    sum is taken in the same order, but four columns' sums at once (independent
+    chains of additions the processor overlaps).
+    """
+    n_lines = t1.shape[0]
+    length = (2 * w + 1) * (2 * lines + 1)
+    n_s = cols.shape[1]
+    for i in range(k.size):
+        s1 = 0.0
+        s2 = 0.0
+        for dk in range(-lines, lines + 1):
+            row = (k[i] + dk) % n_lines
+            for q in range(-w, w + 1):
+                v = np.float64(t1[row, j[i] + q * stride])  # float64 products
+                s1 += v
+                s2 += v * v
+        mean1 = s1 / length
+        inv1 = 1.0 / max(math.sqrt(max(s2 - s1 * mean1, 0.0)), 1e-12)
+        for g in range(0, n_s, 4):
+            # columns g .. g + 3 (the last repeated past the end, not written)
+            c0 = cols[i, g]
+            c1 = cols[i, min(g + 1, n_s - 1)]
+            c2 = cols[i, min(g + 2, n_s - 1)]
+            c3 = cols[i, min(g + 3, n_s - 1)]
+            d0 = d1 = d2 = d3 = 0.0
+            a0 = a1 = a2 = a3 = 0.0
+            e0 = e1 = e2 = e3 = 0.0
+            for dk in range(-lines, lines + 1):
+                row = (k[i] + dk) % n_lines
+                for q in range(-w, w + 1):
+                    off = q * stride
+                    u = np.float64(t1[row, j[i] + off]) - mean1
+                    v0 = np.float64(t2[row, c0 + off])
+                    v1 = np.float64(t2[row, c1 + off])
+                    v2 = np.float64(t2[row, c2 + off])
+                    v3 = np.float64(t2[row, c3 + off])
+                    d0 += u * v0
+                    d1 += u * v1
+                    d2 += u * v2
+                    d3 += u * v3
+                    a0 += v0
+                    a1 += v1
+                    a2 += v2
+                    a3 += v3
+                    e0 += v0 * v0
+                    e1 += v1 * v1
+                    e2 += v2 * v2
+                    e3 += v3 * v3
+            out[i, g] = _ncc(d0, a0, e0, inv1, length)
+            if g + 1 < n_s:
+                out[i, g + 1] = _ncc(d1, a1, e1, inv1, length)
+            if g + 2 < n_s:
+                out[i, g + 2] = _ncc(d2, a2, e2, inv1, length)
+            if g + 3 < n_s:
+                out[i, g + 3] = _ncc(d3, a3, e3, inv1, length)
 
 
 def _seed_guess(

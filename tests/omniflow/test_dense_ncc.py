@@ -58,3 +58,21 @@ def test_ncc_check_catches_a_profile_off_by_one_line():
     ref = _reference(t1, t2, k, j, cols, w, stride, 1)
     got = _kernel(t1, np.roll(t2, -1, axis=0), k, j, cols, w, stride, 1)
     assert np.max(np.abs(got - ref)) > 1e-4
+
+
+@pytest.mark.parametrize(("lines", "n_cols"), [(0, 7), (1, 5), (2, 1), (0, 9)])
+def test_densifys_kernel_equals_ncc_offsets_bit_for_bit(lines, n_cols):
+    """omniflow.matching.dense.ncc_offsets (four columns' sums at once) against
+    omniflow.kernels.ncc_offsets: every value equal, for column counts that fill the
+    groups of four or leave one to three over. Mutation caught: a group's last
+    column written from the wrong accumulator (any n_cols not a multiple of 4)."""
+    from omniflow.matching.dense import ncc_offsets as grouped
+
+    t1, t2, k, j, _, w, stride = _case(lines, seed=2)
+    rng = np.random.default_rng(3)
+    cols = np.clip(j[:, None] + rng.integers(-3, 4, (j.size, n_cols)), w * stride,
+                   119 - w * stride)  # fmt: skip
+    out = np.empty(cols.shape)
+    grouped(t1, t2, k.astype(np.int64), j.astype(np.int64), cols.astype(np.int64),
+            w, stride, lines, out)  # fmt: skip
+    np.testing.assert_array_equal(out, _kernel(t1, t2, k, j, cols, w, stride, lines))
