@@ -8,6 +8,11 @@ self-similarity, periodic-alias and left-right tests, and the NCC at the
 neighbouring columns for the sub-pixel step. In numpy the same rule formed
 a dense (lines, edges, edges) NCC array by batched products and then masked
 everything outside the window; here nothing outside the window is scored.
+:class:`LineSearch` is the same search in ranges of lines a caller schedules,
+optionally with each line's sub-pixel step and the periodic-alias test
+(:func:`alias_lines`, the rule of :func:`omniflow.matching.periodic.not_periodic`)
+in the same call, reusing the image-1 profiles the search made
+(:class:`EdgeProfiles`).
 
 The profiles are those of :class:`omniflow.matching.robust.Descriptors`,
 value for value: each window's sum and sum of squares are summed in double

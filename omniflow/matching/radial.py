@@ -57,11 +57,16 @@ Two methods:
     units map dh to dh_i = v dh / (d + r)); on inclined surfaces the scales
     differ by up to h_2 / h_1 and the NCC drops.
 
-    Compiled: :func:`~omniflow.matching.robust.match_robust` scores each
+    Compiled: each pass (:func:`_prepare`) samples its tables and finds its
+    edges, then :class:`~omniflow.matching.robust.RobustSearch` scores each
     significant edge only against the image-2 edges inside its disparity
-    window, one Numba loop over the radial lines
-    (:mod:`omniflow.matching.ncc`), the lines split over two threads
-    (:mod:`omniflow.parallel`).
+    window, takes the sub-pixel step and the periodic-alias test, one Numba
+    loop over the radial lines (:mod:`omniflow.matching.ncc`); the lines of
+    both passes are split into ranges over two threads
+    (:mod:`omniflow.parallel`), then each pass's vote
+    (:mod:`omniflow.matching.vote`, compiled) and densification run on a
+    thread of their own. The short pass reads the long pass's tables where
+    their radii coincide (no second remap).
 
 Measured on closed-form scenes (``omniflow.synthetic``, see
 ``tests/omniflow/test_matching.py``): see that file's module docstring for the
