@@ -91,6 +91,7 @@ from omniflow.matching.robust import RobustSearch
 from omniflow.matching.tables import (
     PolarGrids,
     TableGeometry,
+    abs_percentile,
     blur_lines,
     polar_grids,
     polar_maps,
@@ -497,7 +498,7 @@ def _prepare(
         fh1, fh2 = polar_table(g1.f_h, maps1), polar_table(g2.f_h, maps2)
     core = slice(pad, pad + n_h)
     # the percentile of every other line is the same to well within a percent
-    thr = float(np.percentile(np.abs(fh1[::2, core]), o["threshold_percentile"]))
+    thr = abs_percentile(fh1[::2, core], o["threshold_percentile"])
     thr = max(thr, float(o["min_gradient"]))
     p = _Pass(rig, o, tab, t1, t2, fh1, thr, w, stride, raw=raw)
     if method == "paper":
@@ -546,7 +547,7 @@ def _finish(p: _Pass) -> Matches:
         ok[idx[~agree]] = False
     if method == "robust" and o["dense_percentile"] < 100.0 and np.any(ok):
         core = slice(pad, pad + n_h)
-        thr_d = float(np.percentile(np.abs(fh1[::2, core]), o["dense_percentile"]))
+        thr_d = abs_percentile(fh1[::2, core], o["dense_percentile"])
         dk, dj, dc, ds, n_tried = densify(
             tab, fh1, t1, t2, (k1[ok], j1[ok], c2[ok]), max(thr_d, float(o["min_gradient"])),
             w=w, stride=stride, lines=o["patch_lines"], min_score=o["min_score"],
