@@ -1,11 +1,12 @@
-"""omniflow.matching.tables.abs_percentile against np.percentile, value for value."""
+"""omniflow.matching.tables: abs_percentile and radial_derivative against their numpy
+forms, value for value."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from omniflow.matching.tables import abs_percentile
+from omniflow.matching.tables import abs_percentile, radial_derivative
 
 
 @pytest.mark.parametrize("q", [80.0, 60.0, 50.0, 33.3, 99.9, 0.0, 12.5, 100.0, 80])
@@ -38,3 +39,22 @@ def test_abs_percentile_hands_nan_and_other_inputs_to_numpy():
     assert abs_percentile(b.astype(np.float32), np.float64(80.0)) == float(
         np.percentile(b.astype(np.float32), np.float64(80.0))
     )
+
+
+@pytest.mark.parametrize("step", [1.0, 1.3, 1.0471975511965976])
+def test_radial_derivative_is_the_numpy_central_difference(step):
+    """The compiled float32 path against numpy's (subtract, then scale by the Python
+    float 0.5 / step: float32 ops), end columns copied: every value equal; a float64
+    table takes numpy's path. Mutation caught: scaling in float64 (values move)."""
+    rng = np.random.default_rng(int(step * 100))
+    t = (rng.standard_normal((37, 90)) * 10.0 ** rng.integers(-3, 2)).astype(np.float32)
+    ref = np.empty_like(t)
+    np.subtract(t[:, 2:], t[:, :-2], out=ref[:, 1:-1])
+    ref[:, 1:-1] *= 0.5 / step
+    ref[:, 0], ref[:, -1] = ref[:, 1], ref[:, -2]
+    out = radial_derivative(t, step)
+    assert out.dtype == np.float32
+    np.testing.assert_array_equal(out, ref)
+    t64 = t.astype(np.float64)
+    inner = (t64[:, 2:] - t64[:, :-2]) * (0.5 / step)
+    np.testing.assert_array_equal(radial_derivative(t64, step)[:, 1:-1], inner)
