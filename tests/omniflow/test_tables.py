@@ -58,3 +58,25 @@ def test_radial_derivative_is_the_numpy_central_difference(step):
     t64 = t.astype(np.float64)
     inner = (t64[:, 2:] - t64[:, :-2]) * (0.5 / step)
     np.testing.assert_array_equal(radial_derivative(t64, step)[:, 1:-1], inner)
+
+
+def test_equal_radii_give_equal_map_columns():
+    """The short pass reads the long pass's table columns where polar_radii are equal
+    (radial._sampled_columns): the premise, that polar_maps' columns are then equal
+    value for value, for cam1 (h0, step) and cam2 (both scaled), on the default rig."""
+    from omniflow.matching.tables import polar_maps, polar_radii
+    from omniflow.rig import Rig
+
+    rig = Rig.symmetric(d=0.10, R=0.05, s=0.30, size=512)
+    scale2 = rig.cam2.v / rig.cam1.v
+    for unit, s in ((rig.cam1, 1.0), (rig.cam2, scale2)):
+        wide = polar_maps(unit, 360, s * (16.0 - 34), s * 1.0, 235 + 68)
+        narrow = polar_maps(unit, 360, s * (16.0 - 18), s * 1.0, 235 + 36)
+        same = np.array_equal(
+            polar_radii(s * (16.0 - 34), s * 1.0, 303)[16 : 16 + 271],
+            polar_radii(s * (16.0 - 18), s * 1.0, 271),
+        )
+        assert same == all(
+            np.array_equal(a[:, 16 : 16 + 271], b) for a, b in zip(wide, narrow, strict=True)
+        )
+        assert same or s != 1.0  # cam1's radii are whole numbers: always equal
