@@ -25,7 +25,7 @@ from numpy.typing import NDArray
 
 from omniflow.matching.tables import TableGeometry, parabola_offset, sharp_peak
 
-__all__ = ["densify", "ncc_offsets"]
+__all__ = ["candidates", "candidates_numpy", "densify", "ncc_offsets"]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -123,6 +123,109 @@ def _seed_guess(
     return usable, guess
 
 
+def candidates(
+    fh1: NDArray,
+    thr: float,
+    pad: int,
+    n_h: int,
+    k: NDArray,
+    jj: NDArray,
+    disp: NDArray,
+    reach: int,
+) -> tuple[NDArray, NDArray, NDArray]:
+    """The samples :func:`densify` tries and each one's disparity guess.
+
+    A candidate is a core sample (columns pad .. pad + n_h - 1) of line k with
+    |fh1| >= thr (compared in float32, as numpy compares a float32 table with a
+    Python float), not a seed, with a seed of its line within ``reach`` columns;
+    the guess is that of :func:`_seed_guess` (kept where usable). Seeds: line
+    ``k``, table column ``jj``, disparity ``disp`` (columns). Returns (ck, cj,
+    guess) by line, then column. Compiled (:func:`_line_candidates`);
+    :func:`candidates_numpy` is the same with a dilation and searchsorted.
+    """
+    order = np.lexsort((jj, k))
+    ks = np.ascontiguousarray(np.asarray(k, dtype=np.int64)[order])
+    js = np.ascontiguousarray(np.asarray(jj, dtype=np.int64)[order])
+    ds = np.ascontiguousarray(np.asarray(disp, dtype=np.float64)[order])
+    fh = np.ascontiguousarray(fh1)
+    first = np.searchsorted(ks, np.arange(fh.shape[0] + 1))  # each line's seeds
+    # at most 2 reach candidates per seed, n_h per line
+    most = int(np.minimum(np.diff(first) * (2 * reach), n_h).sum())
+    out_k = np.empty(most, dtype=np.intp)
+    out_j = np.empty(most, dtype=np.intp)
+    out_g = np.empty(most, dtype=np.float64)
+    n = _line_candidates(fh, thr, int(pad), int(n_h), first, js, ds, int(reach), out_k, out_j,
+                         out_g)  # fmt: skip
+    return out_k[:n], out_j[:n], out_g[:n]
+
+
+@numba.njit(cache=True, nogil=True)
+def _line_candidates(fh, thr, pad, n_h, first, js, ds, reach, out_k, out_j,
+                     out_g):  # pragma: no cover - compiled  # fmt: skip
+    """:func:`candidates` line by line into out_*; returns how many."""
+    thr32 = np.float32(thr)
+    c = 0
+    for k in range(fh.shape[0]):
+        s0, s1 = first[k], first[k + 1]
+        if s0 == s1:
+            continue
+        r = s0  # the first seed at or right of the column
+        for j in range(pad, pad + n_h):
+            while r < s1 and js[r] < j:
+                r += 1
+            if r < s1 and js[r] == j:
+                continue  # a seed itself
+            if not abs(fh[k, j]) >= thr32:
+                continue
+            has_l = r > s0 and j - js[r - 1] <= reach
+            has_r = r < s1 and js[r] - j <= reach
+            if not (has_l or has_r):
+                continue
+            if has_l and has_r:
+                dl, dr = ds[r - 1], ds[r]
+                if abs(dl - dr) > 1.0:
+                    continue  # a depth edge between the seeds
+                a = (j - js[r - 1]) / max(js[r] - js[r - 1], 1)
+                g = dl + a * (dr - dl)
+            elif has_l:
+                g = ds[r - 1]
+            else:
+                g = ds[r]
+            out_k[c] = k
+            out_j[c] = j
+            out_g[c] = g
+            c += 1
+    return c
+
+
+def candidates_numpy(
+    fh1: NDArray,
+    thr: float,
+    pad: int,
+    n_h: int,
+    k: NDArray,
+    jj: NDArray,
+    disp: NDArray,
+    reach: int,
+) -> tuple[NDArray, NDArray, NDArray]:
+    """:func:`candidates` in numpy (its reference form): a dilation of the seeds along
+    the lines, then each candidate's nearest seeds by searchsorted."""
+    cand = np.abs(fh1) >= thr
+    cand[:, :pad] = False
+    cand[:, pad + n_h :] = False
+    # only samples within ``reach`` columns of a seed on their line can be tried: a
+    # dilation of the seeds along the lines cuts the candidates before the search
+    seeded = np.zeros(fh1.shape, np.uint8)
+    seeded[k, jj] = 1
+    cand &= cv2.dilate(seeded, np.ones((1, 2 * reach + 1), np.uint8)).astype(bool)
+    cand[k, jj] = False  # the seeds themselves
+    ck, cj = np.nonzero(cand)
+    if ck.size == 0:
+        return ck, cj, np.zeros(0)
+    usable, guess = _seed_guess(k, jj, disp, ck, cj, fh1.shape[1], reach)
+    return ck[usable], cj[usable], guess[usable]
+
+
 def densify(
     tab: TableGeometry,
     fh1: NDArray,
@@ -170,24 +273,11 @@ def densify(
     """
     pad, n_h = tab.pad, tab.n_h
     k, j1, c2 = (np.asarray(a) for a in seeds)
-    cand = np.abs(fh1) >= thr
-    cand[:, :pad] = False
-    cand[:, pad + n_h :] = False
     jj = j1.astype(np.int64) + pad
     empty = (np.zeros(0, np.intp), np.zeros(0, np.intp), np.zeros(0), np.zeros(0), 0)
     if k.size == 0:
         return empty
-    # only samples within ``reach`` columns of a seed on their line can be tried: a
-    # dilation of the seeds along the lines cuts the candidates before the search
-    seeded = np.zeros(fh1.shape, np.uint8)
-    seeded[k, jj] = 1
-    cand &= cv2.dilate(seeded, np.ones((1, 2 * reach + 1), np.uint8)).astype(bool)
-    cand[k, jj] = False  # the seeds themselves
-    ck, cj = np.nonzero(cand)
-    if ck.size == 0:
-        return empty
-    usable, guess = _seed_guess(k, jj, c2 - j1, ck, cj, fh1.shape[1], reach)
-    ck, cj, guess = ck[usable], cj[usable], guess[usable]
+    ck, cj, guess = candidates(fh1, thr, pad, n_h, k, jj, c2 - j1, reach)
     if ck.size == 0:
         return empty
     base = np.rint(guess).astype(np.intp)
