@@ -16,14 +16,87 @@ searched range, scores at least ``min_score`` and is sharp enough
 
 from __future__ import annotations
 
+import math
+
 import cv2
+import numba
 import numpy as np
 from numpy.typing import NDArray
 
-from omniflow.kernels import ncc_offsets
 from omniflow.matching.tables import TableGeometry, parabola_offset, sharp_peak
 
-__all__ = ["densify"]
+__all__ = ["candidates", "candidates_numpy", "densify", "ncc_offsets"]
+
+
+@numba.njit(cache=True, nogil=True)
+def _ncc(dot, b1, b2, inv1, length):  # pragma: no cover - compiled
+    """The NCC from sum (v1 - mean1) v2, sum v2 and sum v2^2 (the first is zero-mean,
+    so sum (v1 - mean1)(v2 - mean2) = sum (v1 - mean1) v2)."""
+    return dot * inv1 * (1.0 / max(math.sqrt(max(b2 - b1 * (b1 / length), 0.0)), 1e-12))
+
+
+@numba.njit(cache=True, nogil=True)
+def ncc_offsets(t1, t2, k, j, cols, w, stride, lines, out):  # pragma: no cover - compiled
+    """NCC of the profile of ``t1`` at (k[i], j[i]) with those of ``t2`` at (k[i], cols[i, s]).
+
+    A profile: the 2 w + 1 samples every ``stride`` columns centred on the column, on
+    the 2 ``lines`` + 1 lines around k (wrapping in theta); zero-mean, unit-norm (a
+    flat profile has norm 1e-12). Columns must keep the profile inside the table.
+    Writes out[i, s]. :func:`omniflow.kernels.ncc_offsets`, value for value: each
+    sum is taken in the same order, but four columns' sums at once (independent
+    chains of additions the processor overlaps).
+    """
+    n_lines = t1.shape[0]
+    length = (2 * w + 1) * (2 * lines + 1)
+    n_s = cols.shape[1]
+    for i in range(k.size):
+        s1 = 0.0
+        s2 = 0.0
+        for dk in range(-lines, lines + 1):
+            row = (k[i] + dk) % n_lines
+            for q in range(-w, w + 1):
+                v = np.float64(t1[row, j[i] + q * stride])  # float64 products
+                s1 += v
+                s2 += v * v
+        mean1 = s1 / length
+        inv1 = 1.0 / max(math.sqrt(max(s2 - s1 * mean1, 0.0)), 1e-12)
+        for g in range(0, n_s, 4):
+            # columns g .. g + 3 (the last repeated past the end, not written)
+            c0 = cols[i, g]
+            c1 = cols[i, min(g + 1, n_s - 1)]
+            c2 = cols[i, min(g + 2, n_s - 1)]
+            c3 = cols[i, min(g + 3, n_s - 1)]
+            d0 = d1 = d2 = d3 = 0.0
+            a0 = a1 = a2 = a3 = 0.0
+            e0 = e1 = e2 = e3 = 0.0
+            for dk in range(-lines, lines + 1):
+                row = (k[i] + dk) % n_lines
+                for q in range(-w, w + 1):
+                    off = q * stride
+                    u = np.float64(t1[row, j[i] + off]) - mean1
+                    v0 = np.float64(t2[row, c0 + off])
+                    v1 = np.float64(t2[row, c1 + off])
+                    v2 = np.float64(t2[row, c2 + off])
+                    v3 = np.float64(t2[row, c3 + off])
+                    d0 += u * v0
+                    d1 += u * v1
+                    d2 += u * v2
+                    d3 += u * v3
+                    a0 += v0
+                    a1 += v1
+                    a2 += v2
+                    a3 += v3
+                    e0 += v0 * v0
+                    e1 += v1 * v1
+                    e2 += v2 * v2
+                    e3 += v3 * v3
+            out[i, g] = _ncc(d0, a0, e0, inv1, length)
+            if g + 1 < n_s:
+                out[i, g + 1] = _ncc(d1, a1, e1, inv1, length)
+            if g + 2 < n_s:
+                out[i, g + 2] = _ncc(d2, a2, e2, inv1, length)
+            if g + 3 < n_s:
+                out[i, g + 3] = _ncc(d3, a3, e3, inv1, length)
 
 
 def _seed_guess(
@@ -48,6 +121,109 @@ def _seed_guess(
     a = (cj - js[li]) / np.maximum(js[ri] - js[li], 1)
     guess = np.where(both, ds[li] + a * (ds[ri] - ds[li]), np.where(has_l, ds[li], ds[ri]))
     return usable, guess
+
+
+def candidates(
+    fh1: NDArray,
+    thr: float,
+    pad: int,
+    n_h: int,
+    k: NDArray,
+    jj: NDArray,
+    disp: NDArray,
+    reach: int,
+) -> tuple[NDArray, NDArray, NDArray]:
+    """The samples :func:`densify` tries and each one's disparity guess.
+
+    A candidate is a core sample (columns pad .. pad + n_h - 1) of line k with
+    |fh1| >= thr (compared in float32, as numpy compares a float32 table with a
+    Python float), not a seed, with a seed of its line within ``reach`` columns;
+    the guess is that of :func:`_seed_guess` (kept where usable). Seeds: line
+    ``k``, table column ``jj``, disparity ``disp`` (columns). Returns (ck, cj,
+    guess) by line, then column. Compiled (:func:`_line_candidates`);
+    :func:`candidates_numpy` is the same with a dilation and searchsorted.
+    """
+    order = np.lexsort((jj, k))
+    ks = np.ascontiguousarray(np.asarray(k, dtype=np.int64)[order])
+    js = np.ascontiguousarray(np.asarray(jj, dtype=np.int64)[order])
+    ds = np.ascontiguousarray(np.asarray(disp, dtype=np.float64)[order])
+    fh = np.ascontiguousarray(fh1)
+    first = np.searchsorted(ks, np.arange(fh.shape[0] + 1))  # each line's seeds
+    # at most 2 reach candidates per seed, n_h per line
+    most = int(np.minimum(np.diff(first) * (2 * reach), n_h).sum())
+    out_k = np.empty(most, dtype=np.intp)
+    out_j = np.empty(most, dtype=np.intp)
+    out_g = np.empty(most, dtype=np.float64)
+    n = _line_candidates(fh, thr, int(pad), int(n_h), first, js, ds, int(reach), out_k, out_j,
+                         out_g)  # fmt: skip
+    return out_k[:n], out_j[:n], out_g[:n]
+
+
+@numba.njit(cache=True, nogil=True)
+def _line_candidates(fh, thr, pad, n_h, first, js, ds, reach, out_k, out_j,
+                     out_g):  # pragma: no cover - compiled  # fmt: skip
+    """:func:`candidates` line by line into out_*; returns how many."""
+    thr32 = np.float32(thr)
+    c = 0
+    for k in range(fh.shape[0]):
+        s0, s1 = first[k], first[k + 1]
+        if s0 == s1:
+            continue
+        r = s0  # the first seed at or right of the column
+        for j in range(pad, pad + n_h):
+            while r < s1 and js[r] < j:
+                r += 1
+            if r < s1 and js[r] == j:
+                continue  # a seed itself
+            if not abs(fh[k, j]) >= thr32:
+                continue
+            has_l = r > s0 and j - js[r - 1] <= reach
+            has_r = r < s1 and js[r] - j <= reach
+            if not (has_l or has_r):
+                continue
+            if has_l and has_r:
+                dl, dr = ds[r - 1], ds[r]
+                if abs(dl - dr) > 1.0:
+                    continue  # a depth edge between the seeds
+                a = (j - js[r - 1]) / max(js[r] - js[r - 1], 1)
+                g = dl + a * (dr - dl)
+            elif has_l:
+                g = ds[r - 1]
+            else:
+                g = ds[r]
+            out_k[c] = k
+            out_j[c] = j
+            out_g[c] = g
+            c += 1
+    return c
+
+
+def candidates_numpy(
+    fh1: NDArray,
+    thr: float,
+    pad: int,
+    n_h: int,
+    k: NDArray,
+    jj: NDArray,
+    disp: NDArray,
+    reach: int,
+) -> tuple[NDArray, NDArray, NDArray]:
+    """:func:`candidates` in numpy (its reference form): a dilation of the seeds along
+    the lines, then each candidate's nearest seeds by searchsorted."""
+    cand = np.abs(fh1) >= thr
+    cand[:, :pad] = False
+    cand[:, pad + n_h :] = False
+    # only samples within ``reach`` columns of a seed on their line can be tried: a
+    # dilation of the seeds along the lines cuts the candidates before the search
+    seeded = np.zeros(fh1.shape, np.uint8)
+    seeded[k, jj] = 1
+    cand &= cv2.dilate(seeded, np.ones((1, 2 * reach + 1), np.uint8)).astype(bool)
+    cand[k, jj] = False  # the seeds themselves
+    ck, cj = np.nonzero(cand)
+    if ck.size == 0:
+        return ck, cj, np.zeros(0)
+    usable, guess = _seed_guess(k, jj, disp, ck, cj, fh1.shape[1], reach)
+    return ck[usable], cj[usable], guess[usable]
 
 
 def densify(
@@ -97,24 +273,11 @@ def densify(
     """
     pad, n_h = tab.pad, tab.n_h
     k, j1, c2 = (np.asarray(a) for a in seeds)
-    cand = np.abs(fh1) >= thr
-    cand[:, :pad] = False
-    cand[:, pad + n_h :] = False
     jj = j1.astype(np.int64) + pad
     empty = (np.zeros(0, np.intp), np.zeros(0, np.intp), np.zeros(0), np.zeros(0), 0)
     if k.size == 0:
         return empty
-    # only samples within ``reach`` columns of a seed on their line can be tried: a
-    # dilation of the seeds along the lines cuts the candidates before the search
-    seeded = np.zeros(fh1.shape, np.uint8)
-    seeded[k, jj] = 1
-    cand &= cv2.dilate(seeded, np.ones((1, 2 * reach + 1), np.uint8)).astype(bool)
-    cand[k, jj] = False  # the seeds themselves
-    ck, cj = np.nonzero(cand)
-    if ck.size == 0:
-        return empty
-    usable, guess = _seed_guess(k, jj, c2 - j1, ck, cj, fh1.shape[1], reach)
-    ck, cj, guess = ck[usable], cj[usable], guess[usable]
+    ck, cj, guess = candidates(fh1, thr, pad, n_h, k, jj, c2 - j1, reach)
     if ck.size == 0:
         return empty
     base = np.rint(guess).astype(np.intp)

@@ -28,9 +28,10 @@ import itertools
 import numpy as np
 from numpy.typing import NDArray
 
+from omniflow.matching.ncc import EdgeProfiles, alias_lines
 from omniflow.matching.robust import Descriptors
 
-__all__ = ["line_edges", "not_periodic", "profiles"]
+__all__ = ["line_edges", "not_periodic", "not_periodic_numpy", "profiles"]
 
 
 def profiles(table: NDArray, k: NDArray, j: NDArray, *, w: int, stride: int, lines: int) -> NDArray:
@@ -79,10 +80,14 @@ def not_periodic(
     alias2_score: float = 0.9,
     confirm_score: float = 0.8,
     columns2: tuple[int, int] | None = None,
-    desc1: Descriptors | None = None,
-    desc2: Descriptors | None = None,
+    threads: int = 1,
+    per_range=None,
 ) -> NDArray:
     """Whether each match's image-1 profile does NOT recur with an alias; bool (M,).
+
+    Compiled (:func:`omniflow.matching.ncc.alias_lines`): each match walks the
+    edges of its line outward, and image 2 is looked at only where image 1's
+    profile recurs. :func:`not_periodic_numpy` is the same rule in numpy.
 
     Parameters
     ----------
@@ -122,6 +127,56 @@ def not_periodic(
         image-1 profile recurs at two lags at least (one above
         ``alias_score``, the other above this): a period, not a lone
         recurrence.
+    threads, per_range : optional
+        With ``threads`` > 1 the matches are split into ranges run by
+        ``per_range`` (:func:`omniflow.parallel.map_tasks`); the result does
+        not depend on it.
+    """
+    reach = w * stride
+    if np.shape(edges) != np.shape(table) or np.any(
+        edges[:, :reach] | edges[:, edges.shape[1] - reach :]
+    ):
+        raise ValueError("not_periodic: every edge's profile must lie inside the table")
+    use2 = table2 is not None and j2 is not None and window is not None
+    return alias_lines(
+        EdgeProfiles.from_mask(table, edges, w, stride, lines), k, j, lags=lags,
+        alias_score=alias_score, t2=table2 if use2 else None, j2=j2 if use2 else None,
+        window=window if use2 else (0, 0), alias2_score=alias2_score,
+        confirm_score=confirm_score, columns2=columns2, threads=threads, per_range=per_range,
+    )  # fmt: skip
+
+
+def not_periodic_numpy(
+    table: NDArray,
+    edges: NDArray,
+    k: NDArray,
+    j: NDArray,
+    *,
+    w: int,
+    stride: int,
+    lines: int,
+    lags: tuple[int, int],
+    alias_score: float,
+    table2: NDArray | None = None,
+    j2: NDArray | None = None,
+    window: tuple[int, int] | None = None,
+    alias2_score: float = 0.9,
+    confirm_score: float = 0.8,
+    columns2: tuple[int, int] | None = None,
+    desc1: Descriptors | None = None,
+    desc2: Descriptors | None = None,
+) -> NDArray:
+    """:func:`not_periodic` in numpy (its reference form): every match's NCC with
+    every edge of its line by one batched float32 product per line, then the
+    walk outward as cumulative minima. The same decisions as :func:`not_periodic`
+    but where an NCC lies within a float32 ulp or two of a threshold (the
+    products sum in a different order).
+
+    Parameters
+    ----------
+    table, edges, k, j, w, stride, lines, lags, alias_score, table2, j2, window, \
+    alias2_score, confirm_score, columns2
+        As :func:`not_periodic`.
     desc1, desc2 : Descriptors, optional
         The matcher's descriptors of ``table`` and ``table2`` with the same
         (w, stride, lines), if it has them (saves building them again).

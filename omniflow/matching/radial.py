@@ -57,11 +57,16 @@ Two methods:
     units map dh to dh_i = v dh / (d + r)); on inclined surfaces the scales
     differ by up to h_2 / h_1 and the NCC drops.
 
-    Compiled: :func:`~omniflow.matching.robust.match_robust` scores each
+    Compiled: each pass (:func:`_prepare`) samples its tables and finds its
+    edges, then :class:`~omniflow.matching.robust.RobustSearch` scores each
     significant edge only against the image-2 edges inside its disparity
-    window, one Numba loop over the radial lines
-    (:mod:`omniflow.matching.ncc`), the lines split over two threads
-    (:mod:`omniflow.parallel`).
+    window, takes the sub-pixel step and the periodic-alias test, one Numba
+    loop over the radial lines (:mod:`omniflow.matching.ncc`); the lines of
+    both passes are split into ranges over two threads
+    (:mod:`omniflow.parallel`), then each pass's vote
+    (:mod:`omniflow.matching.vote`, compiled) and densification run on a
+    thread of their own. The short pass reads the long pass's tables where
+    their radii coincide (no second remap).
 
 Measured on closed-form scenes (``omniflow.synthetic``, see
 ``tests/omniflow/test_matching.py``): see that file's module docstring for the
@@ -78,18 +83,19 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
+from omniflow import parallel
 from omniflow.dct import DCTFit
 from omniflow.matching.dense import densify
 from omniflow.matching.paper import match_paper
-from omniflow.matching.periodic import not_periodic
-from omniflow.matching.robust import match_robust
+from omniflow.matching.robust import RobustSearch
 from omniflow.matching.tables import (
     PolarGrids,
     TableGeometry,
+    abs_percentile,
     blur_lines,
-    local_maxima,
     polar_grids,
     polar_maps,
+    polar_radii,
     polar_table,
     radial_derivative,
 )
@@ -335,7 +341,6 @@ def match_radial(
         raise ValueError(f"method = {method!r}: expected one of {MATCH_METHODS}")
     if not (0.0 <= short_patch < 1.0):
         raise ValueError(f"short_patch = {short_patch!r}: expected [0, 1)")
-    second = {k: v for k, v in locals().items() if k not in ("fit1", "fit2", "rig", "short_patch")}
     if not (0.0 <= threshold_percentile < 100.0):
         raise ValueError(f"threshold_percentile = {threshold_percentile!r}: expected [0, 100)")
     if not (0.0 <= dense_percentile <= 100.0 and dense_reach > 0 and flatness >= 0):
@@ -344,6 +349,7 @@ def match_radial(
             f"flatness = {flatness!r}: expected [0, 100], > 0 and >= 0"
         )
     cam1, cam2 = rig.cam1, rig.cam2
+    short_step = profile_step  # the short pass's profile step derives from the one given
     if patch_radius is None:
         patch_radius = cam1.r_m / 8.0
     if profile_step is None:
@@ -360,31 +366,124 @@ def match_radial(
             polar_grids(fit1, cam1, gradient=method == "paper"),
             polar_grids(fit2, cam2, gradient=method == "paper"),
         )
-    g1, g2 = grids
+    kw = {k: v for k, v in locals().items() if k in _PASS_ARGS}
+    passes = [_prepare(grids, rig, **kw)]
+    if method == "robust" and short_patch * patch_radius >= MIN_SHORT_RADIUS * h_step:
+        # the second pass, with short profiles: its matches are added where the
+        # first pass has none
+        short = kw["patch_radius"] = short_patch * patch_radius
+        kw["profile_step"] = short / 16.0 if short_step is None else min(short_step, short / 2)
+        passes.append(_prepare(grids, rig, **kw, wider=passes[0]))
+    if method == "paper":
+        return _finish(passes[0])
+    # both passes' lines in one list of ranges on the threads, then the second
+    # pass's numpy steps on the pool's thread while this one takes the first's
+    parallel.map_tasks(
+        _run_range, *[(p.search, k0, k1) for p in passes for k0, k1 in p.search.ranges]
+    )
+    later = [parallel.submit(_finish, p) for p in passes[1:]]
+    try:
+        out = _finish(passes[0])
+    except BaseException:
+        for task in later:
+            task.cancel()  # no task outlives the call
+        raise
+    for task in later:
+        out = _union(out, task.result(), n_theta, h_step)
+    return out
 
+
+#: match_radial's arguments that one pass (:func:`_prepare`) reads
+_PASS_ARGS = (
+    "method", "threshold_percentile", "min_gradient", "r_min", "r_max", "n_theta", "h_step",
+    "h_min", "rim_margin", "patch_radius", "patch_lines", "profile_step", "min_score",
+    "uniqueness", "left_right", "candidate_fraction", "tangential_blur", "consistency",
+    "consistency_support", "self_similarity", "flatness", "alias_score", "alias_image2",
+    "alias_period", "dense_percentile", "dense_reach",
+)  # fmt: skip
+
+
+def _run_range(search, k0: int, k1: int) -> None:
+    search.run(k0, k1)
+
+
+@dataclass
+class _Pass:
+    """One matching pass, from its polar tables to its compiled search (:func:`_prepare`);
+    :func:`_finish` turns it into Matches once the search has run."""
+
+    rig: Rig
+    opts: dict
+    tab: TableGeometry
+    t1: NDArray | None
+    t2: NDArray | None
+    fh1: NDArray
+    thr: float
+    w: int
+    stride: int
+    search: RobustSearch | None = None
+    paper: tuple | None = None
+    raw: tuple | None = None  # the tables before the blur
+
+
+def _sampled_columns(wider: _Pass | None, tab: TableGeometry, n_cols: int) -> tuple | None:
+    """The columns of ``wider``'s tables (before the blur) at the radii of a table of
+    ``n_cols`` columns from ``tab.h0`` (contiguous copies), or None where they differ:
+    equal radii give equal maps (:func:`~omniflow.matching.tables.polar_radii`), and
+    cv2.remap samples each column alike."""
+    if wider is None or wider.raw is None:
+        return None
+    wt = wider.tab
+    off = wt.pad - tab.pad
+    n_wide = wider.raw[0].shape[1]
+    if off < 0 or off + n_cols > n_wide or wt.n_theta != tab.n_theta:
+        return None
+    for scale in (1.0, tab.scale2):  # cam1's radii, cam2's (scaled, as polar_maps is called)
+        wide = polar_radii(scale * wt.h0, scale * wt.h_step, n_wide)[off : off + n_cols]
+        if not np.array_equal(wide, polar_radii(scale * tab.h0, scale * tab.h_step, n_cols)):
+            return None
+    return tuple(np.ascontiguousarray(r[:, off : off + n_cols]) for r in wider.raw)
+
+
+def _prepare(
+    grids: tuple[PolarGrids, PolarGrids], rig: Rig, wider: _Pass | None = None, **o
+) -> _Pass:
+    """The polar tables, edges and significance threshold of one pass (match_radial's
+    arguments ``o``, defaults resolved); the robust search is set up, not run.
+
+    ``wider``: a pass whose tables hold this one's columns (the first pass, with
+    longer profiles and so wider padding): where its maps hold this pass's maps
+    (the same values), this pass's tables before the blur are its columns, not
+    sampled again (cv2.remap samples each column alike)."""
+    g1, g2 = grids
+    cam1, cam2 = rig.cam1, rig.cam2
+    method, h_step, h_min, n_theta = o["method"], o["h_step"], o["h_min"], o["n_theta"]
     scale2 = cam2.v / cam1.v  # cam2 table radius per cam1 table radius
-    h_top = min(cam1.r_m - rim_margin, (cam2.r_m - rim_margin) / scale2)
+    h_top = min(cam1.r_m - o["rim_margin"], (cam2.r_m - o["rim_margin"]) / scale2)
     n_h = int(np.floor((h_top - h_min) / h_step)) + 1
     if n_h < 8:
         raise ValueError("the annulus h_min .. r_m - rim_margin is too narrow to match")
     # disparity window in table columns (the same everywhere, see module doc)
-    d_lo = cam1.v * rig.s / ((rig.d + r_max) * h_step)
-    d_hi = cam1.v * rig.s / ((rig.d + r_min) * h_step)
+    d_lo = cam1.v * rig.s / ((rig.d + o["r_max"]) * h_step)
+    d_hi = cam1.v * rig.s / ((rig.d + o["r_min"]) * h_step)
     win = (int(np.floor(d_lo)) - 1, int(np.ceil(d_hi)) + 1)
 
-    stride = max(1, round(profile_step / h_step))  # patch profile spacing, in columns
-    w = int(np.ceil(patch_radius / (h_step * stride)))
+    stride = max(1, round(o["profile_step"] / h_step))  # patch profile spacing, in columns
+    w = int(np.ceil(o["patch_radius"] / (h_step * stride)))
     pad = w * stride + 2 if method == "robust" else 1
     h0 = h_min - pad * h_step
     n_cols = n_h + 2 * pad
     maps1 = polar_maps(cam1, n_theta, h0, h_step, n_cols)
     maps2 = polar_maps(cam2, n_theta, scale2 * h0, scale2 * h_step, n_cols)
     tab = TableGeometry(maps1, maps2, pad, n_h, h0, h_step, scale2, n_theta, win)
-    t1 = t2 = None
+    t1 = t2 = raw = None
     if method == "robust":
-        t1, t2 = polar_table(g1.f, maps1), polar_table(g2.f, maps2)
-        if tangential_blur > 0:
-            sigma = tangential_blur * n_theta / (2.0 * np.pi)  # in lines
+        raw = _sampled_columns(wider, tab, n_cols)
+        if raw is None:
+            raw = polar_table(g1.f, maps1), polar_table(g2.f, maps2)
+        t1, t2 = raw
+        if o["tangential_blur"] > 0:
+            sigma = o["tangential_blur"] * n_theta / (2.0 * np.pi)  # in lines
             t1, t2 = blur_lines(t1, sigma), blur_lines(t2, sigma)
     # df/dh_i along the lines. The paper's rule reads the polar edge finder's
     # grid (eq. 19); the robust matcher finds its edges on the same blurred
@@ -399,65 +498,61 @@ def match_radial(
         fh1, fh2 = polar_table(g1.f_h, maps1), polar_table(g2.f_h, maps2)
     core = slice(pad, pad + n_h)
     # the percentile of every other line is the same to well within a percent
-    thr = float(np.percentile(np.abs(fh1[::2, core]), threshold_percentile))
-    thr = max(thr, float(min_gradient))
-
+    thr = abs_percentile(fh1[::2, core], o["threshold_percentile"])
+    thr = max(thr, float(o["min_gradient"]))
+    p = _Pass(rig, o, tab, t1, t2, fh1, thr, w, stride, raw=raw)
     if method == "paper":
         ft1, ft2 = polar_table(g1.f_theta, maps1), polar_table(g2.f_theta, maps2)
-        res = match_paper(tab, fh1, fh2, ft1, ft2, thr)
+        p.paper = match_paper(tab, fh1, fh2, ft1, ft2, thr)
     else:
-        res = match_robust(
-            tab,
-            fh1,
-            fh2,
-            t1,
-            t2,
-            thr,
-            w=w,
-            stride=stride,
-            patch_lines=patch_lines,
-            min_score=min_score,
-            uniqueness=uniqueness,
-            left_right=left_right,
-            candidate_fraction=candidate_fraction,
-            self_similarity=self_similarity,
-            flatness=flatness,
-            alias_score=1.0,  # the alias test below (omniflow.matching.periodic)
-        )
-    k1, j1, c2, score, n_sig = res
-    if method == "robust" and alias_score < 1.0 and k1.size:
-        a1 = np.abs(fh1)
-        edges1 = local_maxima(a1) & (a1 > candidate_fraction * thr)
-        edges1[:, :pad] = False
-        edges1[:, pad + n_h :] = False
-        keep = not_periodic(
-            t1, edges1, k1, j1 + pad, w=w, stride=stride, lines=patch_lines,
-            lags=((w * stride) // 2, win[1] - win[0]), alias_score=alias_score,
-            **({} if alias_image2 <= -1.0 else dict(
-                table2=t2, j2=c2 + pad, window=win, alias2_score=alias_image2,
-                columns2=_profile_columns(h0, h_step, cam2.r_m / scale2, w * stride),
-                confirm_score=alias_period)),
+        p.search = RobustSearch(
+            tab, fh1, fh2, t1, t2, thr, w=w, stride=stride, patch_lines=o["patch_lines"],
+            min_score=o["min_score"], uniqueness=o["uniqueness"], left_right=o["left_right"],
+            candidate_fraction=o["candidate_fraction"], self_similarity=o["self_similarity"],
+            # the periodic-alias test (omniflow.matching.periodic.not_periodic) on the
+            # matches that passed the sub-pixel step, not on every candidate
+            flatness=o["flatness"], alias_score=1.0,
+            periodic=None if o["alias_score"] >= 1.0 else dict(
+                alias_score=o["alias_score"], image2=o["alias_image2"] > -1.0,
+                alias2_score=o["alias_image2"], confirm_score=o["alias_period"],
+                columns2=_profile_columns(h0, h_step, cam2.r_m / scale2, w * stride)),
+            threads=parallel.THREADS,
         )  # fmt: skip
-        k1, j1, c2, score = k1[keep], j1[keep], c2[keep], score[keep]
+    return p
+
+
+def _finish(p: _Pass) -> Matches:
+    """One pass's matches once its search has run (which took the sub-pixel step and
+    the alias test): the disparity window, the consistency vote and the
+    densification."""
+    o, rig, tab = p.opts, p.rig, p.tab
+    cam1 = rig.cam1
+    method, h_step, h_min, n_theta = o["method"], o["h_step"], o["h_min"], o["n_theta"]
+    r_min, r_max, scale2 = o["r_min"], o["r_max"], tab.scale2
+    pad, n_h, w, stride = tab.pad, tab.n_h, p.w, p.stride
+    t1, t2, fh1 = p.t1, p.t2, p.fh1
+    k1, j1, c2, score, n_sig = p.paper if method == "paper" else p.search.finish()
     theta = -np.pi + (2.0 * np.pi / n_theta) * (k1 + 0.5)
     h1 = h_min + h_step * j1  # j1, c2: columns from the first core column
     h2 = scale2 * (h_min + h_step * c2)
     lo, hi = rig.disparity_window(h1, r_min, r_max)
     ok = (h2 >= lo) & (h2 <= hi) & np.isfinite(h2)
-    if method == "robust" and consistency > 0 and np.any(ok):
+    if method == "robust" and o["consistency"] > 0 and np.any(ok):
         idx = np.nonzero(ok)[0]
         agree = consistent(
             theta[idx], h1[idx], h2[idx] - scale2 * h1[idx],
-            half_theta=0.05, half_h=cam1.r_m / 16.0, tol=consistency,
-            support=consistency_support,
+            half_theta=0.05, half_h=cam1.r_m / 16.0, tol=o["consistency"],
+            support=o["consistency_support"],
         )  # fmt: skip
         ok[idx[~agree]] = False
-    if method == "robust" and dense_percentile < 100.0 and np.any(ok):
-        thr_d = float(np.percentile(np.abs(fh1[::2, core]), dense_percentile))
+    if method == "robust" and o["dense_percentile"] < 100.0 and np.any(ok):
+        core = slice(pad, pad + n_h)
+        thr_d = abs_percentile(fh1[::2, core], o["dense_percentile"])
         dk, dj, dc, ds, n_tried = densify(
-            tab, fh1, t1, t2, (k1[ok], j1[ok], c2[ok]), max(thr_d, float(min_gradient)),
-            w=w, stride=stride, lines=patch_lines, min_score=min_score,
-            reach=max(1, round(dense_reach * patch_radius / h_step)), flatness=flatness,
+            tab, fh1, t1, t2, (k1[ok], j1[ok], c2[ok]), max(thr_d, float(o["min_gradient"])),
+            w=w, stride=stride, lines=o["patch_lines"], min_score=o["min_score"],
+            reach=max(1, round(o["dense_reach"] * o["patch_radius"] / h_step)),
+            flatness=o["flatness"],
         )  # fmt: skip
         n_sig += n_tried
         th_d = -np.pi + (2.0 * np.pi / n_theta) * (dk + 0.5)
@@ -470,15 +565,9 @@ def match_radial(
         h2 = np.concatenate([h2[ok], h2_d[in_d]])
         score = np.concatenate([score[ok], ds[in_d]])
         ok = np.ones(theta.size, dtype=bool)
-    out = Matches.from_polar(
+    return Matches.from_polar(
         rig, theta[ok], h1[ok], h2[ok], score[ok], n_significant=n_sig, method=method
     )
-    if method == "robust" and short_patch * patch_radius >= MIN_SHORT_RADIUS * h_step:
-        second.update(grids=grids, patch_radius=short_patch * patch_radius, short_patch=0.0)
-        if second["profile_step"] is not None:
-            second["profile_step"] = min(second["profile_step"], second["patch_radius"] / 2)
-        out = _union(out, match_radial(None, None, rig, **second), n_theta, h_step)
-    return out
 
 
 def _profile_columns(h0: float, h_step: float, rim: float, half: int) -> tuple[int, int]:

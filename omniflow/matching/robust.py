@@ -12,10 +12,10 @@ from numpy.lib.stride_tricks import sliding_window_view
 from numpy.typing import NDArray
 
 from omniflow import parallel
-from omniflow.matching.ncc import profiles, robust_lines
-from omniflow.matching.tables import TableGeometry, parabola_offset, sharp_peak
+from omniflow.matching.ncc import LineSearch, profiles
+from omniflow.matching.tables import TableGeometry
 
-__all__ = ["Descriptors", "match_robust"]
+__all__ = ["Descriptors", "RobustSearch", "match_robust"]
 
 
 class Descriptors:
@@ -122,6 +122,46 @@ class TableDescriptors:
         return p
 
 
+class RobustSearch:
+    """:func:`match_robust` in three steps a caller can schedule: made (the edges),
+    :meth:`run` on every range of :attr:`ranges` (any order, any thread: the
+    compiled :class:`~omniflow.matching.ncc.LineSearch`, which also takes each
+    line's sub-pixel step and, with ``periodic`` given, the periodic-alias test
+    of :func:`~omniflow.matching.ncc.alias_lines`), then :meth:`finish`.
+    Arguments as :func:`match_robust`.
+    """
+
+    def __init__(
+        self, tab: TableGeometry, fh1, fh2, t1, t2, thr, *, w, stride, patch_lines, min_score,
+        uniqueness, left_right, candidate_fraction, self_similarity=1.0, flatness=0.0,
+        alias_score=1.0, periodic: dict | None = None, threads: int = 1,
+    ):  # fmt: skip
+        # the NCC at whole columns can sit below its peak between them by up to
+        # ~(1 - peak) (h_step / correlation length)^2; take a looser floor here
+        # and apply min_score to the interpolated peak (the sub-pixel step)
+        floor = min_score - 0.5 * (1.0 - min_score)
+        self.search = LineSearch(
+            t1, t2, fh1, fh2, low=candidate_fraction * thr, thr=thr, pad=tab.pad, n_h=tab.n_h,
+            win=tab.win, w=w, stride=stride, lines=patch_lines, floor=floor,
+            uniqueness=uniqueness, self_similarity=self_similarity, alias_score=alias_score,
+            left_right=left_right, min_score=min_score, flatness=flatness, periodic=periodic,
+        )  # fmt: skip
+        self.ranges = self.search.ranges(threads)
+        self.run = self.search.run
+
+    def finish(self):
+        """(k, j1, c2, score, n_sig) of :func:`match_robust`, once every range has run.
+
+        The sub-pixel step (taken in the kernel, line by line): a parabola
+        through the NCC at the neighbouring columns, after moving one column
+        if a neighbour scores higher
+        (:func:`~omniflow.matching.tables.parabola_offset`); kept where the
+        vertex's NCC is at least min_score and the peak sharp enough
+        (:func:`~omniflow.matching.tables.sharp_peak`, ``flatness``).
+        """
+        return self.search.refined()
+
+
 def match_robust(
     tab: TableGeometry,
     fh1,
@@ -152,37 +192,17 @@ def match_robust(
     left-right tests. Last, h_2 is refined to sub-pixel and the match kept
     when the refined NCC is at least min_score and its peak sharp enough for
     that (:func:`~omniflow.matching.tables.sharp_peak`, ``flatness``).
+    The lines are split over :data:`omniflow.parallel.THREADS` threads
+    (:class:`RobustSearch` is the same in steps).
     """
-    pad, n_h = tab.pad, tab.n_h
-    # the NCC at whole columns can sit below its peak between them by up to
-    # ~(1 - peak) (h_step / correlation length)^2; take a looser floor here
-    # and apply min_score to the interpolated peak below
-    floor = min_score - 0.5 * (1.0 - min_score)
-    ok, j2, s, n_sig = robust_lines(
-        t1, t2, fh1, fh2, low=candidate_fraction * thr, thr=thr, pad=pad, n_h=n_h,
-        win=tab.win, w=w, stride=stride, lines=patch_lines, floor=floor,
-        uniqueness=uniqueness, self_similarity=self_similarity, alias_score=alias_score,
-        left_right=left_right, threads=parallel.THREADS, per_range=parallel.map_tasks,
+    search = RobustSearch(
+        tab, fh1, fh2, t1, t2, thr, w=w, stride=stride, patch_lines=patch_lines,
+        min_score=min_score, uniqueness=uniqueness, left_right=left_right,
+        candidate_fraction=candidate_fraction, self_similarity=self_similarity,
+        flatness=flatness, alias_score=alias_score, threads=parallel.THREADS,
     )  # fmt: skip
-    ks, jj1 = np.nonzero(ok)  # by line, then column: numpy's order of the edges
-    jj2 = j2[ks, jj1]
-    s = s[ks, jj1]  # (M, 5): the NCC at columns jj2 - 2 .. jj2 + 2
-
-    # sub-sample h_2: parabola through the NCC at the neighbouring columns,
-    # after moving one column if a neighbour scores higher
-    s0, sm, sp = s[:, 2], s[:, 1], s[:, 3]
-    step = np.where((sp > s0) & (sp >= sm), 1, np.where(sm > s0, -1, 0))
-    moved = step != 0
-    if np.any(moved):
-        far = np.where(step > 0, s[:, 4], s[:, 0])
-        sm, s0, sp = (
-            np.where(step > 0, s0, np.where(moved, far, sm)),
-            np.where(moved, np.maximum(sp, sm), s0),
-            np.where(step > 0, far, np.where(moved, s0, sp)),
-        )
-        jj2 = jj2 + step
-    off = parabola_offset(sm, s0, sp)
-    peak = s0 + 0.25 * (sp - sm) * off  # the parabola's vertex value
-    keep = (peak >= min_score) & sharp_peak(peak, sm, s0, sp, flatness)
-    return (ks[keep], (jj1 - pad)[keep], (jj2 + off - pad)[keep],
-            np.clip(peak[keep], 0.0, 1.0), n_sig)  # fmt: skip
+    if len(search.ranges) > 1:
+        parallel.map_tasks(search.run, *search.ranges)
+    else:
+        search.run(*search.ranges[0])
+    return search.finish()

@@ -9,10 +9,12 @@ parabola's vertex).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from functools import lru_cache
 
 import cv2
+import numba
 import numpy as np
 from numpy.typing import NDArray
 
@@ -23,12 +25,14 @@ from omniflow.rig import Unit
 __all__ = [
     "PolarGrids",
     "TableGeometry",
+    "abs_percentile",
     "blur_lines",
     "local_maxima",
     "parabola_offset",
     "polar_gradient_fast",
     "polar_grids",
     "polar_maps",
+    "polar_radii",
     "polar_sample",
     "polar_table",
     "radial_derivative",
@@ -148,13 +152,19 @@ def polar_maps(unit: Unit, n_theta: int, h0: float, step: float, n: int) -> tupl
     h_i = h0 + j step; map values are pixel indices (x - 1/2, y - 1/2).
     """
     theta = -np.pi + (2.0 * np.pi / n_theta) * (np.arange(n_theta) + 0.5)
-    h_i = h0 + step * np.arange(n)
+    h_i = polar_radii(h0, step, n)
     mx = (unit.x_c - 0.5) + np.cos(theta)[:, None] * h_i[None, :]
     my = (unit.y_c - 0.5) + np.sin(theta)[:, None] * h_i[None, :]
     mx, my = mx.astype(np.float32), my.astype(np.float32)
     mx.setflags(write=False)
     my.setflags(write=False)
     return mx, my
+
+
+def polar_radii(h0: float, step: float, n: int) -> NDArray:
+    """The image radii of the columns of a polar table, h0 + j step (:func:`polar_maps`):
+    two tables whose radii are equal have equal maps, column for column."""
+    return h0 + step * np.arange(n)
 
 
 def polar_table(image: NDArray, maps: tuple[NDArray, NDArray]) -> NDArray:
@@ -181,13 +191,32 @@ def blur_lines(table: NDArray, sigma: float) -> NDArray:
 
 
 def radial_derivative(table: NDArray, step: float) -> NDArray:
-    """Central difference along the columns (radius) of a polar table."""
+    """Central difference along the columns (radius) of a polar table.
+
+    (t[:, j + 1] - t[:, j - 1]) (0.5 / step), the end columns copied from their
+    neighbours; a float32 table is differenced in float32 (compiled), any other
+    with numpy, in its dtype.
+    """
+    if table.dtype == np.float32 and table.ndim == 2 and table.shape[1] >= 3:
+        out = np.empty(table.shape, dtype=np.float32)
+        _central_difference(np.ascontiguousarray(table), np.float32(0.5 / step), out)
+        return out
     out = np.empty_like(table)
     np.subtract(table[:, 2:], table[:, :-2], out=out[:, 1:-1])
     out[:, 1:-1] *= 0.5 / step
     out[:, 0] = out[:, 1]
     out[:, -1] = out[:, -2]
     return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _central_difference(t, half_inv_step, out):  # pragma: no cover - compiled
+    n = t.shape[1]
+    for k in range(t.shape[0]):
+        for j in range(1, n - 1):
+            out[k, j] = (t[k, j + 1] - t[k, j - 1]) * half_inv_step
+        out[k, 0] = out[k, 1]
+        out[k, n - 1] = out[k, n - 2]
 
 
 def local_maxima(a: NDArray) -> NDArray:
@@ -231,3 +260,60 @@ class TableGeometry:
     scale2: float
     n_theta: int
     win: tuple[int, int]  # column offsets j2 - j1 that can hold the match
+
+
+@numba.njit(cache=True, nogil=True)
+def _abs_order_stats(a, lo, out):  # pragma: no cover - compiled
+    """The lo-th and (lo + 1)-th smallest of |a| (2-D float32) into out[0], out[1]: a
+    radix select on the bit patterns of |a| (as unsigned integers they sort as the
+    values do), a histogram of their top 16 bits, then a sort of the bins it needs.
+    Returns False (nothing written) where |a| holds a NaN or an infinity."""
+    bits = np.abs(a.ravel()).view(np.uint32)
+    n = bits.size
+    hist = np.zeros(65537, dtype=np.int64)
+    for i in range(n):
+        if bits[i] >= 0x7F800000:
+            return False
+        hist[(bits[i] >> 16) + 1] += 1
+    for b in range(65536):
+        hist[b + 1] += hist[b]  # hist[b]: how many lie in the bins below b
+    for r in range(2):
+        rank = lo + r
+        b = np.searchsorted(hist, rank, side="right") - 1  # the bin holding that rank
+        m = hist[b + 1] - hist[b]
+        sel = np.empty(m, dtype=np.uint32)
+        c = 0
+        for i in range(n):
+            if (bits[i] >> 16) == b:
+                sel[c] = bits[i]
+                c += 1
+        sel.sort()
+        out[r] = sel[rank - hist[b] : rank - hist[b] + 1].view(np.float32)[0]
+    return True
+
+
+def abs_percentile(a: NDArray, q: float) -> float:
+    """``float(np.percentile(np.abs(a), q))``, faster for a 2-D float32 array.
+
+    The two order statistics np.percentile interpolates between come from a
+    compiled radix select (no copy, no partition) and are interpolated as numpy
+    does for a Python-scalar q (method "linear", in float32); any other input
+    goes to np.percentile itself.
+    """
+    a = np.asarray(a)
+    if type(q) not in (int, float) or a.dtype != np.float32 or a.ndim != 2 or a.size < 2:
+        return float(np.percentile(np.abs(a), q))
+    n = a.size
+    v = (n - 1) * np.true_divide(q, 100)  # numpy's virtual index of method "linear"
+    if not (0.0 <= v < n - 1):
+        return float(np.percentile(np.abs(a), q))
+    lo = math.floor(v)
+    out = np.empty(2, dtype=np.float32)
+    if not _abs_order_stats(np.ascontiguousarray(a), lo, out):
+        return float(np.percentile(np.abs(a), q))
+    prev, nxt = out[0], out[1]
+    gamma = float(v - lo)
+    diff = nxt - prev  # numpy's _lerp, in float32
+    if gamma >= 0.5:
+        return float(nxt - diff * (1 - gamma))
+    return float(prev + diff * gamma)

@@ -58,3 +58,47 @@ def test_ncc_check_catches_a_profile_off_by_one_line():
     ref = _reference(t1, t2, k, j, cols, w, stride, 1)
     got = _kernel(t1, np.roll(t2, -1, axis=0), k, j, cols, w, stride, 1)
     assert np.max(np.abs(got - ref)) > 1e-4
+
+
+@pytest.mark.parametrize(("lines", "n_cols"), [(0, 7), (1, 5), (2, 1), (0, 9)])
+def test_densifys_kernel_equals_ncc_offsets_bit_for_bit(lines, n_cols):
+    """omniflow.matching.dense.ncc_offsets (four columns' sums at once) against
+    omniflow.kernels.ncc_offsets: every value equal, for column counts that fill the
+    groups of four or leave one to three over. Mutation caught: a group's last
+    column written from the wrong accumulator (any n_cols not a multiple of 4)."""
+    from omniflow.matching.dense import ncc_offsets as grouped
+
+    t1, t2, k, j, _, w, stride = _case(lines, seed=2)
+    rng = np.random.default_rng(3)
+    cols = np.clip(j[:, None] + rng.integers(-3, 4, (j.size, n_cols)), w * stride,
+                   119 - w * stride)  # fmt: skip
+    out = np.empty(cols.shape)
+    grouped(t1, t2, k.astype(np.int64), j.astype(np.int64), cols.astype(np.int64),
+            w, stride, lines, out)  # fmt: skip
+    np.testing.assert_array_equal(out, _kernel(t1, t2, k, j, cols, w, stride, lines))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_compiled_candidates_equal_the_numpy_form(seed):
+    """omniflow.matching.dense.candidates (a walk along each line) against
+    candidates_numpy (dilation, then searchsorted): the same samples, in the same
+    order, with the same disparity guesses, on random derivative tables with seeds
+    close together (interpolated guesses), far apart, at the core's ends, and pairs
+    that disagree by more than a column (no candidate between them). Mutation caught:
+    interpolating across a depth edge."""
+    from omniflow.matching.dense import candidates, candidates_numpy
+
+    rng = np.random.default_rng(seed)
+    n_lines, n_cols, pad, n_h, reach = 30, 140, 10, 120, 8
+    fh1 = rng.standard_normal((n_lines, n_cols)).astype(np.float32)
+    m = 150
+    k = rng.integers(0, n_lines, m)
+    jj = rng.integers(pad, pad + n_h, m)
+    pairs = np.unique(k * n_cols + jj)  # seeds are unique samples
+    k, jj = pairs // n_cols, pairs % n_cols
+    disp = rng.normal(30.0, 1.5, k.size)
+    out = candidates(fh1, 0.5, pad, n_h, k, jj, disp, reach)
+    ref = candidates_numpy(fh1, 0.5, pad, n_h, k, jj, disp, reach)
+    assert out[0].size > 100
+    for a, b in zip(out, ref, strict=True):
+        np.testing.assert_array_equal(a, b)

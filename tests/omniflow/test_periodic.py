@@ -134,3 +134,50 @@ def test_a_smooth_ramp_is_not_a_period():
     j = 10 * (100 // 10)
     assert _call(t1, t2, j, edges=edges)
     assert _call(t1, t2, j, edges=edges, image2=False)
+
+
+def _textured_pair(seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Image 1: a period-24 sinusoid plus smoothed noise along every line (lines differ);
+    image 2: the same content D columns further out."""
+    rng = np.random.default_rng(seed)
+    c = np.arange(N_COLS, dtype=float)
+    noise = rng.standard_normal((N_LINES * 8, N_COLS))
+    kernel = np.exp(-0.5 * (np.arange(-6, 7) / 2.0) ** 2)
+    noise = np.apply_along_axis(lambda r: np.convolve(r, kernel, mode="same"), 1, noise)
+    amp = rng.uniform(0.0, 0.3, (N_LINES * 8, 1))  # from no period to a strong one
+    t1 = (0.5 + amp * np.sin(2 * np.pi * c / 24.0) + 0.05 * noise).astype(np.float32)
+    t2 = np.empty_like(t1)
+    t2[:, D:] = t1[:, :-D]
+    t2[:, :D] = t1[:, :1]
+    return t1, t2
+
+
+def test_compiled_test_takes_the_numpy_rules_decisions():
+    """not_periodic (compiled) against not_periodic_numpy, its reference form, on
+    every edge of 64 lines from periodic to aperiodic, with and without image 2,
+    with a rim hiding part of image 2, on one thread and split over two: the same
+    decisions, and both kinds occur (so a test that kept or dropped everything
+    would fail)."""
+    from omniflow import parallel
+    from omniflow.matching.periodic import not_periodic_numpy
+
+    t1, t2 = _textured_pair(3)
+    wide = np.zeros(t1.shape, dtype=bool)
+    wide[:] = local_maxima(np.abs(np.gradient(t1, axis=1)))
+    wide[:, : W * STRIDE] = wide[:, N_COLS - W * STRIDE :] = False
+    k, j = np.nonzero(wide)
+    rng = np.random.default_rng(4)
+    j2 = j + D + rng.uniform(-0.6, 0.6, j.size)
+    base = dict(w=W, stride=STRIDE, lines=1, lags=LAGS, alias_score=0.9)
+    cases = [
+        {},
+        dict(table2=t2, j2=j2, window=WINDOW, alias2_score=0.9),
+        dict(table2=t2, j2=j2, window=WINDOW, alias2_score=0.9, columns2=(W * STRIDE, 150)),
+    ]
+    for extra in cases:
+        ref = not_periodic_numpy(t1, wide, k, j, **base, **extra)
+        assert 0 < np.count_nonzero(ref) < ref.size
+        for threads in (1, 2):
+            out = not_periodic(t1, wide, k, j, **base, **extra, threads=threads,
+                               per_range=parallel.map_tasks)  # fmt: skip
+            np.testing.assert_array_equal(out, ref)
