@@ -545,6 +545,13 @@ def build_parser() -> argparse.ArgumentParser:
         "matching, first-frame gradients, frame differences, the direct 2x2 solution); "
         "options below still override",
     )
+    algo.add_argument(
+        "--dense",
+        action="store_true",
+        help="start from the densified configuration (OmniFlowConfig.dense(): matches beyond "
+        "the edges, grid pools, refinement where a surface moves >= 1 px; about ten times "
+        "the points and a smaller error, at about twice the time); options below still override",
+    )
     parser._config_fields = _add_config_options(parser)  # type: ignore[attr-defined]
     return parser
 
@@ -646,8 +653,12 @@ def _make_config(args, config_fields: list[str]):
     }
     overrides = {k: tuple(v) if isinstance(v, list) else v for k, v in overrides.items()}
     check_knobs(overrides)  # before the config's own checks, so the message names the option
+    dense = getattr(args, "dense", False)
+    if args.paper and dense:
+        raise CLIError("--paper and --dense: expected at most one preset")
     try:
-        config = cls.paper(**overrides) if args.paper else cls(**overrides)
+        preset = cls.paper if args.paper else cls.dense if dense else cls
+        config = preset(**overrides)
     except (TypeError, ValueError) as exc:
         raise CLIError(f"bad algorithm option: {_one_line(exc)}") from exc
     check_knobs(config)
@@ -669,21 +680,27 @@ def config_from_settings(settings: str | Sequence[str], *, paper: bool = False) 
     ``_``), VALUE parsed as its option would be (``none`` for None, ``true`` /
     ``false`` for a switch, space-separated numbers for a tuple). The other
     fields keep their defaults (``paper``: those of ``OmniFlowConfig.paper()``).
-    Raises :class:`CLIError` with one line naming the setting and what was expected.
+    An item ``paper`` or ``dense`` (no ``=``) starts from that preset instead
+    (``"dense,pool_k=64"``). Raises :class:`CLIError` with one line naming the
+    setting and what was expected.
     """
     items = settings.split(",") if isinstance(settings, str) else list(settings)
     parser = _SettingsParser(prog="settings", add_help=False, allow_abbrev=False)
     fields = _add_config_options(parser)
     argv: list[str] = []
+    dense = False
     for item in (i.strip() for i in items):
         if not item:
+            continue
+        if item in ("paper", "dense"):  # a preset, as the CLI's --paper / --dense
+            paper, dense = paper or item == "paper", dense or item == "dense"
             continue
         name, sep, value = item.partition("=")
         name = name.strip().replace("-", "_")
         if not sep or name not in fields:
             raise CLIError(
                 f"{item!r}: expected NAME=VALUE with NAME an OmniFlowConfig field, e.g. "
-                "flow_taper=0 (omniflow --help lists them)"
+                "flow_taper=0 (omniflow --help lists them), or a preset: paper, dense"
             )
         action = next(a for a in parser._actions if a.dest == f"cfg_{name}")
         if isinstance(action, argparse.BooleanOptionalAction):
@@ -698,7 +715,7 @@ def config_from_settings(settings: str | Sequence[str], *, paper: bool = False) 
         args = parser.parse_args(argv)
     except CLIError as exc:
         raise CLIError(f"{', '.join(items)}: {exc}") from None
-    args.paper = paper
+    args.paper, args.dense = paper, dense
     return _make_config(args, fields)
 
 

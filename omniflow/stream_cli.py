@@ -95,6 +95,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--paper", action="store_true", help="start from OmniFlowConfig.paper() (see omniflow)"
     )
+    parser.add_argument(
+        "--dense", action="store_true", help="start from OmniFlowConfig.dense() (see omniflow)"
+    )
     parser._config_fields = _add_config_options(parser)  # type: ignore[attr-defined]
     return parser
 

@@ -76,8 +76,9 @@ def _parser() -> argparse.ArgumentParser:
         default=[],
         metavar="NAME=VALUE[,NAME=VALUE...]",
         help="one more omniflow row: the default configuration with these OmniFlowConfig "
-        "fields changed (e.g. --row flow_taper=0 --row eiv=none,sampling=exact); the row is "
-        "named after the fields that differ; repeatable",
+        "fields changed (e.g. --row flow_taper=0 --row eiv=none,sampling=exact), or a preset "
+        "and changes (--row dense, --row dense,pool_k=64); the row is named after the fields "
+        "that differ; repeatable",
     )
     ap.add_argument(
         "--baselines",

@@ -217,3 +217,21 @@ def test_cli_refuses_a_bad_row(synth, tmp_path):
     # the default configuration again: already the first row
     _one_line_exit_2(_cli(*base, *out, "--row", "flow_taper=0.5"), "already scored")
     assert not (tmp_path / "o").exists()
+
+
+def test_row_presets_start_from_the_preset():
+    """``--row dense`` and ``--row dense,NAME=VALUE`` (omniflow.cli.config_from_settings)
+    start from OmniFlowConfig.dense(), ``paper`` from OmniFlowConfig.paper(); both at once
+    is refused in one line. Mutation caught: a preset word ignored (the defaults)."""
+    from omniflow.cli import CLIError, config_from_settings
+    from omniflow.config import DENSE, OmniFlowConfig
+
+    assert config_from_settings("dense") == OmniFlowConfig.dense() != OmniFlowConfig()
+    assert config_from_settings("dense,pool_k=64") == OmniFlowConfig.dense(pool_k=64)
+    assert config_from_settings("paper") == OmniFlowConfig.paper()
+    dense = OmniFlowConfig.dense()
+    assert {k: getattr(dense, k) for k in DENSE} == DENSE
+    changed = {k for k, v in OmniFlowConfig().to_dict().items() if dense.to_dict()[k] != v}
+    assert changed == set(DENSE)
+    with pytest.raises(CLIError, match="at most one preset"):
+        config_from_settings("paper,dense")
