@@ -504,6 +504,20 @@ class OmniFlowConfig:
         base.update(overrides)
         return cls(**base)
 
+    @property
+    def grid_pools(self) -> bool:
+        """Whether the pools are grid filters (``pool_grid``, omniflow.gridpool): only for
+        the one-pass, equal-weight solver; the knobs that thin each pool by its neighbours
+        need the k-d tree's."""
+        return (
+            self.pool_grid is not None
+            and self.pool_unit_weighting == "equal"
+            and self.pool_edge_tol is None
+            and self.pool_residual_tol is None
+            and self.pool_flow_tol is None
+            and self.pool_min_info is None
+        )
+
     def replace(self, **changes) -> OmniFlowConfig:
         """A copy with some fields changed."""
         return replace(self, **changes)

@@ -55,7 +55,7 @@ from numpy.typing import NDArray
 from omniflow.applications import radial_velocity_stereo
 from omniflow.config import OmniFlowConfig
 from omniflow.flow import neighbourhoods
-from omniflow.gridpool import GridPools, grid_pooling
+from omniflow.gridpool import GridPools
 from omniflow.kernels import decouple_fits, decouple_sums
 from omniflow.rig import Rig
 
@@ -170,7 +170,7 @@ def decouple(
     )  # fmt: skip
     derivs = tuple(np.asarray(cols[c], dtype=np.float64)
                    for c in ("f1_h", "f1_theta", "f1_t", "f2_h", "f2_theta", "f2_t"))  # fmt: skip
-    if grid_pooling(config):  # the solver's grid windows, the k-d tree's where ranges mix
+    if config.grid_pools:  # the solver's grid windows, the k-d tree's where ranges mix
         grid = GridPools(
             cols["x"], cols["y"], None, (rig.cam1.height, rig.cam1.width), radius=radius,
             cell=config.pool_grid * radius, r=cols["r"], range_tol=config.pool_range_tol,

@@ -31,7 +31,6 @@ point's own bin always counts, one more than 2 delta away (about twice
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -39,10 +38,7 @@ from numpy.typing import NDArray
 
 from omniflow.kernels import DECOUPLE_SUMS, decouple_sums, grid_read, grid_scatter
 
-if TYPE_CHECKING:  # omniflow.config imports omniflow.flow, which imports this module
-    from omniflow.config import OmniFlowConfig
-
-__all__ = ["GridPools", "grid_pooling"]
+__all__ = ["GridPools"]
 
 
 class GridPools:
@@ -253,16 +249,3 @@ class GridPools:
         if self.idx is not None:  # the points whose window mixes ranges: their tree pools
             out += decouple_sums(self.idx, self.w, (f1h, f1th, f1t, f2h, f2th, f2t), h1, h2)
         return out
-
-
-def grid_pooling(config: OmniFlowConfig) -> bool:
-    """Whether the pools are grid filters (``config.pool_grid``): only for the one-pass,
-    equal-weight solver; the knobs that thin each pool by its neighbours need the tree's."""
-    return (
-        config.pool_grid is not None
-        and config.pool_unit_weighting == "equal"
-        and config.pool_edge_tol is None
-        and config.pool_residual_tol is None
-        and config.pool_flow_tol is None
-        and config.pool_min_info is None
-    )

@@ -26,7 +26,7 @@ from omniflow.flow import (
     neighbourhoods,
     pooled_solution,
 )
-from omniflow.gridpool import GridPools, grid_pooling
+from omniflow.gridpool import GridPools
 from omniflow.matching import Matches
 from omniflow.refine import refine_moving
 from omniflow.rig import Rig, Unit
@@ -190,7 +190,7 @@ def make_solver(
     pool_radius = rig.cam1.r_m / 8.0 if config.pool_radius is None else config.pool_radius
     tree = dict(k=config.pool_k, radius=pool_radius, r=r, range_tol=config.pool_range_tol)
     grid = None
-    if grid_pooling(config):
+    if config.grid_pools:
         idx = w = None
         eps = 1e-3  # rad: the tangent d(x, y)/dtheta / h_1 by central differences
         xp, yp = rig.cam1.pixel_of_polar(h1, theta + eps)
