@@ -38,6 +38,24 @@ from omniflow.rig import Rig
 
 __all__ = ["moving_far", "refine_moving"]
 
+_BLAS: list = []  # the process's threadpoolctl controller, made on first use
+
+
+def _one_blas_thread():
+    """A context in which BLAS runs on the calling thread only.
+
+    The exact evaluation is a few small matrix products; OpenBLAS would spread
+    each over every core and its workers then spin for a while after the call,
+    taking a core from omniflow's own threads and from whatever runs next
+    (measured: DIS medium's time in the same process doubled).
+    """
+    if not _BLAS:
+        from threadpoolctl import ThreadpoolController
+
+        _BLAS.append(ThreadpoolController())
+    return _BLAS[0].limit(limits=1, user_api="blas")
+
+
 MIN_NEIGHBOURS = 8  # other fast points within the pool radius: a moving surface, not a stray
 
 
@@ -104,24 +122,28 @@ def refine_moving(
     solve = make_solver(rig, config, x1[i], y1[i], th, g1, g2, r[i], noise)
     ai, bi, ci = a[i].copy(), b[i].copy(), conf[i].copy()
     k = g2 / g1  # eq. (14)
-    for _ in range(config.iterations):
-        rows = []
-        for fr, x, y, h_i, dh in ((cam1, x1[i], y1[i], g1, ai), (cam2, x2[i], y2[i], g2, k * ai)):
-            unit = fr["a"].unit  # polar gradients below: eq. (19)-(20)
-            xd, yd = unit.pixel_of_polar(h_i + dh, th + bi)
-            fb, g_x, g_y = fr["b"].fit.value_and_gradient(xd, yd)  # frame t + 1, displaced
-            fa, a_x, a_y = fr["af"].fit.value_and_gradient(x, y)  # frame t, at the point
-            g_h, g_th = polar_from_cartesian(g_x, g_y, xd - unit.x_c, yd - unit.y_c)
-            if config.gradients == "average":
-                a_h, a_th = polar_from_cartesian(a_x, a_y, x - unit.x_c, y - unit.y_c)
-                g_h, g_th = 0.5 * (g_h + a_h), 0.5 * (g_th + a_th)
-            rows.append((g_h, g_th, fb - fa))  # brightness constancy's residual (eq. 8)
-        (q1_h, q1_th, e1), (q2_h, q2_th, e2) = rows
-        da, db, cc = solve(q1_h, q1_th, e1, q2_h, q2_th, e2)
-        step = np.isfinite(da) & np.isfinite(db)
-        ai = np.where(step, ai + da, ai)
-        bi = np.where(step, bi + db, bi)
-        ci = np.where(step, cc, ci)
+    with _one_blas_thread():
+        for _ in range(config.iterations):
+            rows = []
+            for fr, x, y, h_i, dh in (
+                (cam1, x1[i], y1[i], g1, ai),
+                (cam2, x2[i], y2[i], g2, k * ai),
+            ):
+                unit = fr["a"].unit  # polar gradients below: eq. (19)-(20)
+                xd, yd = unit.pixel_of_polar(h_i + dh, th + bi)
+                fb, g_x, g_y = fr["b"].fit.value_and_gradient(xd, yd)  # frame t + 1, displaced
+                fa, a_x, a_y = fr["af"].fit.value_and_gradient(x, y)  # frame t, at the point
+                g_h, g_th = polar_from_cartesian(g_x, g_y, xd - unit.x_c, yd - unit.y_c)
+                if config.gradients == "average":
+                    a_h, a_th = polar_from_cartesian(a_x, a_y, x - unit.x_c, y - unit.y_c)
+                    g_h, g_th = 0.5 * (g_h + a_h), 0.5 * (g_th + a_th)
+                rows.append((g_h, g_th, fb - fa))  # brightness constancy's residual (eq. 8)
+            (q1_h, q1_th, e1), (q2_h, q2_th, e2) = rows
+            da, db, cc = solve(q1_h, q1_th, e1, q2_h, q2_th, e2)
+            step = np.isfinite(da) & np.isfinite(db)
+            ai = np.where(step, ai + da, ai)
+            bi = np.where(step, bi + db, bi)
+            ci = np.where(step, cc, ci)
     a, b, conf = a.copy(), b.copy(), conf.copy()
     a[i], b[i], conf[i] = ai, bi, ci
     return a, b, conf, sel

@@ -103,3 +103,19 @@ def test_a_lone_fast_point_is_not_refined(turning_wall, monkeypatch):
     monkeypatch.setattr(refine, "MIN_NEIGHBOURS", 0)
     mutated = estimate(f1, f2, rig, OmniFlowConfig(**knobs), matches=sub)
     assert np.any(mutated["dtheta_dt"] != base["dtheta_dt"])
+
+
+def test_refinement_keeps_blas_on_one_thread():
+    """The exact evaluation's matrix products run with one BLAS thread (OpenBLAS's idle
+    workers spin after a multi-threaded call and took a core from the next computation:
+    DIS medium measured 2x slower in the same process, benchmarks/bench_omniflow.py).
+    Mutation caught: a context that does not limit (BLAS keeps its threads)."""
+    from threadpoolctl import threadpool_info
+
+    blas = [lib for lib in threadpool_info() if lib["user_api"] == "blas"]
+    assert blas  # numpy's BLAS is seen
+    with refine._one_blas_thread():
+        inside = [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"]
+    assert inside and all(n == 1 for n in inside)
+    after = [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"]
+    assert after == [lib["num_threads"] for lib in blas]  # restored on exit
