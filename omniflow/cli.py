@@ -52,6 +52,7 @@ PROG = "omniflow"
 OUTPUTS = (
     "flow.csv",
     "regions.csv",
+    "monocular.csv",
     "flow_arrows.png",
     "flow_color.png",
     "unwarp_cam1.png",
@@ -195,6 +196,7 @@ KNOB_LIMITS: dict[str, tuple[float, float, bool, bool]] = {
     "pool_min_conditioning": (0.0, 1.0, True, True),  # lambda_min / lambda_max
     "iterations": (0, math.inf, True, False),
     "iterate_min_px": (0.0, math.inf, True, False),  # px of first-step flow
+    "monocular_gap": (0.0, math.inf, True, False),  # px from the nearest stereo match
     "flow_band": (0.0, 1.0, False, True),
     "flow_taper": (0.0, 1.0, True, True),  # fraction of the flow band rolled off
     "flow_band_tolerance": (1.0, math.inf, True, False),
@@ -359,6 +361,9 @@ def build_parser() -> argparse.ArgumentParser:
               flow.json        units of every column, the config, the rig, the inputs and timings
               regions.csv      with --region / --auto-regions: per region its point count,
                                mean flow, dr/dt, time to contact and steering headings
+              monocular.csv    with --monocular-gap PX: cam1's flow alone at significant points
+                               farther than PX from every match (no range): x, y, theta, h1,
+                               dh1_dt, dtheta_dt, dx, dy, confidence
               flow_arrows.png  cam1 frame t with the flow drawn as arrows (magnified; see legend)
                                and the regions outlined
               flow_color.png   cam1 frame t with each point in the Middlebury flow colour
@@ -1091,6 +1096,7 @@ def run(args: argparse.Namespace, config_fields: list[str], argv: list[str]) -> 
         for name in OUTPUTS
         if not (args.no_pictures and name in PICTURES)
         and not (name == "regions.csv" and not with_regions)
+        and not (name == "monocular.csv" and config.monocular_gap is None)
     ]
     with OutputSet(out, owned=OUTPUTS, manifest="flow.json") as stage:
         t1 = time.perf_counter()
@@ -1122,6 +1128,8 @@ def run(args: argparse.Namespace, config_fields: list[str], argv: list[str]) -> 
             rows, outlines, regions_block = _regions(args, cols, masks, fit, rig, frame_interval)
             atomic_write_text(stage / "regions.csv", regions_csv_text(rows))
         result.to_csv(stage / "flow.csv", _column_units())
+        if config.monocular_gap is not None:
+            result.monocular_to_csv(stage / "monocular.csv")
         if not args.no_pictures:
             _pictures(stage, f1[t], rig.cam1, cols, args.arrow_scale, outlines)
         t_write = time.perf_counter() - t2
@@ -1145,6 +1153,8 @@ def run(args: argparse.Namespace, config_fields: list[str], argv: list[str]) -> 
             "outputs": list(written),
             "median_flow_px": float(np.median(np.hypot(cols["dx"], cols["dy"]))) if n else None,
         }
+        if config.monocular_gap is not None:
+            summary["monocular_points"] = len(result.monocular.get("x", ()))
         if odometry_block is not None:
             summary["odometry"] = odometry_block
         if regions_block is not None:

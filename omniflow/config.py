@@ -317,6 +317,15 @@ class OmniFlowConfig:
         wavenumber k and displacement d); the refinement removes that where
         it matters and leaves the small flows, where it adds only noise,
         alone. 0: every point refined, read off pixel grids.
+    monocular_gap : float or None
+        Also solve cam1's eq. (9) alone, pooled over its neighbours like the
+        stereo solve, at significant cam1 points farther than this (px) from
+        every stereo match (:mod:`omniflow.monocular`): flow without range
+        where the matcher has no answer, e.g. an object outside cam2's view
+        (the crossing pillar). Returned as :attr:`OmniFlowResult.monocular`
+        (the ``omniflow`` CLI writes monocular.csv). None (default): off.
+        The tangential flow is the reliable component; the radial is weakly
+        determined by cam1 alone (docs/measurements.md, "cam1-only flow").
     rim_fill : {"reflect", "none"}
         Before the DCT fit, replace the pixels beyond the mirror's rim by the
         image reflected radially about the rim ("reflect"), or keep them
@@ -381,6 +390,7 @@ class OmniFlowConfig:
     sampling: str = "cubic"
     iterations: int = 0
     iterate_min_px: float = 0.0
+    monocular_gap: float | None = None
     rim_fill: str = "reflect"
 
     def __post_init__(self) -> None:
@@ -436,6 +446,11 @@ class OmniFlowConfig:
         if not (self.iterate_min_px >= 0.0):
             raise ValueError(
                 f"OmniFlowConfig.iterate_min_px = {self.iterate_min_px!r}: expected >= 0 (pixels)"
+            )
+        if self.monocular_gap is not None and not (self.monocular_gap >= 0.0):
+            raise ValueError(
+                f"OmniFlowConfig.monocular_gap = {self.monocular_gap!r}: expected >= 0 (pixels) "
+                "or None"
             )
         if not (isinstance(self.iterations, int) and self.iterations >= 0):
             raise ValueError(

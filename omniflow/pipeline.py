@@ -49,6 +49,7 @@ from numpy.typing import NDArray
 
 from omniflow.config import OmniFlowConfig
 from omniflow.matching import Matches, PolarGrids, match_radial
+from omniflow.monocular import add_monocular
 from omniflow.parallel import map_tasks, submit
 from omniflow.result import COLUMNS, NoMatchesWarning, OmniFlowResult, no_points
 from omniflow.rig import Rig
@@ -196,19 +197,20 @@ def estimate(
     for f in flow:
         f.result()
     if len(matches.theta) == 0:
-        return no_points(timings, t_start, config, n_sig)
+        return add_monocular(no_points(timings, t_start, config, n_sig), cam1, rig.cam1)
     t_wait = time.perf_counter() - t_s
     result = flow_at_matches(matches, rig, cam1, cam2, config)
     timings["sample"] = result.pop("_t_sample") + t_wait
     timings["solve"] = time.perf_counter() - t_s - timings["sample"]
     timings["total"] = time.perf_counter() - t_start
-    return OmniFlowResult(
+    result = OmniFlowResult(
         columns=result,
         timings=timings,
         config=config,
         n_significant=n_sig,
         diagnostics=diagnostics,
     )
+    return add_monocular(result, cam1, rig.cam1)  # cam1 alone where no match is near
 
 
 def matching_grids(a1: Frame, a2: Frame, config: OmniFlowConfig) -> tuple[PolarGrids, PolarGrids]:

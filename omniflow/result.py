@@ -17,7 +17,7 @@ from numpy.typing import NDArray
 
 from omniflow.config import OmniFlowConfig
 
-__all__ = ["COLUMNS", "NoMatchesWarning", "OmniFlowResult", "no_points"]
+__all__ = ["COLUMNS", "MONOCULAR_COLUMNS", "NoMatchesWarning", "OmniFlowResult", "no_points"]
 
 
 #: Output columns and their units, in CSV order.
@@ -52,6 +52,23 @@ COLUMNS: dict[str, str] = {
 }
 
 
+#: Columns of :attr:`OmniFlowResult.monocular` and their units.
+MONOCULAR_COLUMNS: dict[str, str] = {
+    "x": "px, cam1 column coordinate (pixel centre j + 0.5)",
+    "y": "px, cam1 row coordinate",
+    "theta": "rad, azimuth",
+    "h1": "px, cam1 image radius",
+    "dh1_dt": "px/frame, cam1 radial flow (cam1 alone)",
+    "dtheta_dt": "rad/frame, angular flow (cam1 alone)",
+    "dx": "px/frame, cam1 flow along x",
+    "dy": "px/frame, cam1 flow along y",
+    "confidence": "1, lambda_min/lambda_max of the pooled normal matrix",
+    "f1_h": "grey/px, df1/dh_1 used in eq. (9)",
+    "f1_theta": "grey/rad, df1/dtheta used in eq. (9)",
+    "f1_t": "grey/frame, df1/dt used in eq. (9)",
+}
+
+
 @dataclass
 class OmniFlowResult:
     """Per-point results of :func:`estimate`.
@@ -70,6 +87,10 @@ class OmniFlowResult:
         ``flow_band`` (the flow step's DCT band, chosen or given),
         ``noise_sigma1``, ``noise_sigma2`` (the image noise used per unit,
         grey levels; 0 when not needed).
+    monocular : dict[str, ndarray]
+        With ``config.monocular_gap``: cam1's flow alone where no stereo match is
+        near (:mod:`omniflow.monocular`, columns in its ``MONOCULAR_COLUMNS``);
+        else empty.
     """
 
     columns: dict[str, NDArray]
@@ -77,6 +98,7 @@ class OmniFlowResult:
     config: OmniFlowConfig | None = None
     n_significant: int = 0
     diagnostics: dict[str, float] = field(default_factory=dict)
+    monocular: dict[str, NDArray] = field(default_factory=dict)
 
     def __len__(self) -> int:
         return int(next(iter(self.columns.values())).size) if self.columns else 0
@@ -91,22 +113,33 @@ class OmniFlowResult:
         CLI's ``odometry_inlier``, ``auto_region``, ...); :data:`COLUMNS` gives
         the rest.
         """
-        from omniflow.imageio import atomic_output
+        return _write_csv(path, self.columns, {**COLUMNS, **(units or {})}, "per-point results")
 
-        names = list(self.columns)
-        data = (
-            np.column_stack([np.asarray(self.columns[k], dtype=float) for k in names])
-            if names
-            else np.zeros((0, 0))
-        )
-        known = {**COLUMNS, **(units or {})}
-        line = "; ".join(f"{k}: {known.get(k, '')}" for k in names)
-        path = Path(path)
-        with atomic_output(path) as tmp, open(tmp, "w") as fh:
-            fh.write(f"# omniflow per-point results; {line}\n")
-            fh.write(",".join(names) + "\n")
-            np.savetxt(fh, data, delimiter=",", fmt="%.9g")
-        return path
+    def monocular_to_csv(self, path: str | Path) -> Path:
+        """Write :attr:`monocular` to CSV atomically, like :meth:`to_csv`."""
+        cols = self.monocular or {name: np.zeros(0) for name in MONOCULAR_COLUMNS}
+        return _write_csv(path, cols, MONOCULAR_COLUMNS, "cam1-only flow (no stereo match near)")
+
+
+def _write_csv(
+    path: str | Path, columns: Mapping[str, NDArray], known: Mapping[str, str], title: str
+) -> Path:
+    """Columns to CSV atomically: a '#' line naming each column's unit, then the header."""
+    from omniflow.imageio import atomic_output
+
+    names = list(columns)
+    data = (
+        np.column_stack([np.asarray(columns[k], dtype=float) for k in names])
+        if names
+        else np.zeros((0, 0))
+    )
+    line = "; ".join(f"{k}: {known.get(k, '')}" for k in names)
+    path = Path(path)
+    with atomic_output(path) as tmp, open(tmp, "w") as fh:
+        fh.write(f"# omniflow {title}; {line}\n")
+        fh.write(",".join(names) + "\n")
+        np.savetxt(fh, data, delimiter=",", fmt="%.9g")
+    return path
 
 
 class NoMatchesWarning(UserWarning):

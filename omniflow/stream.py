@@ -36,6 +36,7 @@ from numpy.typing import ArrayLike
 
 from omniflow.config import OmniFlowConfig
 from omniflow.dct import DCTFit, fit_dct
+from omniflow.monocular import add_monocular
 from omniflow.parallel import map_tasks, submit
 from omniflow.pipeline import estimate, flow_grids, matching_grid, stereo_matches
 from omniflow.result import OmniFlowResult, no_points
@@ -242,14 +243,15 @@ class OmniFlowStream:
         timings["grids"] = t_grids + time.perf_counter() - t_g
         n_sig = matches.n_significant
         if len(matches.theta) == 0:
-            return no_points(timings, t_start, config, n_sig)
+            return add_monocular(no_points(timings, t_start, config, n_sig), cams[0], self.rig.cam1)
         t_s = time.perf_counter()
         result = flow_at_matches(matches, self.rig, cams[0], cams[1], config)
         timings["sample"] = result.pop("_t_sample")
         timings["solve"] = time.perf_counter() - t_s - timings["sample"]
         timings["total"] = time.perf_counter() - t_start
-        return OmniFlowResult(columns=result, timings=timings, config=config,
-                              n_significant=n_sig, diagnostics=diagnostics)  # fmt: skip
+        out = OmniFlowResult(columns=result, timings=timings, config=config,
+                             n_significant=n_sig, diagnostics=diagnostics)  # fmt: skip
+        return add_monocular(out, cams[0], self.rig.cam1)
 
 
 def _frame_matches(frame: StereoFrame, rig: Rig, config: OmniFlowConfig):

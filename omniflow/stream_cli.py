@@ -69,6 +69,8 @@ def build_parser() -> argparse.ArgumentParser:
             outputs (in --out DIR, each written under a temporary name, then renamed):
               flow_K0_K1.csv  the flow from frame K0 to K1 (six digits each), the columns of
                               omniflow's flow.csv (see omniflow --help), time_to_contact last
+              monocular_K0_K1.csv  with --monocular-gap PX: cam1's flow alone away from the
+                              matches (see omniflow --help)
               stream.json     input, rig, config; pairs present; this run's pairs, points, time
             Run the same command again to resume after the last pair written.
 
@@ -277,6 +279,8 @@ def run(args: argparse.Namespace, config_fields: list[str], argv: list[str]) -> 
             cols = result.columns
             cols["time_to_contact"] = time_to_contact(cols["r"], cols["dr_dt"])
             name = pair_name(k - 1, k)
+            if result.config.monocular_gap is not None:  # before the flow CSV that marks done
+                result.monocular_to_csv(out / f"monocular{name.removeprefix('flow')}")
             result.to_csv(out / name)
             present += 1
             run_stats["pairs"] += 1

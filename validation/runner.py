@@ -328,6 +328,7 @@ def run_validation(
                                 "gt_dy": tr["gt.flow.dy"],
                             }
                     results.rows.append(row)
+                _score_monocular(results, name, res, truth["cam1"], dense)
                 srow = score_stereo(results, name, cols, res, truth["cam1"], t)
                 drow = score_derived(
                     results, name, cols, truth["cam1"], t, robot_poses, object_poses
@@ -369,6 +370,25 @@ def run_validation(
     results.dataset["camera"] = None if inputs.camera is None else inputs.camera.to_dict()
     results.dataset["images"] = inputs.describe()
     return results
+
+
+def _score_monocular(
+    results: Results, name: str, res: Any, truth: dict[str, NDArray], dense: dict
+) -> None:
+    """Score a row's cam1-only flow (``OmniFlowConfig.monocular_gap``) as points
+    ``monocular`` of cam1, and the dense baselines at the same points."""
+    config = getattr(res, "config", None)
+    if config is None or getattr(config, "monocular_gap", None) is None:
+        return
+    mono = res.monocular or {k: np.zeros(0) for k in ("x", "y", "dx", "dy", "dh1_dt", "h1",
+                                                      "dtheta_dt")}  # fmt: skip
+    x, y = np.asarray(mono["x"], np.float64), np.asarray(mono["y"], np.float64)
+    est = {"dx": mono["dx"], "dy": mono["dy"], "dh": mono["dh1_dt"],
+           "hdtheta": np.asarray(mono["h1"]) * np.asarray(mono["dtheta_dt"])}  # fmt: skip
+    results.flow[(name, "monocular", "cam1")].append(score_flow(est, x, y, truth))
+    for b in dense:
+        berr = score_flow(dense[b]["cam1"].at(x, y), x, y, truth)
+        results.flow[(b, f"@{name}:monocular", "cam1")].append(berr)
 
 
 def _compact_notes(notes: list[str]) -> list[str]:

@@ -93,6 +93,16 @@ def _flow_block(results: Results, method: str, points: str) -> dict[str, Any]:
     return out
 
 
+def _same_points(results: Results, points: str) -> dict[str, dict[str, Any]]:
+    """EPE of each baseline scored at one row's points (``points`` key), per camera."""
+    same: dict[str, dict[str, Any]] = {}
+    for meth, pts, cam in results.flow:
+        if pts == points:
+            e = pooled_flow(results, meth, pts, cam)
+            same.setdefault(meth, {})[cam] = flow_summary(e, e["noc"])["all"]["epe"]
+    return same
+
+
 def _time_block(seconds: list[float]) -> dict[str, Any]:
     s = stats(seconds)
     return {"frames": s["n"], "median_s": s["median"], "mean_s": s["mean"]}
@@ -173,11 +183,7 @@ def summarize(results: Results) -> dict[str, Any]:
                 if frames
                 else {}
             )
-            same = {}
-            for (meth, pts, cam), _ in results.flow.items():
-                if pts == f"@{m.name}":
-                    e = pooled_flow(results, meth, pts, cam)
-                    same.setdefault(meth, {})[cam] = flow_summary(e, e["noc"])["all"]["epe"]
+            same = _same_points(results, f"@{m.name}")
             methods.append(
                 {
                     "name": m.name,
@@ -198,6 +204,10 @@ def summarize(results: Results) -> dict[str, Any]:
                     "baselines_at_same_points": same,
                 }
             )
+            mono = _flow_block(results, m.name, "monocular")
+            if mono:  # cam1's flow alone where no stereo match is near (monocular_gap)
+                same_mono = _same_points(results, f"@{m.name}:monocular")
+                methods[-1]["monocular"] = {"flow": mono, "baselines_at_same_points": same_mono}
         else:
             for pts in ("omniflow points", "dense"):
                 flow = _flow_block(results, m.name, pts)
@@ -331,26 +341,7 @@ def headline(summary: Mapping[str, Any]) -> list[str]:
                 f"{_v(100 * _g(f, 'density.of_stereo_pixels'), 2)} % of those both cameras "
                 f"see); EPE mean {_v(mine[0])} px, median {_v(mine[1])} px; {_gains(f)}"
             )
-            moving = {str(i) for i in summary["dataset"].get("moving_objects", [])}
-            names = summary["dataset"].get("objects", {})
-            for oid in sorted(moving, key=int):
-                name = names.get(oid, f"id{oid}")
-                o = f.get("objects", {}).get(name)
-                if o is None:
-                    continue
-                if not o["n"]:
-                    lines.append(f"{cam}, {me} on mover {name}: 0 points scored")
-                    continue
-                ob = {"all": o}
-                lines.append(
-                    f"{cam}, {me} on mover {name}: {_biased(ob)} -- {o['n']} "
-                    f"points ({_v(100 * _num(o['density']), 2)} % of its pixels); EPE mean "
-                    f"{_v(_g(ob, 'all.epe.mean'))} px, median {_v(_g(ob, 'all.epe.median'))} px; "
-                    f"{_gains(ob)}; mean flow dh {_v(_g(ob, 'all.radial.mean_est'))} vs true "
-                    f"{_v(_g(ob, 'all.radial.mean_true'))} px, h dtheta "
-                    f"{_v(_g(ob, 'all.tangential.mean_est'))} vs true "
-                    f"{_v(_g(ob, 'all.tangential.mean_true'))} px"
-                )
+            lines += _mover_lines(summary, f"{cam}, {me}", f)
             for name, b in at_pts.items():
                 fb = b["flow"].get(cam)
                 if not fb:
@@ -373,6 +364,8 @@ def headline(summary: Mapping[str, Any]) -> list[str]:
                     f"{_v(other[1])} px; radial gain {_v(_g(f, 'all.radial.gain'), 2)} vs "
                     f"{_v(_g(fb, 'all.radial.gain'), 2)}"
                 )
+        for m in methods:  # every row with cam1-only flow (monocular_gap)
+            lines += _monocular_lines(summary, m)
         st = omni.get("stereo") or {}
         if st:
             lines.append(
@@ -415,6 +408,51 @@ def headline(summary: Mapping[str, Any]) -> list[str]:
         lines.append("ms per frame pair (both cameras, median): " + ", ".join(times))
     lines += _zero_flow_flags(summary)
     return lines
+
+
+def _mover_lines(summary: Mapping[str, Any], who: str, f: Mapping[str, Any]) -> list[str]:
+    """One headline line per moving object of one flow block (``who``: camera and row)."""
+    lines = []
+    moving = {str(i) for i in summary["dataset"].get("moving_objects", [])}
+    names = summary["dataset"].get("objects", {})
+    for oid in sorted(moving, key=int):
+        name = names.get(oid, f"id{oid}")
+        o = f.get("objects", {}).get(name)
+        if o is None:
+            continue
+        if not o["n"]:
+            lines.append(f"{who} on mover {name}: 0 points scored")
+            continue
+        ob = {"all": o}
+        lines.append(
+            f"{who} on mover {name}: {_biased(ob)} -- {o['n']} "
+            f"points ({_v(100 * _num(o['density']), 2)} % of its pixels); EPE mean "
+            f"{_v(_g(ob, 'all.epe.mean'))} px, median {_v(_g(ob, 'all.epe.median'))} px; "
+            f"{_gains(ob)}; mean flow dh {_v(_g(ob, 'all.radial.mean_est'))} vs true "
+            f"{_v(_g(ob, 'all.radial.mean_true'))} px, h dtheta "
+            f"{_v(_g(ob, 'all.tangential.mean_est'))} vs true "
+            f"{_v(_g(ob, 'all.tangential.mean_true'))} px"
+        )
+    return lines
+
+
+def _monocular_lines(summary: Mapping[str, Any], omni: Mapping[str, Any]) -> list[str]:
+    """One row's cam1-only flow (``monocular_gap``), if it has one."""
+    mono = omni.get("monocular") or {}
+    f = (mono.get("flow") or {}).get("cam1")
+    if not f:
+        return []
+    who = f"cam1 alone (monocular_gap), {omni['name']}"
+    mine = _epe_pair(f)
+    line = (
+        f"{who}: {_biased(f)} -- {_g(f, 'all.n'):.0f} points "
+        f"({_v(_g(f, 'density.points_per_frame'), 0)} per frame) where no stereo match is near; "
+        f"EPE mean {_v(mine[0])} px, median {_v(mine[1])} px; {_gains(f)}"
+    )
+    dis = (mono.get("baselines_at_same_points") or {}).get("DIS-medium", {}).get("cam1")
+    if dis:
+        line += f"; DIS-medium there: EPE mean {_v(dis['mean'])}, median {_v(dis['median'])} px"
+    return [line, *_mover_lines(summary, who, f)]
 
 
 def sweep_rows(summary: Mapping[str, Any], key: str, value: Any) -> list[dict[str, Any]]:

@@ -235,3 +235,29 @@ def test_row_presets_start_from_the_preset():
     assert changed == set(DENSE)
     with pytest.raises(CLIError, match="at most one preset"):
         config_from_settings("paper,dense")
+
+
+def test_monocular_row_is_scored_on_cam1(tmp_path):
+    """``--row monocular_gap=8``: the row's cam1-only flow (omniflow.monocular) is scored
+    as its own block (``monocular``, cam1 only), with DIS-medium at the same points and a
+    headline line; rows without it have no such block. Mutation caught: the monocular
+    points dropped, or scored at the stereo points (the counts would agree)."""
+    import json
+
+    from validation.cli import main
+
+    ds = tmp_path / "ds"
+    write_synthetic_dataset(ds, demo_scene(128), 3, name="synthetic-demo", supersample=1)
+    args = [str(ds), "--variants", "default", "--baselines", "DIS-medium", "--no-progress",
+            "--frames", "0", "--out", str(tmp_path / "o"), "--row", "monocular_gap=8"]  # fmt: skip
+    assert main(args) == 0
+    summary = json.loads((tmp_path / "o" / "summary.json").read_text())
+    rows = [m for m in summary["methods"] if m["kind"] == "omniflow"]
+    assert "monocular" not in rows[0]
+    mono = rows[1]["monocular"]
+    assert set(mono["flow"]) == {"cam1"}
+    n_mono, n_stereo = mono["flow"]["cam1"]["all"]["n"], rows[1]["flow"]["cam1"]["all"]["n"]
+    assert n_mono > 0 and n_mono != n_stereo
+    assert mono["flow"]["cam1"]["all"]["epe"]["median"] is not None
+    assert mono["baselines_at_same_points"]["DIS-medium"]["cam1"]["n"] == n_mono
+    assert any(line.startswith("cam1 alone (monocular_gap)") for line in summary["headline"])
