@@ -27,6 +27,7 @@ BAND_RULES = ("gain", "variance")
 #: The fields :meth:`OmniFlowConfig.dense` changes from the defaults.
 DENSE = {
     "dense_percentile": 60.0,
+    "dense_smooth": 0.95,
     "pool_grid": 0.125,
     "decouple_tol": 60.0,
     "iterations": 1,
@@ -186,6 +187,14 @@ class OmniFlowConfig:
     dense_reach : float
         Robust matcher: how far along the line a match's disparity is tried
         on its neighbours, in patch radii.
+    dense_smooth : float
+        Robust matcher, densified matches only: drop one whose image-1
+        profile has an NCC above this with itself half a profile radius away
+        (omniflow.matching.dense.smooth_profiles): a profile smooth over its
+        own length correlates with image 2 almost as well off the truth as
+        at it. 1 disables it (the default); the dense preset sets 0.95: on
+        low_texture's plain walls the densified matches it drops were all
+        13-15 px off (docs/measurements.md, "Dense preset on low_texture").
     short_patch : float
         Robust matcher: a second pass with profiles this fraction of
         patch_radius long, adding matches where the first left none (small
@@ -368,6 +377,7 @@ class OmniFlowConfig:
     flatness: float = 0.5
     dense_percentile: float = 100.0
     dense_reach: float = 1.0
+    dense_smooth: float = 1.0
     short_patch: float = 0.5
     gradients: str = "average"
     temporal: str = "difference"
@@ -441,6 +451,10 @@ class OmniFlowConfig:
                 f"OmniFlowConfig.dense_percentile = {self.dense_percentile!r}, dense_reach = "
                 f"{self.dense_reach!r}, flatness = {self.flatness!r}: expected [0, 100], > 0, >= 0"
             )
+        if not (-1.0 <= self.dense_smooth <= 1.0):
+            raise ValueError(
+                f"OmniFlowConfig.dense_smooth = {self.dense_smooth!r}: expected an NCC in [-1, 1]"
+            )
         if self.temporal_frames < 3:
             raise ValueError("OmniFlowConfig.temporal_frames must be >= 3")
         if not (self.iterate_min_px >= 0.0):
@@ -504,7 +518,8 @@ class OmniFlowConfig:
     def dense(cls, **overrides) -> OmniFlowConfig:
         """The densified configuration: more matches, grid pools, refinement where it moves.
 
-        Matches beyond the edges (``dense_percentile`` 60), the pooled
+        Matches beyond the edges (``dense_percentile`` 60) whose profiles are
+        not smooth over their own length (``dense_smooth`` 0.95), the pooled
         solver's sums on a grid (``pool_grid`` 0.125), the decoupling test at
         ``decouple_tol`` 60 (at 20 the larger pools switch static points) and
         one Gauss-Newton step where a surface moves at least a pixel

@@ -260,6 +260,7 @@ def stereo_matches(
         alias_period=config.alias_period,
         dense_percentile=config.dense_percentile,
         dense_reach=config.dense_reach,
+        dense_smooth=config.dense_smooth,
         short_patch=config.short_patch,
         grids=grids,
     )

@@ -10,8 +10,9 @@ profile (the same profiles as the robust rule's descriptors) at the seed's dispa
 +- ``search`` columns. Between two seeds the guess is interpolated, and a
 sample between two seeds that disagree by more than one column (a depth edge
 between them) is not tried. A sample is kept where its NCC peaks inside the
-searched range, scores at least ``min_score`` and is sharp enough
-(:func:`~omniflow.matching.tables.sharp_peak`).
+searched range, scores at least ``min_score``, is sharp enough
+(:func:`~omniflow.matching.tables.sharp_peak`) and, with ``smooth`` < 1, its
+image-1 profile is not smooth over its own length (:func:`smooth_profiles`).
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ from numpy.typing import NDArray
 
 from omniflow.matching.tables import TableGeometry, parabola_offset, sharp_peak
 
-__all__ = ["candidates", "candidates_numpy", "densify", "ncc_offsets"]
+__all__ = ["candidates", "candidates_numpy", "densify", "ncc_offsets", "smooth_profiles"]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -226,6 +227,35 @@ def candidates_numpy(
     return ck[usable], cj[usable], guess[usable]
 
 
+def smooth_profiles(
+    t1: NDArray, k: NDArray, j: NDArray, *, w: int, stride: int, lines: int, smooth: float
+) -> NDArray:
+    """Whether each profile of ``t1`` at (k[i], j[i]) (table columns) is smooth over its
+    own length: its NCC with the profile of the same table half a profile radius
+    (``w * stride // 2`` columns, at least 1) away, on either side that keeps the
+    shifted profile inside the table, exceeds ``smooth``.
+
+    Such a profile (a ramp, a slow swell: the plain walls of the rendered
+    low_texture scene) correlates almost as well with image 2 a quarter of the
+    profile away as at the truth, so a short search at a seed's disparity places it
+    wherever the seed was: on low_texture 48 densified matches at NCC > 0.9 with
+    themselves half a radius away, all 13-15 px off (docs/measurements.md, "Dense
+    preset on low_texture"). A profile neither side of which fits is not smooth.
+    """
+    k = np.asarray(k, dtype=np.int64)
+    j = np.asarray(j, dtype=np.int64)
+    if k.size == 0:
+        return np.zeros(0, dtype=bool)
+    lag = max(1, (w * stride) // 2)
+    lo, hi = w * stride, t1.shape[1] - 1 - w * stride  # columns whose profile fits
+    cols = j[:, None] + np.array([-lag, lag])
+    fits = (cols >= lo) & (cols <= hi)
+    S = np.empty(cols.shape)
+    t = np.ascontiguousarray(t1, np.float32)
+    ncc_offsets(t, t, k, j, np.clip(cols, lo, hi), int(w), int(stride), int(lines), S)
+    return np.any(fits & (S > smooth), axis=1)
+
+
 def densify(
     tab: TableGeometry,
     fh1: NDArray,
@@ -241,6 +271,7 @@ def densify(
     reach: int,
     search: int = 2,
     flatness: float = 0.0,
+    smooth: float = 1.0,
 ) -> tuple[NDArray, NDArray, NDArray, NDArray, int]:
     """Match the textured samples near each seed match at the seed's disparity.
 
@@ -265,6 +296,9 @@ def densify(
         Candidates lie within this many columns of a seed on their line.
     search : int
         Columns searched either side of the seed's disparity.
+    smooth : float
+        Drop a match whose image-1 profile has an NCC above this with itself half a
+        profile radius away (:func:`smooth_profiles`); >= 1 disables the test.
 
     Returns
     -------
@@ -296,6 +330,10 @@ def densify(
     # a peak on the searched range's border may continue outside it: not a peak
     ok = (s_0 >= s_m) & (s_0 >= s_p) & (peak >= min_score)
     ok &= sharp_peak(peak, s_m, s_0, s_p, flatness)
+    if smooth < 1.0:
+        idx = np.nonzero(ok)[0]  # only the matches the other tests kept
+        ok[idx[smooth_profiles(t1, ck[idx], cj[idx], w=w, stride=stride, lines=lines,
+                               smooth=smooth)]] = False  # fmt: skip
     col2 = cj + base + offs[b] + off
     return (ck[ok], (cj - pad)[ok], (col2 - pad)[ok], np.clip(peak[ok], 0.0, 1.0),
             int(ck.size))  # fmt: skip

@@ -199,6 +199,7 @@ def match_radial(
     alias_period: float = 0.8,
     dense_percentile: float = 100.0,
     dense_reach: float = 1.0,
+    dense_smooth: float = 1.0,
     short_patch: float = 0.5,
     grids: tuple[PolarGrids, PolarGrids] | None = None,
 ) -> Matches:
@@ -322,6 +323,11 @@ def match_radial(
     dense_reach : float
         ``robust``: how far from a match its disparity is tried, in patch
         radii.
+    dense_smooth : float
+        ``robust``: drop a densified match whose image-1 profile has an NCC
+        above this with itself half a profile radius away (a profile smooth
+        over its own length cannot be placed;
+        :func:`omniflow.matching.dense.smooth_profiles`). 1 disables it.
     short_patch : float
         ``robust``: match a second time with profiles of ``short_patch``
         times ``patch_radius`` (all else the same) and add the matches at
@@ -348,6 +354,8 @@ def match_radial(
             f"dense_percentile = {dense_percentile!r}, dense_reach = {dense_reach!r}, "
             f"flatness = {flatness!r}: expected [0, 100], > 0 and >= 0"
         )
+    if not (-1.0 <= dense_smooth <= 1.0):
+        raise ValueError(f"dense_smooth = {dense_smooth!r}: expected an NCC in [-1, 1]")
     cam1, cam2 = rig.cam1, rig.cam2
     short_step = profile_step  # the short pass's profile step derives from the one given
     if patch_radius is None:
@@ -399,7 +407,7 @@ _PASS_ARGS = (
     "h_min", "rim_margin", "patch_radius", "patch_lines", "profile_step", "min_score",
     "uniqueness", "left_right", "candidate_fraction", "tangential_blur", "consistency",
     "consistency_support", "self_similarity", "flatness", "alias_score", "alias_image2",
-    "alias_period", "dense_percentile", "dense_reach",
+    "alias_period", "dense_percentile", "dense_reach", "dense_smooth",
 )  # fmt: skip
 
 
@@ -552,7 +560,7 @@ def _finish(p: _Pass) -> Matches:
             tab, fh1, t1, t2, (k1[ok], j1[ok], c2[ok]), max(thr_d, float(o["min_gradient"])),
             w=w, stride=stride, lines=o["patch_lines"], min_score=o["min_score"],
             reach=max(1, round(o["dense_reach"] * o["patch_radius"] / h_step)),
-            flatness=o["flatness"],
+            flatness=o["flatness"], smooth=o["dense_smooth"],
         )  # fmt: skip
         n_sig += n_tried
         th_d = -np.pi + (2.0 * np.pi / n_theta) * (dk + 0.5)
