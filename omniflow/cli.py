@@ -361,7 +361,8 @@ def build_parser() -> argparse.ArgumentParser:
                                time_to_contact (frames)
               flow.json        units of every column, the config, the rig, the inputs and timings
               regions.csv      with --region / --auto-regions: per region its point count,
-                               mean flow, dr/dt, time to contact and steering headings
+                               mean flow, dr/dt, time to contact and steering headings (with
+                               --monocular-gap also its cam1-only points' bearing and rate)
               monocular.csv    with --monocular-gap PX: cam1's flow alone at significant points
                                farther than PX from every match (no range): x, y, theta, h1,
                                dh1_dt, dtheta_dt, dx, dy, confidence
@@ -964,18 +965,23 @@ def _odometry(cols, radial_weight: float):
     }
 
 
-def _regions(args, cols, masks, fit, rig: Rig, frame_interval):
-    """regions.csv rows, pixel outlines for the pictures, and the flow.json block."""
+def _regions(args, cols, masks, fit, rig: Rig, frame_interval, mono=None):
+    """regions.csv rows, pixel outlines for the pictures, and the flow.json block.
+
+    ``mono``: the cam1-only columns (``--monocular-gap``), summarised per given region."""
     from omniflow.regions import auto_groups, in_box, points_in_mask, summarise
 
     rows, outlines = [], []
     for spec, mask in masks:
         if spec.kind == "box":
             member = in_box(cols["theta"], cols["h1"], spec.box)
+            mono_member = None if mono is None else in_box(mono["theta"], mono["h1"], spec.box)
         else:
             member = points_in_mask(mask, cols["x"], cols["y"])
+            mono_member = None if mono is None else points_in_mask(mask, mono["x"], mono["y"])
         rows.append(summarise(spec.name, spec.kind, spec.text, cols, member,
-                              frame_interval=frame_interval, lead=args.steer_lead))  # fmt: skip
+                              frame_interval=frame_interval, lead=args.steer_lead,
+                              monocular=mono, monocular_member=mono_member))  # fmt: skip
         outlines.append((spec.name, mask))
     block: dict[str, Any] = {}
     if args.auto_regions:
@@ -1015,7 +1021,7 @@ def _regions(args, cols, masks, fit, rig: Rig, frame_interval):
                                   frame_interval=frame_interval, lead=args.steer_lead))  # fmt: skip
             outlines.append((f"auto{k}", _hull_mask(cols["x"][member], cols["y"][member], rig)))
     for row in rows:
-        if row["points"] == 0:
+        if row["points"] == 0 and not row["monocular_points"] > 0:
             warnings.warn(f"region {row['name']} ({row['spec']}) holds no matched point; "
                           "its row in regions.csv is empty", stacklevel=2)  # fmt: skip
     block.update({
@@ -1126,7 +1132,13 @@ def run(args: argparse.Namespace, config_fields: list[str], argv: list[str]) -> 
             )
         rows, outlines, regions_block = [], [], None
         if with_regions:
-            rows, outlines, regions_block = _regions(args, cols, masks, fit, rig, frame_interval)
+            mono = None
+            if config.monocular_gap is not None:
+                from omniflow.result import MONOCULAR_COLUMNS
+
+                mono = result.monocular or {k: np.zeros(0) for k in MONOCULAR_COLUMNS}
+            rows, outlines, regions_block = _regions(args, cols, masks, fit, rig, frame_interval,
+                                                     mono)  # fmt: skip
             atomic_write_text(stage / "regions.csv", regions_csv_text(rows))
         result.to_csv(stage / "flow.csv", _column_units())
         if config.monocular_gap is not None:

@@ -66,6 +66,10 @@ REGION_COLUMNS: dict[str, str] = {
     "time_to_contact_median_frames": "frames, median of the points' -r / (dr/dt)",
     "steer_home_in_deg": "deg, heading towards the centroid extrapolated --steer-lead frames",
     "steer_avoid_deg": "deg, heading straight away from that point",
+    "monocular_points": "cam1-only points in the region (--monocular-gap; empty without it)",
+    "monocular_bearing_deg": "deg, circular mean azimuth of those points, in [-180, 180)",
+    "monocular_dtheta_dt": "rad/frame, their mean angular flow: the region's bearing rate",
+    "monocular_dh1_dt": "px/frame, their mean cam1 radial flow (weakly determined by cam1 alone)",
 }
 
 _NAME_RE = re.compile(r"^[A-Za-z0-9_.-]+$")
@@ -275,6 +279,8 @@ def summarise(
     *,
     frame_interval: float | None,
     lead: float = 1.0,
+    monocular: dict[str, NDArray] | None = None,
+    monocular_member: NDArray | None = None,
 ) -> dict[str, Any]:
     """One region's row of ``regions.csv`` (:data:`REGION_COLUMNS`).
 
@@ -283,6 +289,12 @@ def summarise(
     :func:`omniflow.applications.region_flow`, the steering headings from
     :func:`omniflow.applications.steering_heading` (``lead`` frames ahead).
     A region without usable points gets 0 points and NaN elsewhere.
+
+    ``monocular`` (the cam1-only columns of :mod:`omniflow.monocular`) and
+    ``monocular_member`` (which of them lie in the region) add the
+    ``monocular_*`` columns: the bearing and bearing rate of an object the rig
+    cannot range (no range, so no dr/dt or time to contact from them). Without
+    them those columns are NaN (written empty).
     """
     from omniflow.applications import region_flow, steering_heading, time_to_contact
 
@@ -294,6 +306,8 @@ def summarise(
     for key in REGION_COLUMNS:
         if key not in row:
             row[key] = math.nan
+    if monocular is not None and monocular_member is not None:
+        _monocular_columns(row, monocular, np.asarray(monocular_member, dtype=bool))
     if not ok.any():
         return row
     for key in ("dh1_dt", "dtheta_dt", "dx", "dy"):
@@ -312,6 +326,19 @@ def summarise(
     row["steer_home_in_deg"] = math.degrees(steering_heading(rf, mode="home_in", lead=lead))
     row["steer_avoid_deg"] = math.degrees(steering_heading(rf, mode="avoid", lead=lead))
     return row
+
+
+def _monocular_columns(row: dict[str, Any], mono: dict[str, NDArray], member: NDArray) -> None:
+    """Fill the ``monocular_*`` columns of one row from the cam1-only points in it."""
+    ok = member & np.isfinite(mono["dtheta_dt"]) & np.isfinite(mono["dh1_dt"])
+    row["monocular_points"] = int(ok.sum())
+    if ok.any():
+        mean_dir = np.mean(np.exp(1j * mono["theta"][ok]))
+        row["monocular_bearing_deg"] = (
+            math.degrees(float(np.angle(mean_dir))) + 180.0
+        ) % 360.0 - 180.0
+        row["monocular_dtheta_dt"] = float(np.mean(mono["dtheta_dt"][ok]))
+        row["monocular_dh1_dt"] = float(np.mean(mono["dh1_dt"][ok]))
 
 
 def regions_csv_text(rows: list[dict[str, Any]]) -> str:

@@ -285,6 +285,39 @@ def test_box_region_flow_and_time_to_contact_against_truth(mover):
     assert float(row["steer_home_in_deg"]) == pytest.approx(truth["steer_home_in_deg"], abs=0.5)
 
 
+def test_monocular_columns_of_a_region(mover, tmp_path):
+    """With ``--monocular-gap``, a region's row also summarises the cam1-only points in it
+    (omniflow.monocular): their count, mean bearing and bearing rate; without it those
+    columns are empty. The pillar moves towards the axis along -X, so its true bearing rate
+    is SPEED sin(theta) / r, small; its radial flow is large. Measured (this test's print):
+    203 points;
+    bearing rate 0.00080 against 0.00022 rad/frame, radial flow 1.225 against 1.269 px/frame
+    (3.5 % short). Bounds: the row is exactly the mean of monocular.csv's points in the
+    object; within 0.002 rad/frame and 10 % of the truth at them (about 3x)."""
+    assert all(row["monocular_points"] == "" for row in mover["rows"].values())
+    out = tmp_path / "out"
+    dataset = mover["out"].parent / "dataset"
+    proc = run_omniflow(["--dataset", dataset, "--out", out, "--monocular-gap", "8",
+                         "--region", "pillar:object:pillar", "--no-pictures"])  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    with open(out / "regions.csv") as fh:
+        row = next(csv.DictReader(line for line in fh if not line.startswith("#")))
+    mono = read_csv(out / "monocular.csv")
+    truth = mover["scene"].truth("cam1", 0)
+    obj = truth["gt.object"][np.floor(mono["y"]).astype(int), np.floor(mono["x"]).astype(int)]
+    inside = obj == 3
+    assert int(row["monocular_points"]) == inside.sum() >= 20
+    for key in ("dtheta_dt", "dh1_dt"):
+        assert float(row[f"monocular_{key}"]) == pytest.approx(mono[key][inside].mean(), rel=1e-6)
+    bearing = math.degrees(np.angle(np.mean(np.exp(1j * mono["theta"][inside]))))
+    assert float(row["monocular_bearing_deg"]) == pytest.approx(bearing, abs=1e-6)
+    x, y, h1 = mono["x"][inside], mono["y"][inside], mono["h1"][inside]
+    true_rate = float(np.mean(_truth_at(truth, "gt.flow.hdtheta", x, y) / h1))
+    true_dh = float(np.mean(_truth_at(truth, "gt.flow.dh", x, y)))
+    assert float(row["monocular_dtheta_dt"]) == pytest.approx(true_rate, abs=0.002)
+    assert float(row["monocular_dh1_dt"]) == pytest.approx(true_dh, rel=0.10)
+
+
 def test_position_fix_from_landmark_regions(mover, tmp_path):
     # Three patches of the static wall, each given the true world centroid (gt.X, gt.Y)
     # of the points the region holds; the rig sits at world (0, 0) with yaw 0. Measured:
