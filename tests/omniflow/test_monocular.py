@@ -21,6 +21,7 @@ from scipy.spatial import cKDTree
 from omniflow.config import OmniFlowConfig
 from omniflow.matching import Matches
 from omniflow.pipeline import estimate
+from omniflow.result import MONOCULAR_COLUMNS
 from omniflow.synthetic import Cylinder, Motion, SyntheticScene, Texture
 from tests.helpers.scenes import frames, paper_rig, sparse_true_matches
 
@@ -86,3 +87,14 @@ def test_off_by_default(half_matched_wall):
     rig, f1, f2, m, _ = half_matched_wall
     res = estimate(f1, f2, rig, matches=m)
     assert res.monocular == {} and "monocular" not in res.timings
+
+
+def test_no_point_is_an_empty_answer():
+    """A constant frame has no significant point: every column empty, no error (the crash
+    this caught: OpenCV's remap on an empty point list)."""
+    rig = paper_rig(128)
+    flat = np.full((128, 128), 0.3)
+    with pytest.warns(UserWarning, match="no stereo matches"):
+        res = estimate([flat, flat], [flat, flat], rig, OmniFlowConfig(monocular_gap=8.0))
+    assert list(res.monocular) == list(MONOCULAR_COLUMNS)
+    assert all(v.size == 0 for v in res.monocular.values())
