@@ -67,6 +67,28 @@ def test_one_csv_per_pair_equal_to_estimate(folder, tmp_path, capsys, extra):
         assert "time_to_contact" in cols
 
 
+def test_monocular_gap_writes_one_monocular_csv_per_pair(folder, tmp_path):
+    """``--monocular-gap`` adds monocular_K0_K1.csv beside each flow CSV: cam1's flow alone
+    (omniflow.monocular), equal to the pair's in-process result at the points both have
+    (tests/omniflow/test_stream.py::_same_monocular)."""
+    from tests.omniflow.test_stream import _same_monocular
+
+    out = tmp_path / "out"
+    assert _stream(folder, out, "--monocular-gap", "4") == 0
+    names = sorted(p.name for p in out.iterdir())
+    assert names == (
+        [f"flow_00000{k}_00000{k + 1}.csv" for k in range(3)]
+        + [f"monocular_00000{k}_00000{k + 1}.csv" for k in range(3)]
+        + ["stream.json"]
+    )
+    f1, f2 = _frames(folder)
+    for k in range(3):
+        got = read_csv(out / f"monocular_{k:06d}_{k + 1:06d}.csv")
+        want = estimate(f1, f2, folder[1], OmniFlowConfig(monocular_gap=4.0), t=k).monocular
+        assert got["x"].size > 50
+        _same_monocular(got, want)
+
+
 def test_rerun_resumes_and_rewrites_only_what_is_missing(folder, tmp_path, capsys):
     out = tmp_path / "out"
     assert _stream(folder, out) == 0
