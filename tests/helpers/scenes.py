@@ -19,6 +19,14 @@ def paper_rig(size: int = 256) -> Rig:
     return Rig.symmetric(d=0.10, R=0.05, s=0.30, size=size)
 
 
+def turning_wall_scene(rig: Rig, yaw: float) -> SyntheticScene:
+    """A randomly textured wall (r = 2 m) turning about the rig's axis at ``yaw`` rad per
+    frame in front of the still rig: tangential flow h_i yaw, no radial flow."""
+    texture = Texture.random(3, contrast=0.4, mean=0.5, period_u=4 * np.pi)
+    wall = Cylinder(radius=2.0, id=1, name="wall", texture=texture, motion=Motion(yaw_rate=yaw))
+    return SyntheticScene(rig=rig, bodies=(wall,))
+
+
 def asymmetric_rig(size: int = 256) -> Rig:
     """Units with different image centres and rim radii (so v_1 != v_2)."""
     c = size / 2

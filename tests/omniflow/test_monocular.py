@@ -22,8 +22,7 @@ from omniflow.config import OmniFlowConfig
 from omniflow.matching import Matches
 from omniflow.pipeline import estimate
 from omniflow.result import MONOCULAR_COLUMNS
-from omniflow.synthetic import Cylinder, Motion, SyntheticScene, Texture
-from tests.helpers.scenes import frames, paper_rig, sparse_true_matches
+from tests.helpers.scenes import frames, paper_rig, sparse_true_matches, turning_wall_scene
 
 YAW = 0.006  # rad per frame
 GAP = 12.0  # px
@@ -32,9 +31,7 @@ GAP = 12.0  # px
 @pytest.fixture(scope="module")
 def half_matched_wall():
     rig = paper_rig(256)
-    texture = Texture.random(3, contrast=0.4, mean=0.5, period_u=4 * np.pi)
-    wall = Cylinder(radius=2.0, id=1, name="wall", texture=texture, motion=Motion(yaw_rate=YAW))
-    scene = SyntheticScene(rig=rig, bodies=(wall,))
+    scene = turning_wall_scene(rig, YAW)
     f1, f2 = frames(scene, 2)
     m, gt = sparse_true_matches(scene, 0.1)
     half = np.sin(m.theta) >= 0.0

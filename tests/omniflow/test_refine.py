@@ -26,8 +26,7 @@ from omniflow.config import OmniFlowConfig
 from omniflow.matching import Matches
 from omniflow.pipeline import estimate
 from omniflow.refine import moving_far
-from omniflow.synthetic import Cylinder, Motion, SyntheticScene, Texture
-from tests.helpers.scenes import frames, paper_rig, sparse_true_matches
+from tests.helpers.scenes import frames, paper_rig, sparse_true_matches, turning_wall_scene
 
 YAW = 0.012  # rad per frame
 
@@ -35,9 +34,7 @@ YAW = 0.012  # rad per frame
 @pytest.fixture(scope="module")
 def turning_wall():
     rig = paper_rig(256)
-    texture = Texture.random(3, contrast=0.4, mean=0.5, period_u=4 * np.pi)
-    wall = Cylinder(radius=2.0, id=1, name="wall", texture=texture, motion=Motion(yaw_rate=YAW))
-    scene = SyntheticScene(rig=rig, bodies=(wall,))
+    scene = turning_wall_scene(rig, YAW)
     f1, f2 = frames(scene, 2)
     m, gt = sparse_true_matches(scene, 0.1)
     return rig, f1, f2, m, gt
