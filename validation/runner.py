@@ -380,8 +380,9 @@ def _score_monocular(
     config = getattr(res, "config", None)
     if config is None or getattr(config, "monocular_gap", None) is None:
         return
-    mono = res.monocular or {k: np.zeros(0) for k in ("x", "y", "dx", "dy", "dh1_dt", "h1",
-                                                      "dtheta_dt")}  # fmt: skip
+    from omniflow.result import MONOCULAR_COLUMNS
+
+    mono = res.monocular or {k: np.zeros(0) for k in MONOCULAR_COLUMNS}
     x, y = np.asarray(mono["x"], np.float64), np.asarray(mono["y"], np.float64)
     est = {"dx": mono["dx"], "dy": mono["dy"], "dh": mono["dh1_dt"],
            "hdtheta": np.asarray(mono["h1"]) * np.asarray(mono["dtheta_dt"])}  # fmt: skip
