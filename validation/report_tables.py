@@ -222,10 +222,18 @@ def bias_speed_table(summary: Mapping[str, Any]) -> tuple[list[str], list[list[s
 
 
 def objects_table(summary: Mapping[str, Any]) -> tuple[list[str], list[list[str]]]:
-    """Points, density and EPE per object (cam1), every object of the dataset, 0 shown."""
-    names: list[str] = []
+    """Points, density and EPE per object (cam1), every object of the dataset, 0 shown.
+
+    A row with cam1-only flow (``monocular_gap``) gets a second line, its points
+    ``cam1 only``."""
+    blocks = []  # (method, points, its flow block)
     for m in summary["methods"]:
-        for name in m["flow"].get("cam1", {}).get("objects", {}):
+        blocks.append((m, m["points"], m["flow"]))
+        if m.get("monocular"):
+            blocks.append((m, "cam1 only", m["monocular"]["flow"]))
+    names: list[str] = []
+    for _, _, flow in blocks:
+        for name in flow.get("cam1", {}).get("objects", {}):
             if name not in names:
                 names.append(name)
     moving = {str(i) for i in summary["dataset"].get("moving_objects", [])}
@@ -234,10 +242,10 @@ def objects_table(summary: Mapping[str, Any]) -> tuple[list[str], list[list[str]
         name + (" (moving)" if any(objs.get(i) == name for i in moving) else "") for name in names
     ]
     rows = []
-    for m in summary["methods"]:
-        if m["points"] == "dense" and m["name"] != "zero-flow":
+    for m, points, flow in blocks:
+        if points == "dense" and m["name"] != "zero-flow":
             continue
-        o = m["flow"].get("cam1", {}).get("objects", {})
+        o = flow.get("cam1", {}).get("objects", {})
         cells = []
         for name in names:
             b = o.get(name, {"n": 0})
@@ -247,7 +255,7 @@ def objects_table(summary: Mapping[str, Any]) -> tuple[list[str], list[list[str]
                              f"{fmt(epe.get('median'))}")  # fmt: skip
             else:
                 cells.append("0" if b.get("valid_pixels", 1) else "0 (not in view)")
-        rows.append([m["name"], m["points"], *cells])
+        rows.append([m["name"], points, *cells])
     return header, rows
 
 

@@ -261,3 +261,5 @@ def test_monocular_row_is_scored_on_cam1(tmp_path):
     assert mono["flow"]["cam1"]["all"]["epe"]["median"] is not None
     assert mono["baselines_at_same_points"]["DIS-medium"]["cam1"]["n"] == n_mono
     assert any(line.startswith("cam1 alone (monocular_gap)") for line in summary["headline"])
+    report = (tmp_path / "o" / "report.md").read_text()
+    assert f"| {rows[1]['name']} | cam1 only |" in report  # the objects table's own line
