@@ -39,6 +39,8 @@ import numpy as np
 import scipy.fft
 from numpy.typing import ArrayLike, NDArray
 
+from omniflow.kernels import cos_bases
+
 __all__ = ["DCT3Fit", "DCTFit", "band_window", "fit_dct", "fit_dct3"]
 
 
@@ -111,8 +113,22 @@ def _bases(coord: NDArray, n_coef: int, n: int) -> tuple[NDArray, NDArray]:
     """cos(pi k c / N) and -(pi k / N) sin(pi k c / N) for k < n_coef, shape (M, n_coef).
 
     Built as the running product of exp(i pi c / N) (one complex exponential per
-    point instead of 2 n_coef trigonometric calls; error ~k eps, 1e-13 at k = 256).
+    point instead of 2 n_coef trigonometric calls; error ~k eps, 1e-13 at k = 256),
+    compiled (:func:`omniflow.kernels.cos_bases`): :func:`bases_numpy` value for
+    value, about 3 times faster (the refinement's exact evaluations).
     """
+    _, w = _weights(n_coef, n)
+    e = np.exp((1j * np.pi / n) * np.asarray(coord, dtype=np.float64).reshape(-1))
+    # the cosines as a strided view, as bases_numpy's table.real is: the products and
+    # einsum sums downstream take another order of additions on a contiguous array
+    cos = np.empty((e.size, n_coef, 2))[:, :, 0]
+    dsin = np.empty((e.size, n_coef))
+    cos_bases(e, w, cos, dsin)
+    return cos, dsin
+
+
+def bases_numpy(coord: NDArray, n_coef: int, n: int) -> tuple[NDArray, NDArray]:
+    """:func:`_bases` in numpy (its reference form): a complex table and its cumprod."""
     _, w = _weights(n_coef, n)
     table = np.empty((coord.size, n_coef), np.complex128)
     table[:, 0] = 1.0
