@@ -39,6 +39,8 @@ import numpy as np
 import scipy.fft
 from numpy.typing import ArrayLike, NDArray
 
+from omniflow.kernels import cos_bases
+
 __all__ = ["DCT3Fit", "DCTFit", "band_window", "fit_dct", "fit_dct3"]
 
 
@@ -107,12 +109,32 @@ def _weights(n_coef: int, n: int) -> tuple[NDArray, NDArray]:
     return a, w
 
 
-def _bases(coord: NDArray, n_coef: int, n: int) -> tuple[NDArray, NDArray]:
+def _bases(
+    coord: NDArray, n_coef: int, n: int, *, contiguous: bool = False
+) -> tuple[NDArray, NDArray]:
     """cos(pi k c / N) and -(pi k / N) sin(pi k c / N) for k < n_coef, shape (M, n_coef).
 
     Built as the running product of exp(i pi c / N) (one complex exponential per
-    point instead of 2 n_coef trigonometric calls; error ~k eps, 1e-13 at k = 256).
+    point instead of 2 n_coef trigonometric calls; error ~k eps, 1e-13 at k = 256),
+    compiled (:func:`omniflow.kernels.cos_bases`): :func:`bases_numpy` value for
+    value, about 3 times faster (the refinement's exact evaluations).
+
+    The cosines come as a strided view, the layout of bases_numpy's ``table.real``,
+    whose einsum sums downstream add in another order on a contiguous array; with
+    ``contiguous`` (for a factor that only enters a matrix product, which numpy makes
+    from a contiguous copy of a strided operand: the same product) a plain array,
+    without that copy.
     """
+    _, w = _weights(n_coef, n)
+    e = np.exp((1j * np.pi / n) * np.asarray(coord, dtype=np.float64).reshape(-1))
+    cos = np.empty((e.size, n_coef)) if contiguous else np.empty((e.size, n_coef, 2))[:, :, 0]
+    dsin = np.empty((e.size, n_coef))
+    cos_bases(e, w, cos, dsin)
+    return cos, dsin
+
+
+def bases_numpy(coord: NDArray, n_coef: int, n: int) -> tuple[NDArray, NDArray]:
+    """:func:`_bases` in numpy (its reference form): a complex table and its cumprod."""
     _, w = _weights(n_coef, n)
     table = np.empty((coord.size, n_coef), np.complex128)
     table[:, 0] = 1.0
@@ -189,7 +211,7 @@ class DCTFit:
         """
         xs, ys, shape = self._points(x, y)
         cx, _ = _bases(xs, self.P, self.width)
-        cy, _ = _bases(ys, self.Q, self.height)
+        cy, _ = _bases(ys, self.Q, self.height, contiguous=True)  # enters a product only
         return np.einsum("np,np->n", cy @ self.coeffs, cx).reshape(shape)
 
     def gradient(self, x: ArrayLike, y: ArrayLike) -> tuple[NDArray, NDArray]:
@@ -201,7 +223,7 @@ class DCTFit:
         """
         xs, ys, shape = self._points(x, y)
         cx, dcx = _bases(xs, self.P, self.width)
-        cy, dcy = _bases(ys, self.Q, self.height)
+        cy, dcy = _bases(ys, self.Q, self.height, contiguous=True)  # enter products only
         f_x = np.einsum("np,np->n", cy @ self.coeffs, dcx)
         f_y = np.einsum("np,np->n", dcy @ self.coeffs, cx)
         return f_x.reshape(shape), f_y.reshape(shape)
@@ -210,7 +232,7 @@ class DCTFit:
         """:meth:`evaluate` and :meth:`gradient` together, sharing the bases: (f, f_x, f_y)."""
         xs, ys, shape = self._points(x, y)
         cx, dcx = _bases(xs, self.P, self.width)
-        cy, dcy = _bases(ys, self.Q, self.height)
+        cy, dcy = _bases(ys, self.Q, self.height, contiguous=True)  # enter products only
         coeffs = self.coeffs.astype(np.float64, copy=False)  # a mixed-type matmul skips BLAS
         rows = cy @ coeffs
         f = np.einsum("np,np->n", rows, cx)

@@ -59,7 +59,7 @@ from omniflow.gridpool import GridPools
 from omniflow.kernels import decouple_fits, decouple_sums
 from omniflow.rig import Rig
 
-__all__ = ["decouple", "fits_from_sums", "model_fits"]
+__all__ = ["decouple", "fits_from_sums", "model_fits", "pool_fits", "tests"]
 
 
 def model_fits(
@@ -135,6 +135,7 @@ def decouple(
     displacement: Callable,
     *,
     pools: tuple[NDArray, NDArray, NDArray] | None = None,
+    fit: dict[str, NDArray] | None = None,
 ) -> dict[str, NDArray]:
     """Add the ``coupled`` column and, where eq. (14) fails, the decoupled flow.
 
@@ -156,30 +157,18 @@ def decouple(
     same query (:func:`omniflow.flow.neighbourhoods` with the same k, radius,
     ranges and no edge test): the pools of the kept points are taken from them
     (:func:`kept_pools`) instead of searched again.
+
+    ``fit``: :func:`pool_fits` of these columns, made beforehand (it reads none of
+    the flow columns, so the solver can start it before its last step); None:
+    made here.
     """
     n = np.asarray(cols["h1"]).size
     out = dict(cols)
     out["coupled"] = np.ones(n)  # 1.0 / 0.0 like every other column (arithmetic, CSV)
-    if config.decouple_tol is None or config.solver != "pooled" or n < 10:
+    if not tests(config, n):
         return out
+    fit = pool_fits(cols, rig, config, pools=pools) if fit is None else fit
     h1, h2 = (np.asarray(cols[c], dtype=np.float64) for c in ("h1", "h2"))
-    radius = rig.cam1.r_m / 8.0 if config.pool_radius is None else config.pool_radius
-    search = lambda query=None: neighbourhoods(  # noqa: E731
-        cols["x"], cols["y"], k=config.pool_k, radius=radius, r=cols["r"],
-        range_tol=config.pool_range_tol, query=query,
-    )  # fmt: skip
-    derivs = tuple(np.asarray(cols[c], dtype=np.float64)
-                   for c in ("f1_h", "f1_theta", "f1_t", "f2_h", "f2_theta", "f2_t"))  # fmt: skip
-    if config.grid_pools:  # the solver's grid windows, the k-d tree's where ranges mix
-        grid = GridPools(
-            cols["x"], cols["y"], None, (rig.cam1.height, rig.cam1.width), radius=radius,
-            cell=config.pool_grid * radius, r=cols["r"], range_tol=config.pool_range_tol,
-            tree_pools=lambda mask: search(query=mask),
-        )  # fmt: skip
-        fit = fits_from_sums(grid.decouple_sums(derivs, h1, h2), h1, h2)
-    else:
-        idx, w = search() if pools is None else kept_pools(*pools, search)
-        fit = model_fits(derivs, h1, h2, idx, w)
     with np.errstate(invalid="ignore"):
         switch = (fit["F"] > config.decouple_tol) & np.isfinite(fit["a1"] + fit["a2"] + fit["b"])
     if not switch.any():
@@ -198,6 +187,50 @@ def decouple(
         dr_dt=np.where(switch, dr, cols["dr_dt"]),
     )  # fmt: skip
     return out
+
+
+def tests(config: OmniFlowConfig, n: int) -> bool:
+    """Whether :func:`decouple` tests eq. (14) at n points: a ``decouple_tol``, the pooled
+    solver and at least 10 points."""
+    return config.decouple_tol is not None and config.solver == "pooled" and n >= 10
+
+
+def pool_fits(
+    cols: dict[str, NDArray],
+    rig: Rig,
+    config: OmniFlowConfig,
+    pools: tuple[NDArray, NDArray, NDArray] | None = None,
+) -> dict[str, NDArray] | None:
+    """Both models' fits over each point's pool (:func:`fits_from_sums`), as
+    :func:`decouple` tests them; None where it does not test (:func:`tests`).
+
+    Reads only the columns ``x``, ``y``, ``r``, ``h1``, ``h2`` and the six
+    derivatives, none of the solved flow, so the solver can have it made on the
+    other thread while it refines the flow (:func:`omniflow.solve.flow_at_matches`).
+    ``pools`` as for :func:`decouple`.
+    """
+    if not tests(config, np.asarray(cols["h1"]).size):
+        return None
+    h1, h2 = (np.asarray(cols[c], dtype=np.float64) for c in ("h1", "h2"))
+    radius = rig.cam1.r_m / 8.0 if config.pool_radius is None else config.pool_radius
+    search = lambda query=None: neighbourhoods(  # noqa: E731
+        cols["x"], cols["y"], k=config.pool_k, radius=radius, r=cols["r"],
+        range_tol=config.pool_range_tol, query=query,
+    )  # fmt: skip
+    derivs = tuple(np.asarray(cols[c], dtype=np.float64) for c in DERIVS)
+    if config.grid_pools:  # the solver's grid windows, the k-d tree's where ranges mix
+        grid = GridPools(
+            cols["x"], cols["y"], None, (rig.cam1.height, rig.cam1.width), radius=radius,
+            cell=config.pool_grid * radius, r=cols["r"], range_tol=config.pool_range_tol,
+            tree_pools=lambda mask: search(query=mask),
+        )  # fmt: skip
+        return fits_from_sums(grid.decouple_sums(derivs, h1, h2), h1, h2)
+    idx, w = search() if pools is None else kept_pools(*pools, search)
+    return model_fits(derivs, h1, h2, idx, w)
+
+
+#: the result columns of the six derivatives, in the order the fits take them
+DERIVS = ("f1_h", "f1_theta", "f1_t", "f2_h", "f2_theta", "f2_t")
 
 
 def kept_pools(

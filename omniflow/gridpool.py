@@ -37,6 +37,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from omniflow.kernels import DECOUPLE_SUMS, decouple_sums, grid_read, grid_scatter
+from omniflow.parallel import map_tasks
 
 __all__ = ["GridPools"]
 
@@ -178,26 +179,52 @@ class GridPools:
         share of its window (the module's docstring) raised to ``power`` (2 for sums
         of squared weights). Filters in the dtype of ``parts`` (float32 or float64).
         Returns (len(jobs), N, C); rows of off-grid points zero.
+
+        The bins' images are made once; the jobs are then shared between the two
+        threads of :mod:`omniflow.parallel` (the filters and reads, most of the
+        time, release the GIL). Each job fills only its own slice of the result,
+        bin after bin in the same order whichever thread runs it, so the sums are
+        the same, bit for bit, as on one thread.
         """
         n, nc = parts.shape
-        on = self.on_grid
         read = np.zeros((len(jobs), n, nc))
+        bins = self._bin_images(parts)
         depth = cv2.CV_64F if parts.dtype == np.float64 else cv2.CV_32F
+
+        def run(j0: int, j1: int) -> None:
+            for img, x0, y0, readers, coef in bins:
+                # a reader outside the crop reads its border, which is 0 (margin > half)
+                for m in range(j0, j1):
+                    kx, ky, power = jobs[m]
+                    f = cv2.sepFilter2D(img, depth, kx, ky, borderType=cv2.BORDER_CONSTANT)
+                    f = f.reshape(img.shape)  # OpenCV drops a single channel's axis
+                    grid_read(f, self.gx, self.gy, float(x0), float(y0), readers,
+                              coef if power == 1 else coef**power, read[m])  # fmt: skip
+
+        half = (len(jobs) + 1) // 2
+        map_tasks(run, *[(j0, j1) for j0, j1 in ((0, half), (half, len(jobs))) if j1 > j0])
+        return read
+
+    def _bin_images(self, parts: NDArray) -> list[tuple]:
+        """Per range bin c of the on-grid points: (img, x0, y0, readers, coef), img the
+        bin's members' ``parts`` summed into the cells of its crop (whose corner is
+        cell (x0, y0)), readers the points of bins c - 1, c, c + 1 and coef the share
+        of bin c inside each reader's window (1 - f, 1, f for the bins c + 1, c, c - 1;
+        see the module's docstring)."""
         ix, iy = self.flat % self.gw, self.flat // self.gw
         margin = self.half + 1
         # the on-grid points by bin: a bin's members, and the readers of its filtered
         # image (the points of bins c - 1, c, c + 1), are runs of this order
-        pts = np.flatnonzero(on)
+        pts = np.flatnonzero(self.on_grid)
         pts = pts[np.argsort(self.bins[pts], kind="stable")]
         ub, first = np.unique(self.bins[pts], return_index=True)
         last = np.append(first[1:], pts.size)
+        out = []
         for t, c in enumerate(ub):
             members = pts[first[t] : last[t]]
             lo = first[t - 1] if t > 0 and ub[t - 1] == c - 1 else first[t]
             hi = last[t + 1] if t + 1 < ub.size and ub[t + 1] == c + 1 else last[t]
             readers = pts[lo:hi]
-            # each reader weighted by the share of bin c inside its window (1 - f, 1,
-            # f for the bins c + 1, c, c - 1; see the module's docstring)
             db = self.bins[readers] - c
             frac = self.frac[readers]
             coef = np.where(db == 0, 1.0, np.where(db == 1, 1.0 - frac, frac))
@@ -206,15 +233,10 @@ class GridPools:
             x1 = min(int(ix[members].max()) + margin + 1, self.gw)
             y1 = min(int(iy[members].max()) + margin + 1, self.gh)
             cw, ch = max(x1 - x0, 2), max(y1 - y0, 2)
-            img = np.zeros((ch, cw, nc), parts.dtype)
+            img = np.zeros((ch, cw, parts.shape[1]), parts.dtype)
             grid_scatter(img, iy, ix, y0, x0, parts, members)
-            # a reader outside the crop reads its border, which is 0 (margin > kernel half)
-            for m, (kx, ky, power) in enumerate(jobs):
-                f = cv2.sepFilter2D(img, depth, kx, ky, borderType=cv2.BORDER_CONSTANT)
-                f = f.reshape(img.shape)  # OpenCV drops a single channel's axis
-                grid_read(f, self.gx, self.gy, float(x0), float(y0), readers,
-                          coef if power == 1 else coef**power, read[m])  # fmt: skip
-        return read
+            out.append((img, x0, y0, readers, coef))
+        return out
 
     def decouple_sums(self, derivs: tuple[NDArray, ...], h1: NDArray, h2: NDArray) -> NDArray:
         """The two-model test's pool sums (:func:`omniflow.kernels.decouple_sums`) on the grid.

@@ -15,6 +15,10 @@ the normalised cross-correlation of the same profiles as
 omniflow.matching.robust.Descriptors, summed straight from the tables instead of
 gathering every profile first.
 
+:func:`cos_bases` makes the cosine series' bases at points
+(:func:`omniflow.dct.DCTFit.evaluate` and its gradients) as the running product
+of a complex exponential, numpy's cumprod value for value, in one pass.
+
 :func:`grid_scatter` and :func:`grid_read` put the grid pooling's point terms
 into a cell image and read filtered images back bilinearly at the points
 (:mod:`omniflow.gridpool`), without numpy's (N, C) temporaries per corner.
@@ -148,6 +152,30 @@ def pooled_sums(
         *f, np.ascontiguousarray(h1, dtype=np.float64), th, bool(relative),
         3 if linear else 1, float(scale),
     )  # fmt: skip
+
+
+@numba.njit(cache=True, nogil=True)
+def cos_bases(e, w, cos, dsin):  # pragma: no cover - compiled
+    """cos[i, k] = Re(e[i]^k) and dsin[i, k] = -w[k] Im(e[i]^k) for k < cos.shape[1], the
+    powers as the running product z_k = z_{k-1} e[i] (z_0 = 1), each complex product
+    as numpy's, (a c - b d, a d + b c): :func:`omniflow.dct.bases_numpy`'s cumprod
+    value for value, without its complex table and the copies of its two parts."""
+    n, m = cos.shape
+    if m == 0:
+        return
+    for i in range(n):
+        er = e[i].real
+        ei = e[i].imag
+        zr = 1.0
+        zi = 0.0
+        cos[i, 0] = 1.0
+        dsin[i, 0] = -w[0] * 0.0
+        for k in range(1, m):
+            r = zr * er - zi * ei
+            zi = zr * ei + zi * er
+            zr = r
+            cos[i, k] = zr
+            dsin[i, k] = -w[k] * zi
 
 
 @numba.njit(cache=True, nogil=True)

@@ -32,7 +32,9 @@ in :mod:`omniflow.solve`; this module only runs them in order.
 
 Speed: the two units' fits run in two threads, and the grids the flow step
 samples are made on the second thread while the first matches
-(:mod:`omniflow.parallel`); each is the same computation as in one thread,
+(:mod:`omniflow.parallel`); in the flow step the grid pools' filters, the
+refinement's two units and the two-model test's pool fits share the two
+threads too; each is the same computation as in one thread,
 so the columns do not change. The stage timings are in
 :attr:`OmniFlowResult.timings` (``grids``: the grids matched on; ``match``
 overlaps the flow step's grids, whose wait, if any, counts in ``sample``);

@@ -34,6 +34,7 @@ from scipy.spatial import cKDTree
 
 from omniflow.config import OmniFlowConfig
 from omniflow.edges import polar_from_cartesian
+from omniflow.parallel import map_tasks
 from omniflow.rig import Rig
 
 __all__ = ["moving_far", "refine_moving"]
@@ -124,21 +125,13 @@ def refine_moving(
     k = g2 / g1  # eq. (14)
     with _one_blas_thread():
         for _ in range(config.iterations):
-            rows = []
-            for fr, x, y, h_i, dh in (
-                (cam1, x1[i], y1[i], g1, ai),
-                (cam2, x2[i], y2[i], g2, k * ai),
-            ):
-                unit = fr["a"].unit  # polar gradients below: eq. (19)-(20)
-                xd, yd = unit.pixel_of_polar(h_i + dh, th + bi)
-                fb, g_x, g_y = fr["b"].fit.value_and_gradient(xd, yd)  # frame t + 1, displaced
-                fa, a_x, a_y = fr["af"].fit.value_and_gradient(x, y)  # frame t, at the point
-                g_h, g_th = polar_from_cartesian(g_x, g_y, xd - unit.x_c, yd - unit.y_c)
-                if config.gradients == "average":
-                    a_h, a_th = polar_from_cartesian(a_x, a_y, x - unit.x_c, y - unit.y_c)
-                    g_h, g_th = 0.5 * (g_h + a_h), 0.5 * (g_th + a_th)
-                rows.append((g_h, g_th, fb - fa))  # brightness constancy's residual (eq. 8)
-            (q1_h, q1_th, e1), (q2_h, q2_th, e2) = rows
+            # the two units' exact evaluations (a few BLAS products each) on the two
+            # threads of omniflow.parallel: the same products either way
+            (q1_h, q1_th, e1), (q2_h, q2_th, e2) = map_tasks(
+                _unit_rows,
+                (cam1, x1[i], y1[i], g1, ai, th, bi, config),
+                (cam2, x2[i], y2[i], g2, k * ai, th, bi, config),
+            )
             da, db, cc = solve(q1_h, q1_th, e1, q2_h, q2_th, e2)
             step = np.isfinite(da) & np.isfinite(db)
             ai = np.where(step, ai + da, ai)
@@ -147,3 +140,28 @@ def refine_moving(
     a, b, conf = a.copy(), b.copy(), conf.copy()
     a[i], b[i], conf[i] = ai, bi, ci
     return a, b, conf, sel
+
+
+def _unit_rows(
+    fr: dict,
+    x: NDArray,
+    y: NDArray,
+    h_i: NDArray,
+    dh: NDArray,
+    th: NDArray,
+    db: NDArray,
+    config: OmniFlowConfig,
+) -> tuple[NDArray, NDArray, NDArray]:
+    """One unit's increment equation at its points (x, y) = (h_i, th) moved by (dh, db):
+    the polar gradient (f_h, f_theta) of frame t + 1 at the displaced point (averaged
+    with frame t's at the point for ``gradients="average"``) and brightness constancy's
+    residual f_{t+1}(displaced) - f_t(point) (eq. 8), the series evaluated exactly."""
+    unit = fr["a"].unit  # polar gradients below: eq. (19)-(20)
+    xd, yd = unit.pixel_of_polar(h_i + dh, th + db)
+    fb, g_x, g_y = fr["b"].fit.value_and_gradient(xd, yd)  # frame t + 1, displaced
+    fa, a_x, a_y = fr["af"].fit.value_and_gradient(x, y)  # frame t, at the point
+    g_h, g_th = polar_from_cartesian(g_x, g_y, xd - unit.x_c, yd - unit.y_c)
+    if config.gradients == "average":
+        a_h, a_th = polar_from_cartesian(a_x, a_y, x - unit.x_c, y - unit.y_c)
+        g_h, g_th = 0.5 * (g_h + a_h), 0.5 * (g_th + a_th)
+    return g_h, g_th, fb - fa  # brightness constancy's residual (eq. 8)

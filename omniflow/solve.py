@@ -5,6 +5,12 @@ units at the matched points (:mod:`omniflow.sampling`), solves for the polar
 flow with the configured solver (:func:`make_solver`: eq. (16) per point, or
 the equations of neighbouring matches pooled, :mod:`omniflow.flow`),
 optionally iterates (Gauss-Newton), and returns the result columns.
+
+The two-model test of eq. (14) (:mod:`omniflow.decoupled`) pools the
+derivatives, not the flow, so its pool fits are made on the other thread of
+:mod:`omniflow.parallel` while this one refines the flow; they are used only
+where the refinement kept the same points (it does: a refined flow stays
+finite), else made again, so the columns do not depend on the threads.
 """
 
 from __future__ import annotations
@@ -16,7 +22,7 @@ from numpy.typing import NDArray
 
 from omniflow.applications import radial_velocity
 from omniflow.config import OmniFlowConfig
-from omniflow.decoupled import decouple
+from omniflow.decoupled import decouple, pool_fits
 from omniflow.flow import conditioning as direct_conditioning
 from omniflow.flow import (
     consistent_neighbours,
@@ -28,6 +34,7 @@ from omniflow.flow import (
 )
 from omniflow.gridpool import GridPools
 from omniflow.matching import Matches
+from omniflow.parallel import submit
 from omniflow.refine import refine_moving
 from omniflow.rig import Rig, Unit
 from omniflow.sampling import sample_f, sample_fine, sample_polar_grad
@@ -64,38 +71,23 @@ def flow_at_matches(
     a, b, conf = solve(f1_h, f1_th, f1_t, f2_h, f2_th, f2_t)
     D = determinant(f1_h, f1_th, f2_h, f2_th, h1, h2)
     k = h2 / h1  # eq. (14)
-    if config.iterate_min_px > 0.0:  # refine only the points that move far (omniflow.refine)
-        a, b, conf, _ = refine_moving(
-            a, b, conf, cam1=cam1, cam2=cam2, rig=rig, x1=x1, y1=y1, x2=x2, y2=y2,
-            theta=theta, h1=h1, h2=h2, r=r, config=config, make_solver=make_solver, noise=noise,
-        )  # fmt: skip
-    for _ in range(config.iterations if config.iterate_min_px == 0.0 else 0):
-        # Gauss-Newton on eq. (8)'s linearisation: the residual of brightness
-        # constancy at the displaced points, solved again for the increment.
-        ok = np.isfinite(a) & np.isfinite(b)
-        da0, db0 = np.where(ok, a, 0.0), np.where(ok, b, 0.0)
-        inc = []
-        for fr, x, y, h_i, dh in ((cam1, x1, y1, h1, da0), (cam2, x2, y2, h2, k * da0)):
-            unit = fr["a"].unit
-            xd, yd = unit.pixel_of_polar(h_i + dh, theta + db0)
-            g_h, g_th = sample_polar_grad(fr["b"], xd, yd, config.sampling)
-            if config.gradients == "average":
-                a_h, a_th = sample_polar_grad(fr["af"], x, y, config.sampling)
-                g_h, g_th = 0.5 * (g_h + a_h), 0.5 * (g_th + a_th)
-            # the residual needs the image itself read off-pixel: cubic
-            # interpolation of a series with periods down to 1 / band px is
-            # biased by a few per cent, Lanczos (8 taps) much less; both
-            # frames at the flow band and taper
-            res = sample_fine(fr["b"], xd, yd, config.sampling) - sample_fine(
-                fr["af"], x, y, config.sampling
-            )
-            inc.append((g_h, g_th, res))
-        (g1_h, g1_th, r1), (g2_h, g2_th, r2) = inc
-        da, db, conf_i = solve(g1_h, g1_th, r1, g2_h, g2_th, r2)
-        step = np.isfinite(da) & np.isfinite(db)
-        a = np.where(step, a + da, a)
-        b = np.where(step, b + db, b)
-        conf = np.where(step, conf_i, conf)
+    # the two-model test's pool fits read no flow, only the points that keep one:
+    # made on the other thread while this one refines (a refined point keeps a
+    # finite flow, so the kept points are those of the first solve; checked below)
+    keep0 = np.isfinite(a) & np.isfinite(b)
+    derivs = {"f1_h": f1_h, "f1_theta": f1_th, "f1_t": f1_t,
+              "f2_h": f2_h, "f2_theta": f2_th, "f2_t": f2_t}  # fmt: skip
+    kept = {"x": x1, "y": y1, "r": r, "h1": h1, "h2": h2, **derivs}
+    if not keep0.all():
+        kept = {c: v[keep0] for c, v in kept.items()}
+    pools0 = None if solve.pools is None else (*solve.pools, keep0)
+    early = submit(pool_fits, kept, rig, config, pools0)
+    try:
+        a, b, conf = _refine(a, b, conf, solve, k, cam1, cam2, rig, x1, y1, x2, y2, theta,
+                             h1, h2, r, config, noise)  # fmt: skip
+    except BaseException:
+        early.cancel()  # no task outlives the call
+        raise
     keep = np.isfinite(a) & np.isfinite(b)
     if not np.all(keep):
         (theta, h1, h2, x1, y1, x2, y2, r, h, a, b, D, conf) = (
@@ -141,8 +133,53 @@ def flow_at_matches(
         "_t_sample": t1 - t0,
     }
     pools = None if solve.pools is None else (*solve.pools, keep)
+    if np.array_equal(keep, keep0):
+        fit = early.result()
+    else:  # the refinement lost a point's flow: the fits of the points kept
+        early.cancel()
+        fit = None
     # eq. (14) tested (omniflow.decoupled) over the solver's own pools
-    return decouple(cols, rig, config, _displacement, pools=pools)
+    return decouple(cols, rig, config, _displacement, pools=pools, fit=fit)
+
+
+def _refine(a, b, conf, solve, k, cam1, cam2, rig, x1, y1, x2, y2, theta, h1, h2, r, config,
+            noise):  # fmt: skip
+    """The first solve's (a, b, conf) refined: at the points that move far
+    (:func:`omniflow.refine.refine_moving`, ``iterate_min_px`` > 0) or at every point
+    (``iterations`` Gauss-Newton steps on grids read off-pixel)."""
+    if config.iterate_min_px > 0.0:  # refine only the points that move far (omniflow.refine)
+        a, b, conf, _ = refine_moving(
+            a, b, conf, cam1=cam1, cam2=cam2, rig=rig, x1=x1, y1=y1, x2=x2, y2=y2,
+            theta=theta, h1=h1, h2=h2, r=r, config=config, make_solver=make_solver, noise=noise,
+        )  # fmt: skip
+    for _ in range(config.iterations if config.iterate_min_px == 0.0 else 0):
+        # Gauss-Newton on eq. (8)'s linearisation: the residual of brightness
+        # constancy at the displaced points, solved again for the increment.
+        ok = np.isfinite(a) & np.isfinite(b)
+        da0, db0 = np.where(ok, a, 0.0), np.where(ok, b, 0.0)
+        inc = []
+        for fr, x, y, h_i, dh in ((cam1, x1, y1, h1, da0), (cam2, x2, y2, h2, k * da0)):
+            unit = fr["a"].unit
+            xd, yd = unit.pixel_of_polar(h_i + dh, theta + db0)
+            g_h, g_th = sample_polar_grad(fr["b"], xd, yd, config.sampling)
+            if config.gradients == "average":
+                a_h, a_th = sample_polar_grad(fr["af"], x, y, config.sampling)
+                g_h, g_th = 0.5 * (g_h + a_h), 0.5 * (g_th + a_th)
+            # the residual needs the image itself read off-pixel: cubic
+            # interpolation of a series with periods down to 1 / band px is
+            # biased by a few per cent, Lanczos (8 taps) much less; both
+            # frames at the flow band and taper
+            res = sample_fine(fr["b"], xd, yd, config.sampling) - sample_fine(
+                fr["af"], x, y, config.sampling
+            )
+            inc.append((g_h, g_th, res))
+        (g1_h, g1_th, r1), (g2_h, g2_th, r2) = inc
+        da, db, conf_i = solve(g1_h, g1_th, r1, g2_h, g2_th, r2)
+        step = np.isfinite(da) & np.isfinite(db)
+        a = np.where(step, a + da, a)
+        b = np.where(step, b + db, b)
+        conf = np.where(step, conf_i, conf)
+    return a, b, conf
 
 
 def make_solver(

@@ -252,3 +252,33 @@ def test_band_window_rolls_off_to_the_band_edge():
     assert np.allclose(w, w.T)  # radial: the same along both axes
     with pytest.raises(ValueError, match="taper"):
         band_window(4, 4, 1.5)
+
+
+def test_compiled_bases_equal_the_numpy_form():
+    """omniflow.kernels.cos_bases (through dct._bases) gives dct.bases_numpy's cumprod
+    bases value for value, at any point and number of coefficients (1 included)."""
+    from omniflow.dct import _bases, bases_numpy
+
+    rng = np.random.default_rng(7)
+    for n_coef, n in ((256, 512), (37, 100), (1, 8), (2, 8)):
+        c = np.concatenate([rng.uniform(-5.0, n + 5.0, 300), [0.0, 0.5, n - 0.5]])
+        got, want = _bases(c, n_coef, n), bases_numpy(c, n_coef, n)
+        for g, w in zip(got, want, strict=True):
+            assert g.shape == w.shape
+            np.testing.assert_array_equal(g, w)
+        assert got[0].strides == want[0].strides  # the layout the products downstream see
+
+
+def test_contiguous_bases_give_the_same_products():
+    """dct._bases(contiguous=True): the same cosines as a plain array, and the matrix
+    product the fits take of them is the strided view's, bit for bit."""
+    from omniflow.dct import _bases
+
+    rng = np.random.default_rng(3)
+    c = rng.uniform(0.0, 512.0, 500)
+    coeffs = rng.standard_normal((256, 256))
+    strided, _ = _bases(c, 256, 512)
+    plain, _ = _bases(c, 256, 512, contiguous=True)
+    assert plain.flags.c_contiguous and not strided.flags.c_contiguous
+    np.testing.assert_array_equal(plain, strided)
+    np.testing.assert_array_equal(plain @ coeffs, strided @ coeffs)

@@ -133,3 +133,45 @@ def test_radial_velocity_stereo_is_the_derivative_of_eq_5():
     h1e0, h2e0 = rig.cam1.image_radius(r + eps * dr, Z), rig.cam2.image_radius(r + eps * dr, Z)
     same = radial_velocity_stereo(r, h1, h2, (h1e0 - h1) / eps, (h2e0 - h2) / eps, d=rig.d)
     assert same == pytest.approx(radial_velocity(r, h1, (h1e0 - h1) / eps, d=rig.d), rel=1e-5)
+
+
+def test_early_pool_fits_are_used_only_for_the_same_points(monkeypatch):
+    """flow_at_matches has the two-model test's pool fits made before it refines the
+    flow: they are decouple's own fits of the final columns where the refinement keeps
+    every point's flow, and are dropped (decouple fits the kept points itself) where
+    it loses one."""
+    from omniflow import solve as solve_mod
+    from omniflow.decoupled import pool_fits
+    from omniflow.pipeline import OmniFlowConfig, estimate
+    from omniflow.synthetic import Motion
+    from tests.helpers.scenes import frames, paper_rig, wall_scene
+
+    rig = paper_rig(256)
+    f1, f2 = frames(wall_scene(rig, robot=Motion(velocity=(0.02, 0.01), yaw_rate=0.004)), 2)
+    config = OmniFlowConfig.dense()
+    seen = []
+    real_decouple = solve_mod.decouple
+
+    def spy(cols, rig_, config_, displacement, *, pools=None, fit=None):
+        seen.append((cols, fit))
+        return real_decouple(cols, rig_, config_, displacement, pools=pools, fit=fit)
+
+    monkeypatch.setattr(solve_mod, "decouple", spy)
+    estimate(f1, f2, rig, config)
+    cols, fit = seen[-1]
+    assert fit is not None
+    fresh = pool_fits(cols, rig, config)
+    for k in fresh:
+        np.testing.assert_array_equal(fit[k], fresh[k], err_msg=k)
+
+    real_refine = solve_mod._refine
+
+    def lose_one(a, *args):  # the refinement loses the first point's flow
+        a, b, conf = real_refine(a, *args)
+        a = a.copy()
+        a[np.flatnonzero(np.isfinite(a))[0]] = np.nan
+        return a, b, conf
+
+    monkeypatch.setattr(solve_mod, "_refine", lose_one)
+    estimate(f1, f2, rig, config)
+    assert seen[-1][1] is None

@@ -77,3 +77,25 @@ def test_estimate_columns_do_not_depend_on_threads(monkeypatch):
     assert len(out[1]) > 100
     for k in out[1].columns:
         np.testing.assert_array_equal(out[2][k], out[1][k], err_msg=k)
+
+
+def test_dense_preset_columns_do_not_depend_on_threads(monkeypatch):
+    """The dense preset's grid pools (jobs shared between the threads), refinement (the
+    units' evaluations on both threads) and two-model test (its pool fits made on the
+    other thread while the flow is refined): every column bit for bit the same on one
+    thread and two, on a scene moving fast enough that the refinement has points."""
+    from omniflow.pipeline import OmniFlowConfig, estimate
+    from omniflow.synthetic import Motion
+    from tests.helpers.scenes import frames, paper_rig, wall_scene
+
+    rig = paper_rig(256)
+    f1, f2 = frames(wall_scene(rig, robot=Motion(velocity=(0.06, 0.03), yaw_rate=0.02)), 2)
+    out = {}
+    for threads in (1, 2):
+        monkeypatch.setattr(parallel, "THREADS", threads)
+        out[threads] = estimate(f1, f2, rig, OmniFlowConfig.dense())
+    plain = estimate(f1, f2, rig, OmniFlowConfig.dense(iterations=0))
+    assert len(out[1]) > 100
+    assert not np.array_equal(plain["dh1_dt"], out[1]["dh1_dt"])  # the refinement ran
+    for k in out[1].columns:
+        np.testing.assert_array_equal(out[2][k], out[1][k], err_msg=k)
