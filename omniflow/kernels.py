@@ -212,6 +212,25 @@ def grid_read(f, gx, gy, x0, y0, readers, coef, out):  # pragma: no cover - comp
                           + w10 * f[yi + 1, xi, k] + w11 * f[yi + 1, xi + 1, k])  # fmt: skip
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def profile_stats(t1, k, j, w, stride, lines):  # pragma: no cover - compiled
+    """(mean, 1 / norm of the mean-removed samples) of the profile of ``t1`` at line
+    ``k``, column ``j``: the 2 w + 1 samples every ``stride`` columns on the 2 ``lines`` + 1
+    lines around k (wrapping in theta), summed in float64 in this order; the norm is
+    floored at 1e-12 (a flat profile)."""
+    n_lines = t1.shape[0]
+    s1 = 0.0
+    s2 = 0.0
+    for dk in range(-lines, lines + 1):
+        row = (k + dk) % n_lines
+        for q in range(-w, w + 1):
+            v = np.float64(t1[row, j + q * stride])  # float64 products
+            s1 += v
+            s2 += v * v
+    mean1 = s1 / ((2 * w + 1) * (2 * lines + 1))
+    return mean1, 1.0 / max(math.sqrt(max(s2 - s1 * mean1, 0.0)), 1e-12)
+
+
 @numba.njit(cache=True, nogil=True)
 def ncc_offsets(t1, t2, k, j, cols, w, stride, lines, out):  # pragma: no cover - compiled
     """NCC of the profile of ``t1`` at (k[i], j[i]) with those of ``t2`` at (k[i], cols[i, s]).
@@ -224,16 +243,7 @@ def ncc_offsets(t1, t2, k, j, cols, w, stride, lines, out):  # pragma: no cover 
     n_lines = t1.shape[0]
     length = (2 * w + 1) * (2 * lines + 1)
     for i in range(k.size):
-        s1 = 0.0
-        s2 = 0.0
-        for dk in range(-lines, lines + 1):
-            row = (k[i] + dk) % n_lines
-            for q in range(-w, w + 1):
-                v = np.float64(t1[row, j[i] + q * stride])  # float64 products
-                s1 += v
-                s2 += v * v
-        mean1 = s1 / length
-        inv1 = 1.0 / max(math.sqrt(max(s2 - s1 * mean1, 0.0)), 1e-12)
+        mean1, inv1 = profile_stats(t1, k[i], j[i], w, stride, lines)
         for s in range(cols.shape[1]):
             c = cols[i, s]
             dot = 0.0

@@ -24,6 +24,7 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
+from omniflow.kernels import profile_stats
 from omniflow.matching.tables import TableGeometry, parabola_offset, sharp_peak
 
 __all__ = ["candidates", "candidates_numpy", "densify", "ncc_offsets", "smooth_profiles"]
@@ -51,16 +52,7 @@ def ncc_offsets(t1, t2, k, j, cols, w, stride, lines, out):  # pragma: no cover 
     length = (2 * w + 1) * (2 * lines + 1)
     n_s = cols.shape[1]
     for i in range(k.size):
-        s1 = 0.0
-        s2 = 0.0
-        for dk in range(-lines, lines + 1):
-            row = (k[i] + dk) % n_lines
-            for q in range(-w, w + 1):
-                v = np.float64(t1[row, j[i] + q * stride])  # float64 products
-                s1 += v
-                s2 += v * v
-        mean1 = s1 / length
-        inv1 = 1.0 / max(math.sqrt(max(s2 - s1 * mean1, 0.0)), 1e-12)
+        mean1, inv1 = profile_stats(t1, k[i], j[i], w, stride, lines)
         for g in range(0, n_s, 4):
             # columns g .. g + 3 (the last repeated past the end, not written)
             c0 = cols[i, g]
