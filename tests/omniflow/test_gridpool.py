@@ -46,9 +46,9 @@ def _cell_centre_case(seed: int = 0, n: int = 400, ranges: bool = False):
     return x, y, tangent, derivs, h1, r
 
 
-def _brute_force(x, y, tangent, derivs, h1, r, tol, scale):
-    """sum_j w_ij u_ij^m (pp, pq, qq, pf, qf) by the definition, (N, 3, 5), and sum_j w u^m."""
-    f1h, f1th, f1t, kf2h, f2th, f2t = derivs
+def _window_weights(x, y, r, tol):
+    """(x_j - x_i, y_j - y_i, w_ij) by the definition: the Gaussian of the pool radius
+    inside the square window, times the linear share of j's range bin where ``r`` is given."""
     dx, dy = x[None, :] - x[:, None], y[None, :] - y[:, None]  # [i, j]: x_j - x_i
     half = round(RADIUS / CELL) * CELL
     w = np.exp(-0.5 * (dx**2 + dy**2) / (RADIUS / 2.0) ** 2)
@@ -59,6 +59,13 @@ def _brute_force(x, y, tangent, derivs, h1, r, tol, scale):
         f = (pos - b)[:, None]
         db = b[None, :] - b[:, None]  # bin of j minus bin of i
         w *= np.where(db == 0, 1.0, np.where(db == -1, 1.0 - f, np.where(db == 1, f, 0.0)))
+    return dx, dy, w
+
+
+def _brute_force(x, y, tangent, derivs, h1, r, tol, scale):
+    """sum_j w_ij u_ij^m (pp, pq, qq, pf, qf) by the definition, (N, 3, 5), and sum_j w u^m."""
+    f1h, f1th, f1t, kf2h, f2th, f2t = derivs
+    dx, dy, w = _window_weights(x, y, r, tol)
     u = (tangent[:, 0:1] * dx + tangent[:, 1:2] * dy) / scale
     hi = h1[:, None]
     rel = h1[None, :] / hi
@@ -109,16 +116,7 @@ def test_grid_sums_check_catches_mutations(mutation):
 def _brute_force_decouple(x, y, derivs, h1, h2, r, tol):
     """The two-model test's sums (omniflow.kernels.DECOUPLE_SUMS) by the definition."""
     f1h, f1th, f1t, f2h, f2th, f2t = derivs
-    dx, dy = x[None, :] - x[:, None], y[None, :] - y[:, None]
-    half = round(RADIUS / CELL) * CELL
-    w = np.exp(-0.5 * (dx**2 + dy**2) / (RADIUS / 2.0) ** 2)
-    w *= (np.abs(dx) <= half + 1e-9) & (np.abs(dy) <= half + 1e-9)
-    if r is not None:
-        pos = np.log(r) / math.log1p(tol)
-        b = np.floor(pos)
-        f = (pos - b)[:, None]
-        db = b[None, :] - b[:, None]
-        w *= np.where(db == 0, 1.0, np.where(db == -1, 1.0 - f, np.where(db == 1, f, 0.0)))
+    _, _, w = _window_weights(x, y, r, tol)
     a, bb, q, t = (f1h, f2h), (f1h * h1, f2h * h2), (f1th, f2th), (f1t, f2t)
     pairs = [(a, a), (a, bb), (a, q), (bb, bb), (bb, q), (q, q), (a, t), (bb, t), (q, t), (t, t)]
     cols = [w @ (u[0] * v[0] + u[1] * v[1]) for u, v in pairs]
