@@ -1132,11 +1132,8 @@ def run(args: argparse.Namespace, config_fields: list[str], argv: list[str]) -> 
             )
         rows, outlines, regions_block = [], [], None
         if with_regions:
-            mono = None
-            if config.monocular_gap is not None:
-                from omniflow.result import MONOCULAR_COLUMNS
-
-                mono = result.monocular or {k: np.zeros(0) for k in MONOCULAR_COLUMNS}
+            # estimate() fills every monocular column (possibly empty) when it is configured
+            mono = result.monocular if config.monocular_gap is not None else None
             rows, outlines, regions_block = _regions(args, cols, masks, fit, rig, frame_interval,
                                                      mono)  # fmt: skip
             atomic_write_text(stage / "regions.csv", regions_csv_text(rows))
