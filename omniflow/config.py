@@ -311,17 +311,19 @@ class OmniFlowConfig:
         in cam2 (eq. 14; on a grid at twice the resolution, Lanczos
         interpolation), the gradients are frame t + 1's at the displaced
         point (averaged with frame t's at the point for
-        gradients="average"), and eq. (9) and (15) are solved again (same
-        solver) for the increment. 0 is the paper's single first-order step
-        of eq. (8); the paper does not iterate. Off by default: it helps
+        gradients="average"), and eq. (9) and (15), linearised about each
+        point's own flow, are solved again (same solver) for the total flow.
+        0 is the paper's single first-order step of eq. (8); the paper does
+        not iterate. Off by default: it helps
         where the linearisation is the error (exact frames, large motion)
         and hurts where noise is (docs/measurements.md).
     iterate_min_px : float
         With ``iterations`` > 0: refine only the points whose first-step
         flow moves them at least this many pixels in cam1 or cam2 and that
         have 8 such points within the pool radius (a moving surface, not a
-        stray wrong match), pooling each over the others, with the series
-        evaluated exactly (:mod:`omniflow.refine`). The first-order step
+        stray wrong match), each linearised about its own first flow and
+        solved for the total flow with the pools of the first solve, the
+        series evaluated exactly (:mod:`omniflow.refine`). The first-order step
         overstates a large motion (by about (k d)^2 / 12 for a texture
         wavenumber k and displacement d); the refinement removes that where
         it matters and leaves the small flows, where it adds only noise,

@@ -13,15 +13,23 @@ h_2 / h_1 times cam1's, eq. 14) comes out 8-9 % too fast in both components
 :func:`refine_moving` re-linearises eq. (8) at the displaced points, as
 ``OmniFlowConfig.iterations`` always did, but only where the first step's
 displacement in either unit is at least ``OmniFlowConfig.iterate_min_px``
-pixels, and pools each refined point's increment equations over the other
-refined points only (a mover's points pool with each other, not with the
-background that stays put), and only where at least ``MIN_NEIGHBOURS`` other
-fast points lie within the pool radius, so that a lone wrong match whose first
-step happens to be fast is left as it is. At so few points the fitted series are
-evaluated exactly (:meth:`omniflow.dct.DCTFit.evaluate`) rather than read off
-pixel grids, so the step builds no grid. Static points keep the first-order
-answer, which the extra step only makes noisier where the motion is small
-(the same measurements).
+pixels, and only where at least ``MIN_NEIGHBOURS`` other fast points lie within
+the pool radius, so that a lone wrong match whose first step happens to be fast
+is left as it is. At so few points the fitted series are evaluated exactly
+(:meth:`omniflow.dct.DCTFit.evaluate`) rather than read off pixel grids, so the
+step builds no grid. Static points keep the first-order answer, which the extra
+step only makes noisier where the motion is small (the same measurements).
+
+Each point's equation is linearised about its own first-step flow and the pools
+are solved for the total flow, not for an increment: an increment pooled over
+neighbours that each moved by their own (noisy) first estimate adds the
+difference between a point's first estimate and its neighbours' to the answer,
+the first step's noise passed through a high-pass filter (on the rendered
+scenes the refined points' error rose by 10-140 % that way; docs/measurements.md,
+"The refinement solved for the total flow"). For the same reason a fast point
+pools with the neighbours of its first solve (``pools``, the k-d tree's), slow
+ones included, each linearised about its own flow: pools of the fast points
+alone are thin where few points move fast.
 """
 
 from __future__ import annotations
@@ -91,6 +99,7 @@ def refine_moving(
     config: OmniFlowConfig,
     make_solver: Callable,
     noise: tuple[float, float] = (0.0, 0.0),
+    pools: tuple[NDArray, NDArray] | None = None,
 ) -> tuple[NDArray, NDArray, NDArray, NDArray]:
     """``config.iterations`` Gauss-Newton steps at the points :func:`moving_far` selects.
 
@@ -99,6 +108,10 @@ def refine_moving(
     ``make_solver(rig, config, x1, y1, theta, h1, h2, r, noise)`` builds the
     configured solver for a subset (:func:`omniflow.solve.make_solver`, passed
     in so that this module does not import the module that calls it).
+    ``pools``: the first solve's (idx, w) (:func:`omniflow.flow.neighbourhoods`),
+    when it pooled over k-d tree neighbours; the refined points' pool members are
+    then solved with them (each linearised about its own first flow, a NaN one
+    about zero motion), else the fast points pool among themselves.
 
     Returns
     -------
@@ -118,10 +131,18 @@ def refine_moving(
     sel[np.flatnonzero(sel)[near < MIN_NEIGHBOURS]] = False
     if not sel.any():
         return a, b, conf, sel
-    i = np.flatnonzero(sel)
+    group = sel.copy()  # the points solved: the fast ones and their first pools
+    if pools is not None:
+        idx, w = pools
+        members = idx[sel][w[sel] > 0]
+        group[members[members < sel.size]] = True
+    i = np.flatnonzero(group)
+    out = sel[i]  # the solved points whose flow is replaced
     th, g1, g2 = theta[i], h1[i], h2[i]
     solve = make_solver(rig, config, x1[i], y1[i], th, g1, g2, r[i], noise)
-    ai, bi, ci = a[i].copy(), b[i].copy(), conf[i].copy()
+    ai = np.nan_to_num(a[i], nan=0.0, posinf=0.0, neginf=0.0)  # where each is linearised
+    bi = np.nan_to_num(b[i], nan=0.0, posinf=0.0, neginf=0.0)
+    ci = conf[i].copy()
     k = g2 / g1  # eq. (14)
     with _one_blas_thread():
         for _ in range(config.iterations):
@@ -132,11 +153,17 @@ def refine_moving(
                 (cam1, x1[i], y1[i], g1, ai, th, bi, config),
                 (cam2, x2[i], y2[i], g2, k * ai, th, bi, config),
             )
-            da, db, cc = solve(q1_h, q1_th, e1, q2_h, q2_th, e2)
-            step = np.isfinite(da) & np.isfinite(db)
-            ai = np.where(step, ai + da, ai)
-            bi = np.where(step, bi + db, bi)
+            # eq. (8) linearised about each point's own flow, for the total flow:
+            # f_h (a - a_i) + f_theta (b - b_i) + residual = 0
+            e1 = e1 - q1_h * ai - q1_th * bi
+            e2 = e2 - q2_h * (k * ai) - q2_th * bi
+            an, bn, cc = solve(q1_h, q1_th, e1, q2_h, q2_th, e2)
+            step = np.isfinite(an) & np.isfinite(bn)
+            ai = np.where(step, an, ai)
+            bi = np.where(step, bn, bi)
             ci = np.where(step, cc, ci)
+    keep = out & np.isfinite(a[i]) & np.isfinite(b[i])  # a fast point had a first flow
+    ai, bi, ci = np.where(keep, ai, a[i]), np.where(keep, bi, b[i]), np.where(keep, ci, conf[i])
     a, b, conf = a.copy(), b.copy(), conf.copy()
     a[i], b[i], conf[i] = ai, bi, ci
     return a, b, conf, sel
@@ -152,7 +179,7 @@ def _unit_rows(
     db: NDArray,
     config: OmniFlowConfig,
 ) -> tuple[NDArray, NDArray, NDArray]:
-    """One unit's increment equation at its points (x, y) = (h_i, th) moved by (dh, db):
+    """One unit's eq. (8) linearised about the flow (dh, db) at its points (x, y) = (h_i, th):
     the polar gradient (f_h, f_theta) of frame t + 1 at the displaced point (averaged
     with frame t's at the point for ``gradients="average"``) and brightness constancy's
     residual f_{t+1}(displaced) - f_t(point) (eq. 8), the series evaluated exactly."""

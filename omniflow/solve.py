@@ -151,6 +151,7 @@ def _refine(a, b, conf, solve, k, cam1, cam2, rig, x1, y1, x2, y2, theta, h1, h2
         a, b, conf, _ = refine_moving(
             a, b, conf, cam1=cam1, cam2=cam2, rig=rig, x1=x1, y1=y1, x2=x2, y2=y2,
             theta=theta, h1=h1, h2=h2, r=r, config=config, make_solver=make_solver, noise=noise,
+            pools=solve.pools,
         )  # fmt: skip
     for _ in range(config.iterations if config.iterate_min_px == 0.0 else 0):
         # Gauss-Newton on eq. (8)'s linearisation: the residual of brightness
@@ -172,12 +173,14 @@ def _refine(a, b, conf, solve, k, cam1, cam2, rig, x1, y1, x2, y2, theta, h1, h2
             res = sample_fine(fr["b"], xd, yd, config.sampling) - sample_fine(
                 fr["af"], x, y, config.sampling
             )
-            inc.append((g_h, g_th, res))
+            # linearised about each point's own flow, solved for the total flow (as
+            # omniflow.refine: a pooled increment would add the neighbours' noise)
+            inc.append((g_h, g_th, res - g_h * dh - g_th * db0))
         (g1_h, g1_th, r1), (g2_h, g2_th, r2) = inc
-        da, db, conf_i = solve(g1_h, g1_th, r1, g2_h, g2_th, r2)
-        step = np.isfinite(da) & np.isfinite(db)
-        a = np.where(step, a + da, a)
-        b = np.where(step, b + db, b)
+        an, bn, conf_i = solve(g1_h, g1_th, r1, g2_h, g2_th, r2)
+        step = np.isfinite(an) & np.isfinite(bn)
+        a = np.where(step, an, a)
+        b = np.where(step, bn, b)
         conf = np.where(step, conf_i, conf)
     return a, b, conf
 
