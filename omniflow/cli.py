@@ -556,8 +556,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--dense",
         action="store_true",
         help="start from the densified configuration (OmniFlowConfig.dense(): matches beyond "
-        "the edges, grid pools, refinement where a surface moves >= 1 px; about ten times "
-        "the points and a smaller error, at about twice the time); options below still override",
+        "the edges, grid pools; about ten times the points and a smaller error, at about "
+        "twice the time); options below still override",
     )
     parser._config_fields = _add_config_options(parser)  # type: ignore[attr-defined]
     return parser

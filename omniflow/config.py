@@ -30,8 +30,6 @@ DENSE = {
     "dense_smooth": 0.95,
     "pool_grid": 0.125,
     "decouple_tol": 60.0,
-    "iterations": 1,
-    "iterate_min_px": 1.0,
 }
 
 
@@ -314,9 +312,13 @@ class OmniFlowConfig:
         gradients="average"), and eq. (9) and (15), linearised about each
         point's own flow, are solved again (same solver) for the total flow.
         0 is the paper's single first-order step of eq. (8); the paper does
-        not iterate. Off by default: it helps
-        where the linearisation is the error (exact frames, large motion)
-        and hurts where noise is (docs/measurements.md).
+        not iterate. The default, 1 with
+        ``iterate_min_px`` 1.0, refines only where a surface moves at least
+        a pixel, where the first-order step overstates the motion (the
+        crossing box by 8-9 %); every point refined (``iterate_min_px`` 0)
+        hurts where noise, not the linearisation, is the error
+        (docs/measurements.md, "Large motion: refine where it moves" and
+        "The refinement solved for the total flow").
     iterate_min_px : float
         With ``iterations`` > 0: refine only the points whose first-step
         flow moves them at least this many pixels in cam1 or cam2 and that
@@ -400,8 +402,8 @@ class OmniFlowConfig:
     decouple_tol: float | None = 20.0
     flow_shading: float | None = None
     sampling: str = "cubic"
-    iterations: int = 0
-    iterate_min_px: float = 0.0
+    iterations: int = 1
+    iterate_min_px: float = 1.0
     monocular_gap: float | None = None
     rim_fill: str = "reflect"
 
@@ -488,9 +490,10 @@ class OmniFlowConfig:
         and the flow step alike, the image as it is (no rim fill), the series
         and its analytic derivatives evaluated exactly at the points (eq.
         18-20), first-frame gradients, the frame difference of the fitted
-        images for f_t and the direct solution of eq. (16) at each point;
-        no noise correction. tests/omniflow/test_flow.py checks that this reproduces
-        eq. (16), (19) and (20) computed independently to rounding.
+        images for f_t and the direct solution of eq. (16) at each point, once
+        (no Gauss-Newton step); no noise correction. tests/omniflow/test_flow.py
+        checks that this reproduces eq. (16), (19) and (20) computed
+        independently to rounding.
 
         Why it fails under noise: eq. (9) and (15) at one point are nearly
         dependent, because both units see nearly the same patch at the same
@@ -512,20 +515,22 @@ class OmniFlowConfig:
             solver="direct",
             rim_fill="none",
             sampling="exact",
+            iterations=0,
+            iterate_min_px=0.0,
         )
         base.update(overrides)
         return cls(**base)
 
     @classmethod
     def dense(cls, **overrides) -> OmniFlowConfig:
-        """The densified configuration: more matches, grid pools, refinement where it moves.
+        """The densified configuration: more matches beyond the edges, grid pools.
 
         Matches beyond the edges (``dense_percentile`` 60) whose profiles are
         not smooth over their own length (``dense_smooth`` 0.95), the pooled
         solver's sums on a grid (``pool_grid`` 0.125), the decoupling test at
-        ``decouple_tol`` 60 (at 20 the larger pools switch static points) and
-        one Gauss-Newton step where a surface moves at least a pixel
-        (``iterations`` 1, ``iterate_min_px`` 1.0). About ten times the
+        ``decouple_tol`` 60 (at 20 the larger pools switch static points),
+        with the default's Gauss-Newton step where a surface moves at least
+        a pixel. About ten times the
         default's points (4 % of the valid pixels of the rendered scenes
         against 0.4 %) and a smaller error on every rendered scene, at about
         twice the default's time per pair (docs/measurements.md, "The dense

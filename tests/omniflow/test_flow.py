@@ -367,7 +367,8 @@ def test_vertical_motion_bias_matches_prediction():
     e = axial_motion_violation(gt["gt.r"][sel], gt["gt.h"][sel], 0.002, s=rig.s, d=rig.d,
                                v=rig.cam1.v)  # fmt: skip
     assert np.median(dh1) > 0.3 and np.median(e) < -0.35
-    c = estimate(f1, f2, rig, OmniFlowConfig(solver="direct"), matches=m)
+    # the first-order step, whose bias the closed form predicts (no Gauss-Newton step)
+    c = estimate(f1, f2, rig, OmniFlowConfig(solver="direct", iterations=0), matches=m)
     da_pred, db_pred = predicted_bias(c["f1_h"], c["f1_theta"], c["f2_h"], c["f2_theta"],
                                       c["h1"], c["h2"], e)  # fmt: skip
     err_a = c["dh1_dt"] - dh1
@@ -418,9 +419,7 @@ def test_iterations_reduce_the_error_of_a_large_motion():
             epe.append(float(np.median(np.hypot(c["dx"] - tdx, c["dy"] - tdy))))
         print(solver, "iterations 0, 1:", epe)
         assert epe[1] <= bound * epe[0], (solver, epe)
-    c0 = estimate(f1, f2, rig, OmniFlowConfig(iterations=0), matches=m)
-    cd = estimate(f1, f2, rig, matches=m)
-    np.testing.assert_array_equal(c0["dx"], cd["dx"])
+    assert OmniFlowConfig.paper().iterations == 0  # the paper does not iterate
     with pytest.raises(ValueError, match="iterations"):
         OmniFlowConfig(iterations=-1)
 
