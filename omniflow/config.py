@@ -271,6 +271,18 @@ class OmniFlowConfig:
         0.70 of its flow against 0.75) and cancels ``pool_residual_tol``
         (0.64 against 0.82); it halves the radial error where one unit is
         noisier (docs/measurements.md, "radial shrink"). Costs a second solve.
+    static_test : float or None
+        Pooled solver: report zero flow at the points whose pool shows no
+        motion: where the squared residual of eq. (9) and (15) that the
+        pool's flow explains is below this many times the pool's remaining
+        residual variance per equation (a Wald test of zero flow, the noise
+        measured in the pool itself; omniflow.flow.motion_statistic). With
+        independent equations the statistic of a still pool is chi-squared
+        with 2 degrees of freedom (mean 2); neighbouring matches share the
+        fitted images' noise, which inflates it. It removes the noise of the
+        flow where nothing moves (a robot standing still), and shrinks to
+        zero true flows too small for the pool to detect. None (the default):
+        no test (docs/measurements.md, "cam2 against DIS").
     min_conditioning : float
         Drop points whose confidence is below this (0 keeps all).
     pool_min_conditioning : float
@@ -393,6 +405,7 @@ class OmniFlowConfig:
     pool_edge_tol: float | None = None
     pool_residual_tol: float | None = None
     pool_min_info: float | None = None
+    static_test: float | None = None
     min_conditioning: float = 0.0
     pool_min_conditioning: float = 1e-3
     decouple_tol: float | None = 20.0
@@ -436,7 +449,8 @@ class OmniFlowConfig:
                 f"OmniFlowConfig.flow_band_gain = {self.flow_band_gain!r}: "
                 "expected a fraction in (0, 1)"
             )
-        for name in ("pool_edge_tol", "pool_residual_tol", "pool_min_info", "pool_grid"):
+        for name in ("pool_edge_tol", "pool_residual_tol", "pool_min_info", "pool_grid",
+                     "static_test"):  # fmt: skip
             val = getattr(self, name)
             if val is not None and not val > 0:
                 raise ValueError(f"OmniFlowConfig.{name} = {val!r}: expected > 0 or None")
