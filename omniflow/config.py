@@ -283,6 +283,12 @@ class OmniFlowConfig:
         flow where nothing moves (a robot standing still), and shrinks to
         zero true flows too small for the pool to detect. None (the default):
         no test (docs/measurements.md, "cam2 against DIS").
+    static_max_px : float or None
+        With ``static_test``: call a pool still only where it would have
+        detected a flow of this many pixels per frame (cam1): sqrt(static_test)
+        times the standard error of its flow along the weakest direction is
+        at most this. Bounds the flow the test can set to zero; a pool too
+        poor in texture keeps its estimate. None: no bound.
     min_conditioning : float
         Drop points whose confidence is below this (0 keeps all).
     pool_min_conditioning : float
@@ -406,6 +412,7 @@ class OmniFlowConfig:
     pool_residual_tol: float | None = None
     pool_min_info: float | None = None
     static_test: float | None = None
+    static_max_px: float | None = None
     min_conditioning: float = 0.0
     pool_min_conditioning: float = 1e-3
     decouple_tol: float | None = 20.0
@@ -450,7 +457,7 @@ class OmniFlowConfig:
                 "expected a fraction in (0, 1)"
             )
         for name in ("pool_edge_tol", "pool_residual_tol", "pool_min_info", "pool_grid",
-                     "static_test"):  # fmt: skip
+                     "static_test", "static_max_px"):  # fmt: skip
             val = getattr(self, name)
             if val is not None and not val > 0:
                 raise ValueError(f"OmniFlowConfig.{name} = {val!r}: expected > 0 or None")

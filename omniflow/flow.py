@@ -545,6 +545,7 @@ def pooled_solution(
     unit_weighting: str = "equal",
     grid: GridPools | None = None,
     static_test: float | None = None,
+    static_max_px: float | None = None,
 ) -> tuple[NDArray, NDArray, NDArray]:
     """Eq. (9) and (15) of neighbouring matches pooled in weighted least squares.
 
@@ -634,6 +635,13 @@ def pooled_solution(
         test of zero flow with the noise measured in the pool itself; with
         independent rows s / variance is chi-squared with 2 degrees of
         freedom where nothing moves. None (the default): no test.
+    static_max_px : float, optional
+        With ``static_test``: call a pool still only where the smallest flow
+        it would have detected, sqrt(static_test) times the standard error
+        of (a, h_1 b) along its weakest direction, is at most this (px per
+        frame): a pool too poor in texture to see a small motion keeps its
+        flow, so no flow larger than this is set to zero by the test. None:
+        no such guard.
 
     Returns
     -------
@@ -715,17 +723,22 @@ def pooled_solution(
         use = strong & np.isfinite(ac) & np.isfinite(cc)
         a, c, conf = np.where(use, ac, a), np.where(use, cc, c), np.where(use, confc, conf)
     if static_test is not None:  # the equal-weight pools' Wald test of no motion
-        still = motion_statistic(pool, derivs6, sums0, wsum0, model, h1[:n]) < static_test
+        stat, sd = motion_statistic(pool, derivs6, sums0, wsum0, model, h1[:n])
+        still = stat < static_test
+        if static_max_px is not None:  # only where the test would have seen that much motion
+            still &= np.sqrt(static_test) * sd <= static_max_px
         a, c = np.where(still, 0.0, a), np.where(still, 0.0, c)
     return a, c / h1[:n], conf
 
 
 def motion_statistic(
     pool, derivs6: tuple, sums: NDArray, wsum: NDArray, model: str, h1: NDArray
-) -> NDArray:
+) -> tuple[NDArray, NDArray]:
     """The Wald statistic of zero flow over each point's pool (``static_test`` of
     :func:`pooled_solution`): the squared residual the flow (a, h_1 b) explains, over the
-    pool's remaining residual variance per row; NaN where the pool has no solution.
+    pool's remaining residual variance per row; and the standard error of (a, h_1 b)
+    along its weakest direction (px per frame: the residual variance over the smallest
+    eigenvalue of the normal matrix). NaN where the pool has no solution.
 
     ``pool(derivs6)`` forms the pooled sums of six derivative arrays (with the zero
     sentinel) as :func:`pooled_solution` does; ``sums``, ``wsum`` are those of the
@@ -735,11 +748,14 @@ def motion_statistic(
     zero = np.zeros_like(derivs6[0])
     ft_sums, _ = pool((zero, derivs6[2], zero, zero, derivs6[5], zero))
     ff = ft_sums[:, 0, 2] * h1 * h1  # sum_j w (f1_t^2 + f2_t^2)
-    a, c, _, explained = _solve_sums(sums, model, 0.0, explained=True)
+    a, c, _, explained, lam_min = _solve_sums(sums, model, 0.0, explained=True)
     rows = 2.0 * wsum[:, 0]  # both units' equations
+    ok = np.isfinite(a) & np.isfinite(c)
     with np.errstate(divide="ignore", invalid="ignore"):
         variance = (ff - explained) / rows
-        return np.where(np.isfinite(a) & np.isfinite(c), explained / variance, np.nan)
+        stat = np.where(ok, explained / variance, np.nan)
+        sd = np.where(ok, np.sqrt(np.maximum(variance, 0.0) / lam_min), np.nan)
+    return stat, sd
 
 
 def _weight_sums(
@@ -834,7 +850,7 @@ def _solve_sums(
     with ``positive``, where the matrix is not positive definite. With
     ``explained`` also x^T v, the squared residual the solution x = (a, h_1 b)
     explains (x^T S x, S the normal matrix on (a, h_1 b) and v its right side,
-    both after the slopes are solved out for ``"linear"``).
+    both after the slopes are solved out for ``"linear"``), and S's smaller eigenvalue.
     """
     pp, pq, qq, pf, qf = (sums[:, :, c] for c in range(5))
     pd = np.ones(sums.shape[0], bool)
@@ -864,7 +880,8 @@ def _solve_sums(
         a = np.where(ok, (m22 * v[0] - m12 * v[1]) / det, np.nan)
         c = np.where(ok, (m11 * v[1] - m12 * v[0]) / det, np.nan)
     if explained:
-        return a, c, conf, a * v[0] + c * v[1]
+        lam_min = 0.5 * (m11 + m22) - np.sqrt(0.25 * (m11 - m22) ** 2 + m12 * m12)
+        return a, c, conf, a * v[0] + c * v[1], lam_min
     return a, c, conf
 
 

@@ -253,7 +253,7 @@ def make_solver(
         return pooled_solution(
             *derivs, h1, h2, idx, weights, **kw, noise1=noise[0], noise2=noise[1],
             residual_noise=config.eiv == "residual", unit_weighting=config.pool_unit_weighting,
-            grid=grid, static_test=static_test,
+            grid=grid, static_test=static_test, static_max_px=config.static_max_px,
         )  # fmt: skip
 
     def solve(f1_h, f1_th, f1_t, f2_h, f2_th, f2_t):

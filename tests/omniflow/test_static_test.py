@@ -11,6 +11,9 @@ Checked against closed-form references:
 * an exact flow field (dh_1/dt = alpha h_1, dtheta/dt = beta) with the same noise on
   f_t at a tenth of the flow's own f_t: no pool is called still, and the flow is the
   plain solution's;
+* ``static_max_px``: on the same still field with the texture's contrast halved on half
+  of the image (standard errors 0.1 and 0.2 px), a bound of sqrt(tau) times the median
+  standard error keeps the faint half's pools (1.4 % called still against 88.7 %);
 * the closed-form motion boundary of test_pooling.py with Gaussian noise (sigma 0.01)
   on the frames: a band turning in front of a static wall, the rig still. At
   ``static_test = 4`` the wall's mean end-point error falls from 0.032 px to 0.014 px
@@ -78,7 +81,8 @@ def test_null_distribution_check_catches_a_one_unit_variance(monkeypatch):
     orig = flow_module.motion_statistic
 
     def wrong(pool, derivs6, sums, wsum, model, h1):
-        return 0.5 * orig(pool, derivs6, sums, wsum, model, h1)
+        stat, sd = orig(pool, derivs6, sums, wsum, model, h1)
+        return 0.5 * stat, sd
 
     monkeypatch.setattr(flow_module, "motion_statistic", wrong)
     got = _still_share(2.0 * math.log(2.0), "linear")
@@ -107,7 +111,7 @@ def test_a_moving_field_is_never_called_still():
 def test_moving_field_check_catches_a_reversed_sign(monkeypatch):
     """Mutation: the statistic's sign reversed (every pool below the threshold)."""
     orig = flow_module.motion_statistic
-    monkeypatch.setattr(flow_module, "motion_statistic", lambda *a: -orig(*a))
+    monkeypatch.setattr(flow_module, "motion_statistic", lambda *a: (-orig(*a)[0], orig(*a)[1]))
     pa, pb = _moving_field(4.0)
     assert np.all((pa == 0.0) & (pb == 0.0))  # measured: all 3,000 still
 
@@ -156,8 +160,68 @@ def test_band_check_catches_a_test_that_calls_everything_still(noisy_band, monke
     small): moving pools are called still, and the band checks above fail."""
     rig, f1, f2, m, gt = noisy_band
     orig = flow_module.motion_statistic
-    monkeypatch.setattr(flow_module, "motion_statistic", lambda *a: orig(*a) / 100.0)
+
+    def small(*args):
+        stat, sd = orig(*args)
+        return stat / 100.0, sd
+
+    monkeypatch.setattr(flow_module, "motion_statistic", small)
     tested = _band_figures(estimate(f1, f2, rig, OmniFlowConfig(static_test=4.0), matches=m), gt)
     print(f"mutation {tested}")
     assert tested["band_still"] > 0.05  # measured 1.0: every point still
     assert abs(tested["band_tan"] / 0.2711 - 1.0) > 0.01  # the plain band's 0.2711 px; 0
+
+
+def _predicted_sd(args, idx) -> np.ndarray:
+    """sigma / sqrt(lambda_min) of each equal-weight pool's normal matrix on (a, h_1 b) for
+    the constant model, formed by its definition (sigma = 1: the noise of _equations)."""
+    f1h, f1th, _, f2h, f2th, _, h1, h2 = args
+    n = h1.size
+    out = np.empty(n)
+    for i in range(n):
+        j = idx[i][idx[i] < n]
+        rel = h1[j] / h1[i]
+        rows = np.concatenate([np.column_stack([f1h[j] * rel, f1th[j] / h1[i]]),
+                               np.column_stack([(h2[j] / h1[j]) * f2h[j] * rel,
+                                                f2th[j] / h1[i]])])  # fmt: skip
+        out[i] = 1.0 / np.sqrt(np.linalg.eigvalsh(rows.T @ rows)[0])
+    return out
+
+
+def _max_px_shares(monkeypatch=None, mutate=None) -> tuple[float, float]:
+    """Share of the still field's pools called still at tau = 2 ln 10 (0.9 of them
+    without the bound) among the pools whose predicted standard error is below the
+    median and among those above it, with static_max_px = sqrt(tau) x that median; the
+    texture's contrast halved on one half of the image, so the errors differ by two."""
+    args, idx, w, theta, _, _ = _equations(0.0, 0.0, 1.0)
+    # half the image (x < 128) with half the texture's contrast: twice the standard error
+    faint = np.where(np.cos(theta) < 0.0, 0.5, 1.0)
+    args = tuple(v * faint if i in (0, 1, 3, 4) else v for i, v in enumerate(args))
+    sd = _predicted_sd(args, idx)
+    tau = 2.0 * math.log(10.0)
+    if mutate is not None:
+        orig = flow_module.motion_statistic
+        monkeypatch.setattr(flow_module, "motion_statistic", lambda *a: mutate(*orig(*a)))
+    pa, pb, _ = pooled_solution(*args, idx, w, theta=theta, model="constant", scale=16.0,
+                                static_test=tau,
+                                static_max_px=math.sqrt(tau) * float(np.median(sd)))  # fmt: skip
+    still = (pa == 0.0) & (pb == 0.0)
+    small = sd < np.median(sd)
+    return float(still[small].mean()), float(still[~small].mean())
+
+
+def test_max_px_keeps_the_pools_that_cannot_see_that_flow():
+    low, high = _max_px_shares()
+    print(f"still: {low:.3f} of the better-conditioned half, {high:.3f} of the other")
+    # measured 0.887 and 0.014 (0.9 and 0 for a known noise: the bound uses the pool's
+    # own standard error, estimated from its residuals, within 10 % of the predicted one)
+    assert low > 0.8
+    assert high < 0.1
+
+
+def test_max_px_check_catches_a_halved_standard_error(monkeypatch):
+    """Mutation: the standard error halved (the residual variance counted over four times
+    the pool's weight): the poorly conditioned pools are called still too."""
+    low, high = _max_px_shares(monkeypatch, lambda stat, sd: (stat, 0.5 * sd))
+    print(f"mutation: {low:.3f} {high:.3f}")
+    assert high > 0.1  # measured 0.899
