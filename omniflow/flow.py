@@ -66,6 +66,7 @@ __all__ = [
     "edge_between",
     "flow_residual",
     "informative_pools",
+    "motion_statistic",
     "neighbourhoods",
     "partial_solutions",
     "pooled_solution",
