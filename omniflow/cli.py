@@ -217,6 +217,8 @@ KNOB_LIMITS: dict[str, tuple[float, float, bool, bool]] = {
     "pool_edge_tol": (0.0, math.inf, False, False),  # a factor on the median edge at the matches
     "pool_residual_tol": (0.0, math.inf, False, False),  # robust standard deviations
     "pool_min_info": (0.0, math.inf, False, False),  # in typical single points' information
+    "static_test": (0.0, math.inf, False, False),  # a Wald statistic (omniflow.flow)
+    "static_max_px": (0.0, math.inf, False, False),  # px per frame (cam1)
 }
 
 

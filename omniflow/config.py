@@ -269,6 +269,24 @@ class OmniFlowConfig:
         0.70 of its flow against 0.75) and cancels ``pool_residual_tol``
         (0.64 against 0.82); it halves the radial error where one unit is
         noisier (docs/measurements.md, "radial shrink"). Costs a second solve.
+    static_test : float or None
+        Pooled solver: report zero flow at the points whose pool shows no
+        motion: where the squared residual of eq. (9) and (15) that the
+        pool's flow explains is below this many times the pool's remaining
+        residual variance per equation (a Wald test of zero flow, the noise
+        measured in the pool itself; omniflow.flow.motion_statistic). With
+        independent equations the statistic of a still pool is chi-squared
+        with 2 degrees of freedom (mean 2); neighbouring matches share the
+        fitted images' noise, which inflates it. It removes the noise of the
+        flow where nothing moves (a robot standing still), and shrinks to
+        zero true flows too small for the pool to detect. None (the default):
+        no test (docs/measurements.md, "cam2 against DIS").
+    static_max_px : float or None
+        With ``static_test``: call a pool still only where it would have
+        detected a flow of this many pixels per frame (cam1): sqrt(static_test)
+        times the standard error of its flow along the weakest direction is
+        at most this. Bounds the flow the test can set to zero; a pool too
+        poor in texture keeps its estimate. None: no bound.
     min_conditioning : float
         Drop points whose confidence is below this (0 keeps all).
     pool_min_conditioning : float
@@ -397,6 +415,8 @@ class OmniFlowConfig:
     pool_edge_tol: float | None = None
     pool_residual_tol: float | None = None
     pool_min_info: float | None = None
+    static_test: float | None = None
+    static_max_px: float | None = None
     min_conditioning: float = 0.0
     pool_min_conditioning: float = 1e-3
     decouple_tol: float | None = 20.0
@@ -440,7 +460,8 @@ class OmniFlowConfig:
                 f"OmniFlowConfig.flow_band_gain = {self.flow_band_gain!r}: "
                 "expected a fraction in (0, 1)"
             )
-        for name in ("pool_edge_tol", "pool_residual_tol", "pool_min_info", "pool_grid"):
+        for name in ("pool_edge_tol", "pool_residual_tol", "pool_min_info", "pool_grid",
+                     "static_test", "static_max_px"):  # fmt: skip
             val = getattr(self, name)
             if val is not None and not val > 0:
                 raise ValueError(f"OmniFlowConfig.{name} = {val!r}: expected > 0 or None")

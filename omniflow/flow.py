@@ -66,6 +66,7 @@ __all__ = [
     "edge_between",
     "flow_residual",
     "informative_pools",
+    "motion_statistic",
     "neighbourhoods",
     "partial_solutions",
     "pooled_solution",
@@ -544,6 +545,8 @@ def pooled_solution(
     residual_noise: bool = False,
     unit_weighting: str = "equal",
     grid: GridPools | None = None,
+    static_test: float | None = None,
+    static_max_px: float | None = None,
 ) -> tuple[NDArray, NDArray, NDArray]:
     """Eq. (9) and (15) of neighbouring matches pooled in weighted least squares.
 
@@ -623,6 +626,23 @@ def pooled_solution(
         ``idx``, ``w`` (``relative`` model, ``"equal"`` weighting only); the
         tangential offset u is then the tangential component of the pixel
         offset, equal to h_1,i (theta_j - theta_i) to first order.
+    static_test : float, optional
+        Report no motion (a = b = 0) where the pool's equations do not show
+        any: where the squared residual that the flow (a, h_1 b) explains,
+        s = x^T S x over the pool (S the normal matrix of (a, h_1 b), its
+        Schur complement for ``"linear"``), is below ``static_test`` times
+        the pool's remaining residual variance per row (its sum of squared
+        f_t less s, over twice the pool's weight: both units' rows). A Wald
+        test of zero flow with the noise measured in the pool itself; with
+        independent rows s / variance is chi-squared with 2 degrees of
+        freedom where nothing moves. None (the default): no test.
+    static_max_px : float, optional
+        With ``static_test``: call a pool still only where the smallest flow
+        it would have detected, sqrt(static_test) times the standard error
+        of (a, h_1 b) along its weakest direction, is at most this (px per
+        frame): a pool too poor in texture to see a small motion keeps its
+        flow, so no flow larger than this is set to zero by the test. None:
+        no such guard.
 
     Returns
     -------
@@ -656,14 +676,19 @@ def pooled_solution(
     th = np.append(np.asarray(theta, dtype=np.float64).ravel(), 0.0) if theta is not None else None
     derivs6 = (f1_h, f1_theta, f1_t, k * f2_h, f2_theta, f2_t)
     kw = dict(relative=relative, linear=model == "linear", scale=scale)
-    if grid is None:
-        sums, wsum = pooled_sums(idx, w, derivs6, h1, th, **kw)
-    else:
-        sums, wsum = grid.sums(tuple(v[:n] for v in derivs6), h1[:n], linear=kw["linear"],
-                               scale=scale)  # fmt: skip
+
+    def pool(d6):
+        if grid is None:
+            return pooled_sums(idx, w, d6, h1, th, **kw)
+        g_sums, g_wsum = grid.sums(tuple(v[:n] for v in d6), h1[:n], linear=kw["linear"],
+                                   scale=scale)  # fmt: skip
         if grid.idx is not None:  # the points whose window mixes ranges: their tree pools
-            t_sums, t_wsum = pooled_sums(grid.idx, grid.w, derivs6, h1, th, **kw)
-            sums, wsum = sums + t_sums, wsum + t_wsum
+            t_sums, t_wsum = pooled_sums(grid.idx, grid.w, d6, h1, th, **kw)
+            g_sums, g_wsum = g_sums + t_sums, g_wsum + t_wsum
+        return g_sums, g_wsum
+
+    sums, wsum = pool(derivs6)
+    sums0, wsum0 = sums, wsum
     # sums (N, 1 or 3, 5): sum_j w u^m (pp, pq, qq, pf, qf); wsum: sum_j w u^m
     a, c, conf = _solve_sums(sums, model, min_conditioning)
     derivs = (f1_h, f1_theta, f1_t, f2_h, f2_theta, f2_t)
@@ -698,7 +723,40 @@ def pooled_solution(
         strong = (sums[:, 0, 0] > 2.0 * per_row[:, 0]) & (sums[:, 0, 2] > 2.0 * per_row[:, 0])
         use = strong & np.isfinite(ac) & np.isfinite(cc)
         a, c, conf = np.where(use, ac, a), np.where(use, cc, c), np.where(use, confc, conf)
+    if static_test is not None:  # the equal-weight pools' Wald test of no motion
+        stat, sd = motion_statistic(pool, derivs6, sums0, wsum0, model, h1[:n])
+        still = stat < static_test
+        if static_max_px is not None:  # only where the test would have seen that much motion
+            still &= np.sqrt(static_test) * sd <= static_max_px
+        a, c = np.where(still, 0.0, a), np.where(still, 0.0, c)
     return a, c / h1[:n], conf
+
+
+def motion_statistic(
+    pool, derivs6: tuple, sums: NDArray, wsum: NDArray, model: str, h1: NDArray
+) -> tuple[NDArray, NDArray]:
+    """The Wald statistic of zero flow over each point's pool (``static_test`` of
+    :func:`pooled_solution`): the squared residual the flow (a, h_1 b) explains, over the
+    pool's remaining residual variance per row; and the standard error of (a, h_1 b)
+    along its weakest direction (px per frame: the residual variance over the smallest
+    eigenvalue of the normal matrix). NaN where the pool has no solution.
+
+    ``pool(derivs6)`` forms the pooled sums of six derivative arrays (with the zero
+    sentinel) as :func:`pooled_solution` does; ``sums``, ``wsum`` are those of the
+    equations themselves. The pool's sum of squared f_t comes from the same sums with
+    f_t in the place of f_theta (their qq entry is sum_j w (f1_t^2 + f2_t^2) / h_1,i^2).
+    """
+    zero = np.zeros_like(derivs6[0])
+    ft_sums, _ = pool((zero, derivs6[2], zero, zero, derivs6[5], zero))
+    ff = ft_sums[:, 0, 2] * h1 * h1  # sum_j w (f1_t^2 + f2_t^2)
+    a, c, _, explained, lam_min = _solve_sums(sums, model, 0.0, explained=True)
+    rows = 2.0 * wsum[:, 0]  # both units' equations
+    ok = np.isfinite(a) & np.isfinite(c)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        variance = (ff - explained) / rows
+        stat = np.where(ok, explained / variance, np.nan)
+        sd = np.where(ok, np.sqrt(np.maximum(variance, 0.0) / lam_min), np.nan)
+    return stat, sd
 
 
 def _weight_sums(
@@ -779,13 +837,21 @@ def _residual_variance(
 
 
 def _solve_sums(
-    sums: NDArray, model: str, min_conditioning: float, *, positive: bool = False
-) -> tuple[NDArray, NDArray, NDArray]:
+    sums: NDArray,
+    model: str,
+    min_conditioning: float,
+    *,
+    positive: bool = False,
+    explained: bool = False,
+) -> tuple[NDArray, ...]:
     """Solve the pooled normal equations from their weighted sums.
 
     ``sums`` (N, 1 or 3, 5): sum_j w u^m (pp, pq, qq, pf, qf). Returns
     (a, h_1 b, confidence); NaN where singular, below ``min_conditioning`` or,
-    with ``positive``, where the matrix is not positive definite.
+    with ``positive``, where the matrix is not positive definite. With
+    ``explained`` also x^T v, the squared residual the solution x = (a, h_1 b)
+    explains (x^T S x, S the normal matrix on (a, h_1 b) and v its right side,
+    both after the slopes are solved out for ``"linear"``), and S's smaller eigenvalue.
     """
     pp, pq, qq, pf, qf = (sums[:, :, c] for c in range(5))
     pd = np.ones(sums.shape[0], bool)
@@ -814,6 +880,9 @@ def _solve_sums(
     with np.errstate(divide="ignore", invalid="ignore"):
         a = np.where(ok, (m22 * v[0] - m12 * v[1]) / det, np.nan)
         c = np.where(ok, (m11 * v[1] - m12 * v[0]) / det, np.nan)
+    if explained:
+        lam_min = 0.5 * (m11 + m22) - np.sqrt(0.25 * (m11 - m22) ** 2 + m12 * m12)
+        return a, c, conf, a * v[0] + c * v[1], lam_min
     return a, c, conf
 
 

@@ -67,7 +67,8 @@ def flow_at_matches(
     edge_map = None
     if config.solver == "pooled" and config.pool_edge_tol is not None:
         edge_map = np.hypot(*cam1["g"].grad_xy)  # |grad f| of the flow step's cam1 image
-    solve = make_solver(rig, config, x1, y1, theta, h1, h2, r, noise, edge_map=edge_map)
+    solve = make_solver(rig, config, x1, y1, theta, h1, h2, r, noise, edge_map=edge_map,
+                        static_test=config.static_test)  # fmt: skip
     a, b, conf = solve(f1_h, f1_th, f1_t, f2_h, f2_th, f2_t)
     D = determinant(f1_h, f1_th, f2_h, f2_th, h1, h2)
     k = h2 / h1  # eq. (14)
@@ -197,13 +198,16 @@ def make_solver(
     noise: tuple[float, float] = (0.0, 0.0),
     *,
     edge_map: NDArray | None = None,
+    static_test: float | None = None,
 ):
     """The configured solver of eq. (9) and (15) at these matches, as a function
     of the six derivatives returning (dh1_dt, dtheta_dt, confidence).
 
     ``noise``: the variance of each unit's gradient components, subtracted by
     the pooled solver (``eiv="correct"``). ``edge_map``: cam1's edge strength
-    on the pixel grid, for ``config.pool_edge_tol``.
+    on the pixel grid, for ``config.pool_edge_tol``. ``static_test``: the pooled solver's
+    test of no motion (``config.static_test``; passed for the first solve only: the
+    refinement replaces only the flow of points that move a pixel or more).
 
     The returned function's attribute ``pools``: the (idx, w) of
     :func:`omniflow.flow.neighbourhoods` where the solver pools over them as
@@ -252,7 +256,7 @@ def make_solver(
         return pooled_solution(
             *derivs, h1, h2, idx, weights, **kw, noise1=noise[0], noise2=noise[1],
             residual_noise=config.eiv == "residual", unit_weighting=config.pool_unit_weighting,
-            grid=grid,
+            grid=grid, static_test=static_test, static_max_px=config.static_max_px,
         )  # fmt: skip
 
     def solve(f1_h, f1_th, f1_t, f2_h, f2_th, f2_t):
