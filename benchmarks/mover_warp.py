@@ -222,7 +222,7 @@ def main(argv=None) -> int:
             if f"scan_{comp}_0.0" not in cat:
                 continue
             curve = np.array([rms(cat[f"scan_{comp}_{o}"]) for o in OFFSETS])
-            row[f"scan_{comp}"] = dict(zip(map(float, OFFSETS), map(float, curve)))
+            row[f"scan_{comp}"] = dict(zip(map(float, OFFSETS), map(float, curve), strict=True))
             row[f"best_offset_{comp}"], row[f"curv_{comp}"] = parabola_min(OFFSETS, curve)
         for name in configs:
             key = f"at_{name}_{name}_dh"
@@ -234,8 +234,8 @@ def main(argv=None) -> int:
 
     for cam in CAMERAS:
         print(f"\n{cam}: RMS warp residual (grey levels, clean | camera images), pixels eroded")
-        print(f"{'object':14s} {'px':>6s} {'zero':>11s} {'truth':>11s} {'DIS':>11s} {'Farneb':>11s}"
-              f" {'off_r':>6s} {'off_t':>6s} {'curv':>9s} {'true dh':>8s} {'DIS dh':>7s} {'true ht':>8s} {'DIS ht':>7s}")  # fmt: skip
+        print("object              px  zero / truth / DIS / Farneback  BC offset r, t (px)"
+              "  curvature r | t  true dh  DIS dh  true h dth  DIS h dth")  # fmt: skip
         for oname in [n for o in wanted for n in (o, "near_" + o)]:
             r = report.get(f"{cam}/{oname}")
             if not r or "pixels" not in r:
@@ -244,19 +244,25 @@ def main(argv=None) -> int:
                 f"{r[f'res_clean_{f}']:5.2f}|{r[f'res_camera_{f}']:5.2f}"
                 for f in ("zero", "truth", "DIS", "Farneback")
             )
-            print(f"{oname:14s} {r['pixels']:6d} {cells} {r['best_offset_r']:6.2f} {r['best_offset_t']:6.2f} {r['curv_r']:4.2f}|{r['curv_t']:4.2f}"
-                  f" {r['true_dh']:8.3f} {r['dense_DIS_dh']:7.3f} {r['true_ht']:8.3f} {r['dense_DIS_ht']:7.3f}")  # fmt: skip
+            offs = f"{r['best_offset_r']:6.2f} {r['best_offset_t']:6.2f}"
+            curv = f"{r['curv_r']:4.2f}|{r['curv_t']:4.2f}"
+            means = " ".join(
+                f"{r[k]:8.3f}" for k in ("true_dh", "dense_DIS_dh", "true_ht", "dense_DIS_ht")
+            )
+            print(f"{oname:17s} {r['pixels']:6d} {cells} {offs} {curv} {means}")
         for name in configs:
-            print(f"  at {name}'s points: n, mean dh (ours / truth / DIS / Farneback), mean h dtheta, RMS residual camera (ours / truth / DIS)")  # fmt: skip
+            print(f"  at {name}'s points: n; mean dh and h dtheta of {name} / truth / DIS /"
+                  f" Farneback; RMS residual (camera images) of {name} / truth / DIS")  # fmt: skip
             for oname in wanted:
                 r = report.get(f"{cam}/{oname}", {})
                 if f"n_{name}" not in r:
                     continue
                 p = f"at_{name}_"
-                print(f"  {oname:12s} {r[f'n_{name}']:5d}  dh {r[p + name + '_dh']:7.3f} {r[p + 'truth_dh']:7.3f}"
-                      f" {r[p + 'DIS_dh']:7.3f} {r[p + 'Farneback_dh']:7.3f}  ht {r[p + name + '_ht']:7.3f}"
-                      f" {r[p + 'truth_ht']:7.3f} {r[p + 'DIS_ht']:7.3f} {r[p + 'Farneback_ht']:7.3f}"
-                      f"  res {r[p + 'res_' + name]:5.2f} {r[p + 'res_truth']:5.2f} {r[p + 'res_DIS']:5.2f}")  # fmt: skip
+                four = (name, "truth", "DIS", "Farneback")
+                dh = " ".join(f"{r[p + f + '_dh']:7.3f}" for f in four)
+                ht = " ".join(f"{r[p + f + '_ht']:7.3f}" for f in four)
+                res = " ".join(f"{r[p + 'res_' + f]:5.2f}" for f in (name, "truth", "DIS"))
+                print(f"  {oname:12s} {r[f'n_{name}']:5d}  dh {dh}  ht {ht}  res {res}")
     return 0
 
 
