@@ -34,14 +34,15 @@ def main(argv: list[str]) -> int:
     spent: list[float] = []
     original = decoupled.decouple
 
-    def timed(*args):
+    def timed(*args, **kwargs):
         t0 = time.perf_counter()
-        out = original(*args)
+        out = original(*args, **kwargs)
         spent.append(time.perf_counter() - t0)
         return out
 
     solve.decouple = timed
-    for knobs in ({"decouple_tol": None}, {}, {"flow_shading": 8.0}):
+    for knobs in ({"decouple_tol": None}, {}, {"flow_shading": 8.0},
+                  {"flow_shading": 8.0, "flow_shading_where": "moving"}):  # fmt: skip
         spent.clear()
         totals = []
         for _ in range(repeats):

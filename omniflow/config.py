@@ -22,6 +22,7 @@ RIM_FILLS = ("reflect", "none")
 POOL_MODELS = ("linear", "constant")
 EIVS = ("correct", "residual", "none")
 BAND_RULES = ("gain", "variance")
+SHADING_WHERE = ("everywhere", "moving")
 
 
 #: The fields :meth:`OmniFlowConfig.dense` changes from the defaults.
@@ -317,6 +318,16 @@ class OmniFlowConfig:
         pillar) does not shorten its flow; the matcher keeps the frames as
         given. None: the frames as given. Costs a second fit of both units.
         :func:`omniflow.pipeline.estimate` only (OmniFlowStream ignores it).
+    flow_shading_where : {"everywhere", "moving"}
+        With ``flow_shading``: the flattened frames' flow at every point
+        ("everywhere"), or only at the points of independently moving objects
+        ("moving": odometry's outliers on the plain flow, in groups of at least
+        ``omniflow.shading.MOVING_MIN_POINTS`` linked within r_m / 10 px;
+        omniflow.shading.moving_points), the plain flow elsewhere. On static
+        surfaces under static lights the shading moves with the surface and
+        flattening only removes signal; on a body turning under those lights it
+        stays put (docs/measurements.md, "Ball, ring and spinner"). Costs a
+        second solve as well.
     sampling : {"cubic", "linear", "exact"}
         How gradients and the fitted images are read at the matched points:
         cv2.remap of the pixel grids, or the series evaluated exactly.
@@ -421,6 +432,7 @@ class OmniFlowConfig:
     pool_min_conditioning: float = 1e-3
     decouple_tol: float | None = 20.0
     flow_shading: float | None = None
+    flow_shading_where: str = "everywhere"
     sampling: str = "cubic"
     iterations: int = 1
     iterate_min_px: float = 1.0
@@ -439,6 +451,7 @@ class OmniFlowConfig:
             "pool_unit_weighting": (self.pool_unit_weighting, UNIT_WEIGHTINGS),
             "eiv": (self.eiv, EIVS),
             "flow_band_rule": (self.flow_band_rule, BAND_RULES),
+            "flow_shading_where": (self.flow_shading_where, SHADING_WHERE),
         }
         for name, (val, allowed) in checks.items():
             if val not in allowed:

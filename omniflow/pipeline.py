@@ -67,7 +67,7 @@ from omniflow.series import (
     unit_frames,
     unit_noise_sigma,
 )
-from omniflow.shading import flow_units
+from omniflow.shading import flow_units, where_moving
 from omniflow.solve import flow_at_matches
 
 __all__ = [
@@ -167,9 +167,14 @@ def estimate(
     flow_band = choose_flow_band(fits, sigmas, config)
     cam1 = unit_frames(fits[0], rig.cam1, config, flow_band)
     cam2 = unit_frames(fits[1], rig.cam2, config, flow_band)
+    flat: tuple = ()  # the flattened units when they are used only where objects move
     if config.flow_shading is not None:  # the flow step on shading-flattened frames
-        cam1, cam2 = flow_units(frames1, frames2, t, rig, config, flow_band, (cam1, cam2))
-    for cam, s in zip((cam1, cam2), sigmas, strict=True):
+        units = flow_units(frames1, frames2, t, rig, config, flow_band, (cam1, cam2))
+        if config.flow_shading_where == "moving":
+            flat = tuple(units)
+        else:
+            cam1, cam2 = units
+    for cam, s in zip((cam1, cam2, *flat), (*sigmas, *sigmas[: len(flat)]), strict=True):
         cam["noise_var"] = noise_variance(s, cam["g"].fit, config)
     diagnostics = {"flow_band": flow_band, "noise_sigma1": sigmas[0], "noise_sigma2": sigmas[1]}
     t_fit = time.perf_counter()
@@ -178,7 +183,7 @@ def estimate(
     # the flow step's grids do not need the matches: made on the other thread while
     # this one matches (sampling waits for them, or makes those not yet started)
     grid2 = submit(matching_grid, cam2["a"], config) if matches is None else None
-    flow = [submit(flow_grids, cam, config) for cam in (cam1, cam2)]
+    flow = [submit(flow_grids, cam, config) for cam in (cam1, cam2, *flat)]
     n_sig = 0
     try:
         if matches is None:
@@ -203,6 +208,10 @@ def estimate(
     t_wait = time.perf_counter() - t_s
     result = flow_at_matches(matches, rig, cam1, cam2, config)
     timings["sample"] = result.pop("_t_sample") + t_wait
+    if flat:  # the flattened frames' flow at the moving objects' points only
+        other = flow_at_matches(matches, rig, *flat, config)
+        timings["sample"] += other.pop("_t_sample")
+        result, diagnostics["shading_flattened_points"] = where_moving(result, other, rig)
     timings["solve"] = time.perf_counter() - t_s - timings["sample"]
     timings["total"] = time.perf_counter() - t_start
     result = OmniFlowResult(
