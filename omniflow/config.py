@@ -311,6 +311,21 @@ class OmniFlowConfig:
         default, approach and crossing renders (the largest F there is
         19) and 41 of the 47 points on the ball of independent_movers;
         docs/measurements.md, "Movers: decoupled radial flow".
+    brightness_gate : float or None
+        Pooled solver: a brightness gain per pool (omniflow.gain), eq. (9) and
+        (15) of every neighbour written f_h a + f_theta b + f_t = beta f (f the
+        image at the point, beta one unknown per pool shared by both units),
+        taken only by the pools whose F statistic of beta against the plain
+        solve exceeds this; the others keep the plain answer. For surfaces
+        whose brightness changes as they move (a face driving towards a lamp,
+        a body turning under fixed lights), which brightness constancy
+        (eq. 8) reads as flow. Applies in the first solve, the refinement and
+        the decoupled model; with grid pools (``pool_grid``) the gain fit and
+        its test use the k-d tree pools. None (the default): off. In the
+        probe, 10-20 fixed approach's incoming face (radial flow +3.0 % ->
+        -0.6 %) and most of the ball's radial flow at no cost on the static
+        walls; docs/measurements.md, "A brightness-change term in the pools:
+        probe" and "brightness_gate: the gated gain term built".
     flow_shading : float or None
         Fit the flow step's series to each frame divided by its Gaussian
         local mean of this many pixels (omniflow.shading), so that shading
@@ -431,6 +446,7 @@ class OmniFlowConfig:
     min_conditioning: float = 0.0
     pool_min_conditioning: float = 1e-3
     decouple_tol: float | None = 20.0
+    brightness_gate: float | None = None
     flow_shading: float | None = None
     flow_shading_where: str = "everywhere"
     sampling: str = "cubic"
@@ -474,7 +490,7 @@ class OmniFlowConfig:
                 "expected a fraction in (0, 1)"
             )
         for name in ("pool_edge_tol", "pool_residual_tol", "pool_min_info", "pool_grid",
-                     "static_test", "static_max_px"):  # fmt: skip
+                     "static_test", "static_max_px", "brightness_gate"):  # fmt: skip
             val = getattr(self, name)
             if val is not None and not val > 0:
                 raise ValueError(f"OmniFlowConfig.{name} = {val!r}: expected > 0 or None")

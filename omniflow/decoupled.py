@@ -55,6 +55,7 @@ from numpy.typing import NDArray
 from omniflow.applications import radial_velocity_stereo
 from omniflow.config import OmniFlowConfig
 from omniflow.flow import neighbourhoods
+from omniflow.gain import decoupled_gain, gated
 from omniflow.gridpool import GridPools
 from omniflow.kernels import decouple_fits, decouple_sums
 from omniflow.rig import Rig
@@ -136,6 +137,7 @@ def decouple(
     *,
     pools: tuple[NDArray, NDArray, NDArray] | None = None,
     fit: dict[str, NDArray] | None = None,
+    brightness: tuple[NDArray, NDArray] | None = None,
 ) -> dict[str, NDArray]:
     """Add the ``coupled`` column and, where eq. (14) fails, the decoupled flow.
 
@@ -161,6 +163,10 @@ def decouple(
     ``fit``: :func:`pool_fits` of these columns, made beforehand (it reads none of
     the flow columns, so the solver can start it before its last step); None:
     made here.
+
+    ``brightness``: each unit's image at the points (:mod:`omniflow.gain`); with
+    ``config.brightness_gate`` the decoupled points whose pool's F statistic of a gain
+    passes the gate take the decoupled model with the gain (over the k-d tree pools).
     """
     n = np.asarray(cols["h1"]).size
     out = dict(cols)
@@ -177,6 +183,8 @@ def decouple(
     a1 = np.where(switch, fit["a1"], cols["dh1_dt"])
     a2 = np.where(switch, fit["a2"], cols["dh2_dt"])
     b = np.where(switch, fit["b"], cols["dtheta_dt"])
+    if brightness is not None and config.brightness_gate is not None:
+        a1, a2, b = _with_gain(cols, rig, config, switch, brightness, a1, a2, b)
     dx, dy = displacement(rig.cam1, h1, theta, a1, b)
     dx2, dy2 = displacement(rig.cam2, h2, theta, a2, b)
     dr = radial_velocity_stereo(cols["r"], h1, h2, a1, a2, d=rig.d)
@@ -187,6 +195,19 @@ def decouple(
         dr_dt=np.where(switch, dr, cols["dr_dt"]),
     )  # fmt: skip
     return out
+
+
+def _with_gain(cols, rig, config, switch, brightness, a1, a2, b):
+    """(a1, a2, b) with the decoupled model's gain answer (:func:`omniflow.gain.decoupled_gain`)
+    at the switched points whose F statistic of the gain passes ``config.brightness_gate``."""
+    radius = rig.cam1.r_m / 8.0 if config.pool_radius is None else config.pool_radius
+    idx, w = neighbourhoods(cols["x"], cols["y"], k=config.pool_k, radius=radius, r=cols["r"],
+                            range_tol=config.pool_range_tol, query=switch)  # fmt: skip
+    derivs = tuple(np.asarray(cols[c], dtype=np.float64) for c in DERIVS)
+    h1, h2 = (np.asarray(cols[c], dtype=np.float64) for c in ("h1", "h2"))
+    g1, g2, gb, F = decoupled_gain(derivs, brightness, h1, h2, idx, w)
+    use = switch & gated(F, config.brightness_gate, g1, g2, gb)
+    return np.where(use, g1, a1), np.where(use, g2, a2), np.where(use, gb, b)
 
 
 def tests(config: OmniFlowConfig, n: int) -> bool:

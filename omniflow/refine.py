@@ -100,6 +100,7 @@ def refine_moving(
     make_solver: Callable,
     noise: tuple[float, float] = (0.0, 0.0),
     pools: tuple[NDArray, NDArray] | None = None,
+    brightness: tuple[NDArray, NDArray] | None = None,
 ) -> tuple[NDArray, NDArray, NDArray, NDArray]:
     """``config.iterations`` Gauss-Newton steps at the points :func:`moving_far` selects.
 
@@ -112,6 +113,9 @@ def refine_moving(
     when it pooled over k-d tree neighbours; the refined points' pool members are
     then solved with them (each linearised about its own first flow, a NaN one
     about zero motion), else the fast points pool among themselves.
+    ``brightness``: each unit's image at the points, passed on to ``make_solver`` for
+    the gain term (``config.brightness_gate``, :mod:`omniflow.gain`): the refined
+    pools with a brightness change solve with it as the first solve did.
 
     Returns
     -------
@@ -139,7 +143,8 @@ def refine_moving(
     i = np.flatnonzero(group)
     out = sel[i]  # the solved points whose flow is replaced
     th, g1, g2 = theta[i], h1[i], h2[i]
-    solve = make_solver(rig, config, x1[i], y1[i], th, g1, g2, r[i], noise)
+    kw = {} if brightness is None else {"brightness": tuple(f[i] for f in brightness)}
+    solve = make_solver(rig, config, x1[i], y1[i], th, g1, g2, r[i], noise, **kw)
     ai = np.nan_to_num(a[i], nan=0.0, posinf=0.0, neginf=0.0)  # where each is linearised
     bi = np.nan_to_num(b[i], nan=0.0, posinf=0.0, neginf=0.0)
     ci = conf[i].copy()

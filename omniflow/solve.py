@@ -32,6 +32,7 @@ from omniflow.flow import (
     neighbourhoods,
     pooled_solution,
 )
+from omniflow.gain import gain_solution, gated
 from omniflow.gridpool import GridPools
 from omniflow.matching import Matches
 from omniflow.parallel import submit
@@ -67,8 +68,13 @@ def flow_at_matches(
     edge_map = None
     if config.solver == "pooled" and config.pool_edge_tol is not None:
         edge_map = np.hypot(*cam1["g"].grad_xy)  # |grad f| of the flow step's cam1 image
+    brightness = None
+    if config.brightness_gate is not None and config.solver == "pooled":
+        # the image at the points, the series the gradients are read from (omniflow.gain)
+        brightness = (sample_f(cam1["g"], x1, y1, config.sampling),
+                      sample_f(cam2["g"], x2, y2, config.sampling))  # fmt: skip
     solve = make_solver(rig, config, x1, y1, theta, h1, h2, r, noise, edge_map=edge_map,
-                        static_test=config.static_test)  # fmt: skip
+                        static_test=config.static_test, brightness=brightness)  # fmt: skip
     a, b, conf = solve(f1_h, f1_th, f1_t, f2_h, f2_th, f2_t)
     D = determinant(f1_h, f1_th, f2_h, f2_th, h1, h2)
     k = h2 / h1  # eq. (14)
@@ -85,7 +91,7 @@ def flow_at_matches(
     early = submit(pool_fits, kept, rig, config, pools0)
     try:
         a, b, conf = _refine(a, b, conf, solve, k, cam1, cam2, rig, x1, y1, x2, y2, theta,
-                             h1, h2, r, config, noise)  # fmt: skip
+                             h1, h2, r, config, noise, brightness)  # fmt: skip
     except BaseException:
         early.cancel()  # no task outlives the call
         raise
@@ -98,6 +104,8 @@ def flow_at_matches(
             v[keep] for v in (f1_h, f1_th, f1_t, f2_h, f2_th, f2_t)
         )
         score = matches.score[keep]
+        if brightness is not None:
+            brightness = tuple(f[keep] for f in brightness)
     else:
         score = matches.score
     dr_dt = radial_velocity(r, h1, a, d=rig.d)  # -(d + r) dh_1/dt / h_1
@@ -140,11 +148,12 @@ def flow_at_matches(
         early.cancel()
         fit = None
     # eq. (14) tested (omniflow.decoupled) over the solver's own pools
-    return decouple(cols, rig, config, _displacement, pools=pools, fit=fit)
+    return decouple(cols, rig, config, _displacement, pools=pools, fit=fit,
+                    brightness=brightness)  # fmt: skip
 
 
 def _refine(a, b, conf, solve, k, cam1, cam2, rig, x1, y1, x2, y2, theta, h1, h2, r, config,
-            noise):  # fmt: skip
+            noise, brightness=None):  # fmt: skip
     """The first solve's (a, b, conf) refined: at the points that move far
     (:func:`omniflow.refine.refine_moving`, ``iterate_min_px`` > 0) or at every point
     (``iterations`` Gauss-Newton steps on grids read off-pixel)."""
@@ -152,7 +161,7 @@ def _refine(a, b, conf, solve, k, cam1, cam2, rig, x1, y1, x2, y2, theta, h1, h2
         a, b, conf, _ = refine_moving(
             a, b, conf, cam1=cam1, cam2=cam2, rig=rig, x1=x1, y1=y1, x2=x2, y2=y2,
             theta=theta, h1=h1, h2=h2, r=r, config=config, make_solver=make_solver, noise=noise,
-            pools=solve.pools,
+            pools=solve.pools, brightness=brightness,
         )  # fmt: skip
     for _ in range(config.iterations if config.iterate_min_px == 0.0 else 0):
         # Gauss-Newton on eq. (8)'s linearisation: the residual of brightness
@@ -199,6 +208,7 @@ def make_solver(
     *,
     edge_map: NDArray | None = None,
     static_test: float | None = None,
+    brightness: tuple[NDArray, NDArray] | None = None,
 ):
     """The configured solver of eq. (9) and (15) at these matches, as a function
     of the six derivatives returning (dh1_dt, dtheta_dt, confidence).
@@ -208,6 +218,11 @@ def make_solver(
     on the pixel grid, for ``config.pool_edge_tol``. ``static_test``: the pooled solver's
     test of no motion (``config.static_test``; passed for the first solve only: the
     refinement replaces only the flow of points that move a pixel or more).
+    ``brightness``: each unit's image f at the points (the series the gradients are
+    read from), for the pooled solver's gain term (``config.brightness_gate``,
+    :mod:`omniflow.gain`): the pools whose F statistic of the gain passes the gate
+    take the answer with it. With grid pools the gain fit and its test are made over
+    the k-d tree pools of the same k, radius and ranges.
 
     The returned function's attribute ``pools``: the (idx, w) of
     :func:`omniflow.flow.neighbourhoods` where the solver pools over them as
@@ -259,7 +274,7 @@ def make_solver(
             grid=grid, static_test=static_test, static_max_px=config.static_max_px,
         )  # fmt: skip
 
-    def solve(f1_h, f1_th, f1_t, f2_h, f2_th, f2_t):
+    def plain(f1_h, f1_th, f1_t, f2_h, f2_th, f2_t):
         derivs = (f1_h, f1_th, f1_t, f2_h, f2_th, f2_t)
         weights = w
         if config.pool_min_info is not None:  # the pool's size from the local texture
@@ -274,6 +289,20 @@ def make_solver(
         if config.pool_flow_tol is None:
             return a, b, conf
         return solve_w(derivs, _same_motion(weights, idx, a, b, h1, config.pool_flow_tol))
+
+    solve = plain
+    if config.brightness_gate is not None and brightness is not None:
+        gain_pools = (idx, w) if grid is None else neighbourhoods(x1, y1, **tree)
+
+        def solve(*derivs):
+            a, b, conf = plain(*derivs)
+            ag, bg, confg, F = gain_solution(
+                derivs, brightness, h1, h2, theta, *gain_pools, model=config.pool_model,
+                scale=pool_radius, min_conditioning=floor, noise=noise,
+                residual_noise=config.eiv == "residual",
+            )  # fmt: skip
+            use = gated(F, config.brightness_gate, ag, bg)
+            return np.where(use, ag, a), np.where(use, bg, b), np.where(use, confg, conf)
 
     # the plain k-nearest pools (no edge test), which omniflow.decoupled would search again
     solve.pools = (idx, w) if grid is None and edge_map is None else None

@@ -1,0 +1,259 @@
+"""A brightness gain per pool, switched on where the pool's equations need it.
+
+Brightness constancy (eq. 8) fails where a surface changes brightness as it
+moves: a face driving towards a lamp brightens, a body turning under fixed
+lights darkens. A pool of eq. (9) and (15) then reads part of that change as
+flow (approach's incoming face came out 3 % fast, the rolling ball half its
+radial flow). With a gain beta per pool (per frame, shared by both units'
+rows: they see the same surface point) eq. (9) and (15) of every neighbour j
+become::
+
+    f1_h a_j + f1_theta b_j + f1_t = beta f1_j                  # eq. (9)
+    (h_2/h_1) f2_h a_j + f2_theta b_j + f2_t = beta f2_j        # eq. (15)
+
+with f the image at the point (the mean of frames t and t + 1 at the flow
+band, the series the gradients are read from). They are solved in the same
+weighted least squares as :func:`omniflow.flow.pooled_solution` (its local
+model and its errors-in-variables correction), beta one more unknown.
+
+The extra unknown costs accuracy where nothing changes brightness (it takes
+up part of the texture's own signal: +9-16 % mean error on the static
+rendered scenes), so a pool takes the gain answer only where the F statistic
+of beta against the plain fit,
+
+    F = (RSS_plain - RSS_gain) / (RSS_gain / (n_eff - P)),
+
+exceeds ``OmniFlowConfig.brightness_gate`` (n_eff = 2 (sum w)^2 / sum w^2,
+both units' rows, P the gain fit's unknowns, as the two-model test of
+:mod:`omniflow.decoupled`). Measured in docs/measurements.md, "A
+brightness-change term in the pools: probe" and "brightness_gate: the gated
+gain term built".
+
+:func:`gain_solution` is the coupled solve (eq. 14 assumed), used by
+:func:`omniflow.solve.make_solver` in the first solve and in the refinement;
+:func:`decoupled_gain` the three-unknown model of :mod:`omniflow.decoupled`
+with the gain, used where that model was chosen.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+__all__ = ["decoupled_gain", "gain_solution", "gated"]
+
+_CHUNK = 4096  # points per batch of design matrices (N, K, 2, P): ~80 MB at K = 48
+
+
+def gain_solution(
+    derivs: tuple[NDArray, ...],
+    f: tuple[NDArray, NDArray],
+    h1: NDArray,
+    h2: NDArray,
+    theta: NDArray,
+    idx: NDArray,
+    w: NDArray,
+    *,
+    model: str,
+    scale: float,
+    min_conditioning: float,
+    noise: tuple[float, float] = (0.0, 0.0),
+    residual_noise: bool = False,
+) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+    """Eq. (9) and (15) with a gain per pool, pooled as :func:`omniflow.flow.pooled_solution`.
+
+    Parameters
+    ----------
+    derivs : six ndarrays, shape (N,)
+        f1_h, f1_theta, f1_t, f2_h, f2_theta, f2_t at the points.
+    f : two ndarrays, shape (N,)
+        Each unit's image at the points (the series the gradients come from).
+    h1, h2, theta : ndarray, shape (N,)
+    idx, w : ndarray, shape (N, K)
+        Pools as :func:`omniflow.flow.neighbourhoods` returns them.
+    model, scale, min_conditioning
+        As :func:`omniflow.flow.pooled_solution` (``relative`` radial model).
+    noise, residual_noise
+        Each unit's gradient-noise variance, per unit variance of the image
+        noise measured from the residuals with ``residual_noise``
+        (``eiv="residual"``), subtracted from the normal matrix as the plain
+        solve does; (0, 0): none.
+
+    Returns
+    -------
+    dh1_dt, dtheta_dt : ndarray, shape (N,)
+        The gain fit's flow; NaN where the pool has no solution.
+    confidence : ndarray
+        lambda_min / lambda_max of the information left on (a, h_1 b) once the
+        other unknowns are free (the Schur complement).
+    F : ndarray
+        The statistic of beta against the plain fit over the same pool; NaN
+        where either fit is singular.
+    """
+    n = h1.size
+    out = [np.full(n, np.nan) for _ in range(4)]
+    batches = []
+    for lo in range(0, n, _CHUNK):
+        sl = slice(lo, min(lo + _CHUNK, n))
+        X, y, u = _design(derivs, f, h1, h2, theta, idx[sl], sl, model=model, scale=scale)
+        wi = w[sl]
+        M = np.einsum("nkup,nkuq,nk->npq", X, X, wi)
+        v = np.einsum("nkup,nku,nk->np", X, y, wi)
+        x = _solve(M, v, min_conditioning)
+        F = _f_statistic(M, v, x, np.einsum("nku,nku,nk->n", y, y, wi), wi, min_conditioning)
+        # each point's own rows (neighbour 0 of its pool) at its gain fit
+        res = np.einsum("nup,np->nu", X[:, 0], x) - y[:, 0]
+        batches.append((sl, M, v, u, wi, res))
+        out[0][sl], out[1][sl], out[2][sl], out[3][sl] = x[:, 0], x[:, 1], _conf(M), F
+    if noise[0] > 0 or noise[1] > 0:  # errors in the variables, as the plain solve
+        k = h2 / h1
+        n1, n2 = noise
+        if residual_noise:  # per unit variance of the image noise, measured from the residuals
+            res = np.concatenate([b[-1] for b in batches])
+            ok = np.isfinite(res).all(axis=1)
+            if ok.sum() < 10:
+                n1 = n2 = 0.0
+            else:  # median of a squared normal: 0.455 var; f_t the difference of two fits
+                var = np.median(res[ok] ** 2, axis=0) / 0.455 / 2.0
+                n1, n2 = n1 * float(var[0]), n2 * float(var[1])
+        for sl, M, v, u, wi, _ in batches:
+            if not (n1 > 0 or n2 > 0):
+                break
+            a, c, conf = _corrected(M, v, wi, u, k[sl], n1, n2, min_conditioning)
+            use = np.isfinite(a) & np.isfinite(c)
+            for o, val in zip(out[:3], (a, c, conf), strict=True):
+                o[sl] = np.where(use, val, o[sl])
+    return out[0], out[1] / h1, out[2], out[3]
+
+
+def decoupled_gain(
+    derivs: tuple[NDArray, ...],
+    f: tuple[NDArray, NDArray],
+    h1: NDArray,
+    h2: NDArray,
+    idx: NDArray,
+    w: NDArray,
+) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+    """The decoupled model of :mod:`omniflow.decoupled` (U, h_1,i W, c) with a gain per pool.
+
+    Unit u's row of neighbour j: (f_h, -f_h h_u,j / h_1,i, f_theta / h_1,i, -f) .
+    (U, h_1,i W, c, beta) = -f_t (eq. 9 and 10 with the gain), constant model, no
+    bias compensation, as :func:`omniflow.decoupled.fits_from_sums`. Returns
+    (dh1_dt, dh2_dt, dtheta_dt, F), F the statistic of beta against the
+    three-unknown fit; NaN where a pool has no solution. The rows of ``idx`` whose
+    weights are all 0 are skipped (NaN).
+    """
+    n = h1.size
+    out = [np.full(n, np.nan) for _ in range(4)]
+    todo = np.flatnonzero(w.sum(axis=1) > 0)
+    for lo in range(0, todo.size, _CHUNK):
+        sel = todo[lo : lo + _CHUNK]
+        X, y, _ = _design(derivs, f, h1, h2, None, idx[sel], sel, model="decoupled", scale=1.0)
+        wi = w[sel]
+        M = np.einsum("nkup,nkuq,nk->npq", X, X, wi)
+        v = np.einsum("nkup,nku,nk->np", X, y, wi)
+        x = _solve(M, v, 0.0)
+        F = _f_statistic(M, v, x, np.einsum("nku,nku,nk->n", y, y, wi), wi, 0.0)
+        k = h2[sel] / h1[sel]
+        out[0][sel], out[1][sel] = x[:, 0] - x[:, 1], x[:, 0] - k * x[:, 1]
+        out[2][sel], out[3][sel] = x[:, 2] / h1[sel], F
+    return tuple(out)
+
+
+def gated(F: NDArray, gate: float, *answers: NDArray) -> NDArray:
+    """Where the gain answer is taken: F above ``gate`` and every answer finite."""
+    with np.errstate(invalid="ignore"):
+        use = F > gate
+    for v in answers:
+        use &= np.isfinite(v)
+    return use
+
+
+def _design(derivs, f, h1, h2, theta, idx, rows, *, model, scale):
+    """The design (n, K, 2, P), right sides (n, K, 2) and tangential offsets u (n, K; None
+    but for the linear model) of the pools of the points ``rows`` (a slice or indices into
+    the N points; ``idx`` theirs).
+
+    Unknowns (a, c = h_1,i b[, u a, u c], beta) (``model`` "constant" / "linear"), or
+    (U, h_1,i W, c, beta) for ``model="decoupled"``; index N of ``idx`` is no
+    neighbour (weight 0)."""
+    ext = lambda v: np.append(v, 0.0)  # noqa: E731  (index N: no neighbour)
+    hx1, hx2 = ext(h1), ext(h2)
+    hx1[-1] = 1.0
+    hi = h1[rows][:, None]
+    rel = hx1[idx] / hi  # the radial flow scales with h_1 on one surface
+    k = hx2 / hx1  # eq. (14)
+    u = None
+    if model == "linear":
+        th = ext(theta)
+        u = ((th[idx] - theta[rows][:, None] + np.pi) % (2 * np.pi) - np.pi) * hi / scale
+    units = []
+    for unit, (fh, fq, ft), fu, hu in ((1, derivs[:3], f[0], hx1), (2, derivs[3:], f[1], hx2)):
+        fh, fq, ft, fu = (ext(v)[idx] for v in (fh, fq, ft, fu))
+        q = fq / hi
+        if model == "decoupled":  # dh_u = U - h_u W (omniflow.decoupled)
+            cols = [fh, -fh * hu[idx] / hi, q]
+        else:
+            p = fh * rel if unit == 1 else k[idx] * fh * rel  # eq. (9), eq. (15) with eq. (14)
+            cols = [p, q] + ([p * u, q * u] if model == "linear" else [])
+        units.append((np.stack([*cols, -fu], axis=-1), -ft))  # beta f on the right side
+    X = np.stack([units[0][0], units[1][0]], axis=2)
+    y = np.stack([units[0][1], units[1][1]], axis=2)
+    return X, y, u
+
+
+def _solve(M: NDArray, v: NDArray, min_conditioning: float, positive: bool = False) -> NDArray:
+    """Solve the batched normal equations M x = v (all P unknowns); NaN where M is
+    singular, where the information left on (a, c) once the other unknowns are free (the
+    Schur complement) is below ``min_conditioning`` or, with ``positive``, where M is not
+    positive definite."""
+    scale = np.sqrt(np.abs(np.einsum("npp->np", M)))
+    scale = np.where(scale > 0, scale, 1.0)
+    lam = np.linalg.eigvalsh(M / scale[:, :, None] / scale[:, None, :])
+    ok = lam[:, 0] > 1e-12 * lam[:, -1]
+    if positive:
+        ok &= lam[:, 0] > 0
+    Mi = np.linalg.inv(np.where(ok[:, None, None], M, np.eye(M.shape[1])))
+    conf = _conf(M, Mi)
+    ok &= (conf >= min_conditioning) & (conf > 0)
+    return np.where(ok[:, None], np.einsum("npq,nq->np", Mi, v), np.nan)
+
+
+def _conf(M: NDArray, Mi: NDArray | None = None) -> NDArray:
+    """lambda_min / lambda_max of the Schur complement of M on its first two unknowns."""
+    if Mi is None:
+        with np.errstate(all="ignore"):
+            Mi = np.linalg.pinv(M)
+    with np.errstate(all="ignore"):
+        ls = np.linalg.eigvalsh(np.linalg.pinv(Mi[:, :2, :2]))
+        return np.where(ls[:, 0] > 0, np.nan_to_num(ls[:, 0] / ls[:, 1]), 0.0)
+
+
+def _f_statistic(M, v, x, yy, w, min_conditioning):
+    """F of the last unknown (beta) against the fit without it, over each pool."""
+    x0 = _solve(M[:, :-1, :-1], v[:, :-1], min_conditioning)
+    rss = yy - np.einsum("np,np->n", x, v)  # min of sum w (A x - y)^2 = y^T y - x . v
+    rss0 = yy - np.einsum("np,np->n", x0, v[:, :-1])
+    n_eff = 2.0 * w.sum(axis=1) ** 2 / (w * w).sum(axis=1)  # both units' rows
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return (rss0 - rss) / (rss / (n_eff - M.shape[1]))
+
+
+def _corrected(M, v, w, u, k, n1, n2, min_conditioning):
+    """(a, c, confidence) with the expected gradient-noise power subtracted from the
+    normal matrix's gradient entries (bias-compensated least squares, as
+    :func:`omniflow.flow.pooled_solution`: a row's noise n1 + n2 k^2 times its weight and
+    power of u, the neighbours' ratios taken as the point's own); NaN where the signal
+    does not outweigh the noise on both components or the result is not positive definite."""
+    powers = [w.sum(axis=1)] + ([] if u is None else [(w * u).sum(axis=1), (w * u * u).sum(axis=1)])
+    per_row = [n1 * s + n2 * k**2 * s for s in powers]
+    blocks = [(0,), (1,)] if u is None else [(0, 2), (1, 3)]  # a, c and their slopes
+    Mc = M.copy()
+    for block in blocks:
+        for ii, ci in enumerate(block):
+            for jj, cj in enumerate(block):
+                Mc[:, ci, cj] -= per_row[ii + jj]
+    x = _solve(Mc, v, min_conditioning, positive=True)
+    strong = (M[:, 0, 0] > 2.0 * per_row[0]) & (M[:, 1, 1] > 2.0 * per_row[0])
+    x[~strong] = np.nan
+    return x[:, 0], x[:, 1], _conf(Mc)
