@@ -97,14 +97,13 @@ def gain_solution(
         sl = slice(lo, min(lo + _CHUNK, n))
         X, y, u = _design(derivs, f, h1, h2, theta, idx[sl], sl, model=model, scale=scale)
         wi = w[sl]
-        M = np.einsum("nkup,nkuq,nk->npq", X, X, wi)
-        v = np.einsum("nkup,nku,nk->np", X, y, wi)
-        x = _solve(M, v, min_conditioning)
-        F = _f_statistic(M, v, x, np.einsum("nku,nku,nk->n", y, y, wi), wi, min_conditioning)
+        M, v, yy = _normal(X, y, wi)
+        x, conf = _solve(M, v, min_conditioning)
+        F = _f_statistic(M, v, x, yy, wi, min_conditioning)
         # each point's own rows (neighbour 0 of its pool) at its gain fit
         res = np.einsum("nup,np->nu", X[:, 0], x) - y[:, 0]
         batches.append((sl, M, v, u, wi, res))
-        out[0][sl], out[1][sl], out[2][sl], out[3][sl] = x[:, 0], x[:, 1], _conf(M), F
+        out[0][sl], out[1][sl], out[2][sl], out[3][sl] = x[:, 0], x[:, 1], conf, F
     if noise[0] > 0 or noise[1] > 0:  # errors in the variables, as the plain solve
         k = h2 / h1
         n1, n2 = noise
@@ -150,10 +149,9 @@ def decoupled_gain(
         sel = todo[lo : lo + _CHUNK]
         X, y, _ = _design(derivs, f, h1, h2, None, idx[sel], sel, model="decoupled", scale=1.0)
         wi = w[sel]
-        M = np.einsum("nkup,nkuq,nk->npq", X, X, wi)
-        v = np.einsum("nkup,nku,nk->np", X, y, wi)
-        x = _solve(M, v, 0.0)
-        F = _f_statistic(M, v, x, np.einsum("nku,nku,nk->n", y, y, wi), wi, 0.0)
+        M, v, yy = _normal(X, y, wi)
+        x, _ = _solve(M, v, 0.0)
+        F = _f_statistic(M, v, x, yy, wi, 0.0)
         k = h2[sel] / h1[sel]
         out[0][sel], out[1][sel] = x[:, 0] - x[:, 1], x[:, 0] - k * x[:, 1]
         out[2][sel], out[3][sel] = x[:, 2] / h1[sel], F
@@ -202,11 +200,27 @@ def _design(derivs, f, h1, h2, theta, idx, rows, *, model, scale):
     return X, y, u
 
 
-def _solve(M: NDArray, v: NDArray, min_conditioning: float, positive: bool = False) -> NDArray:
+def _normal(X: NDArray, y: NDArray, w: NDArray) -> tuple[NDArray, NDArray, NDArray]:
+    """The weighted normal equations of the pools: M = X^T W X, v = X^T W y and y^T W y,
+    from the design (n, K, 2, P), right sides (n, K, 2) and weights (n, K) (both units'
+    rows of neighbour j carry j's weight)."""
+    n, kk, _, p = X.shape
+    Xr, yr = X.reshape(n, 2 * kk, p), y.reshape(n, 2 * kk)
+    wr = np.repeat(w, 2, axis=1)
+    Xw = Xr * wr[:, :, None]
+    M = np.matmul(Xw.transpose(0, 2, 1), Xr)
+    v = np.matmul(Xw.transpose(0, 2, 1), yr[:, :, None])[:, :, 0]
+    return M, v, np.einsum("nr,nr,nr->n", yr, yr, wr)
+
+
+def _solve(
+    M: NDArray, v: NDArray, min_conditioning: float, positive: bool = False
+) -> tuple[NDArray, NDArray]:
     """Solve the batched normal equations M x = v (all P unknowns); NaN where M is
     singular, where the information left on (a, c) once the other unknowns are free (the
     Schur complement) is below ``min_conditioning`` or, with ``positive``, where M is not
-    positive definite."""
+    positive definite. Also that Schur complement's lambda_min / lambda_max (0 where it
+    is not positive definite)."""
     scale = np.sqrt(np.abs(np.einsum("npp->np", M)))
     scale = np.where(scale > 0, scale, 1.0)
     lam = np.linalg.eigvalsh(M / scale[:, :, None] / scale[:, None, :])
@@ -214,24 +228,19 @@ def _solve(M: NDArray, v: NDArray, min_conditioning: float, positive: bool = Fal
     if positive:
         ok &= lam[:, 0] > 0
     Mi = np.linalg.inv(np.where(ok[:, None, None], M, np.eye(M.shape[1])))
-    conf = _conf(M, Mi)
+    # the Schur complement on (a, c) is the inverse of Mi's (a, c) block: same eigenvectors,
+    # reciprocal eigenvalues
+    li = np.linalg.eigvalsh(Mi[:, :2, :2])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        conf = np.where(li[:, 0] > 0, np.nan_to_num(li[:, 0] / li[:, 1]), 0.0)
+    conf = np.where(ok, conf, 0.0)
     ok &= (conf >= min_conditioning) & (conf > 0)
-    return np.where(ok[:, None], np.einsum("npq,nq->np", Mi, v), np.nan)
-
-
-def _conf(M: NDArray, Mi: NDArray | None = None) -> NDArray:
-    """lambda_min / lambda_max of the Schur complement of M on its first two unknowns."""
-    if Mi is None:
-        with np.errstate(all="ignore"):
-            Mi = np.linalg.pinv(M)
-    with np.errstate(all="ignore"):
-        ls = np.linalg.eigvalsh(np.linalg.pinv(Mi[:, :2, :2]))
-        return np.where(ls[:, 0] > 0, np.nan_to_num(ls[:, 0] / ls[:, 1]), 0.0)
+    return np.where(ok[:, None], np.einsum("npq,nq->np", Mi, v), np.nan), conf
 
 
 def _f_statistic(M, v, x, yy, w, min_conditioning):
     """F of the last unknown (beta) against the fit without it, over each pool."""
-    x0 = _solve(M[:, :-1, :-1], v[:, :-1], min_conditioning)
+    x0, _ = _solve(M[:, :-1, :-1], v[:, :-1], min_conditioning)
     rss = yy - np.einsum("np,np->n", x, v)  # min of sum w (A x - y)^2 = y^T y - x . v
     rss0 = yy - np.einsum("np,np->n", x0, v[:, :-1])
     n_eff = 2.0 * w.sum(axis=1) ** 2 / (w * w).sum(axis=1)  # both units' rows
@@ -253,7 +262,7 @@ def _corrected(M, v, w, u, k, n1, n2, min_conditioning):
         for ii, ci in enumerate(block):
             for jj, cj in enumerate(block):
                 Mc[:, ci, cj] -= per_row[ii + jj]
-    x = _solve(Mc, v, min_conditioning, positive=True)
+    x, conf = _solve(Mc, v, min_conditioning, positive=True)
     strong = (M[:, 0, 0] > 2.0 * per_row[0]) & (M[:, 1, 1] > 2.0 * per_row[0])
     x[~strong] = np.nan
-    return x[:, 0], x[:, 1], _conf(Mc)
+    return x[:, 0], x[:, 1], conf
