@@ -321,11 +321,14 @@ class OmniFlowConfig:
         a body turning under fixed lights), which brightness constancy
         (eq. 8) reads as flow. Applies in the first solve, the refinement and
         the decoupled model; with grid pools (``pool_grid``) the gain fit and
-        its test use the k-d tree pools. None (the default): off. In the
-        probe, 10-20 fixed approach's incoming face (radial flow +3.0 % ->
-        -0.6 %) and most of the ball's radial flow at no cost on the static
-        walls; docs/measurements.md, "A brightness-change term in the pools:
-        probe" and "brightness_gate: the gated gain term built".
+        its test use the k-d tree pools. None (the default): off. 20 fixes
+        approach's incoming face (radial flow +3.0 % -> -0.6 %, time to
+        contact's median error 4.0 -> 2.2 %) and most of the ball's radial
+        flow (53 -> 79 %), +2 % static mean error on crossing, none on
+        default, about a quarter more time; on the dense preset it costs
+        12-20 % of the static error and 4-5 times the time (not recommended
+        there); docs/measurements.md, "brightness_gate: the gated gain term
+        built" and the probe before it.
     flow_shading : float or None
         Fit the flow step's series to each frame divided by its Gaussian
         local mean of this many pixels (omniflow.shading), so that shading
