@@ -104,7 +104,7 @@ def gain_solution(
         res = np.einsum("nup,np->nu", X[:, 0], x) - y[:, 0]
         batches.append((sl, M, v, u, wi, res))
         out[0][sl], out[1][sl], out[2][sl], out[3][sl] = x[:, 0], x[:, 1], conf, F
-    if noise[0] > 0 or noise[1] > 0:  # errors in the variables, as the plain solve
+    if batches and (noise[0] > 0 or noise[1] > 0):  # errors in the variables, as the plain solve
         k = h2 / h1
         n1, n2 = noise
         if residual_noise:  # per unit variance of the image noise, measured from the residuals

@@ -148,8 +148,8 @@ def flow_at_matches(
         early.cancel()
         fit = None
     # eq. (14) tested (omniflow.decoupled) over the solver's own pools
-    return decouple(cols, rig, config, _displacement, pools=pools, fit=fit,
-                    brightness=brightness)  # fmt: skip
+    gain = {} if brightness is None else {"brightness": brightness}  # omniflow.gain
+    return decouple(cols, rig, config, _displacement, pools=pools, fit=fit, **gain)
 
 
 def _refine(a, b, conf, solve, k, cam1, cam2, rig, x1, y1, x2, y2, theta, h1, h2, r, config,
@@ -161,7 +161,7 @@ def _refine(a, b, conf, solve, k, cam1, cam2, rig, x1, y1, x2, y2, theta, h1, h2
         a, b, conf, _ = refine_moving(
             a, b, conf, cam1=cam1, cam2=cam2, rig=rig, x1=x1, y1=y1, x2=x2, y2=y2,
             theta=theta, h1=h1, h2=h2, r=r, config=config, make_solver=make_solver, noise=noise,
-            pools=solve.pools, brightness=brightness,
+            pools=solve.pools, **({} if brightness is None else {"brightness": brightness}),
         )  # fmt: skip
     for _ in range(config.iterations if config.iterate_min_px == 0.0 else 0):
         # Gauss-Newton on eq. (8)'s linearisation: the residual of brightness
