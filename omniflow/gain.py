@@ -59,6 +59,7 @@ def gain_solution(
     min_conditioning: float,
     noise: tuple[float, float] = (0.0, 0.0),
     residual_noise: bool = False,
+    gate: float | None = None,
 ) -> tuple[NDArray, NDArray, NDArray, NDArray]:
     """Eq. (9) and (15) with a gain per pool, pooled as :func:`omniflow.flow.pooled_solution`.
 
@@ -78,6 +79,9 @@ def gain_solution(
         noise measured from the residuals with ``residual_noise``
         (``eiv="residual"``), subtracted from the normal matrix as the plain
         solve does; (0, 0): none.
+    gate : float, optional
+        Correct only the pools whose F exceeds this (the others' answers are not
+        taken, :func:`gated`): they keep the uncorrected fit.
 
     Returns
     -------
@@ -118,7 +122,14 @@ def gain_solution(
         for sl, M, v, u, wi, _ in batches:
             if not (n1 > 0 or n2 > 0):
                 break
-            a, c, conf = _corrected(M, v, wi, u, k[sl], n1, n2, min_conditioning)
+            rows = np.ones(M.shape[0], bool) if gate is None else gated(out[3][sl], gate)
+            if not rows.any():
+                continue
+            a, c, conf = (np.full(rows.size, np.nan) for _ in range(3))
+            a[rows], c[rows], conf[rows] = _corrected(
+                M[rows], v[rows], wi[rows], None if u is None else u[rows], k[sl][rows], n1, n2,
+                min_conditioning,
+            )  # fmt: skip
             use = np.isfinite(a) & np.isfinite(c)
             for o, val in zip(out[:3], (a, c, conf), strict=True):
                 o[sl] = np.where(use, val, o[sl])
@@ -223,10 +234,12 @@ def _solve(
     is not positive definite)."""
     scale = np.sqrt(np.abs(np.einsum("npp->np", M)))
     scale = np.where(scale > 0, scale, 1.0)
-    lam = np.linalg.eigvalsh(M / scale[:, :, None] / scale[:, None, :])
-    ok = lam[:, 0] > 1e-12 * lam[:, -1]
+    Ms = M / scale[:, :, None] / scale[:, None, :]  # unit diagonal
     if positive:
-        ok &= lam[:, 0] > 0
+        lam = np.linalg.eigvalsh(Ms)
+        ok = (lam[:, 0] > 1e-12 * lam[:, -1]) & (lam[:, 0] > 0)
+    else:  # |det| of the unit-diagonal matrix: the product of its eigenvalues, each <= P
+        ok = np.abs(np.linalg.det(Ms)) > 1e-12
     Mi = np.linalg.inv(np.where(ok[:, None, None], M, np.eye(M.shape[1])))
     # the Schur complement on (a, c) is the inverse of Mi's (a, c) block: same eigenvectors,
     # reciprocal eigenvalues

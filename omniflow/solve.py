@@ -299,7 +299,7 @@ def make_solver(
             ag, bg, confg, F = gain_solution(
                 derivs, brightness, h1, h2, theta, *gain_pools, model=config.pool_model,
                 scale=pool_radius, min_conditioning=floor, noise=noise,
-                residual_noise=config.eiv == "residual",
+                residual_noise=config.eiv == "residual", gate=config.brightness_gate,
             )  # fmt: skip
             use = gated(F, config.brightness_gate, ag, bg)
             return np.where(use, ag, a), np.where(use, bg, b), np.where(use, confg, conf)
