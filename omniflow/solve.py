@@ -16,6 +16,7 @@ finite), else made again, so the columns do not depend on the threads.
 from __future__ import annotations
 
 import time
+from functools import partial
 
 import numpy as np
 from numpy.typing import NDArray
@@ -294,13 +295,20 @@ def make_solver(
     if config.brightness_gate is not None and brightness is not None:
         gain_pools = (idx, w) if grid is None else neighbourhoods(x1, y1, **tree)
 
+        gain_kw = dict(model=config.pool_model, scale=pool_radius, min_conditioning=floor,
+                       noise=noise, residual_noise=config.eiv == "residual",
+                       gate=config.brightness_gate)  # fmt: skip
+
         def solve(*derivs):
-            a, b, conf = plain(*derivs)
-            ag, bg, confg, F = gain_solution(
-                derivs, brightness, h1, h2, theta, *gain_pools, model=config.pool_model,
-                scale=pool_radius, min_conditioning=floor, noise=noise,
-                residual_noise=config.eiv == "residual", gate=config.brightness_gate,
-            )  # fmt: skip
+            # the gain fit on the other thread while this one makes the plain solve
+            task = submit(partial(gain_solution, **gain_kw), derivs, brightness, h1, h2, theta,
+                          *gain_pools)  # fmt: skip
+            try:
+                a, b, conf = plain(*derivs)
+            except BaseException:
+                task.cancel()  # no task outlives the call
+                raise
+            ag, bg, confg, F = task.result()
             use = gated(F, config.brightness_gate, ag, bg)
             return np.where(use, ag, a), np.where(use, bg, b), np.where(use, confg, conf)
 
