@@ -222,8 +222,9 @@ def make_solver(
     ``brightness``: each unit's image f at the points (the series the gradients are
     read from), for the pooled solver's gain term (``config.brightness_gate``,
     :mod:`omniflow.gain`): the pools whose F statistic of the gain passes the gate
-    take the answer with it. With grid pools the gain fit and its test are made over
-    the k-d tree pools of the same k, radius and ranges.
+    take the answer with it. The gain fit pools over the solver's k-d tree pools as
+    searched (before ``pool_min_info``, ``pool_residual_tol`` or ``pool_flow_tol`` thin
+    them); with grid pools over the k-d tree pools of the same k, radius and ranges.
 
     The returned function's attribute ``pools``: the (idx, w) of
     :func:`omniflow.flow.neighbourhoods` where the solver pools over them as
