@@ -325,10 +325,10 @@ class OmniFlowConfig:
         approach's incoming face (radial flow +3.0 % -> -0.6 %, time to
         contact's median error 4.0 -> 2.2 %) and most of the ball's radial
         flow (53 -> 79 %), +2 % static mean error on crossing, none on
-        default, about a quarter more time; on the dense preset it costs
-        12-20 % of the static error and 4-5 times the time (not recommended
-        there); docs/measurements.md, "brightness_gate: the gated gain term
-        built" and the probe before it.
+        default, 1.6x the time; on the dense preset 20 costs 12-20 % of the
+        static error, 60 keeps it and most of the gain, at 3-4 times the
+        preset's time; docs/measurements.md, "brightness_gate: the gated gain
+        term built" and the probe before it.
     flow_shading : float or None
         Fit the flow step's series to each frame divided by its Gaussian
         local mean of this many pixels (omniflow.shading), so that shading
