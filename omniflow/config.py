@@ -372,7 +372,9 @@ class OmniFlowConfig:
         have 8 such points within the pool radius (a moving surface, not a
         stray wrong match), each linearised about its own first flow and
         solved for the total flow with the pools of the first solve, the
-        series evaluated exactly (:mod:`omniflow.refine`). The first-order step
+        series evaluated exactly (:mod:`omniflow.refine`); with the pooled
+        solver only (the direct solution's fast points are mostly its
+        ill-conditioned failures, from which the step diverges). The first-order step
         overstates a large motion (by about (k d)^2 / 12 for a texture
         wavenumber k and displacement d); the refinement removes that where
         it matters and leaves the small flows, where it adds only noise,

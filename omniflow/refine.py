@@ -125,7 +125,11 @@ def refine_moving(
         The points that took the refinement.
     """
     sel = moving_far(a, b, h1, h2, config.iterate_min_px)
-    if config.iterations == 0 or sel.sum() <= MIN_NEIGHBOURS:
+    # pooled solves only: the direct solution's fast points are mostly its ill-conditioned
+    # failures, and a Gauss-Newton step from them diverges (default scene: mean EPE at
+    # those points 5.4 -> 30 px; docs/measurements.md, "The refinement solved for the
+    # total flow")
+    if config.iterations == 0 or config.solver != "pooled" or sel.sum() <= MIN_NEIGHBOURS:
         return a, b, conf, np.zeros_like(sel)
     # only where the fast points form a surface: a point whose first step alone is
     # fast (a wrong match, a stray equation) has no pool of fast neighbours to refine in
