@@ -40,9 +40,9 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["decoupled_gain", "gain_solution", "gated"]
+from omniflow.kernels import gain_sums, small_solves
 
-_CHUNK = 4096  # points per batch of design matrices (N, K, 2, P): ~80 MB at K = 48
+__all__ = ["decoupled_gain", "gain_solution", "gated"]
 
 
 def gain_solution(
@@ -95,45 +95,32 @@ def gain_solution(
         where either fit is singular.
     """
     n = h1.size
-    out = [np.full(n, np.nan) for _ in range(4)]
-    batches = []
-    for lo in range(0, n, _CHUNK):
-        sl = slice(lo, min(lo + _CHUNK, n))
-        X, y, u = _design(derivs, f, h1, h2, theta, idx[sl], sl, model=model, scale=scale)
-        wi = w[sl]
-        M, v, yy = _normal(X, y, wi)
-        x, conf = _solve(M, v, min_conditioning)
-        F = _f_statistic(M, v, x, yy, wi, min_conditioning)
-        # each point's own rows (neighbour 0 of its pool) at its gain fit
-        res = np.einsum("nup,np->nu", X[:, 0], x) - y[:, 0]
-        batches.append((sl, M, v, u, wi, res))
-        out[0][sl], out[1][sl], out[2][sl], out[3][sl] = x[:, 0], x[:, 1], conf, F
-    if batches and (noise[0] > 0 or noise[1] > 0):  # errors in the variables, as the plain solve
-        k = h2 / h1
+    rows = np.arange(n)
+    M, v, yy, powers, x0, y0 = gain_sums(idx, w, rows, derivs, f, h1, h2, theta,
+                                         model=model, scale=scale)  # fmt: skip
+    x, conf = _solve(M, v, min_conditioning)
+    F = _f_statistic(M, v, x, yy, w, min_conditioning)
+    a, c = x[:, 0], x[:, 1]
+    if noise[0] > 0 or noise[1] > 0:  # errors in the variables, as the plain solve
         n1, n2 = noise
         if residual_noise:  # per unit variance of the image noise, measured from the residuals
-            res = np.concatenate([b[-1] for b in batches])
+            res = np.einsum("nup,np->nu", x0, x) - y0  # each point's own rows at its gain fit
             ok = np.isfinite(res).all(axis=1)
             if ok.sum() < 10:
                 n1 = n2 = 0.0
             else:  # median of a squared normal: 0.455 var; f_t the difference of two fits
                 var = np.median(res[ok] ** 2, axis=0) / 0.455 / 2.0
                 n1, n2 = n1 * float(var[0]), n2 * float(var[1])
-        for sl, M, v, u, wi, _ in batches:
-            if not (n1 > 0 or n2 > 0):
-                break
-            rows = np.ones(M.shape[0], bool) if gate is None else gated(out[3][sl], gate)
-            if not rows.any():
-                continue
-            a, c, conf = (np.full(rows.size, np.nan) for _ in range(3))
-            a[rows], c[rows], conf[rows] = _corrected(
-                M[rows], v[rows], wi[rows], None if u is None else u[rows], k[sl][rows], n1, n2,
-                min_conditioning,
-            )  # fmt: skip
-            use = np.isfinite(a) & np.isfinite(c)
-            for o, val in zip(out[:3], (a, c, conf), strict=True):
-                o[sl] = np.where(use, val, o[sl])
-    return out[0], out[1] / h1, out[2], out[3]
+        sel = np.ones(n, bool) if gate is None else gated(F, gate)
+        if (n1 > 0 or n2 > 0) and sel.any():
+            u_powers = powers[sel] if model == "linear" else powers[sel, :1]
+            ac, cc, confc = _corrected(M[sel], v[sel], u_powers, (h2 / h1)[sel], n1, n2,
+                                       min_conditioning)  # fmt: skip
+            use = np.isfinite(ac) & np.isfinite(cc)
+            rows_c = np.flatnonzero(sel)[use]
+            a, c, conf = a.copy(), c.copy(), conf.copy()
+            a[rows_c], c[rows_c], conf[rows_c] = ac[use], cc[use], confc[use]
+    return a, c / h1, conf, F
 
 
 def decoupled_gain(
@@ -155,17 +142,14 @@ def decoupled_gain(
     """
     n = h1.size
     out = [np.full(n, np.nan) for _ in range(4)]
-    todo = np.flatnonzero(w.sum(axis=1) > 0)
-    for lo in range(0, todo.size, _CHUNK):
-        sel = todo[lo : lo + _CHUNK]
-        X, y, _ = _design(derivs, f, h1, h2, None, idx[sel], sel, model="decoupled", scale=1.0)
-        wi = w[sel]
-        M, v, yy = _normal(X, y, wi)
-        x, _ = _solve(M, v, 0.0)
-        F = _f_statistic(M, v, x, yy, wi, 0.0)
-        k = h2[sel] / h1[sel]
-        out[0][sel], out[1][sel] = x[:, 0] - x[:, 1], x[:, 0] - k * x[:, 1]
-        out[2][sel], out[3][sel] = x[:, 2] / h1[sel], F
+    sel = np.flatnonzero(w.sum(axis=1) > 0)
+    M, v, yy, _, _, _ = gain_sums(idx[sel], w[sel], sel, derivs, f, h1, h2, None,
+                                  model="decoupled", scale=1.0)  # fmt: skip
+    x, _ = _solve(M, v, 0.0)
+    F = _f_statistic(M, v, x, yy, w[sel], 0.0)
+    k = h2[sel] / h1[sel]
+    out[0][sel], out[1][sel] = x[:, 0] - x[:, 1], x[:, 0] - k * x[:, 1]
+    out[2][sel], out[3][sel] = x[:, 2] / h1[sel], F
     return tuple(out)
 
 
@@ -178,52 +162,6 @@ def gated(F: NDArray, gate: float, *answers: NDArray) -> NDArray:
     return use
 
 
-def _design(derivs, f, h1, h2, theta, idx, rows, *, model, scale):
-    """The design (n, K, 2, P), right sides (n, K, 2) and tangential offsets u (n, K; None
-    but for the linear model) of the pools of the points ``rows`` (a slice or indices into
-    the N points; ``idx`` theirs).
-
-    Unknowns (a, c = h_1,i b[, u a, u c], beta) (``model`` "constant" / "linear"), or
-    (U, h_1,i W, c, beta) for ``model="decoupled"``; index N of ``idx`` is no
-    neighbour (weight 0)."""
-    ext = lambda v: np.append(v, 0.0)  # noqa: E731  (index N: no neighbour)
-    hx1, hx2 = ext(h1), ext(h2)
-    hx1[-1] = 1.0
-    hi = h1[rows][:, None]
-    rel = hx1[idx] / hi  # the radial flow scales with h_1 on one surface
-    k = hx2 / hx1  # eq. (14)
-    u = None
-    if model == "linear":
-        th = ext(theta)
-        u = ((th[idx] - theta[rows][:, None] + np.pi) % (2 * np.pi) - np.pi) * hi / scale
-    units = []
-    for unit, (fh, fq, ft), fu, hu in ((1, derivs[:3], f[0], hx1), (2, derivs[3:], f[1], hx2)):
-        fh, fq, ft, fu = (ext(v)[idx] for v in (fh, fq, ft, fu))
-        q = fq / hi
-        if model == "decoupled":  # dh_u = U - h_u W (omniflow.decoupled)
-            cols = [fh, -fh * hu[idx] / hi, q]
-        else:
-            p = fh * rel if unit == 1 else k[idx] * fh * rel  # eq. (9), eq. (15) with eq. (14)
-            cols = [p, q] + ([p * u, q * u] if model == "linear" else [])
-        units.append((np.stack([*cols, -fu], axis=-1), -ft))  # beta f on the right side
-    X = np.stack([units[0][0], units[1][0]], axis=2)
-    y = np.stack([units[0][1], units[1][1]], axis=2)
-    return X, y, u
-
-
-def _normal(X: NDArray, y: NDArray, w: NDArray) -> tuple[NDArray, NDArray, NDArray]:
-    """The weighted normal equations of the pools: M = X^T W X, v = X^T W y and y^T W y,
-    from the design (n, K, 2, P), right sides (n, K, 2) and weights (n, K) (both units'
-    rows of neighbour j carry j's weight)."""
-    n, kk, _, p = X.shape
-    Xr, yr = X.reshape(n, 2 * kk, p), y.reshape(n, 2 * kk)
-    wr = np.repeat(w, 2, axis=1)
-    Xw = Xr * wr[:, :, None]
-    M = np.matmul(Xw.transpose(0, 2, 1), Xr)
-    v = np.matmul(Xw.transpose(0, 2, 1), yr[:, :, None])[:, :, 0]
-    return M, v, np.einsum("nr,nr,nr->n", yr, yr, wr)
-
-
 def _solve(
     M: NDArray, v: NDArray, min_conditioning: float, positive: bool = False
 ) -> tuple[NDArray, NDArray]:
@@ -231,24 +169,8 @@ def _solve(
     singular, where the information left on (a, c) once the other unknowns are free (the
     Schur complement) is below ``min_conditioning`` or, with ``positive``, where M is not
     positive definite. Also that Schur complement's lambda_min / lambda_max (0 where it
-    is not positive definite)."""
-    scale = np.sqrt(np.abs(np.einsum("npp->np", M)))
-    scale = np.where(scale > 0, scale, 1.0)
-    Ms = M / scale[:, :, None] / scale[:, None, :]  # unit diagonal
-    if positive:
-        lam = np.linalg.eigvalsh(Ms)
-        ok = (lam[:, 0] > 1e-12 * lam[:, -1]) & (lam[:, 0] > 0)
-    else:  # |det| of the unit-diagonal matrix: the product of its eigenvalues, each <= P
-        ok = np.abs(np.linalg.det(Ms)) > 1e-12
-    Mi = np.linalg.inv(np.where(ok[:, None, None], M, np.eye(M.shape[1])))
-    # the Schur complement on (a, c) is the inverse of Mi's (a, c) block: same eigenvectors,
-    # reciprocal eigenvalues
-    li = np.linalg.eigvalsh(Mi[:, :2, :2])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        conf = np.where(li[:, 0] > 0, np.nan_to_num(li[:, 0] / li[:, 1]), 0.0)
-    conf = np.where(ok, conf, 0.0)
-    ok &= (conf >= min_conditioning) & (conf > 0)
-    return np.where(ok[:, None], np.einsum("npq,nq->np", Mi, v), np.nan), conf
+    is not positive definite): :func:`omniflow.kernels.small_solves`."""
+    return small_solves(M, v, min_conditioning, positive=positive)
 
 
 def _f_statistic(M, v, x, yy, w, min_conditioning):
@@ -261,15 +183,14 @@ def _f_statistic(M, v, x, yy, w, min_conditioning):
         return (rss0 - rss) / (rss / (n_eff - M.shape[1]))
 
 
-def _corrected(M, v, w, u, k, n1, n2, min_conditioning):
+def _corrected(M, v, powers, k, n1, n2, min_conditioning):
     """(a, c, confidence) with the expected gradient-noise power subtracted from the
     normal matrix's gradient entries (bias-compensated least squares, as
     :func:`omniflow.flow.pooled_solution`: a row's noise n1 + n2 k^2 times its weight and
     power of u, the neighbours' ratios taken as the point's own); NaN where the signal
     does not outweigh the noise on both components or the result is not positive definite."""
-    powers = [w.sum(axis=1)] + ([] if u is None else [(w * u).sum(axis=1), (w * u * u).sum(axis=1)])
-    per_row = [n1 * s + n2 * k**2 * s for s in powers]
-    blocks = [(0,), (1,)] if u is None else [(0, 2), (1, 3)]  # a, c and their slopes
+    per_row = [n1 * s + n2 * k**2 * s for s in powers.T]
+    blocks = [(0,), (1,)] if powers.shape[1] == 1 else [(0, 2), (1, 3)]  # a, c and their slopes
     Mc = M.copy()
     for block in blocks:
         for ii, ci in enumerate(block):

@@ -32,6 +32,12 @@ the same strict bound, nearest first) except in how points at exactly the same
 distance are ordered, which the tree decides by its traversal; it flags the rows
 where that decides which points are in, and the caller asks the tree for those.
 
+:func:`gain_sums` forms the normal equations of the pools with a brightness gain
+(:func:`omniflow.gain.gain_solution`): per point the P x P matrix X^T W X, X^T W y
+and y^T W y of both units' rows over the pool, in one pass, instead of numpy's
+(N, K, 2, P) design and a batched product (the gain fit had been most of the gated
+solve's time).
+
 :func:`decouple_sums` and :func:`decouple_fits` are the two-model test of eq. (14)
 (:func:`omniflow.decoupled.model_fits`): the weighted sums of each point's 3x3
 normal equations in one pass over its pool, then per point the conditioning test
@@ -62,10 +68,12 @@ __all__ = [
     "cell_knn",
     "decouple_fits",
     "decouple_sums",
+    "gain_sums",
     "grid_read",
     "grid_scatter",
     "ncc_offsets",
     "pooled_sums",
+    "small_solves",
 ]
 
 
@@ -327,14 +335,10 @@ def decouple_sums(
 
 
 @numba.njit(cache=True, nogil=True)
-def _sym_eig_abs_ratio_ok(a, n, limit):  # pragma: no cover - compiled
-    """Whether max|lambda| / min|lambda| < limit for the symmetric n x n ``a`` (n <= 3),
-    its eigenvalues by cyclic Jacobi rotations (``a`` is overwritten). False where an
-    entry is not finite (numpy's cond is then NaN or inf)."""
-    for p in range(n):
-        for q in range(n):
-            if not math.isfinite(a[p, q]):
-                return False
+def _jacobi(a, n):  # pragma: no cover - compiled
+    """Diagonalise the symmetric n x n ``a`` in place by cyclic Jacobi rotations: its
+    eigenvalues are left on the diagonal, each to an absolute error of a few ulps of the
+    largest."""
     for _sweep in range(30):
         off = 0.0
         for p in range(n):
@@ -343,7 +347,7 @@ def _sym_eig_abs_ratio_ok(a, n, limit):  # pragma: no cover - compiled
         scale = 0.0
         for p in range(n):
             scale += a[p, p] * a[p, p]
-        if not off > 1e-36 * scale:  # converged (or NaN: the test below fails)
+        if not off > 1e-36 * scale:  # converged (or NaN: the caller's test fails)
             break
         for p in range(n - 1):
             for q in range(p + 1, n):
@@ -366,6 +370,18 @@ def _sym_eig_abs_ratio_ok(a, n, limit):  # pragma: no cover - compiled
                     a[q, r] = s * apr + c * aqr
                 a[p, q] = 0.0
                 a[q, p] = 0.0
+
+
+@numba.njit(cache=True, nogil=True)
+def _sym_eig_abs_ratio_ok(a, n, limit):  # pragma: no cover - compiled
+    """Whether max|lambda| / min|lambda| < limit for the symmetric n x n ``a`` (n <= 3),
+    its eigenvalues by cyclic Jacobi rotations (``a`` is overwritten). False where an
+    entry is not finite (numpy's cond is then NaN or inf)."""
+    for p in range(n):
+        for q in range(n):
+            if not math.isfinite(a[p, q]):
+                return False
+    _jacobi(a, n)
     lo = math.inf
     hi = 0.0
     for p in range(n):
@@ -644,3 +660,292 @@ def cell_knn(
     y = np.ascontiguousarray(y, dtype=np.float64).ravel()
     rows = np.arange(x.size) if rows is None else np.ascontiguousarray(rows, dtype=np.int64)
     return _cell_knn(x, y, rows, int(k), float(radius), int(split))
+
+
+#: :func:`gain_sums`'s local models: unknowns (a, h_1,i b, beta), (a, h_1,i b, u a, u h_1,i b,
+#: beta) and the decoupled (U, h_1,i W, h_1,i b, beta) of omniflow.decoupled.
+GAIN_MODELS = {"constant": 0, "linear": 1, "decoupled": 2}
+
+
+@numba.njit(cache=True, nogil=True)
+def _gain_sums(idx, w, rows, f1_h, f1_th, f1_t, f2_h, f2_th, f2_t, f1, f2, h1, h2, th, model,
+               scale):  # pragma: no cover - compiled  # fmt: skip
+    n, kk = idx.shape
+    npt = h1.size
+    p = 3 if model == 0 else (5 if model == 1 else 4)
+    M = np.zeros((n, p, p))
+    v = np.zeros((n, p))
+    yy = np.zeros(n)
+    powers = np.zeros((n, 3))
+    x0 = np.zeros((n, 2, p))
+    y0 = np.zeros((n, 2))
+    row = np.zeros(p)
+    two_pi = 2.0 * math.pi
+    for m in range(n):
+        i = rows[m]
+        hi = h1[i]
+        # sum_j w u^m of the two units' products of p (radial), q (tangential), g (-f,
+        # the gain's column) and y (-f_t): the linear model's matrix is made of these
+        s_pp0 = s_pp1 = s_pp2 = s_pq0 = s_pq1 = s_pq2 = s_qq0 = s_qq1 = s_qq2 = 0.0
+        s_pg0 = s_pg1 = s_qg0 = s_qg1 = s_gg = 0.0
+        s_py0 = s_py1 = s_qy0 = s_qy1 = s_gy = s_yy = 0.0
+        w0 = w1 = w2 = 0.0
+        for s in range(kk):
+            j = idx[m, s]
+            ww = w[m, s]
+            if j >= npt:  # no neighbour: its terms are zero (numpy's zero sentinel)
+                continue
+            rel = h1[j] / hi  # the radial flow scales with h_1 on one surface
+            u = 0.0
+            if model == 1:  # the tangential offset, as numpy's floor-mod wrap
+                u = (((th[j] - th[i]) + math.pi) % two_pi - math.pi) * hi / scale
+            if model == 2:  # the decoupled model: dh_u = U - h_u W
+                for unit in range(2):
+                    if unit == 0:
+                        fh, fq, ft, fu, hu = f1_h[j], f1_th[j], f1_t[j], f1[j], h1[j]
+                    else:
+                        fh, fq, ft, fu, hu = f2_h[j], f2_th[j], f2_t[j], f2[j], h2[j]
+                    row[0] = fh
+                    row[1] = -fh * hu / hi
+                    row[2] = fq / hi
+                    row[3] = -fu  # beta f on the right side
+                    y = -ft
+                    if s == 0:
+                        for c in range(p):
+                            x0[m, unit, c] = row[c]
+                        y0[m, unit] = y
+                    for c in range(p):
+                        wc = ww * row[c]
+                        v[m, c] += wc * y
+                        for d in range(c, p):
+                            M[m, c, d] += wc * row[d]
+                    yy[m] += ww * y * y
+                w0 += ww
+                continue
+            # eq. (9); eq. (15) with eq. (14)
+            p1 = f1_h[j] * rel
+            p2 = (h2[j] / h1[j]) * f2_h[j] * rel
+            q1, q2 = f1_th[j] / hi, f2_th[j] / hi
+            g1, g2 = -f1[j], -f2[j]
+            y1, y2 = -f1_t[j], -f2_t[j]
+            if s == 0:
+                x0[m, 0, 0], x0[m, 0, 1], x0[m, 0, p - 1] = p1, q1, g1
+                x0[m, 1, 0], x0[m, 1, 1], x0[m, 1, p - 1] = p2, q2, g2
+                y0[m, 0], y0[m, 1] = y1, y2
+            pp = ww * (p1 * p1 + p2 * p2)
+            pq = ww * (p1 * q1 + p2 * q2)
+            qq = ww * (q1 * q1 + q2 * q2)
+            pg, qg = ww * (p1 * g1 + p2 * g2), ww * (q1 * g1 + q2 * g2)
+            py, qy = ww * (p1 * y1 + p2 * y2), ww * (q1 * y1 + q2 * y2)
+            s_pp0 += pp
+            s_pq0 += pq
+            s_qq0 += qq
+            s_pg0 += pg
+            s_qg0 += qg
+            s_py0 += py
+            s_qy0 += qy
+            s_gg += ww * (g1 * g1 + g2 * g2)
+            s_gy += ww * (g1 * y1 + g2 * y2)
+            s_yy += ww * (y1 * y1 + y2 * y2)
+            w0 += ww
+            if model == 1:
+                s_pp1 += pp * u
+                s_pq1 += pq * u
+                s_qq1 += qq * u
+                s_pp2 += pp * u * u
+                s_pq2 += pq * u * u
+                s_qq2 += qq * u * u
+                s_pg1 += pg * u
+                s_qg1 += qg * u
+                s_py1 += py * u
+                s_qy1 += qy * u
+                w1 += ww * u
+                w2 += ww * u * u
+        powers[m, 0], powers[m, 1], powers[m, 2] = w0, w1, w2
+        if model != 2:
+            g = p - 1
+            M[m, 0, 0], M[m, 0, 1], M[m, 1, 1] = s_pp0, s_pq0, s_qq0
+            M[m, 0, g], M[m, 1, g], M[m, g, g] = s_pg0, s_qg0, s_gg
+            v[m, 0], v[m, 1], v[m, g] = s_py0, s_qy0, s_gy
+            yy[m] = s_yy
+            if model == 1:  # unknowns (a, c, u a, u c, beta)
+                M[m, 0, 2], M[m, 0, 3], M[m, 1, 2], M[m, 1, 3] = s_pp1, s_pq1, s_pq1, s_qq1
+                M[m, 2, 2], M[m, 2, 3], M[m, 3, 3] = s_pp2, s_pq2, s_qq2
+                M[m, 2, g], M[m, 3, g] = s_pg1, s_qg1
+                v[m, 2], v[m, 3] = s_py1, s_qy1
+        for c in range(p):
+            for d in range(c):
+                M[m, c, d] = M[m, d, c]
+    return M, v, yy, powers, x0, y0
+
+
+def gain_sums(
+    idx: NDArray,
+    w: NDArray,
+    rows: NDArray,
+    derivs: tuple[NDArray, ...],
+    f: tuple[NDArray, NDArray],
+    h1: NDArray,
+    h2: NDArray,
+    theta: NDArray | None,
+    *,
+    model: str,
+    scale: float,
+) -> tuple[NDArray, ...]:
+    """The weighted normal equations of eq. (9) and (15) with a gain per pool.
+
+    Parameters
+    ----------
+    idx, w : ndarray, shape (n, K)
+        The pools of the points ``rows`` (index N or more: no neighbour).
+    rows : ndarray of int, shape (n,)
+        The point each pool belongs to (its own h_1, theta).
+    derivs : six ndarrays, shape (N,)
+        f1_h, f1_theta, f1_t, f2_h, f2_theta, f2_t.
+    f : two ndarrays, shape (N,)
+        Each unit's image at the points.
+    h1, h2 : ndarray, shape (N,)
+    theta : ndarray, shape (N,), optional
+        Azimuth (``model="linear"`` only).
+    model : {"constant", "linear", "decoupled"}
+        The unknowns, :data:`GAIN_MODELS`.
+    scale : float
+        Tangential length that scales u, pixels (``linear``).
+
+    Returns
+    -------
+    M : ndarray, shape (n, P, P)
+        X^T W X over both units' rows of every neighbour (each carrying the
+        neighbour's weight); row of unit u at neighbour j, unknowns as
+        :data:`GAIN_MODELS`, the gain's column -f_u,j.
+    v : ndarray, shape (n, P)
+        X^T W y, y = -f_t.
+    yy : ndarray, shape (n,)
+        y^T W y.
+    powers : ndarray, shape (n, 3)
+        sum_j w, sum_j w u, sum_j w u^2 (u 0 but for ``linear``).
+    x0, y0 : ndarray, shapes (n, 2, P) and (n, 2)
+        Both units' rows and right sides of each pool's neighbour 0.
+    """
+    f64 = [np.ascontiguousarray(v, dtype=np.float64) for v in (*derivs, *f, h1, h2)]
+    th = np.zeros_like(f64[0]) if theta is None else np.ascontiguousarray(theta, dtype=np.float64)
+    return _gain_sums(
+        np.ascontiguousarray(idx, dtype=np.int64), np.ascontiguousarray(w, dtype=np.float64),
+        np.ascontiguousarray(rows, dtype=np.int64), *f64, th, GAIN_MODELS[model], float(scale),
+    )  # fmt: skip
+
+
+@numba.njit(cache=True, nogil=True)
+def _small_solves(M, v, limit, positive):  # pragma: no cover - compiled
+    n, p, _ = M.shape
+    x = np.full((n, p), np.nan)
+    conf = np.zeros(n)
+    a = np.empty((p, p))
+    inv = np.empty((p, p))
+    sc = np.empty(p)
+    for i in range(n):
+        finite = True
+        for r in range(p):
+            for c in range(p):
+                finite &= math.isfinite(M[i, r, c])
+        if not finite:
+            continue
+        for r in range(p):
+            d = math.sqrt(abs(M[i, r, r]))
+            sc[r] = d if d > 0.0 else 1.0
+        for r in range(p):
+            for c in range(p):
+                a[r, c] = M[i, r, c] / (sc[r] * sc[c])  # unit diagonal
+        if positive:  # positive definite: every eigenvalue above 1e-12 of the largest
+            _jacobi(a, p)
+            lo, hi = math.inf, -math.inf
+            for r in range(p):
+                lo = min(lo, a[r, r])
+                hi = max(hi, a[r, r])
+            if not (lo > 1e-12 * hi and lo > 0.0):
+                continue
+            for r in range(p):
+                for c in range(p):
+                    a[r, c] = M[i, r, c] / (sc[r] * sc[c])
+        # Gauss-Jordan with partial pivoting: the inverse and the determinant (the
+        # product of the eigenvalues of the unit-diagonal matrix, each <= P)
+        for r in range(p):
+            for c in range(p):
+                inv[r, c] = 1.0 if r == c else 0.0
+        det = 1.0
+        for col in range(p):
+            piv = col
+            for r in range(col + 1, p):
+                if abs(a[r, col]) > abs(a[piv, col]):
+                    piv = r
+            if piv != col:
+                det = -det
+                for c in range(p):
+                    a[col, c], a[piv, c] = a[piv, c], a[col, c]
+                    inv[col, c], inv[piv, c] = inv[piv, c], inv[col, c]
+            d = a[col, col]
+            det *= d
+            if d == 0.0:
+                break
+            for c in range(p):
+                a[col, c] /= d
+                inv[col, c] /= d
+            for r in range(p):
+                if r != col:
+                    f = a[r, col]
+                    if f != 0.0:
+                        for c in range(p):
+                            a[r, c] -= f * a[col, c]
+                            inv[r, c] -= f * inv[col, c]
+        if not positive and not abs(det) > 1e-12:
+            continue
+        for r in range(p):
+            for c in range(p):
+                inv[r, c] /= sc[r] * sc[c]  # M^-1 = D^-1 (D^-1 M D^-1)^-1 D^-1
+        # the Schur complement on the first two unknowns is the inverse of M^-1's block:
+        # the same eigenvectors, reciprocal eigenvalues
+        mean = 0.5 * (inv[0, 0] + inv[1, 1])
+        rad = math.hypot(0.5 * (inv[0, 0] - inv[1, 1]), inv[1, 0])
+        lo, hi = mean - rad, mean + rad
+        ci = lo / hi if lo > 0.0 else 0.0
+        conf[i] = ci
+        if not (ci >= limit and ci > 0.0):
+            continue
+        for r in range(p):
+            acc = 0.0
+            for c in range(p):
+                acc += inv[r, c] * v[i, c]
+            x[i, r] = acc
+    return x, conf
+
+
+def small_solves(
+    M: NDArray, v: NDArray, min_conditioning: float, *, positive: bool = False
+) -> tuple[NDArray, NDArray]:
+    """Solve M x = v per point (P x P, P >= 2), with omniflow.gain's tests.
+
+    Parameters
+    ----------
+    M : ndarray, shape (N, P, P)
+        Symmetric normal matrices.
+    v : ndarray, shape (N, P)
+    min_conditioning : float
+        The least lambda_min / lambda_max of the information left on the first two
+        unknowns once the others are free (the Schur complement).
+    positive : bool
+        Require M positive definite (its unit-diagonal form's eigenvalues, by Jacobi
+        rotations, all above 1e-12 of the largest), else that form's determinant above
+        1e-12 in magnitude.
+
+    Returns
+    -------
+    x : ndarray, shape (N, P)
+        NaN where a test fails or an entry of M is not finite.
+    confidence : ndarray, shape (N,)
+        That Schur complement's lambda_min / lambda_max; 0 where it is not positive
+        definite or M failed its test.
+    """
+    return _small_solves(
+        np.ascontiguousarray(M, dtype=np.float64), np.ascontiguousarray(v, dtype=np.float64),
+        float(min_conditioning), bool(positive),
+    )  # fmt: skip
