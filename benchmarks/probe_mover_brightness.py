@@ -425,18 +425,19 @@ def report(ds, directory, parts, movers, frames):
         "-- brightness change along the truth, r (eq. 9 / 15 residual at the true flow), cam1; cam2"
     )
     print(
-        f"   {'object':10s} {'n':>5s} {'edge%':>5s} {'mean r':>15s} {'rms r':>13s} "
-        f"{'mean f':>13s} {'share of r explained (median pool) C / BC / L':>47s} "
+        f"   {'object':10s} {'n':>5s} {'edge%':>5s} {'mean r/f %':>13s} {'rms r/f %':>11s} "
+        f"{'share of r explained (median pool) C / BC / L':>47s} "
         f"{'radial err from r: A / C / BC / L | dec A / C / L (cam1)':>60s} "
         f"{'tang. err A / C / L | dec A / C / L':>40s}"
     )
+    rf = r / f  # the change per frame relative to the image there
+    rms = lambda v: 100 * float(np.sqrt(np.mean(v * v)))  # noqa: E731
     for g, m in groups:
         sh, er, et = ({n: np.concatenate([p["ana"][n][j][p["valid"]] for p in parts])[m]
                        for n in parts[0]["ana"]} for j in range(3))  # fmt: skip
         print(f"   {g[:10]:10s} {m.sum():5d} {100 * edge[m].mean():5.0f} "
-              f"{r[0, m].mean():+6.2f}; {r[1, m].mean():+6.2f} "
-              f"{np.sqrt((r[0, m] ** 2).mean()):5.2f}; {np.sqrt((r[1, m] ** 2).mean()):5.2f} "
-              f"{f[0, m].mean():5.1f}; {f[1, m].mean():5.1f} "
+              f"{100 * rf[0, m].mean():+6.2f};{100 * rf[1, m].mean():+6.2f} "
+              f"{rms(rf[0, m]):5.2f};{rms(rf[1, m]):5.2f} "
               + " ".join(f"{np.nanmedian(sh[n]):14.2f}" for n in ("C", "BC", "L"))
               + "   " + " ".join(f"{np.nanmean(er[n]):+6.3f}" for n in MODELS) + " |"
               + " ".join(f"{np.nanmean(er['dec+' + n]):+6.3f}" for n in DEC_MODELS)
