@@ -40,9 +40,19 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from omniflow.gridpool import GridPools
 from omniflow.kernels import gain_sums, small_solves
 
-__all__ = ["decoupled_gain", "gain_solution", "gated"]
+__all__ = ["MIN_CHANGE", "decoupled_gain", "gain_solution", "gated"]
+
+#: The least brightness change per frame, |beta|, that a pool's gain answer may correct:
+#: a smaller fitted gain is taken for model error, not a change (its F is not tested).
+#: On noise-free closed-form frames without any change the F test alone passed 23 % of
+#: the striped wall's pools, their |beta| median 0.0006 (90th percentile 0.0023), and
+#: those answers doubled the median error (0.0032 -> 0.0040 px); the rendered changes
+#: corrected are 1-2 % per frame (approach's gated pools: |beta| 10th percentile 0.0069).
+#: docs/measurements.md, "brightness_gate made cheap, and the default".
+MIN_CHANGE = 0.002
 
 
 def gain_solution(
@@ -60,6 +70,7 @@ def gain_solution(
     noise: tuple[float, float] = (0.0, 0.0),
     residual_noise: bool = False,
     gate: float | None = None,
+    grid: GridPools | None = None,
 ) -> tuple[NDArray, NDArray, NDArray, NDArray]:
     """Eq. (9) and (15) with a gain per pool, pooled as :func:`omniflow.flow.pooled_solution`.
 
@@ -70,8 +81,8 @@ def gain_solution(
     f : two ndarrays, shape (N,)
         Each unit's image at the points (the series the gradients come from).
     h1, h2, theta : ndarray, shape (N,)
-    idx, w : ndarray, shape (N, K)
-        Pools as :func:`omniflow.flow.neighbourhoods` returns them.
+    idx, w : ndarray, shape (N, K), or None
+        Pools as :func:`omniflow.flow.neighbourhoods` returns them (unused with ``grid``).
     model, scale, min_conditioning
         As :func:`omniflow.flow.pooled_solution` (``relative`` radial model).
     noise, residual_noise
@@ -82,6 +93,9 @@ def gain_solution(
     gate : float, optional
         Correct only the pools whose F exceeds this (the others' answers are not
         taken, :func:`gated`): they keep the uncorrected fit.
+    grid : GridPools, optional
+        Pool over the grid's windows instead (:meth:`omniflow.gridpool.GridPools.gain_sums`,
+        the pools of the plain solve with ``pool_grid``).
 
     Returns
     -------
@@ -92,14 +106,20 @@ def gain_solution(
         other unknowns are free (the Schur complement).
     F : ndarray
         The statistic of beta against the plain fit over the same pool; NaN
-        where either fit is singular.
+        where either fit is singular or |beta| is below :data:`MIN_CHANGE`.
     """
     n = h1.size
-    rows = np.arange(n)
-    M, v, yy, powers, x0, y0 = gain_sums(idx, w, rows, derivs, f, h1, h2, theta,
-                                         model=model, scale=scale)  # fmt: skip
+    if grid is None:
+        M, v, yy, powers, x0, y0 = gain_sums(idx, w, np.arange(n), derivs, f, h1, h2, theta,
+                                             model=model, scale=scale)  # fmt: skip
+        w2 = (w * w).sum(axis=1)
+    else:
+        M, v, yy, powers, w2 = grid.gain_sums(derivs, f, h1, h2, theta,
+                                              linear=model == "linear", scale=scale)  # fmt: skip
+        x0, y0 = _own_rows(derivs, f, h1, h2, M.shape[1])
     x, conf = _solve(M, v, min_conditioning)
-    F = _f_statistic(M, v, x, yy, w, min_conditioning)
+    F = _f_statistic(M, v, x, yy, powers[:, 0], w2, min_conditioning)
+    F[~(np.abs(x[:, -1]) >= MIN_CHANGE)] = np.nan  # too small a change to correct
     a, c = x[:, 0], x[:, 1]
     if noise[0] > 0 or noise[1] > 0:  # errors in the variables, as the plain solve
         n1, n2 = noise
@@ -137,7 +157,8 @@ def decoupled_gain(
     (U, h_1,i W, c, beta) = -f_t (eq. 9 and 10 with the gain), constant model, no
     bias compensation, as :func:`omniflow.decoupled.fits_from_sums`. Returns
     (dh1_dt, dh2_dt, dtheta_dt, F), F the statistic of beta against the
-    three-unknown fit; NaN where a pool has no solution. The rows of ``idx`` whose
+    three-unknown fit; NaN where a pool has no solution or |beta| is below
+    :data:`MIN_CHANGE`. The rows of ``idx`` whose
     weights are all 0 are skipped (NaN).
     """
     n = h1.size
@@ -146,7 +167,8 @@ def decoupled_gain(
     M, v, yy, _, _, _ = gain_sums(idx[sel], w[sel], sel, derivs, f, h1, h2, None,
                                   model="decoupled", scale=1.0)  # fmt: skip
     x, _ = _solve(M, v, 0.0)
-    F = _f_statistic(M, v, x, yy, w[sel], 0.0)
+    F = _f_statistic(M, v, x, yy, w[sel].sum(axis=1), (w[sel] ** 2).sum(axis=1), 0.0)
+    F[~(np.abs(x[:, -1]) >= MIN_CHANGE)] = np.nan  # too small a change to correct
     k = h2[sel] / h1[sel]
     out[0][sel], out[1][sel] = x[:, 0] - x[:, 1], x[:, 0] - k * x[:, 1]
     out[2][sel], out[3][sel] = x[:, 2] / h1[sel], F
@@ -173,14 +195,25 @@ def _solve(
     return small_solves(M, v, min_conditioning, positive=positive)
 
 
-def _f_statistic(M, v, x, yy, w, min_conditioning):
-    """F of the last unknown (beta) against the fit without it, over each pool."""
+def _f_statistic(M, v, x, yy, w1, w2, min_conditioning):
+    """F of the last unknown (beta) against the fit without it, over each pool (``w1``,
+    ``w2``: its sums of weights and of squared weights)."""
     x0, _ = _solve(M[:, :-1, :-1], v[:, :-1], min_conditioning)
     rss = yy - np.einsum("np,np->n", x, v)  # min of sum w (A x - y)^2 = y^T y - x . v
     rss0 = yy - np.einsum("np,np->n", x0, v[:, :-1])
-    n_eff = 2.0 * w.sum(axis=1) ** 2 / (w * w).sum(axis=1)  # both units' rows
     with np.errstate(divide="ignore", invalid="ignore"):
+        n_eff = 2.0 * w1**2 / w2  # both units' rows
         return (rss0 - rss) / (rss / (n_eff - M.shape[1]))
+
+
+def _own_rows(derivs, f, h1, h2, p):
+    """Both units' rows (N, 2, P) and right sides (N, 2) of each point's own equations
+    (u = 0, relative factor 1), the unknowns of :func:`omniflow.kernels.gain_sums`."""
+    x0 = np.zeros((h1.size, 2, p))
+    x0[:, 0, 0], x0[:, 1, 0] = derivs[0], (h2 / h1) * derivs[3]  # eq. (9), eq. (15)
+    x0[:, 0, 1], x0[:, 1, 1] = derivs[1] / h1, derivs[4] / h1
+    x0[:, 0, -1], x0[:, 1, -1] = -f[0], -f[1]
+    return x0, np.stack([-derivs[2], -derivs[5]], axis=1)
 
 
 def _corrected(M, v, powers, k, n1, n2, min_conditioning):

@@ -36,7 +36,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from omniflow.kernels import DECOUPLE_SUMS, decouple_sums, grid_read, grid_scatter
+from omniflow.kernels import DECOUPLE_SUMS, decouple_sums, gain_sums, grid_read, grid_scatter
 from omniflow.parallel import map_tasks
 
 __all__ = ["GridPools"]
@@ -271,3 +271,91 @@ class GridPools:
         if self.idx is not None:  # the points whose window mixes ranges: their tree pools
             out += decouple_sums(self.idx, self.w, (f1h, f1th, f1t, f2h, f2th, f2t), h1, h2)
         return out
+
+    def gain_sums(
+        self,
+        derivs: tuple[NDArray, ...],
+        f: tuple[NDArray, NDArray],
+        h1: NDArray,
+        h2: NDArray,
+        theta: NDArray | None,
+        *,
+        linear: bool,
+        scale: float,
+    ) -> tuple[NDArray, ...]:
+        """The gain fit's normal equations (:func:`omniflow.kernels.gain_sums`) on the grid.
+
+        ``derivs``: f1_h, f1_theta, f1_t, f2_h, f2_theta, f2_t; ``f``: each unit's image at
+        the points; all shape (N,). The relative model, unknowns (a, h_1,i b[, u a,
+        u h_1,i b], beta) (``linear``). Every entry is a pool sum of j's own products
+        times a power of the point's h_1,i, so each is a channel filtered as in
+        :meth:`sums`; the sum of squared weights as in :meth:`decouple_sums`. Off-grid
+        points get their k-d tree pools' sums.
+
+        Returns
+        -------
+        M, v, yy, powers
+            As :func:`omniflow.kernels.gain_sums`.
+        w2 : ndarray, shape (N,)
+            Each pool's sum of squared weights.
+        """
+        f1h, f1th, f1t, f2h, f2th, f2t = (np.asarray(v, np.float64).ravel() for v in derivs)
+        g1, g2 = (np.asarray(v, np.float64).ravel() for v in f)
+        h1, h2 = (np.asarray(v, np.float64).ravel() for v in (h1, h2))
+        n, p = self.n, 5 if linear else 3
+        M, v = np.zeros((n, p, p)), np.zeros((n, p))
+        yy, powers, w2 = np.zeros(n), np.zeros((n, 3)), np.zeros(n)
+        on = self.on_grid
+        if on.any():
+            a1, a2 = f1h * h1, f2h * h2  # p_j h_1,i (eq. 9; eq. 15 with eq. 14)
+            cross = lambda x1, x2, y1, y2: x1 * y1 + x2 * y2  # noqa: E731  (both units)
+            terms = [(a1, a2), (f1th, f2th), (-f1t, -f2t), (-g1, -g2)]  # p, q, y, g (-f)
+            pairs = ((0, 0), (0, 1), (1, 1), (0, 2), (1, 2), (0, 3), (1, 3), (3, 3), (3, 2),
+                     (2, 2))  # fmt: skip
+            parts = np.stack([np.ones(n)] + [cross(*terms[i], *terms[j]) for i, j in pairs], 1)
+            g0, gd, gdd = (self.gauss * np.arange(-self.half, self.half + 1) ** m * self.cell**m
+                           for m in range(3))  # fmt: skip
+            sel = np.flatnonzero(on)
+            # channels: 0 w, 1 pp, 2 pq, 3 qq, 4 py, 5 qy, 6 pg, 7 qg, 8 gg, 9 gy, 10 yy; the
+            # first moment of u needs the first 8, the second the first 4 (the linear model)
+            mom = [self._filter(parts, [(g0, g0, 1)])[0][sel]]
+            if linear:
+                if self.tangent is None:
+                    raise ValueError("GridPools: the linear model's sums need the tangents")
+                tx, ty = self.tangent[sel, 0:1], self.tangent[sel, 1:2]
+                mx, my = self._filter(np.ascontiguousarray(parts[:, :8]),
+                                      [(gd, g0, 1), (g0, gd, 1)])[:, sel]  # fmt: skip
+                second = [(gdd, g0, 1), (gd, gd, 1), (g0, gdd, 1)]
+                mxx, mxy, myy = self._filter(np.ascontiguousarray(parts[:, :4]), second)[:, sel]
+                u2 = (tx * tx * mxx + 2.0 * tx * ty * mxy + ty * ty * myy) / scale**2
+                mom += [(tx * mx + ty * my) / scale, u2]
+            gg = self.gauss**2
+            sq = self._filter(np.ones((n, 1)), [(gg, gg, 2)])[0][:, 0]
+            hi = h1[sel]
+            i2, i1 = 1.0 / hi**2, 1.0 / hi
+            c0 = mom[0]
+            last = p - 1
+            ent = {(0, 0): c0[:, 1] * i2, (0, 1): c0[:, 2] * i2, (1, 1): c0[:, 3] * i2,
+                   (0, last): c0[:, 6] * i1, (1, last): c0[:, 7] * i1,
+                   (last, last): c0[:, 8]}  # fmt: skip
+            rhs = {0: c0[:, 4] * i1, 1: c0[:, 5] * i1, last: c0[:, 9]}
+            if linear:
+                c1, c2 = mom[1], mom[2]
+                ent.update({(0, 2): c1[:, 1] * i2, (0, 3): c1[:, 2] * i2, (1, 2): c1[:, 2] * i2,
+                            (1, 3): c1[:, 3] * i2, (2, 2): c2[:, 1] * i2, (2, 3): c2[:, 2] * i2,
+                            (3, 3): c2[:, 3] * i2, (2, last): c1[:, 6] * i1,
+                            (3, last): c1[:, 7] * i1})  # fmt: skip
+                rhs.update({2: c1[:, 4] * i1, 3: c1[:, 5] * i1})
+                powers[sel, 1], powers[sel, 2] = c1[:, 0], c2[:, 0]
+            for (r, c), val in ent.items():
+                M[sel, r, c] = M[sel, c, r] = val
+            for r, val in rhs.items():
+                v[sel, r] = val
+            yy[sel], powers[sel, 0], w2[sel] = c0[:, 10], c0[:, 0], sq[sel]
+        if self.idx is not None:  # the points whose window mixes ranges: their tree pools
+            model = "linear" if linear else "constant"
+            tree = gain_sums(self.idx, self.w, np.arange(n), derivs, f, h1, h2, theta,
+                             model=model, scale=scale)  # fmt: skip
+            M, v, yy, powers = M + tree[0], v + tree[1], yy + tree[2], powers + tree[3]
+            w2 = w2 + (self.w * self.w).sum(axis=1)
+        return M, v, yy, powers, w2

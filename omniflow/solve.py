@@ -224,7 +224,7 @@ def make_solver(
     :mod:`omniflow.gain`): the pools whose F statistic of the gain passes the gate
     take the answer with it. The gain fit pools over the solver's k-d tree pools as
     searched (before ``pool_min_info``, ``pool_residual_tol`` or ``pool_flow_tol`` thin
-    them); with grid pools over the k-d tree pools of the same k, radius and ranges.
+    them), or over its grid windows (``pool_grid``).
 
     The returned function's attribute ``pools``: the (idx, w) of
     :func:`omniflow.flow.neighbourhoods` where the solver pools over them as
@@ -294,16 +294,14 @@ def make_solver(
 
     solve = plain
     if config.brightness_gate is not None and brightness is not None:
-        gain_pools = (idx, w) if grid is None else neighbourhoods(x1, y1, **tree)
-
         gain_kw = dict(model=config.pool_model, scale=pool_radius, min_conditioning=floor,
                        noise=noise, residual_noise=config.eiv == "residual",
-                       gate=config.brightness_gate)  # fmt: skip
+                       gate=config.brightness_gate, grid=grid)  # fmt: skip
 
         def solve(*derivs):
             # the gain fit on the other thread while this one makes the plain solve
             task = submit(partial(gain_solution, **gain_kw), derivs, brightness, h1, h2, theta,
-                          *gain_pools)  # fmt: skip
+                          idx, w)  # fmt: skip
             try:
                 a, b, conf = plain(*derivs)
             except BaseException:
