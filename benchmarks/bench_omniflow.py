@@ -132,7 +132,9 @@ def parse_set(items: list[str], cls) -> dict:
                 f"bench: --set {item!r}: expected NAME=VALUE, NAME one of {list(fields)}"
             )
         default = fields[name].default
-        if isinstance(default, bool):
+        if text.lower() == "none" and "None" in str(fields[name].type):
+            value = None
+        elif isinstance(default, bool):
             value = text.lower() in ("1", "true", "yes", "on")
         elif isinstance(default, int | float) and default is not None:
             value = type(default)(text)

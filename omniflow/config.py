@@ -320,15 +320,20 @@ class OmniFlowConfig:
         whose brightness changes as they move (a face driving towards a lamp,
         a body turning under fixed lights), which brightness constancy
         (eq. 8) reads as flow. Applies in the first solve, the refinement and
-        the decoupled model; with grid pools (``pool_grid``) the gain fit and
-        its test use the k-d tree pools. None (the default): off. 20 fixes
+        the decoupled model. None: off. 20 (the default) fixes
         approach's incoming face (radial flow +3.0 % -> -0.6 %, time to
         contact's median error 4.0 -> 2.2 %) and most of the ball's radial
-        flow (53 -> 79 %), +2 % static mean error on crossing, none on
-        default, 1.6x the time; on the dense preset 20 costs 12-20 % of the
-        static error, 60 keeps it and most of the gain, at 3-4 times the
-        preset's time; docs/measurements.md, "brightness_gate: the gated gain
-        term built" and the probe before it.
+        flow (53 -> 79 %), at +2 % static mean error on crossing (equal
+        median) and none on default and low_texture, for about 3 ms a pair
+        (compiled sums, omniflow.kernels.gain_sums). With grid pools
+        (``pool_grid``, the dense preset) the gain fit and its test use the
+        grid's windows: there 20 takes approach's time-to-contact error 4.2 ->
+        1.6 % and the ball's radial flow 45 -> 86 %, static scenes unchanged.
+        A fitted |beta| below omniflow.gain.MIN_CHANGE (0.2 % per frame) is
+        never taken (model error, not a change). Off in the paper's
+        configuration (eq. 8 as written); docs/measurements.md,
+        "brightness_gate: the gated gain term built" and "brightness_gate
+        made cheap, and the default".
     flow_shading : float or None
         Fit the flow step's series to each frame divided by its Gaussian
         local mean of this many pixels (omniflow.shading), so that shading
@@ -451,7 +456,7 @@ class OmniFlowConfig:
     min_conditioning: float = 0.0
     pool_min_conditioning: float = 1e-3
     decouple_tol: float | None = 20.0
-    brightness_gate: float | None = None
+    brightness_gate: float | None = 20.0
     flow_shading: float | None = None
     flow_shading_where: str = "everywhere"
     sampling: str = "cubic"
@@ -546,7 +551,8 @@ class OmniFlowConfig:
         and its analytic derivatives evaluated exactly at the points (eq.
         18-20), first-frame gradients, the frame difference of the fitted
         images for f_t and the direct solution of eq. (16) at each point, once
-        (no Gauss-Newton step); no noise correction. tests/omniflow/test_flow.py
+        (no Gauss-Newton step); no noise correction and no brightness gain
+        (eq. 8 as written). tests/omniflow/test_flow.py
         checks that this reproduces eq. (16), (19) and (20) computed
         independently to rounding.
 
@@ -572,6 +578,7 @@ class OmniFlowConfig:
             sampling="exact",
             iterations=0,
             iterate_min_px=0.0,
+            brightness_gate=None,
         )
         base.update(overrides)
         return cls(**base)
@@ -585,7 +592,7 @@ class OmniFlowConfig:
         solver's sums on a grid (``pool_grid`` 0.125), the decoupling test at
         ``decouple_tol`` 60 (at 20 the larger pools switch static points),
         with the default's Gauss-Newton step where a surface moves at least
-        a pixel. About ten times the
+        a pixel, and the default's brightness gain (on the grid's windows). About ten times the
         default's points (4 % of the valid pixels of the rendered scenes
         against 0.4 %) and a smaller error on every rendered scene, at about
         twice the default's time per pair (docs/measurements.md, "The dense
