@@ -214,6 +214,7 @@ KNOB_LIMITS: dict[str, tuple[float, float, bool, bool]] = {
     "pool_flow_tol": (0.0, math.inf, False, False),
     "decouple_tol": (0.0, math.inf, False, False),  # an F statistic (omniflow.decoupled)
     "brightness_gate": (0.0, math.inf, False, False),  # an F statistic (omniflow.gain)
+    "decouple_gain_tol": (0.0, math.inf, False, False),  # an F statistic (omniflow.gain)
     "flow_shading": (0.0, math.inf, False, False),  # px, Gaussian sigma (omniflow.shading)
     "pool_edge_tol": (0.0, math.inf, False, False),  # a factor on the median edge at the matches
     "pool_residual_tol": (0.0, math.inf, False, False),  # robust standard deviations

@@ -55,12 +55,21 @@ from numpy.typing import NDArray
 from omniflow.applications import radial_velocity_stereo
 from omniflow.config import OmniFlowConfig
 from omniflow.flow import neighbourhoods
-from omniflow.gain import decoupled_gain, gated
+from omniflow.gain import decoupled_gain, decoupled_linear_gain, gated
 from omniflow.gridpool import GridPools
 from omniflow.kernels import decouple_fits, decouple_sums
 from omniflow.rig import Rig
 
-__all__ = ["decouple", "fits_from_sums", "model_fits", "pool_fits", "tests"]
+__all__ = [
+    "EDGE_GATE",
+    "EDGE_SHARE",
+    "chained",
+    "decouple",
+    "fits_from_sums",
+    "model_fits",
+    "pool_fits",
+    "tests",
+]
 
 
 def model_fits(
@@ -167,24 +176,35 @@ def decouple(
     ``brightness``: each unit's image at the points (:mod:`omniflow.gain`); with
     ``config.brightness_gate`` the decoupled points whose pool's F statistic of a gain
     passes the gate take the decoupled model with the gain (over the k-d tree pools).
+    With ``config.decouple_gain_tol`` (and ``fit`` made with ``brightness``), eq. (14)
+    is then tested again with a gain varying linearly across the pool in both fits
+    (:func:`omniflow.gain.decoupled_linear_gain`, over the k-d tree pools): the points
+    whose F_U passes :func:`chained`'s gate take the decoupled model with that gain
+    and are reported decoupled, whatever the steps before answered.
     """
     n = np.asarray(cols["h1"]).size
     out = dict(cols)
     out["coupled"] = np.ones(n)  # 1.0 / 0.0 like every other column (arithmetic, CSV)
     if not tests(config, n):
         return out
-    fit = pool_fits(cols, rig, config, pools=pools) if fit is None else fit
+    if fit is None:
+        fit = pool_fits(cols, rig, config, pools=pools, brightness=brightness)
     h1, h2 = (np.asarray(cols[c], dtype=np.float64) for c in ("h1", "h2"))
     with np.errstate(invalid="ignore"):
         switch = (fit["F"] > config.decouple_tol) & np.isfinite(fit["a1"] + fit["a2"] + fit["b"])
-    if not switch.any():
-        return out
-    theta = np.asarray(cols["theta"], dtype=np.float64)
     a1 = np.where(switch, fit["a1"], cols["dh1_dt"])
     a2 = np.where(switch, fit["a2"], cols["dh2_dt"])
     b = np.where(switch, fit["b"], cols["dtheta_dt"])
-    if brightness is not None and config.brightness_gate is not None:
+    if brightness is not None and config.brightness_gate is not None and switch.any():
         a1, a2, b = _with_gain(cols, rig, config, switch, brightness, a1, a2, b)
+    if "gain_F" in fit:  # eq. (14) tested again with a linear gain in both fits
+        chain = chained(fit, config.decouple_gain_tol)
+        a1, a2 = np.where(chain, fit["gain_a1"], a1), np.where(chain, fit["gain_a2"], a2)
+        b = np.where(chain, fit["gain_b"], b)
+        switch = switch | chain
+    if not switch.any():
+        return out
+    theta = np.asarray(cols["theta"], dtype=np.float64)
     dx, dy = displacement(rig.cam1, h1, theta, a1, b)
     dx2, dy2 = displacement(rig.cam2, h2, theta, a2, b)
     dr = radial_velocity_stereo(cols["r"], h1, h2, a1, a2, d=rig.d)
@@ -210,6 +230,30 @@ def _with_gain(cols, rig, config, switch, brightness, a1, a2, b):
     return np.where(use, g1, a1), np.where(use, g2, a2), np.where(use, gb, b)
 
 
+#: A pool lies on a range edge (an object whose range differs from its surroundings)
+#: when the range test (``pool_range_tol``) drops more than this share of the
+#: neighbours within its radius: 64-100 % of independent_movers' movers' points, 7 % of
+#: its static ones, 24 % of approach's (docs/measurements.md, "Ring, spinner, poster").
+EDGE_SHARE = 0.25
+
+#: :func:`chained`'s gate on range-edge pools, as a share of ``decouple_gain_tol``
+#: elsewhere. The probe's "chain L/C U edge>10|20" (the ring's cam1 mean-flow error
+#: 64 -> 31 %, the static points unchanged); 10 everywhere took the ring to 21 % but
+#: cost 3-4 % static mean error on independent_movers, approach and crossing
+#: (docs/measurements.md, "Ring, spinner, poster" and "decouple_gain_tol: eq. (14)
+#: tested with a linear gain, built").
+EDGE_GATE = 0.5
+
+
+def chained(fit: dict[str, NDArray], tol: float) -> NDArray:
+    """Where :func:`decouple` takes the decoupled model with a linear gain: the F_U of
+    :func:`omniflow.gain.decoupled_linear_gain` (``fit["gain_F"]``) above ``tol``, or
+    above ``EDGE_GATE * tol`` on a range-edge pool (``fit["gain_edge"]``,
+    :data:`EDGE_SHARE`), and a finite answer."""
+    gate = np.where(fit["gain_edge"], EDGE_GATE * tol, tol)
+    return gated(fit["gain_F"], gate, fit["gain_a1"], fit["gain_a2"], fit["gain_b"])
+
+
 def tests(config: OmniFlowConfig, n: int) -> bool:
     """Whether :func:`decouple` tests eq. (14) at n points: a ``decouple_tol``, the pooled
     solver and at least 10 points."""
@@ -221,14 +265,22 @@ def pool_fits(
     rig: Rig,
     config: OmniFlowConfig,
     pools: tuple[NDArray, NDArray, NDArray] | None = None,
+    brightness: tuple[NDArray, NDArray] | None = None,
 ) -> dict[str, NDArray] | None:
     """Both models' fits over each point's pool (:func:`fits_from_sums`), as
     :func:`decouple` tests them; None where it does not test (:func:`tests`).
 
-    Reads only the columns ``x``, ``y``, ``r``, ``h1``, ``h2`` and the six
+    Reads only the columns ``x``, ``y``, ``r``, ``h1``, ``h2``, ``theta`` and the six
     derivatives, none of the solved flow, so the solver can have it made on the
     other thread while it refines the flow (:func:`omniflow.solve.flow_at_matches`).
     ``pools`` as for :func:`decouple`.
+
+    With ``config.decouple_gain_tol`` and ``brightness`` (each unit's image at the
+    points) also the decoupled model with a linear gain and its F_U
+    (:func:`omniflow.gain.decoupled_linear_gain`) over the k-d tree pools (with grid
+    pools searched here, of the same k, radius and range test): keys ``gain_a1``,
+    ``gain_a2``, ``gain_b``, ``gain_F`` and ``gain_edge`` (the pool on a range edge,
+    :data:`EDGE_SHARE`).
     """
     if not tests(config, np.asarray(cols["h1"]).size):
         return None
@@ -239,15 +291,29 @@ def pool_fits(
         range_tol=config.pool_range_tol, query=query,
     )  # fmt: skip
     derivs = tuple(np.asarray(cols[c], dtype=np.float64) for c in DERIVS)
+    chain = config.decouple_gain_tol is not None and brightness is not None
+    idx = w = None
     if config.grid_pools:  # the solver's grid windows, the k-d tree's where ranges mix
         grid = GridPools(
             cols["x"], cols["y"], None, (rig.cam1.height, rig.cam1.width), radius=radius,
             cell=config.pool_grid * radius, r=cols["r"], range_tol=config.pool_range_tol,
             tree_pools=lambda mask: search(query=mask),
         )  # fmt: skip
-        return fits_from_sums(grid.decouple_sums(derivs, h1, h2), h1, h2)
-    idx, w = search() if pools is None else kept_pools(*pools, search)
-    return model_fits(derivs, h1, h2, idx, w)
+        fit = fits_from_sums(grid.decouple_sums(derivs, h1, h2), h1, h2)
+        if chain:
+            idx, w = search()
+    else:
+        idx, w = search() if pools is None else kept_pools(*pools, search)
+        fit = model_fits(derivs, h1, h2, idx, w)
+    if chain:
+        theta = np.asarray(cols["theta"], dtype=np.float64)
+        floor = max(config.min_conditioning, config.pool_min_conditioning)
+        g = decoupled_linear_gain(derivs, brightness, h1, h2, theta, idx, w, scale=radius,
+                                  min_conditioning=floor)  # fmt: skip
+        within = (idx < h1.size).sum(axis=1)  # neighbours within the radius, any range
+        fit.update(gain_a1=g[0], gain_a2=g[1], gain_b=g[2], gain_F=g[3],
+                   gain_edge=within - (w > 0).sum(axis=1) > EDGE_SHARE * within)  # fmt: skip
+    return fit
 
 
 #: the result columns of the six derivatives, in the order the fits take them

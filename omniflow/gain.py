@@ -43,7 +43,7 @@ from numpy.typing import NDArray
 from omniflow.gridpool import GridPools
 from omniflow.kernels import gain_sums, small_solves
 
-__all__ = ["MIN_CHANGE", "decoupled_gain", "gain_solution", "gated"]
+__all__ = ["MIN_CHANGE", "decoupled_gain", "decoupled_linear_gain", "gain_solution", "gated"]
 
 #: The least brightness change per frame, |beta|, that a pool's gain answer may correct:
 #: a smaller fitted gain is taken for model error, not a change (its F is not tested).
@@ -175,8 +175,81 @@ def decoupled_gain(
     return tuple(out)
 
 
-def gated(F: NDArray, gate: float, *answers: NDArray) -> NDArray:
-    """Where the gain answer is taken: F above ``gate`` and every answer finite."""
+def decoupled_linear_gain(
+    derivs: tuple[NDArray, ...],
+    f: tuple[NDArray, NDArray],
+    h1: NDArray,
+    h2: NDArray,
+    theta: NDArray,
+    idx: NDArray,
+    w: NDArray,
+    *,
+    scale: float,
+    min_conditioning: float,
+    slopes: bool = True,
+) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+    """Eq. (14) tested with a gain varying linearly across the pool in both fits.
+
+    Where a body turns under fixed lights (independent_movers' ring) its texture
+    moves along the axis, so eq. (14) fails, and its brightness changes unevenly
+    across a pool, which inflates both models' residuals: the plain two-model
+    test (:mod:`omniflow.decoupled`) and the one gain per pool do not find it.
+    Here unit u's row of neighbour j carries the decoupled model of
+    :func:`decoupled_gain` and a gain (beta + beta_u u_j + beta_h dh_j) f_u,j,
+    u_j and dh_j the tangential and radial offsets of j from the point over
+    ``scale`` (the linear pool model's u)::
+
+        (f_h, -f_h h_u,j / h_1,i, f_theta / h_1,i, -f, -f u_j, -f dh_j)
+            . (U, h_1,i W, c, beta, beta_u, beta_h) = -f_t
+
+    one 6 x 6 weighted Gram per pool (:func:`omniflow.kernels.gain_sums`,
+    ``decoupled_linear``). The coupled model with the same gain is the same Gram
+    without the U column (U = 0 is eq. 14; the W column is the coupled radial one
+    up to sign), so both fits come from one pass, and the statistic of U,
+
+        F_U = (RSS_coupled - RSS_decoupled) / (RSS_decoupled / (n_eff - 6)),
+
+    (n_eff = 2 (sum w)^2 / sum w^2, both units' rows) is eq. (14)'s test given
+    the brightness model. Constant flow model, no bias compensation (as the
+    decoupled model of :func:`omniflow.decoupled.fits_from_sums`); each solve NaN
+    where the information left on its first two unknowns (the Schur complement)
+    is below ``min_conditioning`` (:func:`omniflow.kernels.small_solves`).
+    ``slopes`` False: one gain per pool (beta only, 4 and 3 unknowns), the same test.
+
+    Returns
+    -------
+    dh1_dt, dh2_dt, dtheta_dt : ndarray, shape (N,)
+        The decoupled fit's flow, dh_u = U - h_u W, dtheta = c / h_1,i.
+    F : ndarray, shape (N,)
+        F_U; NaN where either fit has no solution, n_eff <= 6 (the unknowns) or
+        RSS_decoupled is 0.
+        The rows of ``idx`` whose weights are all 0 are skipped (NaN).
+    """
+    n = h1.size
+    out = [np.full(n, np.nan) for _ in range(4)]
+    sel = np.flatnonzero(w.sum(axis=1) > 0)
+    model = "decoupled_linear" if slopes else "decoupled"
+    M, v, yy, _, _, _ = gain_sums(idx[sel], w[sel], sel, derivs, f, h1, h2, theta,
+                                  model=model, scale=scale)  # fmt: skip
+    p = M.shape[1]
+    x, _ = _solve(M, v, min_conditioning)
+    xc, _ = _solve(M[:, 1:, 1:], v[:, 1:], min_conditioning)  # U = 0: eq. (14)
+    rss = yy - np.einsum("np,np->n", x, v)  # min of sum w (A x - y)^2 = y^T y - x . v
+    rss_c = yy - np.einsum("np,np->n", xc, v[:, 1:])
+    ws = w[sel]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        n_eff = 2.0 * ws.sum(axis=1) ** 2 / (ws * ws).sum(axis=1)  # both units' rows
+        F = (rss_c - rss) / (rss / (n_eff - p))
+    out[3][sel] = np.where((n_eff > p) & (rss > 0), F, np.nan)
+    k = h2[sel] / h1[sel]
+    out[0][sel], out[1][sel] = x[:, 0] - x[:, 1], x[:, 0] - k * x[:, 1]
+    out[2][sel] = x[:, 2] / h1[sel]
+    return tuple(out)
+
+
+def gated(F: NDArray, gate: float | NDArray, *answers: NDArray) -> NDArray:
+    """Where the gain answer is taken: F above ``gate`` (one, or one per point) and every
+    answer finite."""
     with np.errstate(invalid="ignore"):
         use = F > gate
     for v in answers:

@@ -663,8 +663,9 @@ def cell_knn(
 
 
 #: :func:`gain_sums`'s local models: unknowns (a, h_1,i b, beta), (a, h_1,i b, u a, u h_1,i b,
-#: beta) and the decoupled (U, h_1,i W, h_1,i b, beta) of omniflow.decoupled.
-GAIN_MODELS = {"constant": 0, "linear": 1, "decoupled": 2}
+#: beta), the decoupled (U, h_1,i W, h_1,i b, beta) of omniflow.decoupled and the decoupled
+#: with a gain varying linearly across the pool (U, h_1,i W, h_1,i b, beta, beta_u, beta_h).
+GAIN_MODELS = {"constant": 0, "linear": 1, "decoupled": 2, "decoupled_linear": 3}
 
 
 @numba.njit(cache=True, nogil=True)
@@ -672,7 +673,7 @@ def _gain_sums(idx, w, rows, f1_h, f1_th, f1_t, f2_h, f2_th, f2_t, f1, f2, h1, h
                scale):  # pragma: no cover - compiled  # fmt: skip
     n, kk = idx.shape
     npt = h1.size
-    p = 3 if model == 0 else (5 if model == 1 else 4)
+    p = (3, 5, 4, 6)[model]
     M = np.zeros((n, p, p))
     v = np.zeros((n, p))
     yy = np.zeros(n)
@@ -697,9 +698,10 @@ def _gain_sums(idx, w, rows, f1_h, f1_th, f1_t, f2_h, f2_th, f2_t, f1, f2, h1, h
                 continue
             rel = h1[j] / hi  # the radial flow scales with h_1 on one surface
             u = 0.0
-            if model == 1:  # the tangential offset, as numpy's floor-mod wrap
+            if model == 1 or model == 3:  # the tangential offset, as numpy's floor-mod wrap
                 u = (((th[j] - th[i]) + math.pi) % two_pi - math.pi) * hi / scale
-            if model == 2:  # the decoupled model: dh_u = U - h_u W
+            dh = (h1[j] - hi) / scale  # the radial offset (model 3)
+            if model >= 2:  # the decoupled model: dh_u = U - h_u W
                 for unit in range(2):
                     if unit == 0:
                         fh, fq, ft, fu, hu = f1_h[j], f1_th[j], f1_t[j], f1[j], h1[j]
@@ -709,6 +711,9 @@ def _gain_sums(idx, w, rows, f1_h, f1_th, f1_t, f2_h, f2_th, f2_t, f1, f2, h1, h
                     row[1] = -fh * hu / hi
                     row[2] = fq / hi
                     row[3] = -fu  # beta f on the right side
+                    if model == 3:  # (beta + beta_u u + beta_h dh) f
+                        row[4] = -fu * u
+                        row[5] = -fu * dh
                     y = -ft
                     if s == 0:
                         for c in range(p):
@@ -762,7 +767,7 @@ def _gain_sums(idx, w, rows, f1_h, f1_th, f1_t, f2_h, f2_th, f2_t, f1, f2, h1, h
                 w1 += ww * u
                 w2 += ww * u * u
         powers[m, 0], powers[m, 1], powers[m, 2] = w0, w1, w2
-        if model != 2:
+        if model < 2:
             g = p - 1
             M[m, 0, 0], M[m, 0, 1], M[m, 1, 1] = s_pp0, s_pq0, s_qq0
             M[m, 0, g], M[m, 1, g], M[m, g, g] = s_pg0, s_qg0, s_gg
@@ -806,24 +811,26 @@ def gain_sums(
         Each unit's image at the points.
     h1, h2 : ndarray, shape (N,)
     theta : ndarray, shape (N,), optional
-        Azimuth (``model="linear"`` only).
-    model : {"constant", "linear", "decoupled"}
+        Azimuth (``model="linear"`` and ``"decoupled_linear"`` only).
+    model : {"constant", "linear", "decoupled", "decoupled_linear"}
         The unknowns, :data:`GAIN_MODELS`.
     scale : float
-        Tangential length that scales u, pixels (``linear``).
+        Length that scales the offsets u (tangential, ``linear`` and
+        ``decoupled_linear``) and dh = h_1,j - h_1,i (radial, ``decoupled_linear``), pixels.
 
     Returns
     -------
     M : ndarray, shape (n, P, P)
         X^T W X over both units' rows of every neighbour (each carrying the
         neighbour's weight); row of unit u at neighbour j, unknowns as
-        :data:`GAIN_MODELS`, the gain's column -f_u,j.
+        :data:`GAIN_MODELS`, the gain's column -f_u,j (``decoupled_linear``: then
+        -f_u,j u_j and -f_u,j dh_j).
     v : ndarray, shape (n, P)
         X^T W y, y = -f_t.
     yy : ndarray, shape (n,)
         y^T W y.
     powers : ndarray, shape (n, 3)
-        sum_j w, sum_j w u, sum_j w u^2 (u 0 but for ``linear``).
+        sum_j w, sum_j w u, sum_j w u^2 (the last two 0 but for ``linear``).
     x0, y0 : ndarray, shapes (n, 2, P) and (n, 2)
         Both units' rows and right sides of each pool's neighbour 0.
     """

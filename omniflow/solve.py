@@ -70,7 +70,8 @@ def flow_at_matches(
     if config.solver == "pooled" and config.pool_edge_tol is not None:
         edge_map = np.hypot(*cam1["g"].grad_xy)  # |grad f| of the flow step's cam1 image
     brightness = None
-    if config.brightness_gate is not None and config.solver == "pooled":
+    gains = config.brightness_gate is not None or config.decouple_gain_tol is not None
+    if gains and config.solver == "pooled":
         # the image at the points, the series the gradients are read from (omniflow.gain)
         brightness = (sample_f(cam1["g"], x1, y1, config.sampling),
                       sample_f(cam2["g"], x2, y2, config.sampling))  # fmt: skip
@@ -85,11 +86,13 @@ def flow_at_matches(
     keep0 = np.isfinite(a) & np.isfinite(b)
     derivs = {"f1_h": f1_h, "f1_theta": f1_th, "f1_t": f1_t,
               "f2_h": f2_h, "f2_theta": f2_th, "f2_t": f2_t}  # fmt: skip
-    kept = {"x": x1, "y": y1, "r": r, "h1": h1, "h2": h2, **derivs}
+    kept = {"x": x1, "y": y1, "r": r, "h1": h1, "h2": h2, "theta": theta, **derivs}
+    f_kept = brightness
     if not keep0.all():
         kept = {c: v[keep0] for c, v in kept.items()}
+        f_kept = None if brightness is None else tuple(f[keep0] for f in brightness)
     pools0 = None if solve.pools is None else (*solve.pools, keep0)
-    early = submit(pool_fits, kept, rig, config, pools0)
+    early = submit(pool_fits, kept, rig, config, pools0, f_kept)
     try:
         a, b, conf = _refine(a, b, conf, solve, k, cam1, cam2, rig, x1, y1, x2, y2, theta,
                              h1, h2, r, config, noise, brightness)  # fmt: skip
