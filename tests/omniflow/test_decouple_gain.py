@@ -1,0 +1,196 @@
+"""Eq. (14) tested with a linear gain (``OmniFlowConfig.decouple_gain_tol``) against truth.
+
+1. One closed-form pool whose flow breaks eq. (14) (dh_u = U - h_u W) under a gain
+   varying linearly across it (as tests/test_probe_mover_brightness.py): the decoupled
+   model with the linear gain (:func:`omniflow.gain.decoupled_linear_gain`) returns the
+   flow exactly, and its sums equal a brute-force numpy design's.
+2. End to end through :func:`omniflow.pipeline.estimate`: the striped wall of
+   tests/helpers/scenes.py (256 px, true matches at 3 % of the pixels, 419 points)
+   rising 1 mm per frame (eq. 14 fails at every point; true cam1 radial flow 0.18 px),
+   frame t + 1 of both units multiplied by 1 + 0.02 sin(2 theta) (a brightness change
+   varying across the image, the same at a surface point in both units, as shading on a
+   body turning under fixed lights). Errors are cam1 endpoint errors, px per frame;
+   figures measured with these exact scenes (python -m pytest -s prints them).
+"""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+import pytest
+
+import omniflow.decoupled as decoupled_mod
+from omniflow.config import OmniFlowConfig
+from omniflow.gain import decoupled_linear_gain
+from omniflow.pipeline import estimate
+from omniflow.synthetic import Motion
+from tests.helpers.scenes import frames, paper_rig, sparse_true_matches, wall_scene
+
+N, SCALE = 30, 8.0
+U, W, DTHETA = 0.3, -0.004, 0.002  # dh_u = U - h_u W (px/frame), rad/frame
+BETA, BETA_U, BETA_H = 0.02, 0.01, -0.015  # the gain and its slopes across the pool
+DERIVS = ("f1_h", "f1_theta", "f1_t", "f2_h", "f2_theta", "f2_t")
+
+
+def _pool(seed: int = 7, noise: float = 0.0):
+    """N points pooling all N (unit weights), point 0's offsets as the gain's."""
+    rng = np.random.default_rng(seed)
+    h1 = rng.uniform(100.0, 110.0, N)
+    h2 = h1 * rng.uniform(2.2, 2.4, N)
+    theta = rng.uniform(-0.05, 0.05, N)
+    d = dict(h1=h1, h2=h2, theta=theta)
+    u = (theta - theta[0]) * h1[0] / SCALE
+    dh_off = (h1 - h1[0]) / SCALE
+    for un, h in ((1, h1), (2, h2)):
+        fh, fq = rng.normal(0, 0.02, N), rng.normal(0, 2.0, N)
+        f = rng.uniform(0.2, 0.6, N)
+        change = f * (BETA + BETA_U * u + BETA_H * dh_off)  # eq. (9) / (15) right side
+        d.update({f"f{un}_h": fh, f"f{un}_theta": fq, f"f{un}": f,
+                  f"f{un}_t": change - fh * (U - h * W) - fq * DTHETA
+                  + rng.normal(0, noise, N)})  # fmt: skip
+    return d, np.tile(np.arange(N), (N, 1)), np.ones((N, N))
+
+
+def _solve(d, idx, w, **kw):
+    return decoupled_linear_gain(tuple(d[c] for c in DERIVS), (d["f1"], d["f2"]), d["h1"],
+                                 d["h2"], d["theta"], idx, w, scale=SCALE,
+                                 min_conditioning=0.0, **kw)  # fmt: skip
+
+
+def test_the_linear_gain_model_recovers_a_flow_breaking_eq14():
+    """Exact data: point 0's (dh1, dh2, dtheta) to rounding. Mutation caught: one gain per
+    pool (``slopes=False``) misses dh1 by 0.0135 px here (printed)."""
+    d, idx, w = _pool()
+    a1, a2, b, _ = _solve(d, idx, w)
+    assert a1[0] == pytest.approx(U - d["h1"][0] * W, abs=1e-9)
+    assert a2[0] == pytest.approx(U - d["h2"][0] * W, abs=1e-9)
+    assert b[0] == pytest.approx(DTHETA, abs=1e-12)
+    s1, _, _, _ = _solve(d, idx, w, slopes=False)
+    print(f"one gain: dh1 error {abs(s1[0] - (U - d['h1'][0] * W)):.4f} px")
+    assert abs(s1[0] - (U - d["h1"][0] * W)) > 1e-3
+
+
+def _brute_force(d, idx, w):
+    """The 6-column design of the docstring, numpy, and both fits' F_U."""
+    hi = d["h1"][:, None]
+    u = ((d["theta"][idx] - d["theta"][:, None] + np.pi) % (2 * np.pi) - np.pi) * hi / SCALE
+    dh = (d["h1"][idx] - hi) / SCALE
+    X, y = [], []
+    for un in (1, 2):
+        fh, fq, f, h = (d[f"f{un}_h"][idx], d[f"f{un}_theta"][idx], d[f"f{un}"][idx],
+                        d[f"h{un}"][idx])  # fmt: skip
+        X.append(np.stack([fh, -fh * h / hi, fq / hi, -f, -f * u, -f * dh], axis=-1))
+        y.append(-d[f"f{un}_t"][idx])
+    X, y = np.concatenate(X, axis=1), np.concatenate(y, axis=1)
+    ww = np.concatenate([w, w], axis=1)
+    out = []
+    for cols in (slice(0, 6), slice(1, 6)):  # decoupled; coupled (U = 0, eq. 14)
+        A = X[..., cols] * np.sqrt(ww)[..., None]
+        sol = np.stack([np.linalg.lstsq(a, b, rcond=None)[0] for a, b in
+                        zip(A, y * np.sqrt(ww), strict=True)])  # fmt: skip
+        res = np.einsum("nkp,np->nk", X[..., cols], sol) - y
+        out.append((sol, (ww * res**2).sum(axis=1)))
+    (x, rss), (_, rss_c) = out
+    n_eff = 2.0 * w.sum(axis=1) ** 2 / (w * w).sum(axis=1)
+    return x, (rss_c - rss) / (rss / (n_eff - 6.0))
+
+
+def test_the_compiled_sums_equal_a_brute_force_design():
+    """Noisy pool (so F_U is finite): flow and F_U from the compiled 6 x 6 Gram against
+    numpy's least squares on the 6-column design, pools with weights below 1 and a
+    neighbour missing (index N). Measured agreement: flow 7e-15, F_U 4e-12 relative.
+    Mutation caught: the gain's slopes left out (``slopes=False``) differs from the
+    design by 5 % in dh1 and 93 % in F_U."""
+    d, idx, w = _pool(seed=3, noise=1e-3)
+    rng = np.random.default_rng(0)
+    w = w * rng.uniform(0.2, 1.0, w.shape)
+    idx = idx.copy()
+    idx[:, -1], w[:, -1] = N, 0.0  # no neighbour: the sentinel, weight 0
+    a1, a2, b, F = _solve(d, idx, w)
+    x, F_ref = _brute_force(d, np.where(idx < N, idx, 0), w)
+    np.testing.assert_allclose(a1, x[:, 0] - x[:, 1], rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(a2, x[:, 0] - d["h2"] / d["h1"] * x[:, 1], rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(b, x[:, 2] / d["h1"], rtol=1e-9, atol=1e-14)
+    np.testing.assert_allclose(F, F_ref, rtol=1e-8)
+    assert np.nanmin(F) > 100.0  # eq. (14) broken by 0.3 px of U: measured 166-256
+    F1 = _solve(d, idx, w, slopes=False)[3]
+    assert not np.allclose(F1, F_ref, rtol=1e-2)
+
+
+RISING = Motion(vz=0.001)  # the wall rising 1 mm per frame: cam1 radial flow 0.18 px
+AMP = 0.02  # frame t + 1 times 1 + AMP sin(2 theta)
+
+
+def _run(wall=RISING, amp=AMP, **knobs):
+    """(result, cam1 endpoint error per point) on the wall scene under the gain field."""
+    rig = paper_rig(256)
+    scene = wall_scene(rig, wall_motion=wall)
+    f1, f2 = frames(scene, 2)
+    m, gt = sparse_true_matches(scene, 0.03)
+    gains = []
+    for cam in (rig.cam1, rig.cam2):
+        _, theta = cam.polar_of_pixel(*cam.pixel_centres())
+        gains.append((1.0 + amp * np.sin(2.0 * theta)).astype(np.float32))
+    res = estimate([f1[0], f1[1] * gains[0]], [f2[0], f2[1] * gains[1]], rig,
+                   OmniFlowConfig(**knobs), matches=m)  # fmt: skip
+    iy, ix = res["y"].astype(int), res["x"].astype(int)  # true matches: pixel centres
+    dh, hdtheta = gt["gt.flow.dh"][iy, ix], gt["gt.flow.hdtheta"][iy, ix]
+    err = np.hypot(res["dh1_dt"] - dh, res["h1"] * res["dtheta_dt"] - hdtheta)
+    print(f"wall {wall}, amp {amp} {knobs}: {err.size} points, decoupled "
+          f"{np.mean(res['coupled'] == 0):.2f}, EPE mean {err.mean():.4f} median "
+          f"{np.median(err):.4f}, mean dh {res['dh1_dt'].mean():+.4f} "
+          f"of {dh.mean():+.4f}")  # fmt: skip
+    return res, err
+
+
+def test_the_test_with_the_gain_finds_the_rising_wall(monkeypatch):
+    """Defaults (decouple_tol 20, brightness_gate 20): the gain field hides the rise from
+    the plain two-model test at most points (29 % decoupled), mean dh 0.122 of 0.180 px,
+    EPE mean 0.0898. decouple_gain_tol 20: every point decoupled, mean dh 0.1804, EPE
+    0.0083 (no gain field: 0.0042). Mutation caught: one gain per pool in the test and
+    the model (``slopes=False``): EPE 0.0331."""
+    _, plain = _run()
+    res, chain = _run(decouple_gain_tol=20.0)
+    assert (res["coupled"] == 0).all()
+    assert chain.mean() < 0.15 * plain.mean()  # measured 0.092
+    assert chain.mean() < 0.015  # measured 0.0083
+    single = functools.partial(decoupled_linear_gain, slopes=False)
+    monkeypatch.setattr(decoupled_mod, "decoupled_linear_gain", single)
+    _, mutated = _run(decouple_gain_tol=20.0)
+    assert not mutated.mean() < 0.015  # measured 0.0331
+
+
+def test_no_switch_where_eq14_holds():
+    """The wall at rest under the same gain field (eq. 14 holds, the brightness changes):
+    no point switches at 20, so every column equals the default's. Mutation caught: a
+    gate of 1 switches 11 % of the points (eq. 14 no longer imposed where it holds)."""
+    plain, _ = _run(wall=Motion())
+    chain, _ = _run(wall=Motion(), decouple_gain_tol=20.0)
+    for name, col in plain.columns.items():
+        np.testing.assert_array_equal(chain[name], col, err_msg=name)
+    loose, _ = _run(wall=Motion(), decouple_gain_tol=1.0)
+    assert (loose["coupled"] == 0).mean() > 0.02  # measured 0.11
+
+
+def test_the_lower_gate_at_range_edges(monkeypatch):
+    """:func:`omniflow.decoupled.chained`: F_U 12 passes on a range-edge pool (gate 10 at
+    decouple_gain_tol 20) and not elsewhere; 25 passes both; NaN answers never. Mutation
+    caught: EDGE_GATE 1 (no lower gate) rejects the edge pool."""
+    one = np.ones(4)
+    fit = dict(gain_F=np.array([12.0, 12.0, 25.0, 25.0]), gain_edge=np.array([1, 0, 0, 1], bool),
+               gain_a1=one, gain_a2=one, gain_b=np.array([1.0, 1.0, 1.0, np.nan]))  # fmt: skip
+    assert decoupled_mod.chained(fit, 20.0).tolist() == [True, False, True, False]
+    monkeypatch.setattr(decoupled_mod, "EDGE_GATE", 1.0)
+    assert decoupled_mod.chained(fit, 20.0).tolist() == [False, False, True, False]
+
+
+@pytest.mark.parametrize("tol", [0.0, -1.0, float("nan")])
+def test_bad_tol(tol):
+    with pytest.raises(ValueError, match="decouple_gain_tol"):
+        OmniFlowConfig(decouple_gain_tol=tol)
+
+
+def test_needs_the_test_it_extends():
+    with pytest.raises(ValueError, match=r"decouple_gain_tol = 20\.0: needs decouple_tol"):
+        OmniFlowConfig(decouple_gain_tol=20.0, decouple_tol=None)
