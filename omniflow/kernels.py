@@ -668,6 +668,45 @@ def cell_knn(
 GAIN_MODELS = {"constant": 0, "linear": 1, "decoupled": 2, "decoupled_linear": 3}
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _add_row6(acc, vacc, ww, r0, r1, r2, r3, r4, r5, y):  # pragma: no cover - compiled
+    # one weighted row into a 6 x 6 Gram (upper triangle) and X^T W y, unrolled (the
+    # generic loop over a run-time P is twice as slow), in the generic loop's order
+    wc = ww * r0
+    vacc[0] += wc * y
+    acc[0, 0] += wc * r0
+    acc[0, 1] += wc * r1
+    acc[0, 2] += wc * r2
+    acc[0, 3] += wc * r3
+    acc[0, 4] += wc * r4
+    acc[0, 5] += wc * r5
+    wc = ww * r1
+    vacc[1] += wc * y
+    acc[1, 1] += wc * r1
+    acc[1, 2] += wc * r2
+    acc[1, 3] += wc * r3
+    acc[1, 4] += wc * r4
+    acc[1, 5] += wc * r5
+    wc = ww * r2
+    vacc[2] += wc * y
+    acc[2, 2] += wc * r2
+    acc[2, 3] += wc * r3
+    acc[2, 4] += wc * r4
+    acc[2, 5] += wc * r5
+    wc = ww * r3
+    vacc[3] += wc * y
+    acc[3, 3] += wc * r3
+    acc[3, 4] += wc * r4
+    acc[3, 5] += wc * r5
+    wc = ww * r4
+    vacc[4] += wc * y
+    acc[4, 4] += wc * r4
+    acc[4, 5] += wc * r5
+    wc = ww * r5
+    vacc[5] += wc * y
+    acc[5, 5] += wc * r5
+
+
 @numba.njit(cache=True, nogil=True)
 def _gain_sums(idx, w, rows, f1_h, f1_th, f1_t, f2_h, f2_th, f2_t, f1, f2, h1, h2, th, model,
                scale):  # pragma: no cover - compiled  # fmt: skip
@@ -681,10 +720,14 @@ def _gain_sums(idx, w, rows, f1_h, f1_th, f1_t, f2_h, f2_th, f2_t, f1, f2, h1, h
     x0 = np.zeros((n, 2, p))
     y0 = np.zeros((n, 2))
     row = np.zeros(p)
+    acc = np.zeros((p, p))  # the decoupled models' sums of one pool (local: faster)
+    vacc = np.zeros(p)
     two_pi = 2.0 * math.pi
     for m in range(n):
         i = rows[m]
         hi = h1[i]
+        acc[:] = 0.0
+        vacc[:] = 0.0
         # sum_j w u^m of the two units' products of p (radial), q (tangential), g (-f,
         # the gain's column) and y (-f_t): the linear model's matrix is made of these
         s_pp0 = s_pp1 = s_pp2 = s_pq0 = s_pq1 = s_pq2 = s_qq0 = s_qq1 = s_qq2 = 0.0
@@ -719,12 +762,16 @@ def _gain_sums(idx, w, rows, f1_h, f1_th, f1_t, f2_h, f2_th, f2_t, f1, f2, h1, h
                         for c in range(p):
                             x0[m, unit, c] = row[c]
                         y0[m, unit] = y
-                    for c in range(p):
+                    s_yy += ww * y * y
+                    if model == 3:
+                        _add_row6(acc, vacc, ww, row[0], row[1], row[2], row[3], row[4],
+                                  row[5], y)  # fmt: skip
+                        continue
+                    for c in range(p):  # into the pool's own accumulators, same order
                         wc = ww * row[c]
-                        v[m, c] += wc * y
+                        vacc[c] += wc * y
                         for d in range(c, p):
-                            M[m, c, d] += wc * row[d]
-                    yy[m] += ww * y * y
+                            acc[c, d] += wc * row[d]
                 w0 += ww
                 continue
             # eq. (9); eq. (15) with eq. (14)
@@ -767,7 +814,13 @@ def _gain_sums(idx, w, rows, f1_h, f1_th, f1_t, f2_h, f2_th, f2_t, f1, f2, h1, h
                 w1 += ww * u
                 w2 += ww * u * u
         powers[m, 0], powers[m, 1], powers[m, 2] = w0, w1, w2
-        if model < 2:
+        if model >= 2:
+            for c in range(p):
+                v[m, c] = vacc[c]
+                for d in range(c, p):
+                    M[m, c, d] = acc[c, d]
+            yy[m] = s_yy
+        else:
             g = p - 1
             M[m, 0, 0], M[m, 0, 1], M[m, 1, 1] = s_pp0, s_pq0, s_qq0
             M[m, 0, g], M[m, 1, g], M[m, g, g] = s_pg0, s_qg0, s_gg
