@@ -40,6 +40,13 @@ number of rows, (sum w)^2 / sum w^2 per unit. The threshold is a knob
 residuals are correlated by the DCT fit, so F is not F-distributed and the
 textbook quantile would switch static points.
 
+A brightness change that varies across a pool (a body turning under fixed
+lights) inflates both fits' residuals and hides a failing eq. (14) from that
+test. With ``OmniFlowConfig.decouple_gain_tol`` the test is made again with a
+gain varying linearly across the pool in both models
+(:func:`omniflow.gain.decoupled_linear_gain`), and the points it passes
+(:func:`chained`) take the decoupled model with that gain.
+
 Range rate without eq. (14): subtracting the two differentiated equations
 gives dr/dt = -(d + r)(dh_2/dt - dh_1/dt) / (h_2 - h_1)
 (:func:`omniflow.applications.radial_velocity_stereo`), exact whatever dh/dt.
