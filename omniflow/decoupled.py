@@ -241,11 +241,12 @@ def _with_gain(cols, rig, config, switch, brightness, a1, a2, b):
 #: when the range test (``pool_range_tol``) drops more than this share of the
 #: neighbours within its radius: 64-100 % of independent_movers' movers' points, 7 % of
 #: its static ones, 24 % of approach's (docs/measurements.md, "Ring, spinner, poster").
+#: Never with ``pool_range_tol`` None (no neighbour dropped).
 EDGE_SHARE = 0.25
 
 #: :func:`chained`'s gate on range-edge pools, as a share of ``decouple_gain_tol``
 #: elsewhere. The probe's "chain L/C U edge>10|20" (the ring's cam1 mean-flow error
-#: 64 -> 31 %, the static points unchanged); 10 everywhere took the ring to 21 % but
+#: 64 -> 31 %, static mean error +0-1.5 %); 10 everywhere took the ring to 21 % but
 #: cost 3-4 % static mean error on independent_movers, approach and crossing
 #: (docs/measurements.md, "Ring, spinner, poster" and "decouple_gain_tol: eq. (14)
 #: tested with a linear gain, built").
