@@ -152,9 +152,9 @@ def test_early_pool_fits_are_used_only_for_the_same_points(monkeypatch):
     seen = []
     real_decouple = solve_mod.decouple
 
-    def spy(cols, rig_, config_, displacement, *, pools=None, fit=None):
+    def spy(cols, rig_, config_, displacement, *, pools=None, fit=None, **kw):
         seen.append((cols, fit))
-        return real_decouple(cols, rig_, config_, displacement, pools=pools, fit=fit)
+        return real_decouple(cols, rig_, config_, displacement, pools=pools, fit=fit, **kw)
 
     monkeypatch.setattr(solve_mod, "decouple", spy)
     estimate(f1, f2, rig, config)
