@@ -14,7 +14,10 @@ alternating float32 and float64 in one process (so the machine's load drifts
 alike for both), medians of wall and CPU time and of the solve stage. Run::
 
     python benchmarks/refine_single.py /work/data/approach /work/data/independent_movers
-    python benchmarks/refine_single.py /work/data/approach --pairs 1 --time 41
+    python benchmarks/refine_single.py /work/data/approach --pairs 0 --time 41
+    python benchmarks/refine_single.py /work/data/approach --pairs 0 --points 273 932
+
+``--points``: one evaluation at N random points of frame 0's series, each way.
 """
 
 from __future__ import annotations
@@ -110,17 +113,52 @@ def timing(directory: str, repeats: int) -> None:
               f" solve stage {solve:.1f} ms")  # fmt: skip
 
 
+def evaluation_time(directory: str, points: list[int], repeats: int = 51) -> None:
+    """One value_and_gradient at N random points of frame 0's flow-band series (cam1),
+    float64 and float32 alternating, one BLAS thread (as the refinement runs it)."""
+    import omniflow.refine as refine
+    from omniflow.config import OmniFlowConfig
+    from omniflow.dataset import open_dataset
+    from omniflow.dct import fit_dct
+    from omniflow.series import fit_band, grey_input, truncate
+
+    ds = open_dataset(directory)
+    config = OmniFlowConfig()
+    unit = ds.rig.cam1
+    frame = grey_input(ds.read_grey(0, "cam1"), "cam1", unit, config)
+    fit = truncate(fit_dct(frame, band=fit_band(config)), config.flow_band, config.flow_taper)
+    rng = np.random.default_rng(0)
+    with refine._one_blas_thread():
+        for n in points:
+            h = rng.uniform(config.h_min, unit.r_m - config.rim_margin, n)
+            x, y = unit.pixel_of_polar(h, rng.uniform(-np.pi, np.pi, n))
+            ms = {False: [], True: []}
+            for i in range(repeats + 3):
+                for single in (False, True):
+                    t0 = time.perf_counter()
+                    fit.value_and_gradient(x, y, single=single)
+                    if i >= 3:
+                        ms[single].append((time.perf_counter() - t0) * 1e3)
+            print(f"{ds.dir.name}: value_and_gradient at {n} points ({fit.Q} x {fit.P} series):"
+                  f" float64 {np.median(ms[False]):.2f} ms, float32 {np.median(ms[True]):.2f} ms"
+                  f" (medians of {repeats})")  # fmt: skip
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("datasets", nargs="+")
     parser.add_argument("--pairs", type=int, default=3, help="pairs (t, t + 1), t < PAIRS")
     parser.add_argument("--time", type=int, default=0, metavar="N",
                         help="also time estimate() N times each way (alternating)")  # fmt: skip
+    parser.add_argument("--points", type=int, nargs="*", default=[], metavar="N",
+                        help="also time one evaluation at N points each way")  # fmt: skip
     args = parser.parse_args(argv)
     for directory in args.datasets:
         accuracy(directory, args.pairs)
         if args.time:
             timing(directory, args.time)
+        if args.points:
+            evaluation_time(directory, args.points)
     return 0
 
 
