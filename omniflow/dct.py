@@ -266,8 +266,8 @@ class DCTFit:
             in float64: it is most of a grey level's magnitude, and its rounding in
             the products would be most of the values' error. Each value then carries
             the rounding of float32 terms (a few float32 ulps of the texture's
-            amplitude): for points where that is far below the image noise
-            (:mod:`omniflow.refine`).
+            amplitude): for uses where that is far below what they resolve (the
+            refinement's residuals, :mod:`omniflow.refine`).
 
         Returns
         -------
