@@ -39,8 +39,7 @@ import numpy as np
 import scipy.fft
 from numpy.typing import ArrayLike, NDArray
 
-from omniflow.cosbases import cos_bases_columns
-from omniflow.kernels import cos_bases
+from omniflow.kernels import cos_bases, cos_bases_columns
 
 __all__ = ["DCT3Fit", "DCTFit", "band_window", "fit_dct", "fit_dct3"]
 
@@ -139,7 +138,7 @@ def _bases_columns(
 ) -> tuple[NDArray, NDArray]:
     """:func:`_bases` transposed, shape (n_coef, M), stored as ``dtype``.
 
-    The same running products in float64 (:func:`omniflow.cosbases.cos_bases_columns`,
+    The same running products in float64 (:func:`omniflow.kernels.cos_bases_columns`,
     the points' loop innermost: about 4 times faster than :func:`_bases` at a few
     hundred points), each value rounded once as it is stored (a running product in
     float32 would lose ~k float32 ulps by k = 256).

@@ -319,7 +319,7 @@ def test_single_precision_evaluation_agrees_with_double():
 
 
 def test_column_bases_equal_the_numpy_form_transposed():
-    """omniflow.cosbases.cos_bases_columns (through dct._bases_columns): dct.bases_numpy's
+    """omniflow.kernels.cos_bases_columns (through dct._bases_columns): dct.bases_numpy's
     cumprod bases transposed, value for value in float64, and those rounded once in
     float32 (mutations caught: the imaginary part updated from the new real part; the
     running product kept in the output's float32)."""
