@@ -100,8 +100,6 @@ def flow_grids(cam: dict, config: OmniFlowConfig) -> dict:
     """
     if config.sampling != "exact":
         needed = [("g", "grad_xy"), ("t", "f")]
-        if config.brightness_gate is not None and config.solver == "pooled":
-            needed.append(("g", "f"))  # the image at the points, for the gain (omniflow.gain)
         if config.iterations > 0 and config.iterate_min_px == 0.0:  # grids read off-pixel
             needed += [("b", "grad_xy"), ("b", "fine"), ("af", "fine")]
             if config.gradients == "average":

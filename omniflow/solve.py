@@ -72,9 +72,12 @@ def flow_at_matches(
     brightness = None
     gains = config.brightness_gate is not None or config.decouple_gain_tol is not None
     if gains and config.solver == "pooled":
-        # the image at the points, the series the gradients are read from (omniflow.gain)
-        brightness = (sample_f(cam1["g"], x1, y1, config.sampling),
-                      sample_f(cam2["g"], x2, y2, config.sampling))  # fmt: skip
+        # the image at the points (omniflow.gain): frame t at the matching band, whose
+        # grid the matcher has made already (the gradients' series, the mean of frames t
+        # and t + 1 at the flow band, would cost a grid per unit; a regressor of the
+        # brightness either way: docs/measurements.md, "brightness_gate made cheap")
+        brightness = (sample_f(cam1["a"], x1, y1, config.sampling),
+                      sample_f(cam2["a"], x2, y2, config.sampling))  # fmt: skip
     solve = make_solver(rig, config, x1, y1, theta, h1, h2, r, noise, edge_map=edge_map,
                         static_test=config.static_test, brightness=brightness)  # fmt: skip
     a, b, conf = solve(f1_h, f1_th, f1_t, f2_h, f2_th, f2_t)
@@ -222,12 +225,11 @@ def make_solver(
     on the pixel grid, for ``config.pool_edge_tol``. ``static_test``: the pooled solver's
     test of no motion (``config.static_test``; passed for the first solve only: the
     refinement replaces only the flow of points that move a pixel or more).
-    ``brightness``: each unit's image f at the points (the series the gradients are
-    read from), for the pooled solver's gain term (``config.brightness_gate``,
-    :mod:`omniflow.gain`): the pools whose F statistic of the gain passes the gate
-    take the answer with it. The gain fit pools over the solver's k-d tree pools as
-    searched (before ``pool_min_info``, ``pool_residual_tol`` or ``pool_flow_tol`` thin
-    them), or over its grid windows (``pool_grid``).
+    ``brightness``: each unit's image f at the points, for the pooled solver's gain
+    term (``config.brightness_gate``, :mod:`omniflow.gain`): the pools whose F statistic
+    of the gain passes the gate take the answer with it. The gain fit pools over the
+    solver's k-d tree pools as searched (before ``pool_min_info``, ``pool_residual_tol``
+    or ``pool_flow_tol`` thin them), or over its grid windows (``pool_grid``).
 
     The returned function's attribute ``pools``: the (idx, w) of
     :func:`omniflow.flow.neighbourhoods` where the solver pools over them as
