@@ -616,12 +616,13 @@ class OmniFlowConfig:
         solver's sums on a grid (``pool_grid`` 0.125), the decoupling test at
         ``decouple_tol`` 60 (at 20 the larger pools switch static points),
         with the default's Gauss-Newton step where a surface moves at least
-        a pixel, and the default's brightness gain (on the grid's windows). About ten times the
-        default's points (4 % of the valid pixels of the rendered scenes
-        against 0.4 %) and a smaller error on every rendered scene, at about
-        twice the default's time per pair (docs/measurements.md, "The dense
-        preset"). Not the default because of that time: the default answers
-        within DIS medium's time (issue 10).
+        a pixel, and the default's brightness gain (on the grid's windows).
+        About ten times the default's points (4 % of the valid pixels of the
+        rendered scenes against 0.4 %) and a smaller error on every rendered
+        scene, at about three times the default's time per pair (about twice
+        without the gain; docs/measurements.md, "The dense preset" and "Speed
+        with the gain by default"). Not the default because of that time: the
+        default answers within about DIS medium's time (issue 10).
         """
         base = dict(DENSE)
         base.update(overrides)
