@@ -321,14 +321,14 @@ class OmniFlowConfig:
         a body turning under fixed lights), which brightness constancy
         (eq. 8) reads as flow. Applies in the first solve, the refinement and
         the decoupled model. None: off. 20 (the default) fixes
-        approach's incoming face (radial flow +3.0 % -> -0.6 %, time to
-        contact's median error 4.0 -> 2.2 %) and most of the ball's radial
+        approach's incoming face (radial flow +3.0 % -> -1.1 %, time to
+        contact's median error 4.0 -> 2.3 %) and most of the ball's radial
         flow (53 -> 79 %), at +2 % static mean error on crossing (equal
-        median) and none on default and low_texture, for about 3 ms a pair
+        median) and none on default and low_texture, for 1-3 ms a pair
         (compiled sums, omniflow.kernels.gain_sums). With grid pools
         (``pool_grid``, the dense preset) the gain fit and its test use the
         grid's windows: there 20 takes approach's time-to-contact error 4.2 ->
-        1.6 % and the ball's radial flow 45 -> 86 %, static scenes unchanged.
+        1.7 % and the ball's radial flow 45 -> 87 %, static scenes unchanged.
         A fitted |beta| below omniflow.gain.MIN_CHANGE (0.2 % per frame) is
         never taken (model error, not a change). Off in the paper's
         configuration (eq. 8 as written); docs/measurements.md,
