@@ -119,7 +119,7 @@ def gain_solution(
         M, v, yy, powers, w2 = grid.gain_sums(derivs, f, h1, h2, theta,
                                               linear=model == "linear", scale=scale)  # fmt: skip
         x0, y0 = _own_rows(derivs, f, h1, h2, M.shape[1])
-    x, conf = _solve(M, v, min_conditioning)
+    x, conf = small_solves(M, v, min_conditioning)
     F = _f_statistic(M, v, x, yy, powers[:, 0], w2, min_conditioning)
     F[~(np.abs(x[:, -1]) >= MIN_CHANGE)] = np.nan  # too small a change to correct
     a, c = x[:, 0], x[:, 1]
@@ -168,7 +168,7 @@ def decoupled_gain(
     sel = np.flatnonzero(w.sum(axis=1) > 0)
     M, v, yy, _, _, _ = gain_sums(idx[sel], w[sel], sel, derivs, f, h1, h2, None,
                                   model="decoupled", scale=1.0)  # fmt: skip
-    x, _ = _solve(M, v, 0.0)
+    x, _ = small_solves(M, v, 0.0)
     F = _f_statistic(M, v, x, yy, w[sel].sum(axis=1), (w[sel] ** 2).sum(axis=1), 0.0)
     F[~(np.abs(x[:, -1]) >= MIN_CHANGE)] = np.nan  # too small a change to correct
     k = h2[sel] / h1[sel]
@@ -234,14 +234,12 @@ def decoupled_linear_gain(
     M, v, yy, _, _, _ = gain_sums(idx[sel], w[sel], sel, derivs, f, h1, h2, theta,
                                   model=model, scale=scale)  # fmt: skip
     p = M.shape[1]
-    x, _ = _solve(M, v, min_conditioning)
-    xc, _ = _solve(M[:, 1:, 1:], v[:, 1:], min_conditioning)  # U = 0: eq. (14)
+    x, _ = small_solves(M, v, min_conditioning)
+    xc, _ = small_solves(M[:, 1:, 1:], v[:, 1:], min_conditioning)  # U = 0: eq. (14)
     rss = yy - np.einsum("np,np->n", x, v)  # min of sum w (A x - y)^2 = y^T y - x . v
     rss_c = yy - np.einsum("np,np->n", xc, v[:, 1:])
     ws = w[sel]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        n_eff = 2.0 * ws.sum(axis=1) ** 2 / (ws * ws).sum(axis=1)  # both units' rows
-        F = (rss_c - rss) / (rss / (n_eff - p))
+    F, n_eff = _f(rss_c, rss, ws.sum(axis=1), (ws * ws).sum(axis=1), p)
     out[3][sel] = np.where((n_eff > p) & (rss > 0), F, np.nan)
     k = h2[sel] / h1[sel]
     out[0][sel], out[1][sel] = x[:, 0] - x[:, 1], x[:, 0] - k * x[:, 1]
@@ -259,26 +257,22 @@ def gated(F: NDArray, gate: float | NDArray, *answers: NDArray) -> NDArray:
     return use
 
 
-def _solve(
-    M: NDArray, v: NDArray, min_conditioning: float, positive: bool = False
-) -> tuple[NDArray, NDArray]:
-    """Solve the batched normal equations M x = v (all P unknowns); NaN where M is
-    singular, where the information left on (a, c) once the other unknowns are free (the
-    Schur complement) is below ``min_conditioning`` or, with ``positive``, where M is not
-    positive definite. Also that Schur complement's lambda_min / lambda_max (0 where it
-    is not positive definite): :func:`omniflow.kernels.small_solves`."""
-    return small_solves(M, v, min_conditioning, positive=positive)
-
-
 def _f_statistic(M, v, x, yy, w1, w2, min_conditioning):
     """F of the last unknown (beta) against the fit without it, over each pool (``w1``,
     ``w2``: its sums of weights and of squared weights)."""
-    x0, _ = _solve(M[:, :-1, :-1], v[:, :-1], min_conditioning)
+    x0, _ = small_solves(M[:, :-1, :-1], v[:, :-1], min_conditioning)
     rss = yy - np.einsum("np,np->n", x, v)  # min of sum w (A x - y)^2 = y^T y - x . v
     rss0 = yy - np.einsum("np,np->n", x0, v[:, :-1])
+    return _f(rss0, rss, w1, w2, M.shape[1])[0]
+
+
+def _f(rss_without, rss_with, w1, w2, p):
+    """(RSS_without - RSS_with) / (RSS_with / (n_eff - p)), the statistic of the unknowns
+    a fit of ``p`` adds; n_eff = 2 w1^2 / w2 (both units' rows; ``w1``, ``w2`` the pool's
+    sums of weights and of squared weights)."""
     with np.errstate(divide="ignore", invalid="ignore"):
-        n_eff = 2.0 * w1**2 / w2  # both units' rows
-        return (rss0 - rss) / (rss / (n_eff - M.shape[1]))
+        n_eff = 2.0 * w1**2 / w2
+        return (rss_without - rss_with) / (rss_with / (n_eff - p)), n_eff
 
 
 def _own_rows(derivs, f, h1, h2, p):
@@ -304,7 +298,7 @@ def _corrected(M, v, powers, k, n1, n2, min_conditioning):
         for ii, ci in enumerate(block):
             for jj, cj in enumerate(block):
                 Mc[:, ci, cj] -= per_row[ii + jj]
-    x, conf = _solve(Mc, v, min_conditioning, positive=True)
+    x, conf = small_solves(Mc, v, min_conditioning, positive=True)
     strong = (M[:, 0, 0] > 2.0 * per_row[0]) & (M[:, 1, 1] > 2.0 * per_row[0])
     x[~strong] = np.nan
     return x[:, 0], x[:, 1], conf
