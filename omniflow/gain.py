@@ -43,7 +43,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from omniflow.gridpool import GridPools
-from omniflow.kernels import gain_sums, small_solves
+from omniflow.kernels import gain_sums, nested_fits, small_solves
 
 __all__ = ["MIN_CHANGE", "decoupled_gain", "decoupled_linear_gain", "gain_solution", "gated"]
 
@@ -119,8 +119,8 @@ def gain_solution(
         M, v, yy, powers, w2 = grid.gain_sums(derivs, f, h1, h2, theta,
                                               linear=model == "linear", scale=scale)  # fmt: skip
         x0, y0 = _own_rows(derivs, f, h1, h2, M.shape[1])
-    x, conf = small_solves(M, v, min_conditioning)
-    F = _f_statistic(M, v, x, yy, powers[:, 0], w2, min_conditioning)
+    x, conf, rss, rss0 = nested_fits(M, v, yy, min_conditioning, drop=M.shape[1] - 1)
+    F = _f(rss0, rss, powers[:, 0], w2, M.shape[1])[0]  # beta against the plain fit
     F[~(np.abs(x[:, -1]) >= MIN_CHANGE)] = np.nan  # too small a change to correct
     a, c = x[:, 0], x[:, 1]
     if noise[0] > 0 or noise[1] > 0:  # errors in the variables, as the plain solve
@@ -168,8 +168,8 @@ def decoupled_gain(
     sel = np.flatnonzero(w.sum(axis=1) > 0)
     M, v, yy, _, _, _ = gain_sums(idx[sel], w[sel], sel, derivs, f, h1, h2, None,
                                   model="decoupled", scale=1.0)  # fmt: skip
-    x, _ = small_solves(M, v, 0.0)
-    F = _f_statistic(M, v, x, yy, w[sel].sum(axis=1), (w[sel] ** 2).sum(axis=1), 0.0)
+    x, _, rss, rss0 = nested_fits(M, v, yy, 0.0, drop=M.shape[1] - 1)
+    F = _f(rss0, rss, w[sel].sum(axis=1), (w[sel] ** 2).sum(axis=1), M.shape[1])[0]
     F[~(np.abs(x[:, -1]) >= MIN_CHANGE)] = np.nan  # too small a change to correct
     k = h2[sel] / h1[sel]
     out[0][sel], out[1][sel] = x[:, 0] - x[:, 1], x[:, 0] - k * x[:, 1]
@@ -234,10 +234,7 @@ def decoupled_linear_gain(
     M, v, yy, _, _, _ = gain_sums(idx[sel], w[sel], sel, derivs, f, h1, h2, theta,
                                   model=model, scale=scale)  # fmt: skip
     p = M.shape[1]
-    x, _ = small_solves(M, v, min_conditioning)
-    xc, _ = small_solves(M[:, 1:, 1:], v[:, 1:], min_conditioning)  # U = 0: eq. (14)
-    rss = yy - np.einsum("np,np->n", x, v)  # min of sum w (A x - y)^2 = y^T y - x . v
-    rss_c = yy - np.einsum("np,np->n", xc, v[:, 1:])
+    x, _, rss, rss_c = nested_fits(M, v, yy, min_conditioning, drop=0)  # U = 0: eq. (14)
     ws = w[sel]
     F, n_eff = _f(rss_c, rss, ws.sum(axis=1), (ws * ws).sum(axis=1), p)
     out[3][sel] = np.where((n_eff > p) & (rss > 0), F, np.nan)
@@ -255,15 +252,6 @@ def gated(F: NDArray, gate: float | NDArray, *answers: NDArray) -> NDArray:
     for v in answers:
         use &= np.isfinite(v)
     return use
-
-
-def _f_statistic(M, v, x, yy, w1, w2, min_conditioning):
-    """F of the last unknown (beta) against the fit without it, over each pool (``w1``,
-    ``w2``: its sums of weights and of squared weights)."""
-    x0, _ = small_solves(M[:, :-1, :-1], v[:, :-1], min_conditioning)
-    rss = yy - np.einsum("np,np->n", x, v)  # min of sum w (A x - y)^2 = y^T y - x . v
-    rss0 = yy - np.einsum("np,np->n", x0, v[:, :-1])
-    return _f(rss0, rss, w1, w2, M.shape[1])[0]
 
 
 def _f(rss_without, rss_with, w1, w2, p):

@@ -47,6 +47,12 @@ and y^T W y of both units' rows over the pool, in one pass, instead of numpy's
 (N, K, 2, P) design and a batched product (the gain fit had been most of the gated
 solve's time).
 
+:func:`small_solves` solves those small systems per pool with omniflow.gain's tests
+(Gauss-Jordan; a positive-definite test by a Cholesky factorisation and the inverse's
+trace, Jacobi rotations only where those bounds leave it open); :func:`nested_fits`
+adds the fit without one unknown (the gain's or eq. (14)'s F test) from the same
+inverse instead of a second solve.
+
 :func:`decouple_sums` and :func:`decouple_fits` are the two-model test of eq. (14)
 (:func:`omniflow.decoupled.model_fits`): the weighted sums of each point's 3x3
 normal equations in one pass over its pool, then per point the conditioning test
@@ -82,6 +88,7 @@ __all__ = [
     "grid_read",
     "grid_scatter",
     "ncc_offsets",
+    "nested_fits",
     "pooled_sums",
     "small_solves",
 ]
@@ -932,6 +939,131 @@ def gain_sums(
     )  # fmt: skip
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _cholesky_pivots_above(a, p, tiny):  # pragma: no cover - compiled
+    """Whether every pivot of the Cholesky factorisation of the symmetric p x p ``a``
+    (unit diagonal) exceeds ``tiny``; ``a``'s lower triangle is overwritten by the factor.
+    A pivot d_k is the least eigenvalue's upper bound over the leading k x k block, so a
+    pivot at or below ``tiny`` (computed to ~1e-14 of a unit diagonal) bounds the least
+    eigenvalue of ``a`` below ``tiny`` plus that rounding; all above it: ``a`` is
+    positive definite."""
+    for k in range(p):
+        d = a[k, k]
+        for c in range(k):
+            d -= a[k, c] * a[k, c]
+        if not d > tiny:  # False for NaN too
+            return False
+        d = math.sqrt(d)
+        a[k, k] = d
+        for r in range(k + 1, p):
+            s = a[r, k]
+            for c in range(k):
+                s -= a[r, c] * a[k, c]
+            a[r, k] = s / d
+    return True
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _solve_one(M, v, i, limit, positive, a, inv, sc, x):  # pragma: no cover - compiled
+    """Solve pool i of :func:`small_solves` (``a``, ``inv``, ``sc`` workspace): x[i] set
+    where every test passes. Returns (confidence, det, formed): ``det`` the determinant
+    of the unit-diagonal form D^-1 M D^-1 (D = sqrt(diag M)); ``formed`` whether ``inv``
+    now holds M^-1 (the positive test, the determinant's and a finite M passed)."""
+    p = M.shape[1]
+    for r in range(p):
+        for c in range(p):
+            if not math.isfinite(M[i, r, c]):
+                return 0.0, 0.0, False
+    for r in range(p):
+        d = math.sqrt(abs(M[i, r, r]))
+        sc[r] = d if d > 0.0 else 1.0
+    if positive:
+        # positive definite: every eigenvalue of the unit-diagonal form above 1e-12 of
+        # the largest. Decided by a Cholesky factorisation and the inverse's trace
+        # where they leave no doubt, else by Jacobi rotations (below)
+        for r in range(p):
+            for c in range(p):
+                a[r, c] = M[i, r, c] / (sc[r] * sc[c])
+        if not _cholesky_pivots_above(a, p, 1e-13):
+            return 0.0, 0.0, False  # lambda_min < 1e-12 <= 1e-12 lambda_max (>= 1)
+    for r in range(p):
+        for c in range(p):
+            a[r, c] = M[i, r, c] / (sc[r] * sc[c])  # unit diagonal
+    # Gauss-Jordan with partial pivoting: the inverse and the determinant (the
+    # product of the eigenvalues of the unit-diagonal matrix, each <= P)
+    for r in range(p):
+        for c in range(p):
+            inv[r, c] = 1.0 if r == c else 0.0
+    det = 1.0
+    for col in range(p):
+        piv = col
+        for r in range(col + 1, p):
+            if abs(a[r, col]) > abs(a[piv, col]):
+                piv = r
+        if piv != col:
+            det = -det
+            for c in range(p):
+                a[col, c], a[piv, c] = a[piv, c], a[col, c]
+                inv[col, c], inv[piv, c] = inv[piv, c], inv[col, c]
+        d = a[col, col]
+        det *= d
+        if d == 0.0:
+            break
+        for c in range(p):
+            a[col, c] /= d
+            inv[col, c] /= d
+        for r in range(p):
+            if r != col:
+                f = a[r, col]
+                if f != 0.0:
+                    for c in range(p):
+                        a[r, c] -= f * a[col, c]
+                        inv[r, c] -= f * inv[col, c]
+    if positive:
+        # positive definite, lambda_min >= 1 / trace(inverse) and lambda_max <= P (the
+        # trace of the unit-diagonal form): sure where P / trace > 1e12 ... else the
+        # rotations decide, as they did for every pool (the same answers, cheaper)
+        tr = 0.0
+        for r in range(p):
+            tr += inv[r, r]
+        if not tr * p * 1e-12 < 1.0:
+            for r in range(p):
+                for c in range(p):
+                    a[r, c] = M[i, r, c] / (sc[r] * sc[c])
+            _jacobi(a, p)
+            lo, hi = math.inf, -math.inf
+            for r in range(p):
+                lo = min(lo, a[r, r])
+                hi = max(hi, a[r, r])
+            if not (lo > 1e-12 * hi and lo > 0.0):
+                return 0.0, det, False
+    elif not abs(det) > 1e-12:
+        return 0.0, det, False
+    for r in range(p):
+        for c in range(p):
+            inv[r, c] /= sc[r] * sc[c]  # M^-1 = D^-1 (D^-1 M D^-1)^-1 D^-1
+    # the Schur complement on the first two unknowns is the inverse of M^-1's block:
+    # the same eigenvectors, reciprocal eigenvalues
+    ci = _pair_ratio(inv[0, 0], inv[1, 0], inv[1, 1])
+    if ci >= limit and ci > 0.0:
+        for r in range(p):
+            acc = 0.0
+            for c in range(p):
+                acc += inv[r, c] * v[i, c]
+            x[i, r] = acc
+    return ci, det, True
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _pair_ratio(b00, b10, b11):  # pragma: no cover - compiled
+    """lambda_min / lambda_max of the symmetric 2 x 2 [[b00, b10], [b10, b11]], 0 unless
+    both are positive."""
+    mean = 0.5 * (b00 + b11)
+    rad = math.hypot(0.5 * (b00 - b11), b10)
+    lo, hi = mean - rad, mean + rad
+    return lo / hi if lo > 0.0 else 0.0
+
+
 @numba.njit(cache=True, nogil=True)
 def _small_solves(M, v, limit, positive):  # pragma: no cover - compiled
     n, p, _ = M.shape
@@ -941,78 +1073,7 @@ def _small_solves(M, v, limit, positive):  # pragma: no cover - compiled
     inv = np.empty((p, p))
     sc = np.empty(p)
     for i in range(n):
-        finite = True
-        for r in range(p):
-            for c in range(p):
-                finite &= math.isfinite(M[i, r, c])
-        if not finite:
-            continue
-        for r in range(p):
-            d = math.sqrt(abs(M[i, r, r]))
-            sc[r] = d if d > 0.0 else 1.0
-        for r in range(p):
-            for c in range(p):
-                a[r, c] = M[i, r, c] / (sc[r] * sc[c])  # unit diagonal
-        if positive:  # positive definite: every eigenvalue above 1e-12 of the largest
-            _jacobi(a, p)
-            lo, hi = math.inf, -math.inf
-            for r in range(p):
-                lo = min(lo, a[r, r])
-                hi = max(hi, a[r, r])
-            if not (lo > 1e-12 * hi and lo > 0.0):
-                continue
-            for r in range(p):
-                for c in range(p):
-                    a[r, c] = M[i, r, c] / (sc[r] * sc[c])
-        # Gauss-Jordan with partial pivoting: the inverse and the determinant (the
-        # product of the eigenvalues of the unit-diagonal matrix, each <= P)
-        for r in range(p):
-            for c in range(p):
-                inv[r, c] = 1.0 if r == c else 0.0
-        det = 1.0
-        for col in range(p):
-            piv = col
-            for r in range(col + 1, p):
-                if abs(a[r, col]) > abs(a[piv, col]):
-                    piv = r
-            if piv != col:
-                det = -det
-                for c in range(p):
-                    a[col, c], a[piv, c] = a[piv, c], a[col, c]
-                    inv[col, c], inv[piv, c] = inv[piv, c], inv[col, c]
-            d = a[col, col]
-            det *= d
-            if d == 0.0:
-                break
-            for c in range(p):
-                a[col, c] /= d
-                inv[col, c] /= d
-            for r in range(p):
-                if r != col:
-                    f = a[r, col]
-                    if f != 0.0:
-                        for c in range(p):
-                            a[r, c] -= f * a[col, c]
-                            inv[r, c] -= f * inv[col, c]
-        if not positive and not abs(det) > 1e-12:
-            continue
-        for r in range(p):
-            for c in range(p):
-                inv[r, c] /= sc[r] * sc[c]  # M^-1 = D^-1 (D^-1 M D^-1)^-1 D^-1
-        # the Schur complement on the first two unknowns is the inverse of M^-1's block:
-        # the same eigenvectors, reciprocal eigenvalues
-        mean = 0.5 * (inv[0, 0] + inv[1, 1])
-        rad = math.hypot(0.5 * (inv[0, 0] - inv[1, 1]), inv[1, 0])
-        lo, hi = mean - rad, mean + rad
-        ci = lo / hi if lo > 0.0 else 0.0
-        conf[i] = ci
-        if not (ci >= limit and ci > 0.0):
-            continue
-        for r in range(p):
-            acc = 0.0
-            for c in range(p):
-                acc += inv[r, c] * v[i, c]
-            x[i, r] = acc
+        conf[i] = _solve_one(M, v, i, limit, positive, a, inv, sc, x)[0]
     return x, conf
 
 
@@ -1030,9 +1091,10 @@ def small_solves(
         The least lambda_min / lambda_max of the information left on the first two
         unknowns once the others are free (the Schur complement).
     positive : bool
-        Require M positive definite (its unit-diagonal form's eigenvalues, by Jacobi
-        rotations, all above 1e-12 of the largest), else that form's determinant above
-        1e-12 in magnitude.
+        Require M positive definite (its unit-diagonal form's eigenvalues all above
+        1e-12 of the largest: a Cholesky factorisation and the inverse's trace bound
+        them, Jacobi rotations decide where those bounds leave it open), else that
+        form's determinant above 1e-12 in magnitude.
 
     Returns
     -------
@@ -1045,4 +1107,81 @@ def small_solves(
     return _small_solves(
         np.ascontiguousarray(M, dtype=np.float64), np.ascontiguousarray(v, dtype=np.float64),
         float(min_conditioning), bool(positive),
+    )  # fmt: skip
+
+
+@numba.njit(cache=True, nogil=True)
+def _nested_fits(M, v, yy, limit, drop):  # pragma: no cover - compiled
+    n, p, _ = M.shape
+    x = np.full((n, p), np.nan)
+    conf = np.zeros(n)
+    rss = np.full(n, np.nan)
+    rss0 = np.full(n, np.nan)
+    a = np.empty((p, p))
+    inv = np.empty((p, p))
+    sc = np.empty(p)
+    e0, e1 = (1, 2) if drop == 0 else ((0, 2) if drop == 1 else (0, 1))
+    for i in range(n):
+        conf[i], det, formed = _solve_one(M, v, i, limit, False, a, inv, sc, x)
+        if not (formed and math.isfinite(x[i, 0])):
+            continue
+        acc = 0.0
+        for c in range(p):
+            acc += x[i, c] * v[i, c]
+        rss[i] = yy[i] - acc  # min of sum w (A x - y)^2 = y^T y - x . v
+        # the fit without unknown ``drop``: its unit-diagonal determinant (Cramer:
+        # det M_0 / det M = (M^-1)_dd, in the unit-diagonal form) and the Schur
+        # complement on its first two unknowns (the inverse of its own inverse's block,
+        # M_0^-1 = M^-1 less the rank-one term of unknown ``drop``), tested as its own
+        # solve would be
+        idd = inv[drop, drop]
+        if not abs(det * idd * sc[drop] * sc[drop]) > 1e-12:
+            continue
+        b00 = inv[e0, e0] - inv[e0, drop] * inv[drop, e0] / idd
+        b10 = inv[e1, e0] - inv[e1, drop] * inv[drop, e0] / idd
+        b11 = inv[e1, e1] - inv[e1, drop] * inv[drop, e1] / idd
+        ci = _pair_ratio(b00, b10, b11)
+        if ci >= limit and ci > 0.0:
+            rss0[i] = rss[i] + x[i, drop] * x[i, drop] / idd  # the RSS that unknown takes up
+    return x, conf, rss, rss0
+
+
+def nested_fits(
+    M: NDArray, v: NDArray, yy: NDArray, min_conditioning: float, *, drop: int
+) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+    """A fit and the fit without one of its unknowns, from one inverse (an F test's RSS).
+
+    The fit is :func:`small_solves`'s (the same x and confidence, bit for bit). Dropping
+    unknown k from a least-squares fit raises its residual sum of squares by
+    x_k^2 / (M^-1)_kk, so the nested fit needs no second solve: its own tests (the
+    determinant of its unit-diagonal form, det M times (M^-1)_kk in that form, and the
+    Schur complement on its first two unknowns, from M^-1 less the rank-one term of
+    unknown k) are made from the same inverse, to rounding as :func:`small_solves` would
+    make them on M without row and column k. The difference of the two RSS then comes
+    from x_k itself, not as the small difference of two large sums.
+
+    Parameters
+    ----------
+    M, v, min_conditioning
+        As :func:`small_solves` (not ``positive``).
+    yy : ndarray, shape (N,)
+        y^T W y of each pool.
+    drop : int
+        The unknown the nested fit leaves out (P - 1: the gain; 0: the decoupled U).
+
+    Returns
+    -------
+    x, confidence
+        As :func:`small_solves`.
+    rss : ndarray, shape (N,)
+        y^T W y - x . v; NaN where x is.
+    rss_without : ndarray, shape (N,)
+        The nested fit's; NaN where either fit fails its tests.
+    """
+    p = M.shape[1]
+    if not 0 <= drop < p or p < 3:
+        raise ValueError(f"nested_fits: drop = {drop} of {p} unknowns (P >= 3)")
+    return _nested_fits(
+        np.ascontiguousarray(M, dtype=np.float64), np.ascontiguousarray(v, dtype=np.float64),
+        np.ascontiguousarray(yy, dtype=np.float64), float(min_conditioning), int(drop),
     )  # fmt: skip

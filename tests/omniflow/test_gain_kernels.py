@@ -156,3 +156,135 @@ def test_small_solves_equal_numpy(p, positive):
     np.testing.assert_allclose(conf, confn, rtol=1e-9, atol=1e-15)  # measured 7e-12
     assert np.isnan(x[:3]).all() and np.isnan(x[4]).all()
     assert np.isnan(x[3]).all() == positive  # only the positive test refuses it
+
+
+def _random_systems(rng, n, p):
+    A = rng.standard_normal((n, 3 * p, p)) * rng.uniform(0.01, 100.0, (n, 1, p))
+    return np.einsum("nkp,nkq->npq", A, A), rng.standard_normal((n, p))
+
+
+def _nearly_singular(rng, lam_min, p):
+    """Symmetric positive semi-definite systems whose least eigenvalue is ``lam_min`` of a
+    unit largest one (before small_solves scales them to a unit diagonal)."""
+    out = []
+    for lo in lam_min:
+        q, _ = np.linalg.qr(rng.standard_normal((p, p)))
+        lam = np.r_[lo, rng.uniform(0.2, 1.0, p - 2), 1.0]
+        out.append((q * lam) @ q.T)
+    return np.array(out)
+
+
+def test_positive_test_equals_the_eigenvalues_near_its_threshold():
+    """small_solves(positive=True) refuses exactly the systems whose unit-diagonal form has
+    an eigenvalue at or below 1e-12 of the largest (numpy's eigvalsh as the reference):
+    least eigenvalues from 1e-15 to 1e-9 of the largest, where the Cholesky pivots and the
+    inverse's trace leave it open and the Jacobi rotations decide, and indefinite ones."""
+    rng = np.random.default_rng(11)
+    p = 5
+    lam = np.r_[np.geomspace(1e-15, 1e-9, 120), -np.geomspace(1e-15, 1e-3, 30)]
+    M = _nearly_singular(rng, lam, p)
+    v = rng.standard_normal((M.shape[0], p))
+    x, _ = small_solves(M, v, 0.0, positive=True)
+    xn, _ = _numpy_solve(M, v, 0.0, True)
+    sc = np.sqrt(np.einsum("npp->np", M))
+    ev = np.linalg.eigvalsh(M / sc[:, :, None] / sc[:, None, :])
+    ratio = ev[:, 0] / ev[:, -1]
+    clear = np.abs(np.log(np.abs(ratio) / 1e-12)) > 0.05  # not within 5 % of the threshold
+    assert clear.sum() > 140
+    refused = np.isnan(x).all(axis=1)
+    assert np.array_equal(refused[clear], np.isnan(xn).all(axis=1)[clear])
+    # both sides of the threshold are there
+    assert (~refused & (ratio < 1e-10)).sum() > 10 and (refused & (ratio > 0)).sum() > 10
+
+
+def test_positive_test_check_catches_a_missing_jacobi_fallback(monkeypatch):
+    """The mutation: the Cholesky pivots (all above 1e-13) taken as the whole test, without
+    the rotations where the inverse's trace leaves it open: systems whose least eigenvalue
+    is 1e-13 to 1e-12 of the largest then pass."""
+    import omniflow.kernels as kernels
+
+    rng = np.random.default_rng(11)
+    p = 5
+    M = _nearly_singular(rng, np.geomspace(2e-13, 5e-13, 5), p)
+    v = rng.standard_normal((M.shape[0], p))
+
+    def solve_py(M, v):  # the kernel run as Python, with the module's helpers
+        x = np.full((M.shape[0], p), np.nan)
+        a, inv, sc = np.empty((p, p)), np.empty((p, p)), np.empty(p)
+        for i in range(M.shape[0]):
+            kernels._solve_one.py_func(M, v, i, 0.0, True, a, inv, sc, x)
+        return x
+
+    assert np.isnan(small_solves(M, v, 0.0, positive=True)[0]).all()
+    assert np.isnan(solve_py(M, v)).all()  # the Python run agrees with the compiled one
+    monkeypatch.setattr(kernels, "_jacobi", lambda a, n: None)  # rotations skipped
+    assert np.isfinite(solve_py(M, v)).all()
+
+
+def _nested_reference(M, v, yy, limit, drop):
+    """The nested fit solved on its own: M and v without unknown ``drop``."""
+    keep = np.delete(np.arange(M.shape[1]), drop)
+    x0, _ = small_solves(M[:, keep][:, :, keep], v[:, keep], limit)
+    return yy - np.einsum("np,np->n", x0, v[:, keep])
+
+
+def _pools_with_conditioning_cases(rng, p):
+    M, v = _random_systems(rng, 300, p)
+    # the full fit conditioned on its first two unknowns, the fit without the last not:
+    # unknown 0 nearly repeats the last (removing the last takes from unknown 0's
+    # information) ... and with the first two nearly equal in the nested fit only
+    M[5] = np.eye(p)
+    M[5, 1, 1] = 0.01
+    M[5, 0, -1] = M[5, -1, 0] = 0.99
+    M[6] = np.eye(p)
+    M[6, 0, 1] = M[6, 1, 0] = 0.9999  # both fits ill-conditioned on (a, c)
+    M[7] = np.eye(p)
+    M[7, 2, 2] = 0.001  # drop = 0: the nested fit's first two are (1, 2), the full's (0, 1)
+    yy = np.einsum("np,np->n", v, v) * 10.0 + rng.uniform(1.0, 2.0, M.shape[0])
+    return M, v, yy
+
+
+@pytest.mark.parametrize("drop", ["last", 0])
+@pytest.mark.parametrize("p", [3, 5, 6])
+def test_nested_fits_equal_a_second_solve(p, drop):
+    """nested_fits: the fit bit for bit small_solves's, the nested fit's RSS as solving it
+    on its own (measured 4.7e-16 of the largest y^T W y; tolerance 1e-11), NaN exactly where
+    that solve fails its tests, including a nested fit ill-conditioned on its first two
+    unknowns where the full fit is not."""
+    from omniflow.kernels import nested_fits
+
+    rng = np.random.default_rng(p)
+    M, v, yy = _pools_with_conditioning_cases(rng, p)
+    k = p - 1 if drop == "last" else 0
+    limit = 0.05
+    x, conf, rss, rss0 = nested_fits(M, v, yy, limit, drop=k)
+    xs, confs = small_solves(M, v, limit)
+    assert np.array_equal(x, xs, equal_nan=True) and np.array_equal(conf, confs)
+    want = np.where(np.isfinite(xs).all(axis=1), _nested_reference(M, v, yy, limit, k), np.nan)
+    assert np.array_equal(np.isnan(rss0), np.isnan(want))
+    assert np.isfinite(rss0).sum() > 100
+    fin = np.isfinite(want)
+    np.testing.assert_allclose(rss0[fin], want[fin], rtol=0, atol=1e-11 * yy[fin].max())
+    np.testing.assert_allclose(rss, yy - np.einsum("np,np->n", xs, v), rtol=1e-13)
+    if k == p - 1:
+        assert np.isfinite(x[5]).all() and np.isnan(rss0[5])  # the nested test refuses
+    else:
+        assert np.isfinite(x[7]).all() and np.isnan(rss0[7])
+
+
+def test_nested_fits_check_catches_a_missing_nested_test(monkeypatch):
+    """The mutation: the nested fit's conditioning test left out (its RSS always taken):
+    the system whose nested fit is ill-conditioned on (a, c) gets a finite RSS."""
+    import omniflow.kernels as kernels
+
+    p = 5
+    M, v, yy = _pools_with_conditioning_cases(np.random.default_rng(p), p)
+    M, v, yy = M[:10], v[:10], yy[:10]
+    args = (M, v, yy, 0.05, p - 1)
+    want = _nested_reference(M, v, yy, 0.05, p - 1)
+    assert np.array_equal(np.isnan(kernels._nested_fits.py_func(*args)[3]), np.isnan(want))
+    # the Python run calls the compiled full solve (its own test intact) and, for the
+    # nested fit's test only, the module's _pair_ratio: every nested fit passes
+    monkeypatch.setattr(kernels, "_pair_ratio", lambda b00, b10, b11: 1.0)
+    got = kernels._nested_fits.py_func(*args)[3]
+    assert np.isnan(want[5]) and np.isfinite(got[5])
