@@ -56,6 +56,13 @@ __all__ = ["MIN_CHANGE", "decoupled_gain", "decoupled_linear_gain", "gain_soluti
 #: docs/measurements.md, "brightness_gate made cheap, and the default".
 MIN_CHANGE = 0.002
 
+#: The grid windows' sums (``pool_grid``, :meth:`omniflow.gridpool.GridPools.gain_sums`)
+#: filtered in float32 (True, as the plain grid sums) or float64. float32 took the dense
+#: preset's gain sums from 25 to 19 ms at 8,700 points and changed its answers at float32's
+#: rounding (flow 9e-7 of the largest, F 1.2e-5 relative, no gate decision);
+#: docs/measurements.md, "Solve-stage savings with the gain".
+GRID_SINGLE = True
+
 
 def gain_solution(
     derivs: tuple[NDArray, ...],
@@ -116,8 +123,8 @@ def gain_solution(
                                              model=model, scale=scale)  # fmt: skip
         w2 = (w * w).sum(axis=1)
     else:
-        M, v, yy, powers, w2 = grid.gain_sums(derivs, f, h1, h2, theta,
-                                              linear=model == "linear", scale=scale)  # fmt: skip
+        M, v, yy, powers, w2 = grid.gain_sums(derivs, f, h1, h2, theta, linear=model == "linear",
+                                              scale=scale, single=GRID_SINGLE)  # fmt: skip
         x0, y0 = _own_rows(derivs, f, h1, h2, M.shape[1])
     x, conf, rss, rss0 = nested_fits(M, v, yy, min_conditioning, drop=M.shape[1] - 1)
     F = _f(rss0, rss, powers[:, 0], w2, M.shape[1])[0]  # beta against the plain fit

@@ -170,7 +170,9 @@ class GridPools:
             sums[sel, m, :] = mom[m][:, 1:] * fac
         return sums, wsum
 
-    def _filter(self, parts: NDArray, jobs: list[tuple[NDArray, NDArray, int]]) -> NDArray:
+    def _filter(
+        self, parts: NDArray, jobs: list[tuple[NDArray, NDArray, int]], bins: list | None = None
+    ) -> NDArray:
         """Every on-grid point's filtered sums of ``parts`` (N, C) over its window.
 
         One job (kx, ky, power): the points' parts scattered into the cells of their
@@ -178,7 +180,8 @@ class GridPools:
         read back bilinearly at each point of bins c - 1, c, c + 1 with that bin's
         share of its window (the module's docstring) raised to ``power`` (2 for sums
         of squared weights). Filters in the dtype of ``parts`` (float32 or float64).
-        Returns (len(jobs), N, C); rows of off-grid points zero.
+        Returns (len(jobs), N, C); rows of off-grid points zero. ``bins``: the bins'
+        images of ``parts`` made already (:meth:`_bin_images`).
 
         The bins' images are made once; the jobs are then shared between the two
         threads of :mod:`omniflow.parallel` (the filters and reads, most of the
@@ -188,7 +191,7 @@ class GridPools:
         """
         n, nc = parts.shape
         read = np.zeros((len(jobs), n, nc))
-        bins = self._bin_images(parts)
+        bins = self._bin_images(parts) if bins is None else bins
         depth = cv2.CV_64F if parts.dtype == np.float64 else cv2.CV_32F
 
         def run(j0: int, j1: int) -> None:
@@ -282,6 +285,7 @@ class GridPools:
         *,
         linear: bool,
         scale: float,
+        single: bool = False,
     ) -> tuple[NDArray, ...]:
         """The gain fit's normal equations (:func:`omniflow.kernels.gain_sums`) on the grid.
 
@@ -290,7 +294,11 @@ class GridPools:
         u h_1,i b], beta) (``linear``). Every entry is a pool sum of j's own products
         times a power of the point's h_1,i, so each is a channel filtered as in
         :meth:`sums`; the sum of squared weights as in :meth:`decouple_sums`. Off-grid
-        points get their k-d tree pools' sums.
+        points get their k-d tree pools' sums. ``single``: the filters in float32, each
+        channel scaled to a largest |value| of 1 first (as :meth:`sums`), else float64;
+        the gain's F statistic from float32 sums is within float32's rounding of the
+        float64 one's (its residual sum, y^T W y less the explained part, the least
+        precise term; omniflow.gain.GRID_SINGLE says which the solver uses).
 
         Returns
         -------
@@ -313,24 +321,36 @@ class GridPools:
             pairs = ((0, 0), (0, 1), (1, 1), (0, 2), (1, 2), (0, 3), (1, 3), (3, 3), (3, 2),
                      (2, 2))  # fmt: skip
             parts = np.stack([np.ones(n)] + [cross(*terms[i], *terms[j]) for i, j in pairs], 1)
-            g0, gd, gdd = (self.gauss * np.arange(-self.half, self.half + 1) ** m * self.cell**m
-                           for m in range(3))  # fmt: skip
-            sel = np.flatnonzero(on)
+            sel = slice(None) if on.all() else np.flatnonzero(on)
+            if single:  # per-channel scale so that float32 holds every channel near 1
+                norm = np.maximum(np.abs(parts[sel]).max(axis=0), 1e-300)
+                parts = (parts / norm).astype(np.float32)
+                g0, gd, gdd = self.kernels
+                gg = (self.gauss**2).astype(np.float32)
+            else:
+                norm = np.ones(parts.shape[1])
+                g0, gd, gdd = (self.gauss * np.arange(-self.half, self.half + 1) ** m
+                               * self.cell**m for m in range(3))  # fmt: skip
+                gg = self.gauss**2
             # channels: 0 w, 1 pp, 2 pq, 3 qq, 4 py, 5 qy, 6 pg, 7 qg, 8 gg, 9 gy, 10 yy; the
             # first moment of u needs the first 8, the second the first 4 (the linear model)
-            mom = [self._filter(parts, [(g0, g0, 1)])[0][sel]]
+            # the points binned once; each filter takes the channels it needs (a channel's
+            # cells are the same sums whichever others are scattered with it)
+            bins = self._bin_images(parts)
+            mom = [self._filter(parts, [(g0, g0, 1)], bins)[0][sel] * norm]
             if linear:
                 if self.tangent is None:
                     raise ValueError("GridPools: the linear model's sums need the tangents")
                 tx, ty = self.tangent[sel, 0:1], self.tangent[sel, 1:2]
-                mx, my = self._filter(np.ascontiguousarray(parts[:, :8]),
-                                      [(gd, g0, 1), (g0, gd, 1)])[:, sel]  # fmt: skip
+                first = [(gd, g0, 1), (g0, gd, 1)]
+                mx, my = self._filter(parts[:, :8], first, _channels(bins, 8))[:, sel] * norm[:8]
                 second = [(gdd, g0, 1), (gd, gd, 1), (g0, gdd, 1)]
-                mxx, mxy, myy = self._filter(np.ascontiguousarray(parts[:, :4]), second)[:, sel]
+                mxx, mxy, myy = (self._filter(parts[:, :4], second, _channels(bins, 4))[:, sel]
+                                 * norm[:4])  # fmt: skip
                 u2 = (tx * tx * mxx + 2.0 * tx * ty * mxy + ty * ty * myy) / scale**2
                 mom += [(tx * mx + ty * my) / scale, u2]
-            gg = self.gauss**2
-            sq = self._filter(np.ones((n, 1)), [(gg, gg, 2)])[0][:, 0]
+            # the squared weights: channel 0 (the count) with the squared kernel and shares
+            sq = self._filter(parts[:, :1], [(gg, gg, 2)], _channels(bins, 1))[0][:, 0]
             hi = h1[sel]
             i2, i1 = 1.0 / hi**2, 1.0 / hi
             c0 = mom[0]
@@ -359,3 +379,8 @@ class GridPools:
             M, v, yy, powers = M + tree[0], v + tree[1], yy + tree[2], powers + tree[3]
             w2 = w2 + (self.w * self.w).sum(axis=1)
         return M, v, yy, powers, w2
+
+
+def _channels(bins: list[tuple], c: int) -> list[tuple]:
+    """:meth:`GridPools._bin_images`'s bins with their images' first ``c`` channels only."""
+    return [(np.ascontiguousarray(img[..., :c]), *rest) for img, *rest in bins]

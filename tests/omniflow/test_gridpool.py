@@ -307,3 +307,76 @@ def test_grid_gain_sums_check_catches_a_gain_channel_sign():
     got = grid.gain_sums(derivs, (-f[0], -f[1]), h1, h2, None, linear=True, scale=RADIUS)
     ref = _brute_force_gain(x, y, tangent, derivs, f, h1, h2, None, 0.1, RADIUS)
     assert _rel_err(got[0], ref[0]) > 0.05 and _rel_err(got[1], ref[1]) > 0.1  # measured 0.13, 0.45
+
+
+@pytest.mark.parametrize("ranges", [False, True])
+def test_grid_gain_sums_in_float32_equal_the_brute_force_sums(ranges):
+    """GridPools.gain_sums(single=True), float32 filters, against the definition: measured
+    1.5e-7 relative to each quantity's largest entry at most (tolerance 2e-6)."""
+    x, y, tangent, derivs, h1, r = _cell_centre_case(ranges=ranges)
+    rng = np.random.default_rng(5)
+    h2 = h1 * rng.uniform(1.5, 1.9, h1.size)
+    f = (rng.uniform(0.2, 0.8, h1.size), rng.uniform(0.2, 0.8, h1.size))
+    tol, scale = 0.1, RADIUS
+    grid = GridPools(x, y, tangent, SHAPE, radius=RADIUS, cell=CELL, r=r, range_tol=tol)
+    got = grid.gain_sums(derivs, f, h1, h2, None, linear=True, scale=scale, single=True)
+    ref = _brute_force_gain(x, y, tangent, derivs, f, h1, h2, r, tol, scale)
+    for name, a, b in zip(("M", "v", "yy", "powers", "w2"), got, ref, strict=True):
+        assert _rel_err(a, b) < 2e-6, name
+
+
+def test_grid_gain_sums_in_float32_check_catches_kernels_in_cells():
+    """The mutation: the float32 moment kernels with the offset in cells instead of pixels
+    (d g(d) off by the cell, 2 px here): the slopes' entries of M fail the check."""
+    x, y, tangent, derivs, h1, _ = _cell_centre_case()
+    rng = np.random.default_rng(5)
+    h2 = h1 * rng.uniform(1.5, 1.9, h1.size)
+    f = (rng.uniform(0.2, 0.8, h1.size), rng.uniform(0.2, 0.8, h1.size))
+    grid = GridPools(x, y, tangent, SHAPE, radius=RADIUS, cell=CELL)
+    grid.kernels = [(k / CELL**m).astype(np.float32) for m, k in enumerate(grid.kernels)]
+    got = grid.gain_sums(derivs, f, h1, h2, None, linear=True, scale=RADIUS, single=True)
+    ref = _brute_force_gain(x, y, tangent, derivs, f, h1, h2, None, 0.1, RADIUS)
+    assert _rel_err(got[0], ref[0]) > 0.05  # measured 0.21
+
+
+def _gain_case(seed=7, n=400):
+    """Cell-centre points whose equations hold a flow and, in the left half, a brightness
+    gain of 2 % per frame (f_t = -(p a + q c) + beta f + noise)."""
+    x, y, tangent, _, h1, _ = _cell_centre_case(seed=seed, n=n)
+    rng = np.random.default_rng(seed)
+    h2 = h1 * rng.uniform(1.5, 1.9, n)
+    f = (rng.uniform(0.2, 0.8, n), rng.uniform(0.2, 0.8, n))
+    # gradients per px and per radian (times h_u), a flow the pooled model holds exactly:
+    # dh_1/dt = alpha h_1 (the relative model), dtheta/dt = b
+    g = [rng.normal(size=n) * 0.02 * s for s in (1.0, h1, 1.0, h2)]
+    alpha, b = 0.3 / 80.0, 0.2 / 80.0
+    beta = np.where(x < SHAPE[1] / 2, 0.02, 0.0)
+    f1t = -(g[0] * alpha * h1 + g[1] * b) + beta * f[0] + rng.normal(size=n) * 1e-3
+    f2t = -(g[2] * alpha * h2 + g[3] * b) + beta * f[1] + rng.normal(size=n) * 1e-3
+    derivs = (g[0], g[1], f1t, g[2], g[3], f2t)
+    return x, y, tangent, derivs, f, h1, h2
+
+
+def test_gain_f_statistic_from_float32_grid_sums_as_float64(monkeypatch):
+    """The gain fit's F statistic and gate decisions from the float32 grid sums against the
+    float64 ones, on pools with and without a brightness change: F measured 2.3e-4
+    relative at most (tolerance 1e-3; the residual sum, 1e-3 noise under a 2 % gain, is the
+    small difference), flow 2.6e-7 px (tolerance 1e-5); the same pools pass gate 20."""
+    import omniflow.gain as gain
+
+    x, y, tangent, derivs, f, h1, h2 = _gain_case()
+    grid = GridPools(x, y, tangent, SHAPE, radius=RADIUS, cell=CELL)
+    theta = np.zeros_like(h1)
+    out = {}
+    kw = dict(model="linear", scale=RADIUS, min_conditioning=1e-3, grid=grid)
+    for single in (False, True):
+        monkeypatch.setattr(gain, "GRID_SINGLE", single)
+        out[single] = gain.gain_solution(derivs, f, h1, h2, theta, None, None, **kw)
+    (a64, b64, _, F64), (a32, b32, _, F32) = out[False], out[True]
+    assert np.array_equal(np.isnan(F64), np.isnan(F32))
+    ok = np.isfinite(F64)
+    assert (F64[ok] > 20).sum() > 50 and (F64[ok] < 20).sum() > 10  # both sides (180, 19)
+    assert np.max(np.abs(F32[ok] / F64[ok] - 1)) < 1e-3
+    assert np.array_equal(gain.gated(F64, 20.0, a64, b64), gain.gated(F32, 20.0, a32, b32))
+    fin = np.isfinite(a64)
+    assert np.max(np.abs(a32[fin] - a64[fin])) < 1e-5 and np.nanmax(np.abs(b32 - b64)) < 1e-5
