@@ -55,7 +55,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
 from omniflow.gridpool import GridPools
-from omniflow.kernels import cell_knn, pooled_sums
+from omniflow.kernels import cell_knn, pooled_solves, pooled_sums
 
 __all__ = [
     "axial_motion_violation",
@@ -853,36 +853,11 @@ def _solve_sums(
     explains (x^T S x, S the normal matrix on (a, h_1 b) and v its right side,
     both after the slopes are solved out for ``"linear"``), and S's smaller eigenvalue.
     """
-    pp, pq, qq, pf, qf = (sums[:, :, c] for c in range(5))
-    pd = np.ones(sums.shape[0], bool)
-    # the blocks of the normal matrix are symmetric 2x2: [[pp_m, pq_m], [pq_m, qq_m]] for
-    # the powers m = 0 (on (a, c)), 1 (coupling to the slopes), 2 (on the slopes)
-    m11, m12, m22 = pp[:, 0], pq[:, 0], qq[:, 0]
-    v = [-pf[:, 0], -qf[:, 0]]
-    if model != "constant":  # Schur complement on (a, c): the two slopes solved out
-        b11, b12, b22 = pp[:, 2], pq[:, 2], qq[:, 2]
-        det_b = b11 * b22 - b12 * b12
-        pd &= (det_b > 0) & (b11 > 0)
-        inv = 1.0 / np.where(det_b > 0, det_b, np.nan)
-        k11, k12, k22 = pp[:, 1], pq[:, 1], qq[:, 1]
-        # C = K B^-1, K the coupling block
-        c11, c12 = (k11 * b22 - k12 * b12) * inv, (k12 * b11 - k11 * b12) * inv
-        c21, c22 = (k12 * b22 - k22 * b12) * inv, (k22 * b11 - k12 * b12) * inv
-        m11 = m11 - (c11 * k11 + c12 * k12)
-        m12 = m12 - (c11 * k12 + c12 * k22)
-        m22 = m22 - (c21 * k12 + c22 * k22)
-        v = [v[0] + (c11 * pf[:, 1] + c12 * qf[:, 1]), v[1] + (c21 * pf[:, 1] + c22 * qf[:, 1])]
-    det = m11 * m22 - m12 * m12
-    conf = np.nan_to_num(_eig_ratio(m11, m12, m22))
-    ok = (det > 0) & (conf >= min_conditioning) & (conf > 0)
-    if positive:
-        ok &= pd & (m11 > 0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        a = np.where(ok, (m22 * v[0] - m12 * v[1]) / det, np.nan)
-        c = np.where(ok, (m11 * v[1] - m12 * v[0]) / det, np.nan)
+    a, c, conf, explained_, lam_min = pooled_solves(
+        sums, linear=model != "constant", min_conditioning=min_conditioning, positive=positive
+    )  # compiled, numpy's operations in numpy's order (omniflow.kernels)
     if explained:
-        lam_min = 0.5 * (m11 + m22) - np.sqrt(0.25 * (m11 - m22) ** 2 + m12 * m12)
-        return a, c, conf, a * v[0] + c * v[1], lam_min
+        return a, c, conf, explained_, lam_min
     return a, c, conf
 
 

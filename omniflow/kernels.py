@@ -89,6 +89,7 @@ __all__ = [
     "grid_scatter",
     "ncc_offsets",
     "nested_fits",
+    "pooled_solves",
     "pooled_sums",
     "small_solves",
 ]
@@ -177,6 +178,97 @@ def pooled_sums(
         *f, np.ascontiguousarray(h1, dtype=np.float64), th, bool(relative),
         3 if linear else 1, float(scale),
     )  # fmt: skip
+
+
+@numba.njit(cache=True, nogil=True)
+def _pooled_solves(sums, linear, limit, positive):  # pragma: no cover - compiled
+    n = sums.shape[0]
+    a = np.full(n, np.nan)
+    c = np.full(n, np.nan)
+    conf = np.zeros(n)
+    explained = np.full(n, np.nan)
+    lam_min = np.zeros(n)
+    for i in range(n):
+        pd = True
+        # [[pp_m, pq_m], [pq_m, qq_m]] for the powers m = 0 (on (a, c)), 1 (coupling to the
+        # slopes), 2 (on the slopes)
+        m11, m12, m22 = sums[i, 0, 0], sums[i, 0, 1], sums[i, 0, 2]
+        v0, v1 = -sums[i, 0, 3], -sums[i, 0, 4]
+        if linear:  # Schur complement on (a, c): the two slopes solved out
+            b11, b12, b22 = sums[i, 2, 0], sums[i, 2, 1], sums[i, 2, 2]
+            det_b = b11 * b22 - b12 * b12
+            pd = (det_b > 0) and (b11 > 0)
+            inv = 1.0 / (det_b if det_b > 0 else np.nan)
+            k11, k12, k22 = sums[i, 1, 0], sums[i, 1, 1], sums[i, 1, 2]
+            # C = K B^-1, K the coupling block
+            c11, c12 = (k11 * b22 - k12 * b12) * inv, (k12 * b11 - k11 * b12) * inv
+            c21, c22 = (k12 * b22 - k22 * b12) * inv, (k22 * b11 - k12 * b12) * inv
+            m11, m12, m22 = (m11 - (c11 * k11 + c12 * k12), m12 - (c11 * k12 + c12 * k22),
+                             m22 - (c21 * k12 + c22 * k22))  # fmt: skip
+            v0, v1 = (v0 + (c11 * sums[i, 1, 3] + c12 * sums[i, 1, 4]),
+                      v1 + (c21 * sums[i, 1, 3] + c22 * sums[i, 1, 4]))  # fmt: skip
+        det = m11 * m22 - m12 * m12
+        # lambda_min / lambda_max, NaN to 0 (numpy's maximum keeps a NaN: so does this)
+        tr = m11 + m22
+        d = 0.25 * tr * tr - det
+        disc = math.sqrt(d if not d < 0.0 else 0.0)
+        lmax = 0.5 * tr + disc
+        lo = 0.5 * tr - disc
+        lmin = lo if not lo < 0.0 else 0.0
+        ci = lmin / lmax if lmax > 0 else 0.0
+        if math.isnan(ci):
+            ci = 0.0
+        elif math.isinf(ci):
+            ci = 1.7976931348623157e308 if ci > 0 else -1.7976931348623157e308
+        conf[i] = ci
+        ok = (det > 0) and (ci >= limit) and (ci > 0)
+        if positive:
+            ok = ok and pd and (m11 > 0)
+        if ok:
+            a[i] = (m22 * v0 - m12 * v1) / det
+            c[i] = (m11 * v1 - m12 * v0) / det
+        explained[i] = a[i] * v0 + c[i] * v1
+        dm = m11 - m22
+        lam_min[i] = 0.5 * (m11 + m22) - math.sqrt(0.25 * (dm * dm) + m12 * m12)
+    return a, c, conf, explained, lam_min
+
+
+def pooled_solves(
+    sums: NDArray, *, linear: bool, min_conditioning: float, positive: bool = False
+) -> tuple[NDArray, ...]:
+    """Solve each point's pooled normal equations from :func:`pooled_sums`' sums.
+
+    The 2 x 2 system on (a, h_1 b) (for ``linear``, its Schur complement once the two
+    slopes are solved out), per point in one pass, as numpy did it with a dozen (N,)
+    temporaries; the same operations in the same order, so the same answers bit for
+    bit (numpy's ``maximum`` and ``nan_to_num`` included).
+
+    Parameters
+    ----------
+    sums : ndarray, shape (N, 1 or 3, 5)
+        sum_j w u^m (pp, pq, qq, pf, qf).
+    linear : bool
+        The linear model (three powers of u).
+    min_conditioning : float
+        NaN where the confidence is below this.
+    positive : bool
+        Also NaN where the slopes' block or the (a, a) entry is not positive.
+
+    Returns
+    -------
+    a, c : ndarray, shape (N,)
+        dh_1/dt and h_1 dtheta/dt; NaN where singular or a test fails.
+    confidence : ndarray, shape (N,)
+        lambda_min / lambda_max of the 2 x 2 system, NaN as 0.
+    explained : ndarray, shape (N,)
+        x^T v, the squared residual the solution explains (NaN with x).
+    lam_min : ndarray, shape (N,)
+        The 2 x 2 system's smaller eigenvalue.
+    """
+    s = np.ascontiguousarray(sums, dtype=np.float64)
+    if linear and s.shape[1] < 3:
+        raise ValueError(f"pooled_solves: the linear model needs 3 powers, got {s.shape[1]}")
+    return _pooled_solves(s, bool(linear), float(min_conditioning), bool(positive))
 
 
 @numba.njit(cache=True, nogil=True)

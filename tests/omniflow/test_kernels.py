@@ -165,3 +165,88 @@ def test_flow_check_catches_a_changed_sum(pair, monkeypatch):
 
     monkeypatch.setattr(omniflow.flow, "pooled_sums", perturbed)
     assert _worst(fast, estimate(f1, f2, rig)) > 100 * FLOW_TOL
+
+
+def numpy_solve_sums(sums, model, min_conditioning, *, positive=False, slopes_test=True):
+    """omniflow.flow._solve_sums as it was in numpy (before omniflow.kernels.pooled_solves);
+    ``slopes_test`` False: the mutation of the check below (``positive`` without the test
+    of the slopes' block)."""
+    pp, pq, qq, pf, qf = (sums[:, :, c] for c in range(5))
+    pd = np.ones(sums.shape[0], bool)
+    m11, m12, m22 = pp[:, 0], pq[:, 0], qq[:, 0]
+    v = [-pf[:, 0], -qf[:, 0]]
+    if model != "constant":
+        b11, b12, b22 = pp[:, 2], pq[:, 2], qq[:, 2]
+        det_b = b11 * b22 - b12 * b12
+        if slopes_test:
+            pd &= (det_b > 0) & (b11 > 0)
+        inv = 1.0 / np.where(det_b > 0, det_b, np.nan)
+        k11, k12, k22 = pp[:, 1], pq[:, 1], qq[:, 1]
+        c11, c12 = (k11 * b22 - k12 * b12) * inv, (k12 * b11 - k11 * b12) * inv
+        c21, c22 = (k12 * b22 - k22 * b12) * inv, (k22 * b11 - k12 * b12) * inv
+        m11 = m11 - (c11 * k11 + c12 * k12)
+        m12 = m12 - (c11 * k12 + c12 * k22)
+        m22 = m22 - (c21 * k12 + c22 * k22)
+        v = [v[0] + (c11 * pf[:, 1] + c12 * qf[:, 1]), v[1] + (c21 * pf[:, 1] + c22 * qf[:, 1])]
+    det = m11 * m22 - m12 * m12
+    with np.errstate(all="ignore"):
+        tr = m11 + m22
+        disc = np.sqrt(np.maximum(0.25 * tr * tr - det, 0.0))
+        lmax = 0.5 * tr + disc
+        lmin = np.maximum(0.5 * tr - disc, 0.0)
+        ratio = np.where(lmax > 0, lmin / lmax, 0.0)
+        conf = np.nan_to_num(ratio)
+        ok = (det > 0) & (conf >= min_conditioning) & (conf > 0)
+        if positive:
+            ok &= pd & (m11 > 0)
+        a = np.where(ok, (m22 * v[0] - m12 * v[1]) / det, np.nan)
+        c = np.where(ok, (m11 * v[1] - m12 * v[0]) / det, np.nan)
+        lam_min = 0.5 * (m11 + m22) - np.sqrt(0.25 * (m11 - m22) ** 2 + m12 * m12)
+    return a, c, conf, a * v[0] + c * v[1], lam_min
+
+
+def _solve_cases(linear):
+    """Pooled sums of random equations, random (mostly indefinite) ones, and the edge
+    cases: a zero pool, a NaN entry, a singular slopes block, an infinite entry."""
+    rng = np.random.default_rng(2)
+    n = 500
+    sums = rng.standard_normal((n, 3 if linear else 1, 5)) * rng.uniform(1e-3, 1e3, (n, 1, 1))
+    # half of them true pooled sums of random equations (their blocks positive definite)
+    half, k = n // 2, 24
+    p, q, t = (rng.standard_normal((half, k)) * rng.uniform(0.1, 10.0, (half, 1)) for _ in "pqt")
+    u, w = rng.uniform(-1.0, 1.0, (half, k)), rng.uniform(0.1, 1.0, (half, k))
+    prods = np.stack([p * p, p * q, q * q, p * t, q * t], axis=-1)
+    powers = [w * u**m for m in range(sums.shape[1])]
+    sums[:half] = np.stack([(pw[..., None] * prods).sum(axis=1) for pw in powers], axis=1)
+    sums[0] = 0.0
+    sums[1, 0, 1] = np.nan
+    sums[2, -1, :3] = 0.0
+    sums[3, 0, 0] = np.inf
+    return sums
+
+
+@pytest.mark.parametrize("positive", [False, True])
+@pytest.mark.parametrize("linear", [False, True])
+def test_pooled_solves_equal_numpy_bit_for_bit(linear, positive):
+    """omniflow.flow._solve_sums (the compiled omniflow.kernels.pooled_solves) against its
+    numpy form: every output identical, NaN for NaN."""
+    from omniflow.flow import _solve_sums
+
+    sums = _solve_cases(linear)
+    model = "linear" if linear else "constant"
+    got = _solve_sums(sums, model, 1e-3, positive=positive, explained=True)
+    want = numpy_solve_sums(sums, model, 1e-3, positive=positive)
+    for g, w in zip(got, want, strict=True):
+        np.testing.assert_array_equal(g, w)
+    assert np.isfinite(got[0]).sum() > 100 and np.isnan(got[0]).sum() > 100
+
+
+def test_pooled_solves_check_catches_a_missing_slopes_test():
+    """The mutation: the corrected solve (``positive``) without the test that the slopes'
+    block is positive definite: pools with an indefinite slopes block get a flow."""
+    from omniflow.flow import _solve_sums
+
+    sums = _solve_cases(True)
+    got = _solve_sums(sums, "linear", 1e-3, positive=True)
+    bad = numpy_solve_sums(sums, "linear", 1e-3, positive=True, slopes_test=False)
+    assert (np.isnan(got[0]) & np.isfinite(bad[0])).sum() > 5  # measured 13
