@@ -9,6 +9,10 @@ the sums. The arithmetic of each term is numpy's, term by term; only the
 order of the additions over the K neighbours differs (a batched matrix
 product there, a running sum here), so the sums agree to rounding.
 
+:func:`pooled_solves` solves those sums' 2 x 2 systems (the Schur complement on (a, h_1 b)
+for the linear model) per point, numpy's operations in numpy's order, so bit for bit the
+answers of the numpy form it replaced, without its (N,) temporaries.
+
 :func:`ncc_offsets` scores a radial profile of table 1 against profiles of table
 2 at a few columns (the densification's short search, omniflow.matching.dense):
 the normalised cross-correlation of the same profiles as
