@@ -194,6 +194,9 @@ class OmniFlowConfig:
         at it. 1 disables it (the default); the dense preset sets 0.95: on
         low_texture's plain walls the densified matches it drops were all
         13-15 px off (docs/measurements.md, "Dense preset on low_texture").
+    edge_smooth : float
+        Robust matcher: the same test on the search's own matches, before the
+        consistency vote (omniflow.matching.radial.match_radial). 1 disables it.
     short_patch : float
         Robust matcher: a second pass with profiles this fraction of
         patch_radius long, adding matches where the first left none (small
@@ -453,6 +456,7 @@ class OmniFlowConfig:
     dense_percentile: float = 100.0
     dense_reach: float = 1.0
     dense_smooth: float = 1.0
+    edge_smooth: float = 1.0
     short_patch: float = 0.5
     gradients: str = "average"
     temporal: str = "difference"
@@ -538,6 +542,10 @@ class OmniFlowConfig:
             raise ValueError(
                 f"OmniFlowConfig.dense_percentile = {self.dense_percentile!r}, dense_reach = "
                 f"{self.dense_reach!r}, flatness = {self.flatness!r}: expected [0, 100], > 0, >= 0"
+            )
+        if not (-1.0 <= self.edge_smooth <= 1.0):
+            raise ValueError(
+                f"OmniFlowConfig.edge_smooth = {self.edge_smooth!r}: expected an NCC in [-1, 1]"
             )
         if not (-1.0 <= self.dense_smooth <= 1.0):
             raise ValueError(

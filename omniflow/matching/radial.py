@@ -85,7 +85,7 @@ from numpy.typing import NDArray
 
 from omniflow import parallel
 from omniflow.dct import DCTFit
-from omniflow.matching.dense import densify
+from omniflow.matching.dense import densify, smooth_profiles
 from omniflow.matching.paper import match_paper
 from omniflow.matching.robust import RobustSearch
 from omniflow.matching.tables import (
@@ -200,6 +200,7 @@ def match_radial(
     dense_percentile: float = 100.0,
     dense_reach: float = 1.0,
     dense_smooth: float = 1.0,
+    edge_smooth: float = 1.0,
     short_patch: float = 0.5,
     grids: tuple[PolarGrids, PolarGrids] | None = None,
 ) -> Matches:
@@ -328,6 +329,12 @@ def match_radial(
         above this with itself half a profile radius away (a profile smooth
         over its own length cannot be placed;
         :func:`omniflow.matching.dense.smooth_profiles`). 1 disables it.
+    edge_smooth : float
+        ``robust``: the same test on the search's own matches (before the
+        consistency vote, so that a dropped match supports none): NCC is
+        blind to an affine change of brightness, so a profile that is a ramp
+        over its length matches every ramp of image 2 as well as the truth.
+        1 disables it.
     short_patch : float
         ``robust``: match a second time with profiles of ``short_patch``
         times ``patch_radius`` (all else the same) and add the matches at
@@ -356,6 +363,8 @@ def match_radial(
         )
     if not (-1.0 <= dense_smooth <= 1.0):
         raise ValueError(f"dense_smooth = {dense_smooth!r}: expected an NCC in [-1, 1]")
+    if not (-1.0 <= edge_smooth <= 1.0):
+        raise ValueError(f"edge_smooth = {edge_smooth!r}: expected an NCC in [-1, 1]")
     cam1, cam2 = rig.cam1, rig.cam2
     short_step = profile_step  # the short pass's profile step derives from the one given
     if patch_radius is None:
@@ -407,7 +416,7 @@ _PASS_ARGS = (
     "h_min", "rim_margin", "patch_radius", "patch_lines", "profile_step", "min_score",
     "uniqueness", "left_right", "candidate_fraction", "tangential_blur", "consistency",
     "consistency_support", "self_similarity", "flatness", "alias_score", "alias_image2",
-    "alias_period", "dense_percentile", "dense_reach", "dense_smooth",
+    "alias_period", "dense_percentile", "dense_reach", "dense_smooth", "edge_smooth",
 )  # fmt: skip
 
 
@@ -545,6 +554,11 @@ def _finish(p: _Pass) -> Matches:
     h2 = scale2 * (h_min + h_step * c2)
     lo, hi = rig.disparity_window(h1, r_min, r_max)
     ok = (h2 >= lo) & (h2 <= hi) & np.isfinite(h2)
+    if method == "robust" and o["edge_smooth"] < 1.0 and np.any(ok):
+        idx = np.nonzero(ok)[0]  # a ramp's match is not placed by its NCC
+        ramp = smooth_profiles(t1, k1[idx], j1[idx] + pad, w=w, stride=stride,
+                               lines=o["patch_lines"], smooth=o["edge_smooth"])  # fmt: skip
+        ok[idx[ramp]] = False
     if method == "robust" and o["consistency"] > 0 and np.any(ok):
         idx = np.nonzero(ok)[0]
         agree = consistent(
