@@ -210,6 +210,8 @@ KNOB_LIMITS: dict[str, tuple[float, float, bool, bool]] = {
     "dense_percentile": (0.0, 100.0, True, True),  # a percentile of |df/dh|; 100 = off
     "dense_reach": (0.0, math.inf, False, False),  # patch radii
     "dense_smooth": (-1.0, 1.0, True, True),  # an NCC; 1 = off
+    "edge_smooth": (-1.0, 1.0, True, True),  # an NCC; 1 = off
+    "edge_smooth_floor": (0.0, 1.0, True, True),  # lambda_min / lambda_max
     "short_patch": (0.0, 1.0, True, False),  # a fraction of patch_radius; 0 = off
     "pool_flow_tol": (0.0, math.inf, False, False),
     "decouple_tol": (0.0, math.inf, False, False),  # an F statistic (omniflow.decoupled)

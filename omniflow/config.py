@@ -194,6 +194,22 @@ class OmniFlowConfig:
         at it. 1 disables it (the default); the dense preset sets 0.95: on
         low_texture's plain walls the densified matches it drops were all
         13-15 px off (docs/measurements.md, "Dense preset on low_texture").
+    edge_smooth : float
+        Robust matcher: the same test on the search's own matches, before the
+        consistency vote (omniflow.matching.radial.match_radial); 1 disables
+        it. Default 0.95, with ``edge_smooth_floor``: alone it also drops
+        correct matches on independent_movers' ball, whose curved shading is as
+        smooth over a profile as a plain wall's ramp.
+    edge_smooth_floor : float or None
+        Pooled solver, with ``edge_smooth``: keep its smooth matches to the flow
+        step and drop only those whose pooled system's conditioning (the
+        ``confidence`` column) is below this: a ramp across the pool too (its
+        gradients all parallel), which neither NCC nor the flow equations can
+        place. None: drop every smooth match in the matcher. Default 0.015:
+        on the five rendered scenes (3 pairs) the smooth matches 13-15 px off
+        (all on low_texture's plain wall, whose radial gain they took from 1.01
+        to 0.66) have 0.0022-0.0038, the 28 right ones 0.059-0.54; 0.015 is the
+        geometric middle (docs/measurements.md, "low_texture's radial gain").
     short_patch : float
         Robust matcher: a second pass with profiles this fraction of
         patch_radius long, adding matches where the first left none (small
@@ -453,6 +469,8 @@ class OmniFlowConfig:
     dense_percentile: float = 100.0
     dense_reach: float = 1.0
     dense_smooth: float = 1.0
+    edge_smooth: float = 0.95
+    edge_smooth_floor: float | None = 0.015
     short_patch: float = 0.5
     gradients: str = "average"
     temporal: str = "difference"
@@ -538,6 +556,15 @@ class OmniFlowConfig:
             raise ValueError(
                 f"OmniFlowConfig.dense_percentile = {self.dense_percentile!r}, dense_reach = "
                 f"{self.dense_reach!r}, flatness = {self.flatness!r}: expected [0, 100], > 0, >= 0"
+            )
+        if not (-1.0 <= self.edge_smooth <= 1.0):
+            raise ValueError(
+                f"OmniFlowConfig.edge_smooth = {self.edge_smooth!r}: expected an NCC in [-1, 1]"
+            )
+        if self.edge_smooth_floor is not None and not (0.0 <= self.edge_smooth_floor <= 1.0):
+            raise ValueError(
+                f"OmniFlowConfig.edge_smooth_floor = {self.edge_smooth_floor!r}: expected a "
+                "conditioning in [0, 1] or None"
             )
         if not (-1.0 <= self.dense_smooth <= 1.0):
             raise ValueError(

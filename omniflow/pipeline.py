@@ -272,6 +272,8 @@ def stereo_matches(
         dense_percentile=config.dense_percentile,
         dense_reach=config.dense_reach,
         dense_smooth=config.dense_smooth,
+        edge_smooth=config.edge_smooth,
+        edge_smooth_floor=config.edge_smooth_floor,
         short_patch=config.short_patch,
         grids=grids,
     )

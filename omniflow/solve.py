@@ -81,6 +81,12 @@ def flow_at_matches(
     solve = make_solver(rig, config, x1, y1, theta, h1, h2, r, noise, edge_map=edge_map,
                         static_test=config.static_test, brightness=brightness)  # fmt: skip
     a, b, conf = solve(f1_h, f1_th, f1_t, f2_h, f2_th, f2_t)
+    floor = config.edge_smooth_floor if config.solver == "pooled" else None
+    if floor is not None and matches.ramp is not None:
+        # a smooth-profile match (edge_smooth) whose pool is a ramp in two dimensions
+        # too: NCC could not place it, nor can the flow equations be solved there
+        ramp = matches.ramp & ~(conf >= floor)
+        a, b = np.where(ramp, np.nan, a), np.where(ramp, np.nan, b)
     D = determinant(f1_h, f1_th, f2_h, f2_th, h1, h2)
     k = h2 / h1  # eq. (14)
     # the two-model test's pool fits read no flow, only the points that keep one:

@@ -131,7 +131,12 @@ def gain(est: ArrayLike, true: ArrayLike) -> dict[str, float]:
     against true (NaN with fewer than 3 points or no spread of the truth);
     ``mean_signed`` and ``median_signed`` of ``est - true``; ``mean_est``
     and ``mean_true`` (the region's mean motion, e.g. an object's);
-    ``true_rms``, the root mean square of the truth. ``gain``, ``slope`` and
+    ``true_rms``, the root mean square of the truth; ``gain_se``, the standard
+    error of ``gain`` from the points' own scatter about it (heteroscedasticity-
+    consistent, White's HC0: sqrt(sum true**2 r**2) / sum(true**2) with
+    r = est - gain * true), large where a few points far off the line at large
+    true motion set the gain (a mean over few points of small true motion is
+    not a measurement of a shrink). ``gain``, ``gain_se``, ``slope`` and
     ``intercept`` are NaN where ``true_rms`` is below :data:`MIN_TRUE_RMS`.
     """
     e = np.asarray(est, dtype=np.float64).ravel()
@@ -139,8 +144,9 @@ def gain(est: ArrayLike, true: ArrayLike) -> dict[str, float]:
     ok = np.isfinite(e) & np.isfinite(g)
     e, g = e[ok], g[ok]
     nan = math.nan
-    out = {"n": int(e.size), "gain": nan, "slope": nan, "intercept": nan, "mean_signed": nan,
-           "median_signed": nan, "mean_est": nan, "mean_true": nan, "true_rms": nan}  # fmt: skip
+    out = {"n": int(e.size), "gain": nan, "gain_se": nan, "slope": nan, "intercept": nan,
+           "mean_signed": nan, "median_signed": nan, "mean_est": nan, "mean_true": nan,
+           "true_rms": nan}  # fmt: skip
     if e.size == 0:
         return out
     d = e - g
@@ -151,7 +157,9 @@ def gain(est: ArrayLike, true: ArrayLike) -> dict[str, float]:
         return out
     gg = float(np.dot(g, g))
     if gg > 0:
-        out["gain"] = float(np.dot(e, g) / gg)
+        out["gain"] = k = float(np.dot(e, g) / gg)
+        r = e - k * g
+        out["gain_se"] = float(np.sqrt(np.dot(g * g, r * r)) / gg)
     if e.size >= 3 and np.ptp(g) > 0:
         fit = scipy.stats.linregress(g, e)
         out["slope"], out["intercept"] = float(fit.slope), float(fit.intercept)

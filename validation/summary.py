@@ -291,12 +291,13 @@ def _biased(f: Mapping[str, Any], block: str = "all") -> str:
 
 
 def _gains(f: Mapping[str, Any], block: str = "all") -> str:
-    return (
-        f"radial gain {_v(_g(f, f'{block}.radial.gain'), 2)} (truth rms "
-        f"{_v(_g(f, f'{block}.radial.true_rms'), 2)} px), tangential gain "
-        f"{_v(_g(f, f'{block}.tangential.gain'), 2)} (truth rms "
-        f"{_v(_g(f, f'{block}.tangential.true_rms'), 2)} px)"
-    )
+    def one(comp: str) -> str:
+        se = _g(f, f"{block}.{comp}.gain_se")
+        pm = f" +- {se:.2f}" if math.isfinite(se) else ""
+        return (f"{comp} gain {_v(_g(f, f'{block}.{comp}.gain'), 2)}{pm} (truth rms "
+                f"{_v(_g(f, f'{block}.{comp}.true_rms'), 2)} px)")  # fmt: skip
+
+    return f"{one('radial')}, {one('tangential')}"
 
 
 def _verdict(mine: tuple[float, float], other: tuple[float, float]) -> str:

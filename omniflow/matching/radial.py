@@ -85,7 +85,7 @@ from numpy.typing import NDArray
 
 from omniflow import parallel
 from omniflow.dct import DCTFit
-from omniflow.matching.dense import densify
+from omniflow.matching.dense import densify, smooth_profiles
 from omniflow.matching.paper import match_paper
 from omniflow.matching.robust import RobustSearch
 from omniflow.matching.tables import (
@@ -137,6 +137,10 @@ class Matches:
         samples the densification tried.
     method : str
         ``"robust"`` or ``"paper"``.
+    ramp : ndarray of bool, shape (N,), optional
+        The matches whose image-1 profile is smooth over its own length
+        (``edge_smooth`` with ``edge_smooth_floor``: kept for the flow step
+        to judge by its pool's conditioning); None: none flagged.
     """
 
     x: NDArray
@@ -147,13 +151,15 @@ class Matches:
     score: NDArray
     n_significant: int = 0
     method: str = ""
+    ramp: NDArray | None = None
 
     def __len__(self) -> int:
         return int(self.x.size)
 
     def subset(self, keep: NDArray) -> Matches:
         """The matches selected by a boolean mask or index array."""
-        return replace(self, **{k: getattr(self, k)[keep] for k in _FIELDS})
+        ramp = None if self.ramp is None else self.ramp[keep]
+        return replace(self, **{k: getattr(self, k)[keep] for k in _FIELDS}, ramp=ramp)
 
     @classmethod
     def from_polar(
@@ -200,6 +206,8 @@ def match_radial(
     dense_percentile: float = 100.0,
     dense_reach: float = 1.0,
     dense_smooth: float = 1.0,
+    edge_smooth: float = 1.0,
+    edge_smooth_floor: float | None = None,
     short_patch: float = 0.5,
     grids: tuple[PolarGrids, PolarGrids] | None = None,
 ) -> Matches:
@@ -328,6 +336,17 @@ def match_radial(
         above this with itself half a profile radius away (a profile smooth
         over its own length cannot be placed;
         :func:`omniflow.matching.dense.smooth_profiles`). 1 disables it.
+    edge_smooth : float
+        ``robust``: the same test on the search's own matches (before the
+        consistency vote, so that a dropped match supports none): NCC is
+        blind to an affine change of brightness, so a profile that is a ramp
+        over its length matches every ramp of image 2 as well as the truth.
+        1 disables it.
+    edge_smooth_floor : float, optional
+        With ``edge_smooth``: keep the smooth matches, flagged in
+        ``Matches.ramp``, for the flow step, which drops those whose pooled
+        system's conditioning is below this (a ramp in two dimensions: every
+        gradient of the pool parallel); None: drop them here.
     short_patch : float
         ``robust``: match a second time with profiles of ``short_patch``
         times ``patch_radius`` (all else the same) and add the matches at
@@ -356,6 +375,8 @@ def match_radial(
         )
     if not (-1.0 <= dense_smooth <= 1.0):
         raise ValueError(f"dense_smooth = {dense_smooth!r}: expected an NCC in [-1, 1]")
+    if not (-1.0 <= edge_smooth <= 1.0):
+        raise ValueError(f"edge_smooth = {edge_smooth!r}: expected an NCC in [-1, 1]")
     cam1, cam2 = rig.cam1, rig.cam2
     short_step = profile_step  # the short pass's profile step derives from the one given
     if patch_radius is None:
@@ -407,7 +428,8 @@ _PASS_ARGS = (
     "h_min", "rim_margin", "patch_radius", "patch_lines", "profile_step", "min_score",
     "uniqueness", "left_right", "candidate_fraction", "tangential_blur", "consistency",
     "consistency_support", "self_similarity", "flatness", "alias_score", "alias_image2",
-    "alias_period", "dense_percentile", "dense_reach", "dense_smooth",
+    "alias_period", "dense_percentile", "dense_reach", "dense_smooth", "edge_smooth",
+    "edge_smooth_floor",
 )  # fmt: skip
 
 
@@ -545,6 +567,16 @@ def _finish(p: _Pass) -> Matches:
     h2 = scale2 * (h_min + h_step * c2)
     lo, hi = rig.disparity_window(h1, r_min, r_max)
     ok = (h2 >= lo) & (h2 <= hi) & np.isfinite(h2)
+    flagged = None  # the smooth matches kept for the flow step (edge_smooth_floor)
+    if method == "robust" and o["edge_smooth"] < 1.0 and np.any(ok):
+        idx = np.nonzero(ok)[0]  # a ramp's match is not placed by its NCC
+        ramp = smooth_profiles(t1, k1[idx], j1[idx] + pad, w=w, stride=stride,
+                               lines=o["patch_lines"], smooth=o["edge_smooth"])  # fmt: skip
+        if o["edge_smooth_floor"] is None:
+            ok[idx[ramp]] = False
+        else:
+            flagged = np.zeros(ok.size, dtype=bool)
+            flagged[idx[ramp]] = True
     if method == "robust" and o["consistency"] > 0 and np.any(ok):
         idx = np.nonzero(ok)[0]
         agree = consistent(
@@ -572,9 +604,18 @@ def _finish(p: _Pass) -> Matches:
         h1 = np.concatenate([h1[ok], h1_d[in_d]])
         h2 = np.concatenate([h2[ok], h2_d[in_d]])
         score = np.concatenate([score[ok], ds[in_d]])
+        if flagged is not None:  # densified matches have their own test (dense_smooth)
+            flagged = np.concatenate([flagged[ok], np.zeros(np.count_nonzero(in_d), bool)])
         ok = np.ones(theta.size, dtype=bool)
     return Matches.from_polar(
-        rig, theta[ok], h1[ok], h2[ok], score[ok], n_significant=n_sig, method=method
+        rig,
+        theta[ok],
+        h1[ok],
+        h2[ok],
+        score[ok],
+        n_significant=n_sig,
+        method=method,
+        ramp=None if flagged is None else flagged[ok],
     )
 
 
@@ -593,4 +634,9 @@ def _union(a: Matches, b: Matches, n_theta: int, h_step: float) -> Matches:
 
     new = ~np.isin(key(b), key(a))
     cols = {f: np.concatenate([getattr(a, f), getattr(b, f)[new]]) for f in _FIELDS}
-    return replace(a, **cols, n_significant=a.n_significant + b.n_significant)
+    ramp = None
+    if a.ramp is not None or b.ramp is not None:
+        ra = np.zeros(len(a), bool) if a.ramp is None else a.ramp
+        rb = np.zeros(len(b), bool) if b.ramp is None else b.ramp
+        ramp = np.concatenate([ra, rb[new]])
+    return replace(a, **cols, n_significant=a.n_significant + b.n_significant, ramp=ramp)

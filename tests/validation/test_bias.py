@@ -135,3 +135,41 @@ def test_an_object_never_scored_shows_zero(tmp_path):
     md = (tmp_path / "r" / "report.md").read_text()
     objects_table = md.split("## Objects")[1].split("\n## ")[0]
     assert name in objects_table
+
+
+def test_gain_se_matches_the_gains_scatter_over_noise_draws():
+    """gain_se against the spread of the gain over 400 noise draws at the same truth
+    (400 points, gain 0.9, noise 0.1 px, constant or growing with the truth): measured
+    0.95 of the spread either way (HC0; the spread itself is known to +-3.5 % from 400
+    draws), so the bound is 0.85-1.15. Residuals taken about 1 instead of the gain read
+    1.2x here; the standard error of a mean (over sqrt(sum true**2)) 11x."""
+    true = np.random.default_rng(0).uniform(-1.0, 1.0, 400)
+    for scale in (np.ones_like(true), 0.2 + np.abs(true)):
+        gains, ses = [], []
+        for seed in range(400):
+            noise = np.random.default_rng(100 + seed).normal(0.0, 0.1, true.size) * scale
+            g = gain(0.9 * true + noise, true)
+            gains.append(g["gain"])
+            ses.append(g["gain_se"])
+        assert 0.85 < np.mean(ses) / np.std(gains) < 1.15  # measured 0.952, 0.957
+    assert math.isnan(gain([0.01, -0.02, 0.03], [1e-9, -2e-9, 1e-9])["gain_se"])
+
+
+def test_gain_se_flags_a_gain_set_by_a_few_points():
+    """low_texture's mechanism (docs/measurements.md, "low_texture's radial gain"): 391
+    points on the line with true radial flow of rms 0.068 px, and the nine wrong matches'
+    estimated flows at their true 0.18-0.22 px as measured in pair 0. The nine take the
+    gain from 1.00 to 0.65 and its standard error from 0.004 to 0.33 (measured), so the
+    gain is 0.65 +- 0.33: set by nine points, not a shrink of the others."""
+    rng = np.random.default_rng(1)
+    true = rng.normal(0.0, 0.068, 391)
+    est = true + rng.normal(0.0, 0.005, true.size)
+    bad_est = [-1.899, -1.104, -1.090, 1.347, -0.669, 0.815, 0.672, -0.240, 0.257]
+    bad_true = [0.182, 0.195, 0.191, 0.219, 0.199, 0.215, 0.207, 0.200, 0.208]
+    clean = gain(est, true)
+    both = gain(np.r_[est, bad_est], np.r_[true, bad_true])
+    assert clean["gain"] == pytest.approx(1.0, abs=0.01)  # measured 0.995
+    assert clean["gain_se"] < 0.01  # measured 0.0042
+    assert both["gain"] < 0.8  # measured 0.649
+    assert both["gain_se"] > 0.2  # measured 0.328
+    assert abs(both["gain"] - 1.0) < 2.0 * both["gain_se"]
