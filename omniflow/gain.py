@@ -45,7 +45,14 @@ from numpy.typing import NDArray
 from omniflow.gridpool import GridPools
 from omniflow.kernels import gain_sums, small_solves
 
-__all__ = ["MIN_CHANGE", "decoupled_gain", "decoupled_linear_gain", "gain_solution", "gated"]
+__all__ = [
+    "MIN_CHANGE",
+    "MIN_RESIDUAL_DOF",
+    "decoupled_gain",
+    "decoupled_linear_gain",
+    "gain_solution",
+    "gated",
+]
 
 #: The least brightness change per frame, |beta|, that a pool's gain answer may correct:
 #: a smaller fitted gain is taken for model error, not a change (its F is not tested).
@@ -55,6 +62,16 @@ __all__ = ["MIN_CHANGE", "decoupled_gain", "decoupled_linear_gain", "gain_soluti
 #: corrected are 1-2 % per frame (approach's gated pools: |beta| 10th percentile 0.0069).
 #: docs/measurements.md, "brightness_gate made cheap, and the default".
 MIN_CHANGE = 0.002
+
+#: The fewest effective residual degrees of freedom, n_eff - 6, from which
+#: :func:`decoupled_linear_gain` estimates the residual variance of its F_U (NaN below).
+#: With 2 (n_eff 8: a pool of 4-5 neighbours for 6 unknowns) the variance rests on almost
+#: nothing and F_U is huge by chance: F(1, 2)'s 1 % point is 98.5 against 6.6 for many
+#: degrees of freedom, and F(1, 4)'s 21.2, about ``decouple_gain_tol``'s 20. On approach
+#: the one cluster of static points the test switched had n_eff 8.0-8.6 at F_U 59-70
+#: (their errors 0.04-0.44 -> 0.13-0.40 px, cam2 up to 1.2 px); the movers it switched
+#: correctly have n_eff 11.0 or more (docs/measurements.md, "decouple_gain_tol gated").
+MIN_RESIDUAL_DOF = 4.0
 
 
 def gain_solution(
@@ -223,8 +240,8 @@ def decoupled_linear_gain(
     dh1_dt, dh2_dt, dtheta_dt : ndarray, shape (N,)
         The decoupled fit's flow, dh_u = U - h_u W, dtheta = c / h_1,i.
     F : ndarray, shape (N,)
-        F_U; NaN where either fit has no solution, n_eff <= 6 (the unknowns) or
-        RSS_decoupled is 0.
+        F_U; NaN where either fit has no solution, n_eff - 6 (the unknowns) is below
+        :data:`MIN_RESIDUAL_DOF` or RSS_decoupled is 0 (``slopes`` False: 4 unknowns).
         The rows of ``idx`` whose weights are all 0 are skipped (NaN).
     """
     n = h1.size
@@ -240,7 +257,7 @@ def decoupled_linear_gain(
     rss_c = yy - np.einsum("np,np->n", xc, v[:, 1:])
     ws = w[sel]
     F, n_eff = _f(rss_c, rss, ws.sum(axis=1), (ws * ws).sum(axis=1), p)
-    out[3][sel] = np.where((n_eff > p) & (rss > 0), F, np.nan)
+    out[3][sel] = np.where((n_eff - p >= MIN_RESIDUAL_DOF) & (rss > 0), F, np.nan)
     k = h2[sel] / h1[sel]
     out[0][sel], out[1][sel] = x[:, 0] - x[:, 1], x[:, 0] - k * x[:, 1]
     out[2][sel] = x[:, 2] / h1[sel]

@@ -21,6 +21,7 @@ import numpy as np
 import pytest
 
 import omniflow.decoupled as decoupled_mod
+import omniflow.gain as gain_mod
 from omniflow.config import OmniFlowConfig
 from omniflow.gain import decoupled_linear_gain
 from omniflow.pipeline import estimate
@@ -33,8 +34,9 @@ BETA, BETA_U, BETA_H = 0.02, 0.01, -0.015  # the gain and its slopes across the 
 DERIVS = ("f1_h", "f1_theta", "f1_t", "f2_h", "f2_theta", "f2_t")
 
 
-def _pool(seed: int = 7, noise: float = 0.0):
-    """N points pooling all N (unit weights), point 0's offsets as the gain's."""
+def _pool(seed: int = 7, noise: float = 0.0, axial: float = U):
+    """N points pooling all N (unit weights), point 0's offsets as the gain's; ``axial`` the
+    axial share U (0: eq. 14 holds)."""
     rng = np.random.default_rng(seed)
     h1 = rng.uniform(100.0, 110.0, N)
     h2 = h1 * rng.uniform(2.2, 2.4, N)
@@ -47,7 +49,7 @@ def _pool(seed: int = 7, noise: float = 0.0):
         f = rng.uniform(0.2, 0.6, N)
         change = f * (BETA + BETA_U * u + BETA_H * dh_off)  # eq. (9) / (15) right side
         d.update({f"f{un}_h": fh, f"f{un}_theta": fq, f"f{un}": f,
-                  f"f{un}_t": change - fh * (U - h * W) - fq * DTHETA
+                  f"f{un}_t": change - fh * (axial - h * W) - fq * DTHETA
                   + rng.normal(0, noise, N)})  # fmt: skip
     return d, np.tile(np.arange(N), (N, 1)), np.ones((N, N))
 
@@ -173,16 +175,75 @@ def test_no_switch_where_eq14_holds():
     assert (loose["coupled"] == 0).mean() > 0.02  # measured 0.11
 
 
+def _own_pools(n):
+    """Each point its own pool of one (the vote then passes exactly the points that pass)."""
+    return dict(gain_idx=np.arange(n)[:, None], gain_w=np.ones((n, 1)))
+
+
 def test_the_lower_gate_at_range_edges(monkeypatch):
     """:func:`omniflow.decoupled.chained`: F_U 12 passes on a range-edge pool (gate 10 at
     decouple_gain_tol 20) and not elsewhere; 25 passes both; NaN answers never. Mutation
     caught: EDGE_GATE 1 (no lower gate) rejects the edge pool."""
     one = np.ones(4)
     fit = dict(gain_F=np.array([12.0, 12.0, 25.0, 25.0]), gain_edge=np.array([1, 0, 0, 1], bool),
-               gain_a1=one, gain_a2=one, gain_b=np.array([1.0, 1.0, 1.0, np.nan]))  # fmt: skip
+               gain_a1=one, gain_a2=one, gain_b=np.array([1.0, 1.0, 1.0, np.nan]),
+               **_own_pools(4))  # fmt: skip
     assert decoupled_mod.chained(fit, 20.0).tolist() == [True, False, True, False]
     monkeypatch.setattr(decoupled_mod, "EDGE_GATE", 1.0)
     assert decoupled_mod.chained(fit, 20.0).tolist() == [False, False, True, False]
+
+
+def test_a_lone_pass_in_its_pool_does_not_switch(monkeypatch):
+    """:func:`omniflow.decoupled.chained`'s vote (VOTE_SHARE 1/3). Points 0-2 pass and pool
+    among themselves (a surface whose eq. 14 fails); point 3 passes alone in a pool of four
+    (3 to 6; 1/4 of it passes; approach's static switches had 6-16 %); point 9 passes in a
+    pool of six of which one more passes (2/6, the share exactly), point 10 fails in a
+    pool that passes. Point 2 in point 3's row has weight 0 (dropped by the range test) and
+    no vote. Switched: 0-2 and 9 only. Mutations caught: VOTE_SHARE 0 (no vote) switches
+    point 3; so does giving point 2 a vote there (2 of 5)."""
+    n = 11
+    F = np.full(n, 5.0)
+    F[[0, 1, 2, 3, 9]] = 50.0
+    pools = np.full((n, 7), n)  # index n: no neighbour
+    w = np.zeros((n, 7))
+    rows = {0: [0, 1, 2], 1: [1, 0, 2], 2: [2, 0, 1], 3: [3, 4, 5, 6, 2],
+            9: [9, 0, 10, 4, 5, 6], 10: [10, 0, 1]}  # fmt: skip
+    for i in range(n):
+        row = rows.get(i, [i])
+        pools[i, : len(row)], w[i, : len(row)] = row, 1.0
+    w[3, 4] = 0.0  # dropped by the range test
+    one = np.ones(n)
+    fit = dict(gain_F=F, gain_edge=np.zeros(n, bool), gain_a1=one, gain_a2=one, gain_b=one,
+               gain_idx=pools, gain_w=w)  # fmt: skip
+    assert np.flatnonzero(decoupled_mod.chained(fit, 20.0)).tolist() == [0, 1, 2, 9]
+    voted = dict(fit, gain_w=np.where(np.arange(7) == 4, 1.0, w))  # point 2 votes for 3
+    assert decoupled_mod.chained(voted, 20.0)[3]
+    monkeypatch.setattr(decoupled_mod, "VOTE_SHARE", 0.0)
+    assert decoupled_mod.chained(fit, 20.0)[3]
+
+
+def _null_f(size, seeds=400):
+    """F_U of point 0 in pools of ``size`` points (unit weights, n_eff = 2 size) of
+    :func:`_pool` with U = 0 (eq. 14 holds) and noise 0.01 on f_t, one per seed."""
+    out = []
+    for seed in range(seeds):
+        d, _, _ = _pool(seed, noise=0.01, axial=0.0)
+        d = {k: v[:size] for k, v in d.items()}
+        out.append(_solve(d, np.tile(np.arange(size), (size, 1)), np.ones((size, size)))[3][0])
+    return np.array(out)
+
+
+def test_too_few_residual_degrees_of_freedom_give_no_test(monkeypatch):
+    """Eq. (14) holds (U = 0), Gaussian noise: in pools of 4 points (n_eff 8, 2 residual
+    degrees of freedom for 6 unknowns) F_U is not computed (MIN_RESIDUAL_DOF 4); pools of 5
+    (n_eff 10) are tested, and pass 20 in 0.5 % of 400 seeds (F(1, 4): 1.1 %). Mutation
+    caught: MIN_RESIDUAL_DOF 0 lets the pools of 4 pass 20 in 5.25 % of the seeds (F(1, 2):
+    4.7 %), the false switches of approach's small static pools."""
+    assert np.isnan(_null_f(4)).all()
+    five = _null_f(5)
+    assert np.isfinite(five).all() and np.mean(five > 20.0) < 0.02  # measured 0.005
+    monkeypatch.setattr(gain_mod, "MIN_RESIDUAL_DOF", 0.0)
+    assert np.mean(_null_f(4) > 20.0) > 0.02  # measured 0.0525 (binomial sd 0.011)
 
 
 @pytest.mark.parametrize("tol", [0.0, -1.0, float("nan")])
