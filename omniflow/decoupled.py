@@ -70,7 +70,6 @@ from omniflow.rig import Rig
 __all__ = [
     "EDGE_GATE",
     "EDGE_SHARE",
-    "VOTE_SHARE",
     "chained",
     "decouple",
     "fits_from_sums",
@@ -254,31 +253,13 @@ EDGE_SHARE = 0.25
 EDGE_GATE = 0.5
 
 
-#: :func:`chained` takes a point's switch only where at least this share of its pool (the
-#: neighbours the range test keeps, the point among them) passes the gate on its own pool
-#: too. Eq. (14) fails for a surface (an object moving along the axis), not for one pool:
-#: the ball's and the ring's switched points have 46-100 % of their pool switching (median
-#: 100 %), the static points the test switched on approach's walls alone 6-16 %, with
-#: F_U 11-15, passing only the edge gate (docs/measurements.md, "decouple_gain_tol gated").
-VOTE_SHARE = 1.0 / 3.0
-
-
 def chained(fit: dict[str, NDArray], tol: float) -> NDArray:
-    """Where :func:`decouple` takes the decoupled model with a linear gain.
-
-    A point passes where the F_U of :func:`omniflow.gain.decoupled_linear_gain`
-    (``fit["gain_F"]``, NaN with too few residual degrees of freedom,
-    :data:`omniflow.gain.MIN_RESIDUAL_DOF`) is above ``tol``, or above
-    ``EDGE_GATE * tol`` on a range-edge pool (``fit["gain_edge"]``, :data:`EDGE_SHARE`),
-    and its answer is finite; it switches where at least :data:`VOTE_SHARE` of its pool
-    (``fit["gain_idx"]``, ``fit["gain_w"]``: the neighbours of weight > 0) passes too.
-    """
+    """Where :func:`decouple` takes the decoupled model with a linear gain: the F_U of
+    :func:`omniflow.gain.decoupled_linear_gain` (``fit["gain_F"]``) above ``tol``, or
+    above ``EDGE_GATE * tol`` on a range-edge pool (``fit["gain_edge"]``,
+    :data:`EDGE_SHARE`), and a finite answer."""
     gate = np.where(fit["gain_edge"], EDGE_GATE * tol, tol)
-    passed = gated(fit["gain_F"], gate, fit["gain_a1"], fit["gain_a2"], fit["gain_b"])
-    idx, w = fit["gain_idx"], fit["gain_w"]
-    inside = w > 0
-    votes = (np.append(passed, False)[np.minimum(idx, passed.size)] & inside).sum(axis=1)
-    return passed & (votes >= VOTE_SHARE * inside.sum(axis=1))
+    return gated(fit["gain_F"], gate, fit["gain_a1"], fit["gain_a2"], fit["gain_b"])
 
 
 def tests(config: OmniFlowConfig, n: int) -> bool:
@@ -306,9 +287,8 @@ def pool_fits(
     points) also the decoupled model with a linear gain and its F_U
     (:func:`omniflow.gain.decoupled_linear_gain`) over the k-d tree pools (with grid
     pools searched here, of the same k, radius and range test): keys ``gain_a1``,
-    ``gain_a2``, ``gain_b``, ``gain_F``, ``gain_edge`` (the pool on a range edge,
-    :data:`EDGE_SHARE`) and ``gain_idx``, ``gain_w`` (the pools, for :func:`chained`'s
-    vote).
+    ``gain_a2``, ``gain_b``, ``gain_F`` and ``gain_edge`` (the pool on a range edge,
+    :data:`EDGE_SHARE`).
     """
     if not tests(config, np.asarray(cols["h1"]).size):
         return None
@@ -339,9 +319,8 @@ def pool_fits(
         g = decoupled_linear_gain(derivs, brightness, h1, h2, theta, idx, w, scale=radius,
                                   min_conditioning=floor)  # fmt: skip
         within = (idx < h1.size).sum(axis=1)  # neighbours within the radius, any range
-        edge = within - (w > 0).sum(axis=1) > EDGE_SHARE * within
-        fit.update(gain_a1=g[0], gain_a2=g[1], gain_b=g[2], gain_F=g[3], gain_edge=edge,
-                   gain_idx=idx, gain_w=w)  # fmt: skip
+        fit.update(gain_a1=g[0], gain_a2=g[1], gain_b=g[2], gain_F=g[3],
+                   gain_edge=within - (w > 0).sum(axis=1) > EDGE_SHARE * within)  # fmt: skip
     return fit
 
 
