@@ -225,6 +225,16 @@ def test_bad_tol(tol):
         OmniFlowConfig(decouple_gain_tol=tol)
 
 
-def test_needs_the_test_it_extends():
-    with pytest.raises(ValueError, match=r"decouple_gain_tol = 20\.0: needs decouple_tol"):
-        OmniFlowConfig(decouple_gain_tol=20.0, decouple_tol=None)
+def test_the_default_and_the_presets():
+    """20 by default, 60 in the dense preset (its larger pools), None in the paper's
+    configuration (eq. 14 as written)."""
+    assert OmniFlowConfig().decouple_gain_tol == 20.0
+    assert OmniFlowConfig.dense().decouple_gain_tol == 60.0
+    assert OmniFlowConfig.paper().decouple_gain_tol is None
+
+
+def test_nothing_without_the_test_it_extends():
+    """decouple_tol None (no test of eq. 14 at all): the rising wall's every point stays
+    coupled whatever decouple_gain_tol (20, the default, here)."""
+    res, _ = _run(decouple_tol=None)
+    assert (res["coupled"] == 1).all()
