@@ -294,7 +294,7 @@ def _accuracy_vs_time(plt: Any, summary: Mapping[str, Any], path: Path) -> None:
             label = f"{i}: {name} ({y:.3f} px, {ms:.0f} ms)" + (" - off scale" if off else "")
             # wrapped: a line wider than the figure (the paper's row, ~200 characters)
             # collapses the constrained layout
-            label = textwrap.fill(label, 150, subsequent_indent="    ", break_on_hyphens=False)
+            label = textwrap.fill(label, 110, subsequent_indent="    ", break_on_hyphens=False)
             ax.scatter(ms, yp, marker="^" if off else marker, s=40, label=label, zorder=3)
             ax.annotate(str(i), (ms, yp), textcoords="offset points", xytext=(4, 3), fontsize=8)
         ax.set_ylim(0, ceiling * 1.05)
