@@ -31,6 +31,7 @@ DENSE = {
     "dense_smooth": 0.95,
     "pool_grid": 0.125,
     "decouple_tol": 60.0,
+    "decouple_gain_tol": 60.0,
 }
 
 
@@ -356,17 +357,27 @@ class OmniFlowConfig:
         the pool, (beta + beta_u u_j + beta_h dh_j) f_j, in both models' fits
         (omniflow.gain.decoupled_linear_gain), and report decoupled, with that
         model's flow, the points whose F statistic of the axial share U exceeds
-        this (half of it on pools at a range edge, omniflow.decoupled.EDGE_GATE).
-        For a body turning about a tilted axis under fixed lights
-        (independent_movers' ring and ball): its texture moves along the axis
-        and its shading changes across a pool, which inflates both fits of the
-        plain test so that it misses them. None: off (the default). 20 takes
-        the ball's mean-flow error from 46 to 3 % and the ring's from 64 to 31 %
-        (cam1), the static points' error unchanged but on approach (+1 %);
-        docs/measurements.md, "decouple_gain_tol: eq. (14) tested with a
-        linear gain, built". Its fits use the k-d tree pools also with
-        ``pool_grid`` (searched once more there; not measured with the dense
-        preset). Requires ``decouple_tol``.
+        this (half of it on pools at a range edge, omniflow.decoupled.EDGE_GATE),
+        where at least 4 residual degrees of freedom estimate the variance
+        (omniflow.gain.MIN_RESIDUAL_DOF) and the coupled fit's residual is at
+        least twice the decoupled one's (omniflow.gain.MIN_RESIDUAL_RATIO: F
+        grows with the pool's rows for the same relative misfit). For a body turning
+        about a tilted axis under fixed lights (independent_movers' ring and
+        ball): its texture moves along the axis and its shading changes across a
+        pool, which inflates both fits of the plain test so that it misses them.
+        20 (the default) takes the ball's mean-flow error from 21 to 2.5 % and
+        the ring's from 64 to 32 % (cam1; independent_movers' cam1 radial gain
+        0.83 -> 0.95) and switches no static point of approach, crossing,
+        default, independent_movers or low_texture (every static figure
+        unchanged), for about 3 ms of solve a pair (the 6 x 6 sums). None: off,
+        and off in the paper's configuration (eq. 14 as written); with
+        ``decouple_tol`` None (no test of eq. 14 at all) it does nothing. The
+        dense preset sets 60, as its ``decouple_tol`` (its larger pools make F
+        larger for the same misfit; 20 and 60 answer the same there, the
+        residual ratio deciding). docs/measurements.md, "decouple_gain_tol: eq.
+        (14) tested with a linear gain, built" and "decouple_gain_tol gated, and
+        the default". Its fits use the k-d tree pools also with ``pool_grid``
+        (searched once more there: the dense preset's pair takes 1.3-2 times as long).
     flow_shading : float or None
         Fit the flow step's series to each frame divided by its Gaussian
         local mean of this many pixels (omniflow.shading), so that shading
@@ -492,7 +503,7 @@ class OmniFlowConfig:
     pool_min_conditioning: float = 1e-3
     decouple_tol: float | None = 20.0
     brightness_gate: float | None = 20.0
-    decouple_gain_tol: float | None = None
+    decouple_gain_tol: float | None = 20.0
     flow_shading: float | None = None
     flow_shading_where: str = "everywhere"
     sampling: str = "cubic"
@@ -541,11 +552,6 @@ class OmniFlowConfig:
             val = getattr(self, name)
             if val is not None and not val > 0:
                 raise ValueError(f"OmniFlowConfig.{name} = {val!r}: expected > 0 or None")
-        if self.decouple_gain_tol is not None and self.decouple_tol is None:
-            raise ValueError(
-                f"OmniFlowConfig.decouple_gain_tol = {self.decouple_gain_tol!r}: needs "
-                "decouple_tol (the test of eq. 14 it extends), which is None"
-            )
         if self.noise_sigma is not None and not self.noise_sigma >= 0:
             raise ValueError(
                 f"OmniFlowConfig.noise_sigma = {self.noise_sigma!r}: expected >= 0 or None"
@@ -602,8 +608,8 @@ class OmniFlowConfig:
         and its analytic derivatives evaluated exactly at the points (eq.
         18-20), first-frame gradients, the frame difference of the fitted
         images for f_t and the direct solution of eq. (16) at each point, once
-        (no Gauss-Newton step); no noise correction and no brightness gain
-        (eq. 8 as written). tests/omniflow/test_flow.py
+        (no Gauss-Newton step); no noise correction, no brightness gain
+        (eq. 8 as written) and no test of eq. (14) with a gain. tests/omniflow/test_flow.py
         checks that this reproduces eq. (16), (19) and (20) computed
         independently to rounding.
 
@@ -630,6 +636,7 @@ class OmniFlowConfig:
             iterations=0,
             iterate_min_px=0.0,
             brightness_gate=None,
+            decouple_gain_tol=None,
         )
         base.update(overrides)
         return cls(**base)
@@ -641,15 +648,18 @@ class OmniFlowConfig:
         Matches beyond the edges (``dense_percentile`` 60) whose profiles are
         not smooth over their own length (``dense_smooth`` 0.95), the pooled
         solver's sums on a grid (``pool_grid`` 0.125), the decoupling test at
-        ``decouple_tol`` 60 (at 20 the larger pools switch static points),
-        with the default's Gauss-Newton step where a surface moves at least
-        a pixel, and the default's brightness gain (on the grid's windows).
-        About ten times the default's points (4 % of the valid pixels of the
-        rendered scenes against 0.4 %) and a smaller error on every rendered
-        scene, at about three times the default's time per pair (about twice
-        without the gain; docs/measurements.md, "The dense preset" and "Speed
-        with the gain by default"). Not the default because of that time: the
-        default answers within about DIS medium's time (issue 10).
+        ``decouple_tol`` 60 (at 20 the larger pools switch static points) and
+        its linear-gain test at ``decouple_gain_tol`` 60, with the default's
+        Gauss-Newton step where a surface moves at least a pixel, and the
+        default's brightness gain (on the grid's windows). About ten times the
+        default's points (4 % of the valid pixels of the rendered scenes against
+        0.4 %) and a smaller error on every rendered scene, at about three times
+        the default's time per pair without the linear-gain test (about twice
+        without the gain either), 1.3-2 times that with it (its k-d tree search
+        and sums, not yet on the grid; docs/measurements.md, "The dense preset",
+        "Speed with the gain by default" and "decouple_gain_tol gated, and the
+        default"). Not the default because of that time: the default answers
+        within about DIS medium's time (issue 10).
         """
         base = dict(DENSE)
         base.update(overrides)

@@ -45,7 +45,15 @@ from numpy.typing import NDArray
 from omniflow.gridpool import GridPools
 from omniflow.kernels import gain_sums, nested_fits, small_solves
 
-__all__ = ["MIN_CHANGE", "decoupled_gain", "decoupled_linear_gain", "gain_solution", "gated"]
+__all__ = [
+    "MIN_CHANGE",
+    "MIN_RESIDUAL_DOF",
+    "MIN_RESIDUAL_RATIO",
+    "decoupled_gain",
+    "decoupled_linear_gain",
+    "gain_solution",
+    "gated",
+]
 
 #: The least brightness change per frame, |beta|, that a pool's gain answer may correct:
 #: a smaller fitted gain is taken for model error, not a change (its F is not tested).
@@ -62,6 +70,27 @@ MIN_CHANGE = 0.002
 #: rounding (flow 9e-7 of the largest, F 1.2e-5 relative, no gate decision);
 #: docs/measurements.md, "Solve-stage savings with the gain".
 GRID_SINGLE = True
+
+#: The fewest effective residual degrees of freedom, n_eff - 6, from which
+#: :func:`decoupled_linear_gain` estimates the residual variance of its F_U (NaN below).
+#: With 2 (n_eff 8: a pool of 4-5 neighbours for 6 unknowns) the variance rests on almost
+#: nothing and F_U is huge by chance: F(1, 2)'s 1 % point is 98.5 against 6.6 for many
+#: degrees of freedom, and F(1, 4)'s 21.2, about ``decouple_gain_tol``'s 20. On approach
+#: the one cluster of static points the test switched had n_eff 8.0-8.6 at F_U 59-70
+#: (their errors 0.04-0.44 -> 0.13-0.40 px, cam2 up to 1.2 px); the movers it switched
+#: correctly have n_eff 11.0 or more (docs/measurements.md, "decouple_gain_tol gated").
+MIN_RESIDUAL_DOF = 4.0
+
+#: The least RSS_coupled / RSS_decoupled for which :func:`decoupled_linear_gain` reports
+#: F_U (NaN below): eq. (14) is rejected only where dropping it at least halves the pool's
+#: residual, whatever the pool's size. F_U = (ratio - 1) (n_eff - 6) grows with the rows
+#: for the same relative misfit, so in large pools (the dense preset's k-d tree pools,
+#: n_eff 100-480 on tests/omniflow/test_cli.py's scene) a small systematic misfit passes
+#: any fixed gate. Measured on independent_movers: the ball's switched points 4.0-20, the
+#: ring's 2.2-4.4; the static points switched without it on approach's walls 1.39-1.54
+#: (F_U 11-15 at n_eff 34-36, range-edge pools) (docs/measurements.md,
+#: "decouple_gain_tol gated").
+MIN_RESIDUAL_RATIO = 2.0
 
 
 def gain_solution(
@@ -230,8 +259,10 @@ def decoupled_linear_gain(
     dh1_dt, dh2_dt, dtheta_dt : ndarray, shape (N,)
         The decoupled fit's flow, dh_u = U - h_u W, dtheta = c / h_1,i.
     F : ndarray, shape (N,)
-        F_U; NaN where either fit has no solution, n_eff <= 6 (the unknowns) or
-        RSS_decoupled is 0.
+        F_U; NaN where either fit has no solution, RSS_decoupled is 0, n_eff - 6 (the
+        unknowns; ``slopes`` False: 4) is below :data:`MIN_RESIDUAL_DOF`,
+        or RSS_coupled / RSS_decoupled below :data:`MIN_RESIDUAL_RATIO`: too little
+        evidence, or too small a misfit, to drop eq. (14).
         The rows of ``idx`` whose weights are all 0 are skipped (NaN).
     """
     n = h1.size
@@ -244,8 +275,9 @@ def decoupled_linear_gain(
     x, _, rss, rss_c = nested_fits(M, v, yy, min_conditioning, drop=0)  # U = 0: eq. (14)
     ws = w[sel]
     F, n_eff = _f(rss_c, rss, ws.sum(axis=1), (ws * ws).sum(axis=1), p)
-    out[3][sel] = np.where((n_eff > p) & (rss > 0), F, np.nan)
     k = h2[sel] / h1[sel]
+    ok = (n_eff - p >= MIN_RESIDUAL_DOF) & (rss > 0) & (rss_c >= MIN_RESIDUAL_RATIO * rss)
+    out[3][sel] = np.where(ok, F, np.nan)
     out[0][sel], out[1][sel] = x[:, 0] - x[:, 1], x[:, 0] - k * x[:, 1]
     out[2][sel] = x[:, 2] / h1[sel]
     return tuple(out)

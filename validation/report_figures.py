@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import textwrap
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -291,6 +292,9 @@ def _accuracy_vs_time(plt: Any, summary: Mapping[str, Any], path: Path) -> None:
             off = y > ceiling
             yp = ceiling if off else y
             label = f"{i}: {name} ({y:.3f} px, {ms:.0f} ms)" + (" - off scale" if off else "")
+            # wrapped: a line wider than the figure (the paper's row, ~200 characters)
+            # collapses the constrained layout
+            label = textwrap.fill(label, 110, subsequent_indent="    ", break_on_hyphens=False)
             ax.scatter(ms, yp, marker="^" if off else marker, s=40, label=label, zorder=3)
             ax.annotate(str(i), (ms, yp), textcoords="offset points", xytext=(4, 3), fontsize=8)
         ax.set_ylim(0, ceiling * 1.05)

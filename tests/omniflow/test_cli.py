@@ -128,14 +128,20 @@ def check_against_truth(case, cols, epe_max=0.15):
     # (dense_percentile 60, pool_grid 0.125, decouple_tol 60) the test rejected it at
     # 0.7 % of the points (16-bit PNG, EXR) and 4.1 % (JPEG), measured with the CLI on
     # this fixture's first two frames after the decoupling moved to the grid windows
-    # (tree pools: 0.2 %, 2.1 % in the dataset mode, 4.8 % JPEG): bound 10 %
+    # (tree pools: 0.2 %, 2.1 % in the dataset mode, 4.8 % JPEG); the dense preset's
+    # decouple_gain_tol 60 takes it from 0.8 to 7.2 % (PNG) and leaves 3.6 % (JPEG),
+    # measured in process on the same frames (the noise-free PNG's small systematic
+    # misfits pass the linear-gain test in the preset's large pools, n_eff 100-480):
+    # bound 10 %
     c = cols["coupled"] == 1
     np.testing.assert_allclose(
         cols["dr_dt"][c], (-(rig.d + cols["r"]) * cols["dh1_dt"] / cols["h1"])[c], rtol=1e-6,
         atol=1e-12,
     )  # fmt: skip
     stereo = -(rig.d + cols["r"]) * (cols["dh2_dt"] - cols["dh1_dt"]) / (cols["h2"] - cols["h1"])
-    np.testing.assert_allclose(cols["dr_dt"][~c], stereo[~c], rtol=1e-6, atol=1e-12)
+    # rtol 1e-5: dh2 - dh1 from the CSV's 9 digits loses some to cancellation (measured
+    # 1.3e-6 at 1 of the 280 decoupled points of the dense preset's PNG run)
+    np.testing.assert_allclose(cols["dr_dt"][~c], stereo[~c], rtol=1e-5, atol=1e-12)
     assert c.mean() > 0.90
     # Stereo: every point is on the wall, r = 3 m; h2 against each point's exact h_2.
     assert np.median(np.abs(cols["r"] / WALL - 1)) < 0.06
