@@ -655,10 +655,10 @@ class OmniFlowConfig:
         default's points (4 % of the valid pixels of the rendered scenes against
         0.4 %) and a smaller error on every rendered scene, at about three times
         the default's time per pair without the linear-gain test (about twice
-        without the gain either), 1.3-2 times that with it (its k-d tree search
+        without the gain either), about twice that with it (its k-d tree search
         and sums, not yet on the grid; docs/measurements.md, "The dense preset",
-        "Speed with the gain by default" and "decouple_gain_tol gated, and the
-        default"). Not the default because of that time: the default answers
+        "decouple_gain_tol gated, and the default" and "Speed after the stop-20
+        merges"). Not the default because of that time: the default answers
         within about DIS medium's time (issue 10).
         """
         base = dict(DENSE)
