@@ -280,14 +280,20 @@ def _brute_force_gain(x, y, tangent, derivs, f, h1, h2, r, tol, scale):
     return M, v, yy, np.stack([w.sum(1), (w * u).sum(1), (w * u * u).sum(1)], 1), (w * w).sum(1)
 
 
-@pytest.mark.parametrize("ranges", [False, True])
-def test_grid_gain_sums_equal_the_brute_force_sums(ranges):
-    """GridPools.gain_sums (float64 filters) against the definition, points on cell centres:
-    measured 2e-16 - 4e-16 relative to each quantity's largest entry."""
+def _sums_case(ranges: bool):
+    """_cell_centre_case with cam2's h2 (1.5-1.9 h1) and both images' f at the points."""
     x, y, tangent, derivs, h1, r = _cell_centre_case(ranges=ranges)
     rng = np.random.default_rng(5)
     h2 = h1 * rng.uniform(1.5, 1.9, h1.size)
     f = (rng.uniform(0.2, 0.8, h1.size), rng.uniform(0.2, 0.8, h1.size))
+    return x, y, tangent, derivs, h1, r, h2, f
+
+
+@pytest.mark.parametrize("ranges", [False, True])
+def test_grid_gain_sums_equal_the_brute_force_sums(ranges):
+    """GridPools.gain_sums (float64 filters) against the definition, points on cell centres:
+    measured 2e-16 - 4e-16 relative to each quantity's largest entry."""
+    x, y, tangent, derivs, h1, r, h2, f = _sums_case(ranges)
     tol, scale = 0.1, RADIUS
     grid = GridPools(x, y, tangent, SHAPE, radius=RADIUS, cell=CELL, r=r, range_tol=tol)
     got = grid.gain_sums(derivs, f, h1, h2, None, linear=True, scale=scale)
@@ -299,10 +305,7 @@ def test_grid_gain_sums_equal_the_brute_force_sums(ranges):
 def test_grid_gain_sums_check_catches_a_gain_channel_sign():
     """The mutation: the image's column entered as +f instead of -f (the gain's sign)
     changes the gain's row of M and v far beyond the check's tolerance."""
-    x, y, tangent, derivs, h1, _ = _cell_centre_case()
-    rng = np.random.default_rng(5)
-    h2 = h1 * rng.uniform(1.5, 1.9, h1.size)
-    f = (rng.uniform(0.2, 0.8, h1.size), rng.uniform(0.2, 0.8, h1.size))
+    x, y, tangent, derivs, h1, _, h2, f = _sums_case(False)
     grid = GridPools(x, y, tangent, SHAPE, radius=RADIUS, cell=CELL)
     got = grid.gain_sums(derivs, (-f[0], -f[1]), h1, h2, None, linear=True, scale=RADIUS)
     ref = _brute_force_gain(x, y, tangent, derivs, f, h1, h2, None, 0.1, RADIUS)
@@ -313,10 +316,7 @@ def test_grid_gain_sums_check_catches_a_gain_channel_sign():
 def test_grid_gain_sums_in_float32_equal_the_brute_force_sums(ranges):
     """GridPools.gain_sums(single=True), float32 filters, against the definition: measured
     1.5e-7 relative to each quantity's largest entry at most (tolerance 2e-6)."""
-    x, y, tangent, derivs, h1, r = _cell_centre_case(ranges=ranges)
-    rng = np.random.default_rng(5)
-    h2 = h1 * rng.uniform(1.5, 1.9, h1.size)
-    f = (rng.uniform(0.2, 0.8, h1.size), rng.uniform(0.2, 0.8, h1.size))
+    x, y, tangent, derivs, h1, r, h2, f = _sums_case(ranges)
     tol, scale = 0.1, RADIUS
     grid = GridPools(x, y, tangent, SHAPE, radius=RADIUS, cell=CELL, r=r, range_tol=tol)
     got = grid.gain_sums(derivs, f, h1, h2, None, linear=True, scale=scale, single=True)
@@ -328,10 +328,7 @@ def test_grid_gain_sums_in_float32_equal_the_brute_force_sums(ranges):
 def test_grid_gain_sums_in_float32_check_catches_kernels_in_cells():
     """The mutation: the float32 moment kernels with the offset in cells instead of pixels
     (d g(d) off by the cell, 2 px here): the slopes' entries of M fail the check."""
-    x, y, tangent, derivs, h1, _ = _cell_centre_case()
-    rng = np.random.default_rng(5)
-    h2 = h1 * rng.uniform(1.5, 1.9, h1.size)
-    f = (rng.uniform(0.2, 0.8, h1.size), rng.uniform(0.2, 0.8, h1.size))
+    x, y, tangent, derivs, h1, _, h2, f = _sums_case(False)
     grid = GridPools(x, y, tangent, SHAPE, radius=RADIUS, cell=CELL)
     grid.kernels = [(k / CELL**m).astype(np.float32) for m, k in enumerate(grid.kernels)]
     got = grid.gain_sums(derivs, f, h1, h2, None, linear=True, scale=RADIUS, single=True)
