@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import itertools
 import math
-import textwrap
+import re
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -265,6 +265,19 @@ def sweep_figure(sweep: Sequence[Mapping[str, Any]], fig_dir: Path) -> dict[str,
     return {"camera_sweep": "figures/camera_sweep.png"}
 
 
+def _wrap_at_commas(text: str, width: int) -> str:
+    """``text`` in lines of at most ``width`` characters where it can be, broken after a
+    comma (a row's name is one word of comma-separated settings: kept whole, not split
+    inside a setting), the later lines indented."""
+    lines = [""]
+    for piece in re.split(r"(?<=,)", text):
+        if lines[-1].strip() and len(lines[-1]) + len(piece) > width:
+            lines.append("    ")
+            piece = piece.lstrip()
+        lines[-1] += piece
+    return "\n".join(lines)
+
+
 def _accuracy_vs_time(plt: Any, summary: Mapping[str, Any], path: Path) -> None:
     """Median EPE (cam1) against time per frame pair, one numbered marker per row and a
     legend beside the axes (no labels to overlap). Rows far above the rest (the paper's
@@ -294,7 +307,7 @@ def _accuracy_vs_time(plt: Any, summary: Mapping[str, Any], path: Path) -> None:
             label = f"{i}: {name} ({y:.3f} px, {ms:.0f} ms)" + (" - off scale" if off else "")
             # wrapped: a line wider than the figure (the paper's row, ~200 characters)
             # collapses the constrained layout
-            label = textwrap.fill(label, 110, subsequent_indent="    ", break_on_hyphens=False)
+            label = _wrap_at_commas(label, 110)
             ax.scatter(ms, yp, marker="^" if off else marker, s=40, label=label, zorder=3)
             ax.annotate(str(i), (ms, yp), textcoords="offset points", xytext=(4, 3), fontsize=8)
         ax.set_ylim(0, ceiling * 1.05)

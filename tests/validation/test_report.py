@@ -303,3 +303,20 @@ def test_calibrate_keeps_unmeasurable_checks_pending(tmp_path):
     data = load_thresholds(path)
     assert data["scenes"]["s"]["pending"][0]["metric"] == waiting["metric"]
     assert [c["metric"] for c in data["scenes"]["s"]["check"]] == [check["metric"]]
+
+
+def test_legend_labels_wrap_between_settings_not_inside_one():
+    """The accuracy-vs-time legend's long row names break after a comma: every line fits
+    110 characters and every setting stands whole on one line (textwrap's mid-word
+    breaks gave 'deco' / 'uple_gain_tol')."""
+    from validation.report_figures import _wrap_at_commas
+
+    name = ("omniflow[paper,grad1,diff,direct;band=0.25,flow_band=0.25,flow_taper=0.0,eiv=none,"
+            "brightness_gate=None,decouple_gain_tol=None,sampling=exact,iterations=0,"
+            "iterate_min_px=0.0,rim_fill=none]")  # fmt: skip
+    lines = _wrap_at_commas(f"6: {name} (1.289 px, 312 ms) - off scale", 110).split("\n")
+    assert len(lines) == 3 and all(len(s) <= 110 for s in lines)
+    assert all(s.startswith("    ") for s in lines[1:])
+    for setting in name.split(","):
+        assert any(setting in s for s in lines), setting
+    assert _wrap_at_commas("1: omniflow[robust] (0.017 px, 82 ms)", 110).count("\n") == 0
