@@ -300,27 +300,32 @@ def pool_fits(
     )  # fmt: skip
     derivs = tuple(np.asarray(cols[c], dtype=np.float64) for c in DERIVS)
     chain = config.decouple_gain_tol is not None and brightness is not None
-    idx = w = None
+    theta = np.asarray(cols["theta"], dtype=np.float64)
+    idx = w = sums = None
     if config.grid_pools:  # the solver's grid windows, the k-d tree's where ranges mix
         grid = GridPools(
             cols["x"], cols["y"], None, (rig.cam1.height, rig.cam1.width), radius=radius,
             cell=config.pool_grid * radius, r=cols["r"], range_tol=config.pool_range_tol,
             tree_pools=lambda mask: search(query=mask),
         )  # fmt: skip
-        fit = fits_from_sums(grid.decouple_sums(derivs, h1, h2), h1, h2)
-        if chain:
-            idx, w = search()
+        if chain:  # the two-model test's sums are channels of the linear-gain test's
+            sums = grid.linear_gain_sums(derivs, brightness, h1, h2, theta, scale=radius)
+            fit = fits_from_sums(sums[7], h1, h2)
+        else:
+            fit = fits_from_sums(grid.decouple_sums(derivs, h1, h2), h1, h2)
     else:
         idx, w = search() if pools is None else kept_pools(*pools, search)
         fit = model_fits(derivs, h1, h2, idx, w)
     if chain:
-        theta = np.asarray(cols["theta"], dtype=np.float64)
         floor = max(config.min_conditioning, config.pool_min_conditioning)
+        if sums is not None:  # the grid's windows (the tree's where ranges mix)
+            within, kept = sums[5], sums[6]
+        else:
+            within, kept = (idx < h1.size).sum(axis=1), (w > 0).sum(axis=1)  # any range; kept
         g = decoupled_linear_gain(derivs, brightness, h1, h2, theta, idx, w, scale=radius,
-                                  min_conditioning=floor)  # fmt: skip
-        within = (idx < h1.size).sum(axis=1)  # neighbours within the radius, any range
+                                  min_conditioning=floor, sums=sums)  # fmt: skip
         fit.update(gain_a1=g[0], gain_a2=g[1], gain_b=g[2], gain_F=g[3],
-                   gain_edge=within - (w > 0).sum(axis=1) > EDGE_SHARE * within)  # fmt: skip
+                   gain_edge=within - kept > EDGE_SHARE * within)  # fmt: skip
     return fit
 
 

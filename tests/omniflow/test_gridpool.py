@@ -24,7 +24,9 @@ import pytest
 
 from omniflow.config import OmniFlowConfig
 from omniflow.flow import pooled_solution
+from omniflow.gain import decoupled_linear_gain
 from omniflow.gridpool import GridPools
+from omniflow.kernels import gain_sums, nested_fits
 from omniflow.pipeline import estimate
 from tests.helpers.scenes import band_scene, frames, paper_rig, sparse_true_matches
 
@@ -377,3 +379,120 @@ def test_gain_f_statistic_from_float32_grid_sums_as_float64(monkeypatch):
     assert np.array_equal(gain.gated(F64, 20.0, a64, b64), gain.gated(F32, 20.0, a32, b32))
     fin = np.isfinite(a64)
     assert np.max(np.abs(a32[fin] - a64[fin])) < 1e-5 and np.nanmax(np.abs(b32 - b64)) < 1e-5
+
+
+def _brute_force_linear_gain(x, y, derivs, f, h1, h2, r, tol, scale, basis=None):
+    """The linear-gain test's Grams (omniflow.kernels.gain_sums's ``decoupled_linear``
+    layout) by the definition: every pair's two rows (f_h, -f_h h_u,j / h_1,i,
+    f_theta / h_1,i, -f, -f e1 . d / scale, -f e2 . d / scale), d = (x_j - x_i, y_j - y_i),
+    right side -f_t, weighted. ``basis`` (N, 2, 2): each point's e1, e2 (default the pixel
+    axes)."""
+    f1h, f1th, f1t, f2h, f2th, f2t = derivs
+    _, _, w = _window_weights(x, y, r, tol)
+    dx, dy, _ = _window_weights(x, y, None, tol)
+    e = np.broadcast_to(np.eye(2), (x.size, 2, 2)) if basis is None else basis
+    o1 = (e[:, 0, 0:1] * dx + e[:, 0, 1:2] * dy) / scale
+    o2 = (e[:, 1, 0:1] * dx + e[:, 1, 1:2] * dy) / scale
+    hi = h1[:, None]
+    rows = []
+    for fh, fq, ft, fu, hu in ((f1h, f1th, f1t, f[0], h1), (f2h, f2th, f2t, f[1], h2)):
+        j = lambda a: np.broadcast_to(a[None, :], w.shape)  # noqa: E731  (j's own value)
+        g = j(-fu)
+        X = np.stack([j(fh), -j(fh * hu) / hi, j(fq) / hi, g, g * o1, g * o2], -1)
+        rows.append((X, j(-ft)))
+    M = sum(np.einsum("ij,ijp,ijq->ipq", w, X, X) for X, _ in rows)
+    v = sum(np.einsum("ij,ijp,ij->ip", w, X, y_) for X, y_ in rows)
+    yy = sum(np.einsum("ij,ij,ij->i", w, y_, y_) for _, y_ in rows)
+    return M, v, yy, w.sum(1), (w * w).sum(1)
+
+
+@pytest.mark.parametrize("ranges", [False, True])
+def test_grid_linear_gain_sums_equal_the_brute_force_sums(ranges):
+    """GridPools.linear_gain_sums (float64 filters) against the definition, points on cell
+    centres: measured 1.6e-16 - 4.0e-16 relative to each quantity's largest entry; its
+    two-model sums are decouple_sums' bit for bit, its ``kept`` the pool's sum of weights
+    and ``within`` the same without the range test."""
+    x, y, _, derivs, h1, r, h2, f = _sums_case(ranges)
+    tol, scale = 0.1, RADIUS
+    grid = GridPools(x, y, None, SHAPE, radius=RADIUS, cell=CELL, r=r, range_tol=tol)
+    got = grid.linear_gain_sums(derivs, f, h1, h2, None, scale=scale)
+    ref = _brute_force_linear_gain(x, y, derivs, f, h1, h2, r, tol, scale)
+    for name, a, b in zip(("M", "v", "yy", "wsum", "w2"), got, ref, strict=False):
+        assert _rel_err(a, b) < 1e-10, name
+    _, _, w_all = _window_weights(x, y, None, tol)
+    assert _rel_err(got[5], w_all.sum(1)) < 1e-10  # within; measured 2e-16
+    np.testing.assert_array_equal(got[6], got[3])  # kept: the sum of weights
+    np.testing.assert_array_equal(got[7], grid.decouple_sums(derivs, h1, h2))
+
+
+def test_grid_linear_gain_sums_check_catches_offsets_in_cells():
+    """The mutation: the moment kernels' offsets in cells instead of pixels (the grid's cell
+    set to 1 px after binning at 2 px): the slopes' entries of M fail the check."""
+    x, y, _, derivs, h1, _, h2, f = _sums_case(False)
+    grid = GridPools(x, y, None, SHAPE, radius=RADIUS, cell=CELL)
+    grid.cell = 1.0
+    got = grid.linear_gain_sums(derivs, f, h1, h2, None, scale=RADIUS)
+    ref = _brute_force_linear_gain(x, y, derivs, f, h1, h2, None, 0.1, RADIUS)
+    assert _rel_err(got[0][:, 4:, 4:], ref[0][:, 4:, 4:]) > 0.05  # measured 0.75
+
+
+def _polar_linear_case(curved: bool = False):
+    """_sums_case's points with h_1 and theta linear in the pixel position (so the tree's
+    offsets u = (theta_j - theta_i) h_1,i and dh = h_1,j - h_1,i are, at each point, an
+    invertible linear map of (dx, dy)), and every pool the grid's window as a k-d tree
+    pool over all points (idx, w). ``curved``: theta quadratic in x instead (u then not
+    a linear map of the offset)."""
+    x, y, _, derivs, _, r, _, f = _sums_case(True)
+    h1 = 40.0 + 0.3 * x + 0.2 * y
+    theta = (0.004 * x if not curved else 4e-5 * x**2) - 0.006 * y
+    h2 = h1 * np.random.default_rng(9).uniform(1.5, 1.9, x.size)
+    _, _, w = _window_weights(x, y, r, 0.1)
+    idx = np.broadcast_to(np.arange(x.size), w.shape)
+    return x, y, derivs, f, h1, h2, theta, r, idx, w
+
+
+def _test_fits(M, v, yy):
+    x, conf, rss, rss_c = nested_fits(M, v, yy, 1e-6, drop=0)
+    return x[:, :3], conf, rss, rss_c
+
+
+def _fit_errs(a_fits, b_fits):
+    """Each of the fits' largest relative difference, over the pools both solve (a pool
+    solved by one only: inf)."""
+    errs = []
+    for a, b in zip(a_fits, b_fits, strict=True):
+        fa, fb = np.isfinite(a), np.isfinite(b)
+        errs.append(_rel_err(a[fa], b[fa]) if (fa == fb).all() else math.inf)
+    return errs
+
+
+def test_grid_linear_gain_test_equals_the_trees_over_the_same_pools():
+    """The linear-gain test (omniflow.gain.decoupled_linear_gain) from the grid's Grams,
+    slopes along (dx, dy), and from the tree's kernel over the same pools, slopes along
+    (u, dh): the same fits (U, h_1 W, c), confidence, both RSS and flow, where the tree's
+    offsets are a linear map of the pixel offsets (measured 1.9e-11 relative at most, the
+    flow; tolerance 1e-9)."""
+    x, y, derivs, f, h1, h2, theta, r, idx, w = _polar_linear_case()
+    grid = GridPools(x, y, None, SHAPE, radius=RADIUS, cell=CELL, r=r, range_tol=0.1)
+    sums = grid.linear_gain_sums(derivs, f, h1, h2, theta, scale=RADIUS)
+    tree = gain_sums(idx, w, np.arange(x.size), derivs, f, h1, h2, theta,
+                     model="decoupled_linear", scale=RADIUS)  # fmt: skip
+    errs = _fit_errs(_test_fits(*sums[:3]), _test_fits(*tree[:3]))
+    assert max(errs) < 1e-9, errs
+    kw = dict(scale=RADIUS, min_conditioning=1e-6)
+    on_grid = decoupled_linear_gain(derivs, f, h1, h2, theta, None, None, sums=sums, **kw)
+    on_tree = decoupled_linear_gain(derivs, f, h1, h2, theta, idx, w, **kw)
+    assert max(_fit_errs(on_grid[:3], on_tree[:3])) < 1e-9
+    assert np.isfinite(on_grid[0]).mean() > 0.9  # measured 0.99 of the pools solved
+
+
+def test_grid_linear_gain_equivalence_check_catches_a_curved_offset():
+    """The mutation: the tree's u no longer a linear map of the offset (theta quadratic in
+    x): the two fits differ far beyond the check's tolerance."""
+    x, y, derivs, f, h1, h2, theta, r, idx, w = _polar_linear_case(curved=True)
+    grid = GridPools(x, y, None, SHAPE, radius=RADIUS, cell=CELL, r=r, range_tol=0.1)
+    sums = grid.linear_gain_sums(derivs, f, h1, h2, theta, scale=RADIUS)
+    tree = gain_sums(idx, w, np.arange(x.size), derivs, f, h1, h2, theta,
+                     model="decoupled_linear", scale=RADIUS)  # fmt: skip
+    errs = _fit_errs(_test_fits(*sums[:3]), _test_fits(*tree[:3]))
+    assert max(errs) > 1e-3, errs  # measured: confidence 0.039, the others solve other pools
