@@ -64,7 +64,7 @@ from omniflow.config import OmniFlowConfig
 from omniflow.flow import neighbourhoods
 from omniflow.gain import decoupled_gain, decoupled_linear_gain, gated
 from omniflow.gridpool import GridPools
-from omniflow.kernels import decouple_fits, decouple_sums
+from omniflow.kernels import decouple_fits, decouple_sums, nested_fits
 from omniflow.rig import Rig
 
 __all__ = [
@@ -308,25 +308,57 @@ def pool_fits(
             cell=config.pool_grid * radius, r=cols["r"], range_tol=config.pool_range_tol,
             tree_pools=lambda mask: search(query=mask),
         )  # fmt: skip
-        if chain:  # the two-model test's sums are channels of the linear-gain test's
-            sums = grid.linear_gain_sums(derivs, brightness, h1, h2, theta, scale=radius)
-            fit = fits_from_sums(sums[7], h1, h2)
-        else:
-            fit = fits_from_sums(grid.decouple_sums(derivs, h1, h2), h1, h2)
+        fit = fits_from_sums(grid.decouple_sums(derivs, h1, h2), h1, h2)
+        if chain:  # the same Gaussian cut at about the k nearest, as the tree's pools
+            near = GridPools(
+                cols["x"], cols["y"], None, (rig.cam1.height, rig.cam1.width), radius=radius,
+                cell=config.pool_grid * radius, r=cols["r"], range_tol=config.pool_range_tol,
+                tree_pools=lambda mask: (grid.idx, grid.w), window=grid.k_window(config.pool_k),
+            )  # fmt: skip
+            sums = near.linear_gain_sums(
+                derivs, brightness, h1, h2, theta, scale=radius, single=True
+            )
+            floor = max(config.min_conditioning, config.pool_min_conditioning)
+            query = screen(sums, floor, EDGE_GATE * config.decouple_gain_tol)
+            idx, w = search(query=query)  # the tree's test where the grid's may pass
+            w = np.where(query[:, None], w, 0.0)  # the others' rows: not tested (NaN)
     else:
         idx, w = search() if pools is None else kept_pools(*pools, search)
         fit = model_fits(derivs, h1, h2, idx, w)
     if chain:
         floor = max(config.min_conditioning, config.pool_min_conditioning)
-        if sums is not None:  # the grid's windows (the tree's where ranges mix)
-            within, kept = sums[5], sums[6]
-        else:
-            within, kept = (idx < h1.size).sum(axis=1), (w > 0).sum(axis=1)  # any range; kept
+        within, kept = (idx < h1.size).sum(axis=1), (w > 0).sum(axis=1)  # any range; kept
         g = decoupled_linear_gain(derivs, brightness, h1, h2, theta, idx, w, scale=radius,
-                                  min_conditioning=floor, sums=sums)  # fmt: skip
+                                  min_conditioning=floor)  # fmt: skip
         fit.update(gain_a1=g[0], gain_a2=g[1], gain_b=g[2], gain_F=g[3],
                    gain_edge=within - kept > EDGE_SHARE * within)  # fmt: skip
     return fit
+
+
+#: :func:`screen`'s least RSS_coupled / RSS_decoupled over the grid's window (the tree's
+#: test asks 2, :data:`omniflow.gain.MIN_RESIDUAL_RATIO`, over its own pools).
+SCREEN_RATIO = 1.02
+
+#: :func:`screen`'s least F_U over the grid's window, as a share of the lowest gate.
+SCREEN_F = 0.1
+
+
+def screen(sums: tuple[NDArray, ...], min_conditioning: float, gate: float) -> NDArray:
+    """The points whose linear-gain test (:func:`omniflow.gain.decoupled_linear_gain`) may
+    pass ``gate``, from the grid's sums (:meth:`omniflow.gridpool.GridPools.linear_gain_sums`
+    over a window of about the tree's pool): the test's F_U over the grid's window above
+    :data:`SCREEN_F` ``gate`` with RSS_coupled at least :data:`SCREEN_RATIO` RSS_decoupled,
+    and every point where the grid's test is undecided (a fit without a solution, or fewer
+    than 4 residual degrees of freedom). The tree's test then runs at these points only."""
+    M, v, yy, w1, w2 = sums[:5]
+    x, _, rss, rss_c = nested_fits(M, v, yy, min_conditioning, drop=0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        dof = 2.0 * w1**2 / w2 - M.shape[1]
+        F = (rss_c - rss) / (rss / dof)
+        return (
+            ~np.isfinite(x[:, :3]).all(axis=1) | ~(dof >= 4.0) | ~(rss > 0)
+            | ((rss_c >= SCREEN_RATIO * rss) & (F > SCREEN_F * gate))
+        )  # fmt: skip
 
 
 #: the result columns of the six derivatives, in the order the fits take them

@@ -67,6 +67,9 @@ class GridPools:
     tree_pools : callable, optional
         ``tree_pools(mask) -> (idx, w)``: the k-d tree pools of the masked
         points (rows of the others unused), for the points that leave the grid.
+    window : float, optional
+        Half-width of the square window, pixels (default ``radius``): the same
+        Gaussian cut nearer (:meth:`k_window`).
     """
 
     def __init__(
@@ -81,6 +84,7 @@ class GridPools:
         r: NDArray | None = None,
         range_tol: float | None = None,
         tree_pools=None,
+        window: float | None = None,
     ) -> None:
         self.n = n = np.size(x)
         self.cell = float(cell)
@@ -93,7 +97,7 @@ class GridPools:
         self.flat = iy * self.gw + ix
         self.gx, self.gy = x / cell - 0.5, y / cell - 0.5  # cell coordinates, centres at integers
         self.tangent = None if tangent is None else np.asarray(tangent, np.float64).reshape(n, 2)
-        half = max(round(radius / cell), 1)
+        half = max(round((radius if window is None else window) / cell), 1)
         d = np.arange(-half, half + 1) * cell  # offsets, pixels
         g = np.exp(-0.5 * (d / (radius / 2.0)) ** 2)
         self.kernels = [(g * d**m).astype(np.float32) for m in range(3)]  # g, d g, d^2 g
@@ -389,6 +393,7 @@ class GridPools:
         theta: NDArray | None,
         *,
         scale: float,
+        single: bool = False,
     ) -> tuple[NDArray, ...]:
         """The linear-gain test's 6 x 6 Grams (``decoupled_linear``) on the grid windows.
 
@@ -402,8 +407,10 @@ class GridPools:
         mix of them: the test's RSS, its F_U and the flow are the tree's but for the
         pools' contents. So every entry is a pool sum of j's own products times a power
         of the point's h_1,i (columns 1 and 2) or a first or second moment of the offset
-        (columns 4 and 5), filtered as :meth:`gain_sums`' linear model, in float64. Off-grid
-        points get their k-d tree pools' sums (the tree's u, dh columns).
+        (columns 4 and 5), filtered as :meth:`gain_sums`' linear model. Off-grid points
+        get their k-d tree pools' sums (the tree's u, dh columns). ``single``: the filters
+        in float32, each channel scaled to a largest |value| of 1 first (as :meth:`sums`),
+        else float64.
 
         Returns
         -------
@@ -412,23 +419,13 @@ class GridPools:
             (N, 6, 6), (N, 6), (N,).
         wsum, w2 : ndarray, shape (N,)
             Each pool's sums of weights and squared weights.
-        within, kept : ndarray, shape (N,)
-            The neighbours in the pool's window whatever their range, and those the
-            range test keeps: on the grid Gaussian-weighted sums (the window's points
-            unbinned, and binned with the shares), on the tree counts of the neighbours
-            found and of those with a weight; their difference over ``within`` is the
-            share the range test drops (a range edge, omniflow.decoupled.EDGE_SHARE).
-        decouple : ndarray, shape (N, 12)
-            :meth:`decouple_sums` (the same, bit for bit): its sums are channels of these
-            Grams' block of the first three columns, filtered here in the same pass.
         """
         f1h, f1th, f1t, f2h, f2th, f2t = (np.asarray(v, np.float64).ravel() for v in derivs)
         g1, g2 = (np.asarray(v, np.float64).ravel() for v in f)
         h1, h2 = (np.asarray(v, np.float64).ravel() for v in (h1, h2))
         n = self.n
         M, v = np.zeros((n, 6, 6)), np.zeros((n, 6))
-        yy, wsum, w2, within, kept = (np.zeros(n) for _ in range(5))
-        dec = np.zeros((n, len(DECOUPLE_SUMS)))
+        yy, wsum, w2 = np.zeros(n), np.zeros(n), np.zeros(n)
         on = self.on_grid
         if on.any():
             cross = lambda x1, x2, y1, y2: x1 * y1 + x2 * y2  # noqa: E731  (both units)
@@ -442,14 +439,18 @@ class GridPools:
             parts = np.stack([np.ones(n)] + [cross(*cols[a], *cols[b]) for a, b in pairs], 1)
             sel = slice(None) if on.all() else np.flatnonzero(on)
             d = np.arange(-self.half, self.half + 1) * self.cell  # offsets, pixels
-            g0, gd, gdd = (self.gauss * d**m for m in range(3))
+            g0, gd, gdd, gg = (*(self.gauss * d**m for m in range(3)), self.gauss**2)
+            norm = np.ones(parts.shape[1])
+            if single:  # per-channel scale so that float32 holds every channel near 1
+                norm = np.maximum(np.abs(parts[sel]).max(axis=0), 1e-300)
+                parts = (parts / norm).astype(np.float32)
+                g0, gd, gdd, gg = (k.astype(np.float32) for k in (g0, gd, gdd, gg))
             bins = self._bin_images(parts)
-            c0 = self._filter(parts, [(g0, g0, 1)], bins)[0][sel]
-            mx, my = self._filter(parts[:, :6], [(gd, g0, 1), (g0, gd, 1)],
-                                  _channels(bins, 6))[:, sel, 1:] / scale  # fmt: skip
-            mxx, mxy, myy = self._filter(parts[:, :2], [(gdd, g0, 1), (gd, gd, 1), (g0, gdd, 1)],
-                                         _channels(bins, 2))[:, sel, 1] / scale**2  # fmt: skip
-            gg = self.gauss**2
+            c0 = self._filter(parts, [(g0, g0, 1)], bins)[0][sel] * norm
+            mx, my = (self._filter(parts[:, :6], [(gd, g0, 1), (g0, gd, 1)], _channels(bins, 6))
+                      [:, sel, 1:] * (norm[1:6] / scale))  # fmt: skip
+            mxx, mxy, myy = (self._filter(parts[:, :2], [(gdd, g0, 1), (gd, gd, 1), (g0, gdd, 1)],
+                             _channels(bins, 2))[:, sel, 1] * (norm[1] / scale**2))  # fmt: skip
             sq = self._filter(parts[:, :1], [(gg, gg, 2)], _channels(bins, 1))[0][sel, 0]
             G = np.zeros((c0.shape[0], 6, 6))
             G[:, 3, 3], G[:, 4, 4], G[:, 4, 5], G[:, 5, 5] = c0[:, 1], mxx, mxy, myy
@@ -466,21 +467,28 @@ class GridPools:
             s[:, 1] = s[:, 2] = 1.0 / hi  # the columns -f_h h_u / h_1,i and f_theta / h_1,i
             M[sel] = G * s[:, :, None] * s[:, None, :]
             v[sel] = rhs * s
-            yy[sel], wsum[sel], w2[sel], kept[sel] = c0[:, 15], c0[:, 0], sq, c0[:, 0]
-            within[sel] = self._unbinned_count()[sel]
-            # DECOUPLE_SUMS: channels 6-15 with f_h h_u and f_t for their negatives
-            dec[sel, :10] = c0[:, 6:16] * np.array([1, -1, 1, 1, -1, 1, -1, 1, -1, 1])
-            dec[sel, 10], dec[sel, 11] = c0[:, 0], sq
+            yy[sel], wsum[sel], w2[sel] = c0[:, 15], c0[:, 0], sq
         if self.idx is not None:  # the points whose window mixes ranges: their tree pools
             rows = np.flatnonzero(~on)
             idx, w = self.idx[rows], self.w[rows]
-            dec[rows] = decouple_sums(idx, w, (f1h, f1th, f1t, f2h, f2th, f2t), h1, h2)
             tree = gain_sums(idx, w, rows, derivs, f, h1, h2, theta, model="decoupled_linear",
                              scale=scale)  # fmt: skip
             M[rows], v[rows], yy[rows] = tree[0], tree[1], tree[2]
             wsum[rows], w2[rows] = w.sum(axis=1), (w * w).sum(axis=1)
-            within[rows], kept[rows] = (idx < n).sum(axis=1), (w > 0).sum(axis=1)
-        return M, v, yy, wsum, w2, within, kept, dec
+        return M, v, yy, wsum, w2
+
+    def k_window(self, k: int) -> float:
+        """The half-width of the square that holds ``k`` points at the median density of
+        the on-grid points, pixels (at most the window's own): the density is each
+        window's Gaussian-weighted count of points (any range) over the Gaussian's sum
+        on the cells, so that a window of this half-width holds about the ``k`` nearest
+        neighbours of :func:`omniflow.flow.neighbourhoods` (its pools cut at ``k``,
+        the grid's at the window)."""
+        if not self.on_grid.any():
+            return self.half * self.cell
+        count = self._unbinned_count()[self.on_grid]
+        density = float(np.median(count)) / (self.cell * self.gauss.sum()) ** 2  # per px^2
+        return min(0.5 * math.sqrt(k / density), self.half * self.cell)
 
     def _unbinned_count(self) -> NDArray:
         """sum_j g(x_j - x_i) over the window's on-grid points whatever their range, read at
