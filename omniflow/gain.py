@@ -219,13 +219,12 @@ def decoupled_linear_gain(
     h1: NDArray,
     h2: NDArray,
     theta: NDArray,
-    idx: NDArray | None,
-    w: NDArray | None,
+    idx: NDArray,
+    w: NDArray,
     *,
     scale: float,
     min_conditioning: float,
     slopes: bool = True,
-    sums: tuple[NDArray, ...] | None = None,
 ) -> tuple[NDArray, NDArray, NDArray, NDArray]:
     """Eq. (14) tested with a gain varying linearly across the pool in both fits.
 
@@ -254,9 +253,6 @@ def decoupled_linear_gain(
     where the information left on its first two unknowns (the Schur complement)
     is below ``min_conditioning`` (:func:`omniflow.kernels.small_solves`).
     ``slopes`` False: one gain per pool (beta only, 4 and 3 unknowns), the same test.
-    ``sums``: the pools' (M, v, yy, sum w, sum w^2) made already, over other pools
-    (:meth:`omniflow.gridpool.GridPools.linear_gain_sums`, the grid's windows); ``idx``
-    and ``w`` are then unused.
 
     Returns
     -------
@@ -271,19 +267,14 @@ def decoupled_linear_gain(
     """
     n = h1.size
     out = [np.full(n, np.nan) for _ in range(4)]
-    if sums is None:
-        sel = np.flatnonzero(w.sum(axis=1) > 0)
-        model = "decoupled_linear" if slopes else "decoupled"
-        M, v, yy, _, _, _ = gain_sums(idx[sel], w[sel], sel, derivs, f, h1, h2, theta,
-                                      model=model, scale=scale)  # fmt: skip
-        ws = w[sel]
-        w1, w2 = ws.sum(axis=1), (ws * ws).sum(axis=1)
-    else:
-        sel = np.flatnonzero(sums[3] > 0)
-        M, v, yy, w1, w2 = (a[sel] for a in sums[:5])
+    sel = np.flatnonzero(w.sum(axis=1) > 0)
+    model = "decoupled_linear" if slopes else "decoupled"
+    M, v, yy, _, _, _ = gain_sums(idx[sel], w[sel], sel, derivs, f, h1, h2, theta,
+                                  model=model, scale=scale)  # fmt: skip
     p = M.shape[1]
     x, _, rss, rss_c = nested_fits(M, v, yy, min_conditioning, drop=0)  # U = 0: eq. (14)
-    F, n_eff = _f(rss_c, rss, w1, w2, p)
+    ws = w[sel]
+    F, n_eff = _f(rss_c, rss, ws.sum(axis=1), (ws * ws).sum(axis=1), p)
     k = h2[sel] / h1[sel]
     ok = (n_eff - p >= MIN_RESIDUAL_DOF) & (rss > 0) & (rss_c >= MIN_RESIDUAL_RATIO * rss)
     out[3][sel] = np.where(ok, F, np.nan)
