@@ -560,15 +560,22 @@ def test_neighbourhoods_of_queried_points_are_the_full_searchs_rows():
     assert (part[0][~query] == x.size).all() and (part[1][~query] == 0).all()
 
 
-def test_k_window_holds_about_k_points():
+@pytest.mark.parametrize("mutation", [False, True])
+def test_k_window_holds_about_k_points(mutation):
     """GridPools.k_window on uniformly spread points (one in 12 cells of 2 px, 1 / 48 per
     px^2): for k 12 about 0.5 sqrt(12 * 48) = 12 px (measured 11.7 px; its square holds a
-    median 11 points away from the borders), for k 48 (24 px) the window's own 16 px."""
+    median 11 points away from the borders), for k 48 (24 px) the window's own 16 px. The
+    mutation, the density taken per cell instead of per px^2 (the cell set to 1 px after
+    binning at 2 px), halves the half-width (measured 5.9 px) and fails the check."""
     rng = np.random.default_rng(4)
     gh, gw = SHAPE[0] // int(CELL), SHAPE[1] // int(CELL)
     cells = rng.choice(gh * gw, size=gh * gw // 12, replace=False)
     x, y = (cells % gw + 0.5) * CELL, (cells // gw + 0.5) * CELL
     grid = GridPools(x, y, None, SHAPE, radius=RADIUS, cell=CELL)
+    if mutation:
+        grid.cell = 1.0
+        assert abs(grid.k_window(12) - 12.0) > 3.0
+        return
     half = grid.k_window(12)
     inside = (np.abs(x[:, None] - x[None, :]) <= half) & (np.abs(y[:, None] - y[None, :]) <= half)
     interior = (x > 40) & (x < SHAPE[1] - 40) & (y > 40) & (y < SHAPE[0] - 40)
