@@ -64,17 +64,20 @@ from omniflow.config import OmniFlowConfig
 from omniflow.flow import neighbourhoods
 from omniflow.gain import decoupled_gain, decoupled_linear_gain, gated
 from omniflow.gridpool import GridPools
-from omniflow.kernels import decouple_fits, decouple_sums
+from omniflow.kernels import decouple_fits, decouple_sums, nested_fits
 from omniflow.rig import Rig
 
 __all__ = [
     "EDGE_GATE",
     "EDGE_SHARE",
+    "SCREEN_F",
+    "SCREEN_RATIO",
     "chained",
     "decouple",
     "fits_from_sums",
     "model_fits",
     "pool_fits",
+    "screen",
     "tests",
 ]
 
@@ -285,10 +288,14 @@ def pool_fits(
 
     With ``config.decouple_gain_tol`` and ``brightness`` (each unit's image at the
     points) also the decoupled model with a linear gain and its F_U
-    (:func:`omniflow.gain.decoupled_linear_gain`) over the k-d tree pools (with grid
-    pools searched here, of the same k, radius and range test): keys ``gain_a1``,
-    ``gain_a2``, ``gain_b``, ``gain_F`` and ``gain_edge`` (the pool on a range edge,
-    :data:`EDGE_SHARE`).
+    (:func:`omniflow.gain.decoupled_linear_gain`) over the k-d tree pools: keys
+    ``gain_a1``, ``gain_a2``, ``gain_b``, ``gain_F`` and ``gain_edge`` (the pool on a range
+    edge, :data:`EDGE_SHARE`). With grid pools the tree is searched here (the same k,
+    radius and range test), at the points :func:`screen` keeps only: the test made first
+    on the grid's windows cut at about the tree's ``pool_k`` points
+    (:meth:`omniflow.gridpool.GridPools.k_window`), which cannot stand in for the tree's
+    (its pools hold other points, and the test's gates were set on the tree's), tells
+    where the tree's test may pass; elsewhere ``gain_F`` is NaN (not switched).
     """
     if not tests(config, np.asarray(cols["h1"]).size):
         return None
@@ -300,7 +307,8 @@ def pool_fits(
     )  # fmt: skip
     derivs = tuple(np.asarray(cols[c], dtype=np.float64) for c in DERIVS)
     chain = config.decouple_gain_tol is not None and brightness is not None
-    idx = w = None
+    theta = np.asarray(cols["theta"], dtype=np.float64)
+    idx = w = sums = None
     if config.grid_pools:  # the solver's grid windows, the k-d tree's where ranges mix
         grid = GridPools(
             cols["x"], cols["y"], None, (rig.cam1.height, rig.cam1.width), radius=radius,
@@ -308,20 +316,61 @@ def pool_fits(
             tree_pools=lambda mask: search(query=mask),
         )  # fmt: skip
         fit = fits_from_sums(grid.decouple_sums(derivs, h1, h2), h1, h2)
-        if chain:
-            idx, w = search()
+        if chain:  # the same Gaussian cut at about the k nearest, as the tree's pools
+            near = GridPools(
+                cols["x"], cols["y"], None, (rig.cam1.height, rig.cam1.width), radius=radius,
+                cell=config.pool_grid * radius, r=cols["r"], range_tol=config.pool_range_tol,
+                tree_pools=lambda mask: (grid.idx, grid.w), window=grid.k_window(config.pool_k),
+            )  # fmt: skip
+            sums = near.linear_gain_sums(
+                derivs, brightness, h1, h2, theta, scale=radius, single=True
+            )
+            floor = max(config.min_conditioning, config.pool_min_conditioning)
+            query = screen(sums, floor, EDGE_GATE * config.decouple_gain_tol)
+            idx, w = search(query=query)  # the tree's test where the grid's may pass
+            w = np.where(query[:, None], w, 0.0)  # the others' rows: not tested (NaN)
     else:
         idx, w = search() if pools is None else kept_pools(*pools, search)
         fit = model_fits(derivs, h1, h2, idx, w)
     if chain:
-        theta = np.asarray(cols["theta"], dtype=np.float64)
         floor = max(config.min_conditioning, config.pool_min_conditioning)
+        within, kept = (idx < h1.size).sum(axis=1), (w > 0).sum(axis=1)  # any range; kept
         g = decoupled_linear_gain(derivs, brightness, h1, h2, theta, idx, w, scale=radius,
                                   min_conditioning=floor)  # fmt: skip
-        within = (idx < h1.size).sum(axis=1)  # neighbours within the radius, any range
         fit.update(gain_a1=g[0], gain_a2=g[1], gain_b=g[2], gain_F=g[3],
-                   gain_edge=within - (w > 0).sum(axis=1) > EDGE_SHARE * within)  # fmt: skip
+                   gain_edge=within - kept > EDGE_SHARE * within)  # fmt: skip
     return fit
+
+
+#: :func:`screen`'s least RSS_coupled / RSS_decoupled over the grid's window (the tree's
+#: test asks 2, :data:`omniflow.gain.MIN_RESIDUAL_RATIO`, over its own pools). With
+#: :data:`SCREEN_F` it keeps 11 % of the dense preset's points on the five rendered scenes
+#: (15 pairs) and loses 4 of the 487 the tree's test switched there (grid ratio 1.030-1.073),
+#: every omnivalidate figure unchanged; 1.02 keeps 40 % and loses none (the same columns bit
+#: for bit) at about 25 ms more a pair (docs/measurements.md, "The linear-gain test screened
+#: on the grid").
+SCREEN_RATIO = 1.1
+
+#: :func:`screen`'s least F_U over the grid's window, as a share of the lowest gate.
+SCREEN_F = 0.1
+
+
+def screen(sums: tuple[NDArray, ...], min_conditioning: float, gate: float) -> NDArray:
+    """The points whose linear-gain test (:func:`omniflow.gain.decoupled_linear_gain`) may
+    pass ``gate``, from the grid's sums (:meth:`omniflow.gridpool.GridPools.linear_gain_sums`
+    over a window of about the tree's pool): the test's F_U over the grid's window above
+    :data:`SCREEN_F` ``gate`` with RSS_coupled at least :data:`SCREEN_RATIO` RSS_decoupled,
+    and every point where the grid's test is undecided (a fit without a solution, or fewer
+    than 4 residual degrees of freedom). The tree's test then runs at these points only."""
+    M, v, yy, w1, w2 = sums[:5]
+    x, _, rss, rss_c = nested_fits(M, v, yy, min_conditioning, drop=0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        dof = 2.0 * w1**2 / w2 - M.shape[1]
+        F = (rss_c - rss) / (rss / dof)
+        return (
+            ~np.isfinite(x[:, :3]).all(axis=1) | ~(dof >= 4.0) | ~(rss > 0)
+            | ((rss_c >= SCREEN_RATIO * rss) & (F > SCREEN_F * gate))
+        )  # fmt: skip
 
 
 #: the result columns of the six derivatives, in the order the fits take them

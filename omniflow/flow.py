@@ -283,15 +283,21 @@ def neighbourhoods(
         tree = cKDTree(pts, balanced_tree=False, compact_nodes=False)  # faster to build here
         d_q, i_q = tree.query(pts[rows], k=kk, distance_upper_bound=radius)
         dist[rows], idx[rows] = d_q.reshape(rows.size, kk), i_q.reshape(rows.size, kk)
-    found = idx < n
+    q = slice(None) if query is None else np.flatnonzero(query)  # the others' weights: 0
+    found = idx[q] < n
     sigma = radius / 2.0
-    w = np.where(found, np.exp(-0.5 * (np.where(found, dist, 0.0) / sigma) ** 2), 0.0)
+    w_q = np.where(found, np.exp(-0.5 * (np.where(found, dist[q], 0.0) / sigma) ** 2), 0.0)
     if r is not None and range_tol is not None:
         rr = np.append(np.asarray(r, dtype=float).ravel(), np.nan)
         with np.errstate(invalid="ignore"):
-            same = np.abs(rr[idx] - rr[:n, None]) <= range_tol * np.abs(rr[:n, None])
+            same = np.abs(rr[idx[q]] - rr[:n][q, None]) <= range_tol * np.abs(rr[:n][q, None])
         same[:, 0] = True
-        w = np.where(same, w, 0.0)
+        w_q = np.where(same, w_q, 0.0)
+    if query is None:
+        w = w_q
+    else:
+        w = np.zeros((n, kk))
+        w[q] = w_q
     if edge_map is not None and edge_tol is not None:
         strength = edge_between(edge_map, pts[:, 0], pts[:, 1], idx)
         level = np.median(_sample_grid(edge_map, pts[:, 0], pts[:, 1]))

@@ -67,6 +67,9 @@ class GridPools:
     tree_pools : callable, optional
         ``tree_pools(mask) -> (idx, w)``: the k-d tree pools of the masked
         points (rows of the others unused), for the points that leave the grid.
+    window : float, optional
+        Half-width of the square window, pixels (default ``radius``): the same
+        Gaussian cut nearer (:meth:`k_window`).
     """
 
     def __init__(
@@ -81,6 +84,7 @@ class GridPools:
         r: NDArray | None = None,
         range_tol: float | None = None,
         tree_pools=None,
+        window: float | None = None,
     ) -> None:
         self.n = n = np.size(x)
         self.cell = float(cell)
@@ -93,7 +97,7 @@ class GridPools:
         self.flat = iy * self.gw + ix
         self.gx, self.gy = x / cell - 0.5, y / cell - 0.5  # cell coordinates, centres at integers
         self.tangent = None if tangent is None else np.asarray(tangent, np.float64).reshape(n, 2)
-        half = max(round(radius / cell), 1)
+        half = max(round((radius if window is None else window) / cell), 1)
         d = np.arange(-half, half + 1) * cell  # offsets, pixels
         g = np.exp(-0.5 * (d / (radius / 2.0)) ** 2)
         self.kernels = [(g * d**m).astype(np.float32) for m in range(3)]  # g, d g, d^2 g
@@ -379,6 +383,126 @@ class GridPools:
             M, v, yy, powers = M + tree[0], v + tree[1], yy + tree[2], powers + tree[3]
             w2 = w2 + (self.w * self.w).sum(axis=1)
         return M, v, yy, powers, w2
+
+    def linear_gain_sums(
+        self,
+        derivs: tuple[NDArray, ...],
+        f: tuple[NDArray, NDArray],
+        h1: NDArray,
+        h2: NDArray,
+        theta: NDArray | None,
+        *,
+        scale: float,
+        single: bool = False,
+    ) -> tuple[NDArray, ...]:
+        """The linear-gain test's 6 x 6 Grams (``decoupled_linear``) on the grid windows.
+
+        The rows of :func:`omniflow.kernels.gain_sums` (``decoupled_linear``): unit u's
+        row of neighbour j (f_h, -f_h h_u,j / h_1,i, f_theta / h_1,i, -f, -f u_j, -f dh_j),
+        right side -f_t, with the gain's slopes taken along the pixel offsets instead,
+        -f dx_j / scale and -f dy_j / scale (dx, dy = x_j - x_i, y_j - y_i). To first
+        order in the pool's size (u, dh) is a rotation of (dx, dy) (the tangential and
+        radial unit vectors at the point), and a fit's residual, and the unknowns of the
+        other columns, do not change when two of its columns are replaced by an invertible
+        mix of them: the test's RSS, its F_U and the flow are the tree's but for the
+        pools' contents. So every entry is a pool sum of j's own products times a power
+        of the point's h_1,i (columns 1 and 2) or a first or second moment of the offset
+        (columns 4 and 5), filtered as :meth:`gain_sums`' linear model. Off-grid points
+        get their k-d tree pools' sums (the tree's u, dh columns). ``single``: the filters
+        in float32, each channel scaled to a largest |value| of 1 first (as :meth:`sums`),
+        else float64.
+
+        Returns
+        -------
+        M, v, yy
+            As :func:`omniflow.kernels.gain_sums` (``decoupled_linear``), shapes
+            (N, 6, 6), (N, 6), (N,).
+        wsum, w2 : ndarray, shape (N,)
+            Each pool's sums of weights and squared weights.
+        """
+        f1h, f1th, f1t, f2h, f2th, f2t = (np.asarray(v, np.float64).ravel() for v in derivs)
+        g1, g2 = (np.asarray(v, np.float64).ravel() for v in f)
+        h1, h2 = (np.asarray(v, np.float64).ravel() for v in (h1, h2))
+        n = self.n
+        M, v = np.zeros((n, 6, 6)), np.zeros((n, 6))
+        yy, wsum, w2 = np.zeros(n), np.zeros(n), np.zeros(n)
+        on = self.on_grid
+        if on.any():
+            cross = lambda x1, x2, y1, y2: x1 * y1 + x2 * y2  # noqa: E731  (both units)
+            # the columns' parts of j (0 f_h, 1 -f_h h_u, 2 f_theta, 3 -f) and y = -f_t
+            cols = [(f1h, f2h), (-f1h * h1, -f2h * h2), (f1th, f2th), (-g1, -g2), (-f1t, -f2t)]
+            # channels: 0 the count; 1-5 column 3 (-f) times columns 3, 0, 1, 2 and y, the
+            # ones with moments (channel 1 the second too); then the rest of the block 0-2,
+            # its right side and yy
+            pairs = [(3, 3), (0, 3), (1, 3), (2, 3), (4, 3), (0, 0), (0, 1), (0, 2), (1, 1),
+                     (1, 2), (2, 2), (0, 4), (1, 4), (2, 4), (4, 4)]  # fmt: skip
+            parts = np.stack([np.ones(n)] + [cross(*cols[a], *cols[b]) for a, b in pairs], 1)
+            sel = slice(None) if on.all() else np.flatnonzero(on)
+            d = np.arange(-self.half, self.half + 1) * self.cell  # offsets, pixels
+            g0, gd, gdd, gg = (*(self.gauss * d**m for m in range(3)), self.gauss**2)
+            norm = np.ones(parts.shape[1])
+            if single:  # per-channel scale so that float32 holds every channel near 1
+                norm = np.maximum(np.abs(parts[sel]).max(axis=0), 1e-300)
+                parts = (parts / norm).astype(np.float32)
+                g0, gd, gdd, gg = (k.astype(np.float32) for k in (g0, gd, gdd, gg))
+            bins = self._bin_images(parts)
+            c0 = self._filter(parts, [(g0, g0, 1)], bins)[0][sel] * norm
+            mx, my = (self._filter(parts[:, :6], [(gd, g0, 1), (g0, gd, 1)], _channels(bins, 6))
+                      [:, sel, 1:] * (norm[1:6] / scale))  # fmt: skip
+            mxx, mxy, myy = (self._filter(parts[:, :2], [(gdd, g0, 1), (gd, gd, 1), (g0, gdd, 1)],
+                             _channels(bins, 2))[:, sel, 1] * (norm[1] / scale**2))  # fmt: skip
+            sq = self._filter(parts[:, :1], [(gg, gg, 2)], _channels(bins, 1))[0][sel, 0]
+            G = np.zeros((c0.shape[0], 6, 6))
+            G[:, 3, 3], G[:, 4, 4], G[:, 4, 5], G[:, 5, 5] = c0[:, 1], mxx, mxy, myy
+            for t, c in enumerate((3, 0, 1, 2)):  # column c times -f, and its moments
+                if c != 3:
+                    G[:, c, 3] = c0[:, 1 + t]
+                G[:, c, 4], G[:, c, 5] = mx[:, t], my[:, t]
+            for t, (a, b) in enumerate(pairs[5:11]):
+                G[:, a, b] = c0[:, 6 + t]
+            rhs = np.column_stack([c0[:, 12], c0[:, 13], c0[:, 14], c0[:, 5], mx[:, 4], my[:, 4]])
+            G = np.triu(G) + np.swapaxes(np.triu(G, 1), 1, 2)
+            hi = h1[sel]
+            s = np.ones((hi.size, 6))
+            s[:, 1] = s[:, 2] = 1.0 / hi  # the columns -f_h h_u / h_1,i and f_theta / h_1,i
+            M[sel] = G * s[:, :, None] * s[:, None, :]
+            v[sel] = rhs * s
+            yy[sel], wsum[sel], w2[sel] = c0[:, 15], c0[:, 0], sq
+        if self.idx is not None:  # the points whose window mixes ranges: their tree pools
+            rows = np.flatnonzero(~on)
+            idx, w = self.idx[rows], self.w[rows]
+            tree = gain_sums(idx, w, rows, derivs, f, h1, h2, theta, model="decoupled_linear",
+                             scale=scale)  # fmt: skip
+            M[rows], v[rows], yy[rows] = tree[0], tree[1], tree[2]
+            wsum[rows], w2[rows] = w.sum(axis=1), (w * w).sum(axis=1)
+        return M, v, yy, wsum, w2
+
+    def k_window(self, k: int) -> float:
+        """The half-width of the square that holds ``k`` points at the median density of
+        the on-grid points, pixels (at most the window's own): the density is each
+        window's Gaussian-weighted count of points (any range) over the Gaussian's sum
+        on the cells, so that a window of this half-width holds about the ``k`` nearest
+        neighbours of :func:`omniflow.flow.neighbourhoods` (its pools cut at ``k``,
+        the grid's at the window)."""
+        if not self.on_grid.any():
+            return self.half * self.cell
+        count = self._unbinned_count()[self.on_grid]
+        density = float(np.median(count)) / (self.cell * self.gauss.sum()) ** 2  # per px^2
+        return min(0.5 * math.sqrt(k / density), self.half * self.cell)
+
+    def _unbinned_count(self) -> NDArray:
+        """sum_j g(x_j - x_i) over the window's on-grid points whatever their range, read at
+        every point (off-grid rows too)."""
+        img = np.zeros((self.gh, self.gw, 1))
+        pts = np.flatnonzero(self.on_grid)
+        grid_scatter(img, self.flat // self.gw, self.flat % self.gw, 0, 0, np.ones((self.n, 1)),
+                     pts)  # fmt: skip
+        g = self.gauss
+        filt = cv2.sepFilter2D(img, cv2.CV_64F, g, g, borderType=cv2.BORDER_CONSTANT)
+        out = np.zeros((self.n, 1))
+        grid_read(filt.reshape(self.gh, self.gw, 1), self.gx, self.gy, 0.0, 0.0,
+                  np.arange(self.n), np.ones(self.n), out)  # fmt: skip
+        return out[:, 0]
 
 
 def _channels(bins: list[tuple], c: int) -> list[tuple]:

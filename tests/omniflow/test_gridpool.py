@@ -23,8 +23,11 @@ import numpy as np
 import pytest
 
 from omniflow.config import OmniFlowConfig
-from omniflow.flow import pooled_solution
+from omniflow.decoupled import screen
+from omniflow.flow import neighbourhoods, pooled_solution
+from omniflow.gain import decoupled_linear_gain, gated
 from omniflow.gridpool import GridPools
+from omniflow.kernels import gain_sums, nested_fits
 from omniflow.pipeline import estimate
 from tests.helpers.scenes import band_scene, frames, paper_rig, sparse_true_matches
 
@@ -377,3 +380,204 @@ def test_gain_f_statistic_from_float32_grid_sums_as_float64(monkeypatch):
     assert np.array_equal(gain.gated(F64, 20.0, a64, b64), gain.gated(F32, 20.0, a32, b32))
     fin = np.isfinite(a64)
     assert np.max(np.abs(a32[fin] - a64[fin])) < 1e-5 and np.nanmax(np.abs(b32 - b64)) < 1e-5
+
+
+def _brute_force_linear_gain(x, y, derivs, f, h1, h2, r, tol, scale, basis=None):
+    """The linear-gain test's Grams (omniflow.kernels.gain_sums's ``decoupled_linear``
+    layout) by the definition: every pair's two rows (f_h, -f_h h_u,j / h_1,i,
+    f_theta / h_1,i, -f, -f e1 . d / scale, -f e2 . d / scale), d = (x_j - x_i, y_j - y_i),
+    right side -f_t, weighted. ``basis`` (N, 2, 2): each point's e1, e2 (default the pixel
+    axes)."""
+    f1h, f1th, f1t, f2h, f2th, f2t = derivs
+    _, _, w = _window_weights(x, y, r, tol)
+    dx, dy, _ = _window_weights(x, y, None, tol)
+    e = np.broadcast_to(np.eye(2), (x.size, 2, 2)) if basis is None else basis
+    o1 = (e[:, 0, 0:1] * dx + e[:, 0, 1:2] * dy) / scale
+    o2 = (e[:, 1, 0:1] * dx + e[:, 1, 1:2] * dy) / scale
+    hi = h1[:, None]
+    rows = []
+    for fh, fq, ft, fu, hu in ((f1h, f1th, f1t, f[0], h1), (f2h, f2th, f2t, f[1], h2)):
+        j = lambda a: np.broadcast_to(a[None, :], w.shape)  # noqa: E731  (j's own value)
+        g = j(-fu)
+        X = np.stack([j(fh), -j(fh * hu) / hi, j(fq) / hi, g, g * o1, g * o2], -1)
+        rows.append((X, j(-ft)))
+    M = sum(np.einsum("ij,ijp,ijq->ipq", w, X, X) for X, _ in rows)
+    v = sum(np.einsum("ij,ijp,ij->ip", w, X, y_) for X, y_ in rows)
+    yy = sum(np.einsum("ij,ij,ij->i", w, y_, y_) for _, y_ in rows)
+    return M, v, yy, w.sum(1), (w * w).sum(1)
+
+
+@pytest.mark.parametrize("ranges", [False, True])
+def test_grid_linear_gain_sums_equal_the_brute_force_sums(ranges):
+    """GridPools.linear_gain_sums (float64 filters) against the definition, points on cell
+    centres: measured 1.6e-16 - 4.0e-16 relative to each quantity's largest entry."""
+    x, y, _, derivs, h1, r, h2, f = _sums_case(ranges)
+    tol, scale = 0.1, RADIUS
+    grid = GridPools(x, y, None, SHAPE, radius=RADIUS, cell=CELL, r=r, range_tol=tol)
+    got = grid.linear_gain_sums(derivs, f, h1, h2, None, scale=scale)
+    ref = _brute_force_linear_gain(x, y, derivs, f, h1, h2, r, tol, scale)
+    for name, a, b in zip(("M", "v", "yy", "wsum", "w2"), got, ref, strict=True):
+        assert _rel_err(a, b) < 1e-10, name
+
+
+def test_grid_linear_gain_sums_check_catches_offsets_in_cells():
+    """The mutation: the moment kernels' offsets in cells instead of pixels (the grid's cell
+    set to 1 px after binning at 2 px): the slopes' entries of M fail the check."""
+    x, y, _, derivs, h1, _, h2, f = _sums_case(False)
+    grid = GridPools(x, y, None, SHAPE, radius=RADIUS, cell=CELL)
+    grid.cell = 1.0
+    got = grid.linear_gain_sums(derivs, f, h1, h2, None, scale=RADIUS)
+    ref = _brute_force_linear_gain(x, y, derivs, f, h1, h2, None, 0.1, RADIUS)
+    assert _rel_err(got[0][:, 4:, 4:], ref[0][:, 4:, 4:]) > 0.05  # measured 0.75
+
+
+def _polar_linear_case(curved: bool = False):
+    """_sums_case's points with h_1 and theta linear in the pixel position (so the tree's
+    offsets u = (theta_j - theta_i) h_1,i and dh = h_1,j - h_1,i are, at each point, an
+    invertible linear map of (dx, dy)), and every pool the grid's window as a k-d tree
+    pool over all points (idx, w). ``curved``: theta quadratic in x instead (u then not
+    a linear map of the offset)."""
+    x, y, _, derivs, _, r, _, f = _sums_case(True)
+    h1 = 40.0 + 0.3 * x + 0.2 * y
+    theta = (0.004 * x if not curved else 4e-5 * x**2) - 0.006 * y
+    h2 = h1 * np.random.default_rng(9).uniform(1.5, 1.9, x.size)
+    _, _, w = _window_weights(x, y, r, 0.1)
+    idx = np.broadcast_to(np.arange(x.size), w.shape)
+    return x, y, derivs, f, h1, h2, theta, r, idx, w
+
+
+def _test_fits(M, v, yy):
+    x, conf, rss, rss_c = nested_fits(M, v, yy, 1e-6, drop=0)
+    return x[:, :3], conf, rss, rss_c
+
+
+def _fit_errs(a_fits, b_fits):
+    """Each of the fits' largest relative difference, over the pools both solve (a pool
+    solved by one only: inf)."""
+    errs = []
+    for a, b in zip(a_fits, b_fits, strict=True):
+        fa, fb = np.isfinite(a), np.isfinite(b)
+        errs.append(_rel_err(a[fa], b[fa]) if (fa == fb).all() else math.inf)
+    return errs
+
+
+def test_grid_linear_gain_test_equals_the_trees_over_the_same_pools():
+    """The linear-gain test's fits (omniflow.kernels.nested_fits, as
+    omniflow.gain.decoupled_linear_gain makes them) from the grid's Grams, slopes along
+    (dx, dy), and from the tree's kernel over the same pools, slopes along (u, dh): the
+    same (U, h_1 W, c), confidence and both RSS where the tree's offsets are a linear map
+    of the pixel offsets (measured 1.5e-11 relative at most; tolerance 1e-9), at the 99 %
+    of the pools both solve."""
+    x, y, derivs, f, h1, h2, theta, r, idx, w = _polar_linear_case()
+    grid = GridPools(x, y, None, SHAPE, radius=RADIUS, cell=CELL, r=r, range_tol=0.1)
+    sums = grid.linear_gain_sums(derivs, f, h1, h2, theta, scale=RADIUS)
+    tree = gain_sums(idx, w, np.arange(x.size), derivs, f, h1, h2, theta,
+                     model="decoupled_linear", scale=RADIUS)  # fmt: skip
+    fits = _test_fits(*sums[:3])
+    errs = _fit_errs(fits, _test_fits(*tree[:3]))
+    assert max(errs) < 1e-9, errs
+    assert np.isfinite(fits[0][:, 0]).mean() > 0.9  # measured 0.99
+
+
+def test_grid_linear_gain_equivalence_check_catches_a_curved_offset():
+    """The mutation: the tree's u no longer a linear map of the offset (theta quadratic in
+    x): the two fits differ far beyond the check's tolerance."""
+    x, y, derivs, f, h1, h2, theta, r, idx, w = _polar_linear_case(curved=True)
+    grid = GridPools(x, y, None, SHAPE, radius=RADIUS, cell=CELL, r=r, range_tol=0.1)
+    sums = grid.linear_gain_sums(derivs, f, h1, h2, theta, scale=RADIUS)
+    tree = gain_sums(idx, w, np.arange(x.size), derivs, f, h1, h2, theta,
+                     model="decoupled_linear", scale=RADIUS)  # fmt: skip
+    errs = _fit_errs(_test_fits(*sums[:3]), _test_fits(*tree[:3]))
+    assert max(errs) > 1e-3, errs  # measured: confidence 0.039, the others solve other pools
+
+
+@pytest.mark.parametrize("ranges", [False, True])
+def test_grid_linear_gain_sums_in_float32_equal_the_brute_force_sums(ranges):
+    """GridPools.linear_gain_sums(single=True), float32 filters, against the definition:
+    measured 1.5e-7 relative to each quantity's largest entry at most (tolerance 2e-6)."""
+    x, y, _, derivs, h1, r, h2, f = _sums_case(ranges)
+    grid = GridPools(x, y, None, SHAPE, radius=RADIUS, cell=CELL, r=r, range_tol=0.1)
+    got = grid.linear_gain_sums(derivs, f, h1, h2, None, scale=RADIUS, single=True)
+    ref = _brute_force_linear_gain(x, y, derivs, f, h1, h2, r, 0.1, RADIUS)
+    for name, a, b in zip(("M", "v", "yy", "wsum", "w2"), got, ref, strict=True):
+        assert _rel_err(a, b) < 2e-6, name
+
+
+def _screen_case(n: int = 1500, seed: int = 11):
+    """Points on cell centres whose equations hold a decoupled flow (U 0.5 px/frame, eq. 14
+    broken) left of x = 80 and eq. (14) (U = 0) right of it, the same W, dtheta and a gain
+    of 2 % per frame everywhere, f_t noise 0.01; and every pool the grid's window as tree
+    pools (idx, w)."""
+    rng = np.random.default_rng(seed)
+    gh, gw = SHAPE[0] // int(CELL), SHAPE[1] // int(CELL)
+    cells = rng.choice(gh * gw, size=n, replace=False)
+    x, y = (cells % gw + 0.5) * CELL, (cells // gw + 0.5) * CELL
+    h1 = 40.0 + 0.3 * x + 0.2 * y
+    h2, theta = 1.6 * h1, 0.004 * x - 0.006 * y
+    f = (rng.uniform(0.2, 0.8, n), rng.uniform(0.2, 0.8, n))
+    U, W, dtheta, beta = np.where(x < 80.0, 0.5, 0.0), 0.002, 0.001, 0.02
+    derivs = []
+    for hu, fu in ((h1, f[0]), (h2, f[1])):
+        fh, fq = rng.normal(size=n), rng.normal(size=n)
+        ft = -(fh * (U - hu * W) + fq * dtheta) + beta * fu + rng.normal(0.0, 0.01, n)
+        derivs += [fh, fq, ft]
+    _, _, w = _window_weights(x, y, None, 0.1)
+    idx = np.broadcast_to(np.arange(n), w.shape)
+    return x, y, tuple(derivs), f, h1, h2, theta, idx, w
+
+
+@pytest.mark.parametrize("mutation", [None, "gate"])
+def test_screen_keeps_every_pool_the_trees_test_passes(mutation):
+    """omniflow.decoupled.screen from the grid's float32 sums keeps every point whose
+    linear-gain test (omniflow.gain.decoupled_linear_gain over the same pools) passes the
+    gate, and drops most of the others (measured: 636 of 1500 pass, the screen keeps them
+    and 251 of the 864 others); the mutation (the screen told a 100 times higher gate)
+    loses 23 passing points."""
+    x, y, derivs, f, h1, h2, theta, idx, w = _screen_case()
+    gate, floor = 30.0, 1e-6
+    F = decoupled_linear_gain(derivs, f, h1, h2, theta, idx, w, scale=RADIUS,
+                              min_conditioning=floor)[3]  # fmt: skip
+    passing = gated(F, gate)
+    grid = GridPools(x, y, None, SHAPE, radius=RADIUS, cell=CELL)
+    sums = grid.linear_gain_sums(derivs, f, h1, h2, theta, scale=RADIUS, single=True)
+    keep = screen(sums, floor, gate * (100.0 if mutation else 1.0))
+    if mutation:
+        assert (passing & ~keep).any()
+    else:
+        assert passing.sum() > 100 and not (passing & ~keep).any()
+        assert (keep & ~passing).sum() < 0.5 * (~passing).sum()
+
+
+def test_neighbourhoods_of_queried_points_are_the_full_searchs_rows():
+    """omniflow.flow.neighbourhoods with ``query``: the queried rows the full search's, bit
+    for bit (weights made for those rows only), the others index N and weight 0."""
+    x, y, _, _, _, r, _, _ = _sums_case(True)
+    query = np.random.default_rng(2).random(x.size) < 0.3
+    full = neighbourhoods(x, y, k=24, radius=RADIUS, r=r, range_tol=0.1)
+    part = neighbourhoods(x, y, k=24, radius=RADIUS, r=r, range_tol=0.1, query=query)
+    for a, b in zip(part, full, strict=True):
+        np.testing.assert_array_equal(a[query], b[query])
+    assert (part[0][~query] == x.size).all() and (part[1][~query] == 0).all()
+
+
+@pytest.mark.parametrize("mutation", [False, True])
+def test_k_window_holds_about_k_points(mutation):
+    """GridPools.k_window on uniformly spread points (one in 12 cells of 2 px, 1 / 48 per
+    px^2): for k 12 about 0.5 sqrt(12 * 48) = 12 px (measured 11.7 px; its square holds a
+    median 11 points away from the borders), for k 48 (24 px) the window's own 16 px. The
+    mutation, the density taken per cell instead of per px^2 (the cell set to 1 px after
+    binning at 2 px), halves the half-width (measured 5.9 px) and fails the check."""
+    rng = np.random.default_rng(4)
+    gh, gw = SHAPE[0] // int(CELL), SHAPE[1] // int(CELL)
+    cells = rng.choice(gh * gw, size=gh * gw // 12, replace=False)
+    x, y = (cells % gw + 0.5) * CELL, (cells // gw + 0.5) * CELL
+    grid = GridPools(x, y, None, SHAPE, radius=RADIUS, cell=CELL)
+    if mutation:
+        grid.cell = 1.0
+        assert abs(grid.k_window(12) - 12.0) > 3.0
+        return
+    half = grid.k_window(12)
+    inside = (np.abs(x[:, None] - x[None, :]) <= half) & (np.abs(y[:, None] - y[None, :]) <= half)
+    interior = (x > 40) & (x < SHAPE[1] - 40) & (y > 40) & (y < SHAPE[0] - 40)
+    assert abs(half - 12.0) < 1.2 and 9 <= np.median(inside[interior].sum(1)) <= 15
+    assert grid.k_window(48) == grid.half * grid.cell
