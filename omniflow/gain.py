@@ -319,15 +319,21 @@ def _plain_where_no_gain(M, v, yy, x, rss, n_eff, min_conditioning):
     of those columns, ((RSS_plain - RSS) / 3) / (RSS / (n_eff - 6)), not above
     :data:`MIN_GAIN_F` and every fitted term, |beta|, |beta_u|, |beta_h|, below
     :data:`MIN_GAIN_CHANGE`."""
-    x3, _ = small_solves(M[:, :3, :3], v[:, :3], min_conditioning)
-    rss3 = yy - np.einsum("np,np->n", x3, v[:, :3])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        F = (rss3 - rss) / 3.0 / (rss / (n_eff - M.shape[1]))
+    x3, F = _without_gain(M, v, yy, rss, n_eff, min_conditioning)
     small = ~(F > MIN_GAIN_F) & (np.abs(x[:, 3:6]) < MIN_GAIN_CHANGE).all(axis=1)
     plain = small & np.isfinite(x3).all(axis=1)
     out = x.copy()
     out[plain, :3] = x3[plain]
     return out
+
+
+def _without_gain(M, v, yy, rss, n_eff, min_conditioning):
+    """The decoupled fit without the gain's three columns, (N, 3), and their F statistic
+    against the fit with them (RSS ``rss``): Gram ``M`` (N, 6, 6), ``v`` (N, 6), ``yy``."""
+    x3, _ = small_solves(M[:, :3, :3], v[:, :3], min_conditioning)
+    rss3 = yy - np.einsum("np,np->n", x3, v[:, :3])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return x3, (rss3 - rss) / 3.0 / (rss / (n_eff - M.shape[1]))
 
 
 def gated(F: NDArray, gate: float | NDArray, *answers: NDArray) -> NDArray:
