@@ -110,7 +110,7 @@ MIN_GAIN_F = 10.0
 #: The least fitted gain term, |beta| (a change per frame) or |beta_u|, |beta_h| (its
 #: change over one pool radius), for which :func:`decoupled_linear_gain` answers with the
 #: gain whatever its F (:data:`MIN_GAIN_F`): the ball's switched points 0.015-0.064 (the
-#: ones below 0.02 have F 57-61), the ring's 0.17-0.32; the pillar's spurious terms
+#: ones below 0.02 have F 33-61), the ring's 0.17-0.32; the pillar's spurious terms
 #: 0.012-0.013 (docs/measurements.md, "The linear gain only where it matters").
 MIN_GAIN_CHANGE = 0.02
 
