@@ -7,7 +7,10 @@ with ``decouple_gain_tol`` None and with ``--tol`` (20) with the gates of
 :func:`omniflow.decoupled.chained`. Prints every point whose F_U passes the gate (half of
 it on range-edge pools, ``EDGE_GATE``): its object (moving or static), F_U, n_eff, the
 residual ratio RSS_coupled / RSS_decoupled = 1 + F_U / (n_eff - 6), whether each gate
-keeps it, and its endpoint error without the switch and with it, cam1 and cam2, px::
+keeps it, the F statistic of the gain's three columns and its largest fitted term
+(max |beta|, |beta_u|, |beta_h|), whether the answer keeps the gain (``MIN_GAIN_F``,
+``MIN_GAIN_CHANGE``), and its endpoint error without the switch, with it, and with it
+always answered with the gain (the rule off), cam1 and cam2, px::
 
     PYTHONPATH=$PWD python benchmarks/decouple_gain_points.py /work/data/approach \\
         /work/data/independent_movers --frames 0,1,2
@@ -52,11 +55,22 @@ def main() -> None:
         seen["w"] = a[6]  # the pools' weights: n_eff
         return linear_gain(*a, **kw)
 
+    plain_where = gain_mod._plain_where_no_gain
+
+    def spy_plain(M, v, yy, x, rss, n_eff, min_conditioning):
+        seen["gain_F"] = gain_mod._without_gain(M, v, yy, rss, n_eff, min_conditioning)[1]
+        seen["term"] = np.abs(x[:, 3:6]).max(axis=1)
+        return plain_where(M, v, yy, x, rss, n_eff, min_conditioning)
+
     decoupled_mod.chained, decoupled_mod.decoupled_linear_gain = spy, spy_pools
+    gain_mod._plain_where_no_gain = spy_plain
+    rule = gain_mod.MIN_GAIN_F, gain_mod.MIN_GAIN_CHANGE
     min_dof, min_ratio = gain_mod.MIN_RESIDUAL_DOF, gain_mod.MIN_RESIDUAL_RATIO
     gain_mod.MIN_RESIDUAL_DOF, gain_mod.MIN_RESIDUAL_RATIO = 1e-12, 1.0  # F_U alone
-    print("dataset pair object moving | F_U n_eff ratio edge | dof ratio | "
-          "EPE cam1 without -> with, cam2 without -> with")  # fmt: skip
+    print(
+        "dataset pair object moving | F_U n_eff ratio edge | dof ratio | "
+        "gain F, term, answer | EPE cam1 without -> with [gain always], cam2 the same"
+    )
     for path in args.datasets:
         ds = open_dataset(path)
         camera = camera_model(ds.meta)
@@ -66,8 +80,14 @@ def main() -> None:
             g1 = [inputs.grey(j, "cam1") for j in (t, t + 1)]
             g2 = [inputs.grey(j, "cam2") for j in (t, t + 1)]
             off = estimate(g1, g2, ds.rig, OmniFlowConfig(decouple_gain_tol=None)).columns
+            gain_mod.MIN_GAIN_F, gain_mod.MIN_GAIN_CHANGE = -np.inf, 0.0  # the rule off
+            always = estimate(g1, g2, ds.rig, OmniFlowConfig(decouple_gain_tol=args.tol)).columns
+            gain_mod.MIN_GAIN_F, gain_mod.MIN_GAIN_CHANGE = rule
             on = estimate(g1, g2, ds.rig, OmniFlowConfig(decouple_gain_tol=args.tol)).columns
             fit = seen["fit"]
+            sel = np.flatnonzero(seen["w"].sum(axis=1) > 0)
+            gain_F, term = np.full(fit["gain_F"].size, np.nan), np.full(fit["gain_F"].size, np.nan)
+            gain_F[sel], term[sel] = seen["gain_F"], seen["term"]
             n = fit["gain_F"].size
             passed = chained(fit, args.tol)
             w = seen["w"]
@@ -79,12 +99,14 @@ def main() -> None:
             for i in np.flatnonzero(passed):
                 name = ds.objects.get(int(obj[i]), str(obj[i]))
                 keep_dof, keep_ratio = n_eff[i] - 6.0 >= min_dof, ratio[i] >= min_ratio
-                e = [(_epe(off, tr[u - 1], n, u)[i], _epe(on, tr[u - 1], n, u)[i]) for u in (1, 2)]
+                e = [[_epe(c, tr[u - 1], n, u)[i] for c in (off, on, always)] for u in (1, 2)]
+                keeps = gain_F[i] > rule[0] or term[i] >= rule[1]
                 print(f"{ds.dir.name} {t} {name} {int(obj[i]) in movers} | {fit['gain_F'][i]:.1f} "
                       f"{n_eff[i]:.1f} {ratio[i]:.2f} {bool(fit['gain_edge'][i])} | "
                       f"{'keeps' if keep_dof else 'drops'} {'keeps' if keep_ratio else 'drops'} | "
-                      f"{e[0][0]:.3f} -> {e[0][1]:.3f}, "
-                      f"{e[1][0]:.3f} -> {e[1][1]:.3f}")  # fmt: skip
+                      f"{gain_F[i]:.2f} {term[i]:.4f} {'gain' if keeps else 'plain'} | "
+                      f"{e[0][0]:.3f} -> {e[0][1]:.3f} [{e[0][2]:.3f}], "
+                      f"{e[1][0]:.3f} -> {e[1][1]:.3f} [{e[1][2]:.3f}]")  # fmt: skip
 
 
 if __name__ == "__main__":

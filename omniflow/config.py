@@ -356,7 +356,9 @@ class OmniFlowConfig:
         gain, test eq. (14) again with a brightness gain varying linearly across
         the pool, (beta + beta_u u_j + beta_h dh_j) f_j, in both models' fits
         (omniflow.gain.decoupled_linear_gain), and report decoupled, with that
-        model's flow, the points whose F statistic of the axial share U exceeds
+        model's flow (without the gain where it does not matter:
+        omniflow.gain.MIN_GAIN_F, MIN_GAIN_CHANGE), the points whose F
+        statistic of the axial share U exceeds
         this (half of it on pools at a range edge, omniflow.decoupled.EDGE_GATE),
         where at least 4 residual degrees of freedom estimate the variance
         (omniflow.gain.MIN_RESIDUAL_DOF) and the coupled fit's residual is at

@@ -45,7 +45,8 @@ lights) inflates both fits' residuals and hides a failing eq. (14) from that
 test. With ``OmniFlowConfig.decouple_gain_tol`` the test is made again with a
 gain varying linearly across the pool in both models
 (:func:`omniflow.gain.decoupled_linear_gain`), and the points it passes
-(:func:`chained`) take the decoupled model with that gain.
+(:func:`chained`) take the decoupled model with that gain (without it where
+the gain does not matter: :data:`omniflow.gain.MIN_GAIN_F`).
 
 Range rate without eq. (14): subtracting the two differentiated equations
 gives dr/dt = -(d + r)(dh_2/dt - dh_1/dt) / (h_2 - h_1)

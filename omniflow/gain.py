@@ -47,6 +47,8 @@ from omniflow.kernels import gain_sums, nested_fits, small_solves
 
 __all__ = [
     "MIN_CHANGE",
+    "MIN_GAIN_CHANGE",
+    "MIN_GAIN_F",
     "MIN_RESIDUAL_DOF",
     "MIN_RESIDUAL_RATIO",
     "decoupled_gain",
@@ -91,6 +93,26 @@ MIN_RESIDUAL_DOF = 4.0
 #: (F_U 11-15 at n_eff 34-36, range-edge pools) (docs/measurements.md,
 #: "decouple_gain_tol gated").
 MIN_RESIDUAL_RATIO = 2.0
+
+#: :func:`decoupled_linear_gain` answers with its gain only where the gain matters: the F
+#: statistic of the gain's three columns within the decoupled fit,
+#: ((RSS_without - RSS) / 3) / (RSS / (n_eff - 6)), above this, or a fitted gain term of at
+#: least :data:`MIN_GAIN_CHANGE`; elsewhere with the decoupled fit without those columns
+#: (the Gram's leading 3 x 3 block, the same pool), whose answer three extra unknowns only
+#: make noisier. On the closed-form synthetic:vertical scene (no brightness change) the
+#: five rising-pillar points the test switched had F 3.3-3.5 (n_eff 12) and their cam1
+#: error doubled with the gain (0.06 -> 0.13 px); the independent_movers points it fixes
+#: with the gain have F 2.7-8.3 (the ring, every term 0.17 or more) or 0.8-61 (the ball,
+#: those below 10 with a term of 0.025 or more). F(3, 6)'s 1 % point is 9.8
+#: (docs/measurements.md, "The linear gain only where it matters").
+MIN_GAIN_F = 10.0
+
+#: The least fitted gain term, |beta| (a change per frame) or |beta_u|, |beta_h| (its
+#: change over one pool radius), for which :func:`decoupled_linear_gain` answers with the
+#: gain whatever its F (:data:`MIN_GAIN_F`): the ball's switched points 0.015-0.064 (the
+#: ones below 0.02 have F 33-61), the ring's 0.17-0.32; the pillar's spurious terms
+#: 0.012-0.013 (docs/measurements.md, "The linear gain only where it matters").
+MIN_GAIN_CHANGE = 0.02
 
 
 def gain_solution(
@@ -254,10 +276,15 @@ def decoupled_linear_gain(
     is below ``min_conditioning`` (:func:`omniflow.kernels.small_solves`).
     ``slopes`` False: one gain per pool (beta only, 4 and 3 unknowns), the same test.
 
+    The answer is the decoupled fit with the gain only where the gain matters (its three
+    columns' F above :data:`MIN_GAIN_F` or a term of at least :data:`MIN_GAIN_CHANGE`),
+    else the decoupled fit without them over the same pool (with ``slopes``).
+
     Returns
     -------
     dh1_dt, dh2_dt, dtheta_dt : ndarray, shape (N,)
-        The decoupled fit's flow, dh_u = U - h_u W, dtheta = c / h_1,i.
+        The decoupled fit's flow, dh_u = U - h_u W, dtheta = c / h_1,i, with the gain
+        where it matters.
     F : ndarray, shape (N,)
         F_U; NaN where either fit has no solution, RSS_decoupled is 0, n_eff - 6 (the
         unknowns; ``slopes`` False: 4) is below :data:`MIN_RESIDUAL_DOF`,
@@ -278,9 +305,35 @@ def decoupled_linear_gain(
     k = h2[sel] / h1[sel]
     ok = (n_eff - p >= MIN_RESIDUAL_DOF) & (rss > 0) & (rss_c >= MIN_RESIDUAL_RATIO * rss)
     out[3][sel] = np.where(ok, F, np.nan)
+    if slopes:  # the gain's answer only where its three columns matter
+        x = _plain_where_no_gain(M, v, yy, x, rss, n_eff, min_conditioning)
     out[0][sel], out[1][sel] = x[:, 0] - x[:, 1], x[:, 0] - k * x[:, 1]
     out[2][sel] = x[:, 2] / h1[sel]
     return tuple(out)
+
+
+def _plain_where_no_gain(M, v, yy, x, rss, n_eff, min_conditioning):
+    """``x`` (N, 6), the decoupled fit with the linear gain, with its first three unknowns
+    (U, h_1,i W, c) replaced by the fit without the gain's three columns (the Gram's
+    leading 3 x 3 block, the same pool) where the gain does not matter: the F statistic
+    of those columns, ((RSS_plain - RSS) / 3) / (RSS / (n_eff - 6)), not above
+    :data:`MIN_GAIN_F` and every fitted term, |beta|, |beta_u|, |beta_h|, below
+    :data:`MIN_GAIN_CHANGE`."""
+    x3, F = _without_gain(M, v, yy, rss, n_eff, min_conditioning)
+    small = ~(F > MIN_GAIN_F) & (np.abs(x[:, 3:6]) < MIN_GAIN_CHANGE).all(axis=1)
+    plain = small & np.isfinite(x3).all(axis=1)
+    out = x.copy()
+    out[plain, :3] = x3[plain]
+    return out
+
+
+def _without_gain(M, v, yy, rss, n_eff, min_conditioning):
+    """The decoupled fit without the gain's three columns, (N, 3), and their F statistic
+    against the fit with them (RSS ``rss``): Gram ``M`` (N, 6, 6), ``v`` (N, 6), ``yy``."""
+    x3, _ = small_solves(M[:, :3, :3], v[:, :3], min_conditioning)
+    rss3 = yy - np.einsum("np,np->n", x3, v[:, :3])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return x3, (rss3 - rss) / 3.0 / (rss / (n_eff - M.shape[1]))
 
 
 def gated(F: NDArray, gate: float | NDArray, *answers: NDArray) -> NDArray:

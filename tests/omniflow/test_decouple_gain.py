@@ -34,9 +34,10 @@ BETA, BETA_U, BETA_H = 0.02, 0.01, -0.015  # the gain and its slopes across the 
 DERIVS = ("f1_h", "f1_theta", "f1_t", "f2_h", "f2_theta", "f2_t")
 
 
-def _pool(seed: int = 7, noise: float = 0.0, axial: float = U):
+def _pool(seed: int = 7, noise: float = 0.0, axial: float = U, gain: float = 1.0):
     """N points pooling all N (unit weights), point 0's offsets as the gain's; ``axial`` the
-    axial share U (0: eq. 14 holds)."""
+    axial share U (0: eq. 14 holds); ``gain`` times (BETA, BETA_U, BETA_H) the gain (0: no
+    brightness change)."""
     rng = np.random.default_rng(seed)
     h1 = rng.uniform(100.0, 110.0, N)
     h2 = h1 * rng.uniform(2.2, 2.4, N)
@@ -47,7 +48,7 @@ def _pool(seed: int = 7, noise: float = 0.0, axial: float = U):
     for un, h in ((1, h1), (2, h2)):
         fh, fq = rng.normal(0, 0.02, N), rng.normal(0, 2.0, N)
         f = rng.uniform(0.2, 0.6, N)
-        change = f * (BETA + BETA_U * u + BETA_H * dh_off)  # eq. (9) / (15) right side
+        change = gain * f * (BETA + BETA_U * u + BETA_H * dh_off)  # eq. (9) / (15) right side
         d.update({f"f{un}_h": fh, f"f{un}_theta": fq, f"f{un}": f,
                   f"f{un}_t": change - fh * (axial - h * W) - fq * DTHETA
                   + rng.normal(0, noise, N)})  # fmt: skip
@@ -120,6 +121,64 @@ def test_the_compiled_sums_equal_a_brute_force_design():
     assert not np.allclose(F1, F_ref, rtol=1e-2)
 
 
+def _plain_design(d, size):
+    """Point 0's (dh1, dh2, dtheta) from numpy's least squares on the decoupled model's
+    three columns alone (no gain), unit weights, the first ``size`` points."""
+    h0 = d["h1"][0]
+    X, y = [], []
+    for un in (1, 2):
+        fh, fq, h = (d[f"f{un}_h"][:size], d[f"f{un}_theta"][:size], d[f"h{un}"][:size])
+        X.append(np.stack([fh, -fh * h / h0, fq / h0], axis=-1))
+        y.append(-d[f"f{un}_t"][:size])
+    x = np.linalg.lstsq(np.concatenate(X), np.concatenate(y), rcond=None)[0]
+    return x[0] - x[1], x[0] - d["h2"][0] / h0 * x[1], x[2] / h0
+
+
+def test_no_brightness_change_no_gain_in_the_answer(monkeypatch):
+    """Pools of 6 points (n_eff 12 for 6 unknowns, as the closed-form synthetic:vertical
+    pillar's five switched points), eq. (14) broken (U 0.3 px), no brightness change,
+    noise 1e-3 on f_t, 200 seeds: the gain's three columns only add variance, and the
+    answer is the decoupled fit without them (numpy's three-column least squares) at 99.0 %
+    of the seeds, point 0's mean |dh1 error| 0.0201 px. Mutation caught: the rule off
+    (MIN_GAIN_F -inf, every pool answered with its gain): 0 % plain, error 0.0238 px."""
+
+    def run():
+        plain, err = [], []
+        for seed in range(200):
+            d, _, _ = _pool(seed, noise=1e-3, gain=0.0)
+            d = {k: v[:6] for k, v in d.items()}
+            a1, a2, b, _ = _solve(d, np.tile(np.arange(6), (6, 1)), np.ones((6, 6)))
+            ref = _plain_design(d, 6)
+            plain.append(np.allclose((a1[0], a2[0], b[0]), ref, rtol=1e-9, atol=1e-12))
+            err.append(abs(a1[0] - (U - d["h1"][0] * W)))
+        return np.mean(plain), np.mean(err)
+
+    share, err = run()
+    print(f"no brightness change: plain answer {share:.3f}, dh1 error {err:.4f} px")
+    assert share > 0.95 and err < 0.022  # measured 0.990, 0.0201
+    monkeypatch.setattr(gain_mod, "MIN_GAIN_F", -np.inf)
+    monkeypatch.setattr(gain_mod, "MIN_GAIN_CHANGE", 0.0)
+    share, err = run()
+    print(f"rule off: plain answer {share:.3f}, dh1 error {err:.4f} px")
+    assert share < 0.05 and err > 0.022  # measured 0.0, 0.0238
+
+
+def test_a_linear_gain_keeps_the_gain_answer(monkeypatch):
+    """The noisy pool with the linear gain of the brute-force test: its gain's F is far
+    above MIN_GAIN_F at every point, so every answer is the six-column fit's (checked to
+    1e-9 there). Mutation caught: every pool answered without the gain (MIN_GAIN_F and
+    MIN_GAIN_CHANGE infinite) misses the six-column dh1 by up to 0.054 px."""
+    d, idx, w = _pool(seed=3, noise=1e-3)
+    a1 = _solve(d, idx, w)[0]
+    x, _ = _brute_force(d, idx, w)
+    np.testing.assert_allclose(a1, x[:, 0] - x[:, 1], rtol=1e-9, atol=1e-12)
+    monkeypatch.setattr(gain_mod, "MIN_GAIN_F", np.inf)
+    monkeypatch.setattr(gain_mod, "MIN_GAIN_CHANGE", np.inf)
+    p1 = _solve(d, idx, w)[0]
+    print(f"without the gain: dh1 off by {np.abs(p1 - (x[:, 0] - x[:, 1])).max():.3f} px")
+    assert np.abs(p1 - (x[:, 0] - x[:, 1])).max() > 0.03  # measured 0.054
+
+
 RISING = Motion(vz=0.001)  # the wall rising 1 mm per frame: cam1 radial flow 0.18 px
 AMP = 0.02  # frame t + 1 times 1 + AMP sin(2 theta)
 
@@ -162,6 +221,24 @@ def test_the_test_with_the_gain_finds_the_rising_wall(monkeypatch):
     monkeypatch.setattr(decoupled_mod, "decoupled_linear_gain", single)
     _, mutated = _run(decouple_gain_tol=20.0)
     assert not mutated.mean() < 0.015  # measured 0.0340
+
+
+def test_the_rising_wall_without_a_brightness_change(monkeypatch):
+    """The wall rising 1 mm/frame, no gain field: the plain two-model test decouples every
+    point already; the linear-gain test passes them too, and its answer is the fit without
+    the gain (the gain's F at most MIN_GAIN_F, its terms below MIN_GAIN_CHANGE), so every
+    flow column equals decouple_gain_tol None's to rounding (measured 3e-14 px), EPE mean
+    0.0017. Mutation caught: the rule off (every pool answered with its gain): EPE mean
+    0.0022, dh1 and dh2 off by up to 0.013 px (mean 4e-4)."""
+    plain, _ = _run(amp=0.0, decouple_gain_tol=None)
+    res, err20 = _run(amp=0.0, decouple_gain_tol=20.0)
+    for name in ("dh1_dt", "dh2_dt", "dtheta_dt", "dx", "dy", "dx2", "dy2", "dr_dt", "coupled"):
+        np.testing.assert_allclose(res[name], plain[name], rtol=0, atol=1e-12, err_msg=name)
+    assert err20.mean() < 0.002  # measured 0.0017 (None: 0.0017)
+    monkeypatch.setattr(gain_mod, "MIN_GAIN_F", -np.inf)
+    monkeypatch.setattr(gain_mod, "MIN_GAIN_CHANGE", 0.0)
+    _, mutated = _run(amp=0.0, decouple_gain_tol=20.0)
+    assert mutated.mean() > 0.002  # measured 0.0022
 
 
 def test_no_switch_where_eq14_holds(monkeypatch):

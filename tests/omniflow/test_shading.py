@@ -21,7 +21,9 @@ land there, while dh1_dt is 71 % short: the gain does not replace the flattening
 The linear-gain test of eq. (14) (``decouple_gain_tol`` 20, the default since stop 20) does,
 on this scene: shaded, not flattened, switched 0.90, dh1_dt 0.806, dh2_dt 1.019, room
 0.00038 (its gain varying across the pool takes up the static ramp the texture moves
-through); flattened (4) and it: 0.77, 0.660, 1.013, 0.00078. The rows above are measured
+through); flattened (4) and it: 0.77, 0.650, 0.995, 0.00078, the same as the row above
+(once flattened, its gain is too small to be taken: omniflow.gain.MIN_GAIN_F and
+MIN_GAIN_CHANGE; 0.660, 1.013 when it was always taken). The rows above are measured
 with it off (``decouple_gain_tol`` None).
 """
 
