@@ -23,7 +23,7 @@ from numpy.typing import NDArray
 
 from omniflow.applications import radial_velocity
 from omniflow.config import OmniFlowConfig
-from omniflow.decoupled import decouple, pool_fits
+from omniflow.decoupled import decouple, start_pool_fits
 from omniflow.flow import conditioning as direct_conditioning
 from omniflow.flow import (
     consistent_neighbours,
@@ -101,7 +101,7 @@ def flow_at_matches(
         kept = {c: v[keep0] for c, v in kept.items()}
         f_kept = None if brightness is None else tuple(f[keep0] for f in brightness)
     pools0 = None if solve.pools is None else (*solve.pools, keep0)
-    early = submit(pool_fits, kept, rig, config, pools0, f_kept)
+    early = start_pool_fits(kept, rig, config, pools0, f_kept)  # on the pool's thread
     try:
         a, b, conf = _refine(a, b, conf, solve, k, cam1, cam2, rig, x1, y1, x2, y2, theta,
                              h1, h2, r, config, noise, brightness)  # fmt: skip
