@@ -1,0 +1,164 @@
+"""The two-model test's pool fits as two tasks, and the grid sums' shared bins
+(docs/measurements.md, "Speed: the dense preset's pool fits on both threads").
+
+* :func:`omniflow.decoupled.start_pool_fits` answers as :func:`omniflow.decoupled.pool_fits`
+  (the two parts made in turn) bit for bit, on two threads, and hands the linear-gain
+  test to the pool before the models' fits;
+* :meth:`omniflow.gridpool.GridPools.decouple_sums` takes the squared weights' count from
+  the bins of its first filter: the same sums, bit for bit, as binning the count again;
+* :meth:`omniflow.gridpool.GridPools.linear_gain_sums` mirrors its Grams' upper triangle.
+
+Each check has a mutation that it catches.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from omniflow import decoupled, gridpool, parallel
+from omniflow.gridpool import GridPools
+from tests.omniflow.test_gridpool import (
+    CELL,
+    RADIUS,
+    SHAPE,
+    _brute_force_linear_gain,
+    _cell_centre_case,
+    _rel_err,
+    _sums_case,
+)
+
+
+@pytest.fixture(scope="module")
+def solver_call():
+    """The arguments of the solver's own pool fits: the dense preset with the linear-gain
+    test on a closed-form wall (as tests/omniflow/test_decoupled.py's early-fits test)."""
+    from omniflow import solve as solve_mod
+    from omniflow.pipeline import OmniFlowConfig, estimate
+    from omniflow.synthetic import Motion
+    from tests.helpers.scenes import frames, paper_rig, wall_scene
+
+    rig = paper_rig(256)
+    f1, f2 = frames(wall_scene(rig, robot=Motion(velocity=(0.02, 0.01), yaw_rate=0.004)), 2)
+    config = OmniFlowConfig.dense(decouple_gain_tol=60.0)
+    seen = []
+    real = solve_mod.start_pool_fits
+
+    def spy(cols, rig_, config_, pools=None, brightness=None):
+        seen.append((cols, brightness))
+        return real(cols, rig_, config_, pools, brightness)
+
+    solve_mod.start_pool_fits = spy
+    try:
+        estimate(f1, f2, rig, config)
+    finally:
+        solve_mod.start_pool_fits = real
+    cols, brightness = seen[-1]
+    return cols, rig, config, brightness
+
+
+def _two_threads(monkeypatch):
+    monkeypatch.setattr(parallel, "THREADS", 2)
+
+
+def test_started_pool_fits_equal_pool_fits(solver_call, monkeypatch):
+    """On two threads (the parts on the pool's thread, or the caller's when it takes one
+    back) the same columns, bit for bit, as the parts made in turn; both parts' keys."""
+    cols, rig, config, brightness = solver_call
+    ref = decoupled.pool_fits(cols, rig, config, brightness=brightness)
+    assert "gain_F" in ref and "F" in ref
+    _two_threads(monkeypatch)
+    for _ in range(3):
+        got = decoupled.start_pool_fits(cols, rig, config, None, brightness).result()
+        assert list(got) == list(ref)
+        for k in ref:
+            np.testing.assert_array_equal(got[k], ref[k], err_msg=k)
+
+
+def test_started_pool_fits_check_catches_a_dropped_part(solver_call, monkeypatch):
+    """The mutation: the joined result without the first-spawned part (the linear-gain
+    test's columns lost)."""
+    cols, rig, config, brightness = solver_call
+    ref = decoupled.pool_fits(cols, rig, config, brightness=brightness)
+    monkeypatch.setattr(decoupled._Joined, "result", lambda self: self.parts[-1].result())
+    got = decoupled.start_pool_fits(cols, rig, config, None, brightness).result()
+    assert list(got) != list(ref)
+
+
+def test_the_linear_gain_test_is_spawned_first_and_cancel_drops_both(solver_call):
+    """The longer part (the linear-gain test) goes to the pool first, the models' fits
+    last (the caller makes them if the pool has not started them); cancel() reaches both."""
+    cols, rig, config, brightness = solver_call
+    spawned = []
+
+    class Recorder(parallel.Task):
+        def cancel(self):
+            spawned.append(("cancel", self))
+            super().cancel()
+
+    def spawn(fn, *args):
+        task = Recorder(fn, args, None)
+        spawned.append(("spawn", task))
+        return task
+
+    task = decoupled.start_pool_fits(cols, rig, config, None, brightness, spawn=spawn)
+    first, last = spawned[0][1], spawned[1][1]
+    assert "gain_F" in first.result() and "F" in last.result() and "gain_F" not in last.result()
+    spawned.clear()
+    decoupled.start_pool_fits(cols, rig, config, None, brightness, spawn=spawn).cancel()
+    assert [kind for kind, _ in spawned] == ["spawn", "spawn", "cancel", "cancel"]
+    del task
+
+
+@pytest.mark.parametrize("ranges", [False, True])
+def test_decouple_sums_equal_the_count_binned_again(ranges):
+    """decouple_sums bins [count, 10 products] once and filters the squared weights from
+    its count channel: bit for bit the sums of binning the products with the count last
+    and the count on its own (the code before)."""
+    x, y, _, derivs, h1, r = _cell_centre_case(ranges=ranges)
+    h2 = h1 * 1.6
+    grid = GridPools(x, y, None, SHAPE, radius=RADIUS, cell=CELL, r=r, range_tol=0.1)
+    np.testing.assert_array_equal(
+        grid.decouple_sums(derivs, h1, h2), _old_decouple(grid, derivs, h1, h2)
+    )
+
+
+def test_decouple_sums_check_catches_the_wrong_channel(monkeypatch):
+    """The mutation: the squared weights filtered from channel 1 (a product) of the bins."""
+    x, y, _, derivs, h1, r = _cell_centre_case(ranges=True)
+    h2 = h1 * 1.6
+    grid = GridPools(x, y, None, SHAPE, radius=RADIUS, cell=CELL, r=r, range_tol=0.1)
+    ref = _old_decouple(grid, derivs, h1, h2)
+    shifted = lambda bins, c: [(np.ascontiguousarray(img[..., 1 : 1 + c]), *rest)  # noqa: E731
+                               for img, *rest in bins]  # fmt: skip
+    monkeypatch.setattr(gridpool, "_channels", shifted)
+    assert not np.array_equal(grid.decouple_sums(derivs, h1, h2)[:, 11], ref[:, 11])
+
+
+def _old_decouple(grid, derivs, h1, h2):
+    """GridPools.decouple_sums as it was: the count binned with the products, last, and
+    on its own for the squared weights (on-grid points only: every case here)."""
+    f1h, f1th, f1t, f2h, f2th, f2t = derivs
+    b1, b2 = f1h * h1, f2h * h2
+    terms = [(f1h, f2h), (b1, b2), (f1th, f2th), (f1t, f2t)]
+    pairs = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2), (0, 3), (1, 3), (2, 3), (3, 3))
+    parts = [terms[p][0] * terms[q][0] + terms[p][1] * terms[q][1] for p, q in pairs]
+    n = h1.size
+    g, g2 = grid.gauss, grid.gauss**2
+    read = grid._filter(np.stack([*parts, np.ones(n)], axis=1), [(g, g, 1)])[0]
+    read2 = grid._filter(np.ones((n, 1)), [(g2, g2, 2)])[0]
+    return np.column_stack([read, read2[:, 0]])
+
+
+def test_linear_gain_mirror_check_catches_the_wrong_triangle(monkeypatch):
+    """The Grams' lower triangle from the upper (tests/omniflow/test_gridpool.py checks the
+    sums against the definition); the mutation, the upper from the (empty) lower, fails
+    that check."""
+    x, y, _, derivs, h1, r, h2, f = _sums_case(True)
+    grid = GridPools(x, y, None, SHAPE, radius=RADIUS, cell=CELL, r=r, range_tol=0.1)
+    ref = _brute_force_linear_gain(x, y, derivs, f, h1, h2, r, 0.1, RADIUS)
+    got = grid.linear_gain_sums(derivs, f, h1, h2, None, scale=RADIUS)
+    assert _rel_err(got[0], ref[0]) < 1e-10  # measured 4e-16 (test_gridpool.py)
+    monkeypatch.setattr(gridpool, "_LOWER", np.triu_indices(6, 1))
+    got = grid.linear_gain_sums(derivs, f, h1, h2, None, scale=RADIUS)
+    assert _rel_err(got[0], ref[0]) > 0.1  # measured 0.38 (the upper triangle zero)
