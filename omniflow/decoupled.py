@@ -314,19 +314,19 @@ def start_pool_fits(
     brightness: tuple[NDArray, NDArray] | None = None,
     *,
     spawn: Callable = submit,
-) -> Task | _Joined:
+) -> _Joined:
     """:func:`pool_fits` as a task: its ``result()`` is pool_fits' answer (the same, bit
     for bit), ``cancel()`` drops it.
 
     The pools are set up here (the grid's, and the k-d tree's where ranges mix), then
     the linear-gain test (``decouple_gain_tol``: the grid's screen, the tree's search
     and test) and both models' fits are handed to ``spawn`` (:func:`omniflow.parallel.
-    submit`) in that order, the longer first: the pool's thread starts on it, and the
-    caller's thread, done with its own work (the solver's refinement), makes the other
-    part itself if the pool's thread has not started it.
+    submit`) in that order, the longer first: the pool's thread takes them in turn, and
+    the caller's thread makes the models' fits itself if the pool's thread has not
+    started them when it asks (``take_last()``, or ``result()`` after its own work).
     """
     if not tests(config, np.asarray(cols["h1"]).size):
-        return _deferred(lambda: None)
+        return _Joined([_deferred(lambda: None)])
     h1, h2 = (np.asarray(cols[c], dtype=np.float64) for c in ("h1", "h2"))
     radius = rig.cam1.r_m / 8.0 if config.pool_radius is None else config.pool_radius
     search = lambda query=None: neighbourhoods(  # noqa: E731
@@ -391,6 +391,10 @@ class _Joined:
             self.cancel()  # no task outlives the call
             raise
         return fit
+
+    def take_last(self) -> None:
+        """The last part now, in the caller's thread, if the pool has not started it."""
+        self.parts[-1].take()
 
     def cancel(self) -> None:
         for part in self.parts:
