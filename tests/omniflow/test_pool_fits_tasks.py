@@ -162,3 +162,105 @@ def test_linear_gain_mirror_check_catches_the_wrong_triangle(monkeypatch):
     monkeypatch.setattr(gridpool, "_LOWER", np.triu_indices(6, 1))
     got = grid.linear_gain_sums(derivs, f, h1, h2, None, scale=RADIUS)
     assert _rel_err(got[0], ref[0]) > 0.1  # measured 0.38 (the upper triangle zero)
+
+
+def test_speculative_pool_fits_only_when_every_point_keeps_its_flow(monkeypatch):
+    """On the grid, flow_at_matches starts every point's pool fits during the first solve:
+    used (one start) where every point keeps its flow, as decouple's own fits of the final
+    columns bit for bit; started again for the kept points where the first solve loses
+    one. The mutation, the speculative fits used anyway, would hand decouple fits of one
+    point more than its columns (checked: their lengths differ)."""
+    from omniflow import solve as solve_mod
+    from omniflow.pipeline import OmniFlowConfig, estimate
+    from omniflow.synthetic import Motion
+    from tests.helpers.scenes import frames, paper_rig, wall_scene
+
+    _two_threads(monkeypatch)
+    rig = paper_rig(256)
+    f1, f2 = frames(wall_scene(rig, robot=Motion(velocity=(0.02, 0.01), yaw_rate=0.004)), 2)
+    config = OmniFlowConfig.dense(decouple_gain_tol=60.0)
+    starts, seen = [], []
+    real_start, real_decouple = solve_mod.start_pool_fits, solve_mod.decouple
+
+    def start(cols, *args):
+        starts.append((cols, args))
+        return real_start(cols, *args)
+
+    def spy(cols, rig_, config_, displacement, *, pools=None, fit=None, **kw):
+        seen.append((cols, fit, kw))
+        return real_decouple(cols, rig_, config_, displacement, pools=pools, fit=fit, **kw)
+
+    monkeypatch.setattr(solve_mod, "start_pool_fits", start)
+    monkeypatch.setattr(solve_mod, "decouple", spy)
+
+    def check():
+        cols, fit, kw = seen[-1]
+        fresh = decoupled.pool_fits(cols, rig, config, brightness=kw["brightness"])
+        assert list(fit) == list(fresh)
+        for k in fresh:
+            np.testing.assert_array_equal(fit[k], fresh[k], err_msg=k)
+        return cols
+
+    estimate(f1, f2, rig, config)
+    assert len(starts) == 1
+    n = check()["h1"].size
+    assert starts[0][0]["h1"].size == n
+
+    real_make = solve_mod.make_solver
+    calls = []
+
+    def make_solver(*args, **kw):  # the first solve loses its first point's flow
+        inner = real_make(*args, **kw)
+
+        def solve(*derivs, **opts):
+            a, b, conf = inner(*derivs, **opts)
+            if not calls:
+                a = a.copy()
+                a[0] = np.nan
+            calls.append(1)
+            return a, b, conf
+
+        solve.pools = inner.pools
+        return solve
+
+    monkeypatch.setattr(solve_mod, "make_solver", make_solver)
+    starts.clear()
+    estimate(f1, f2, rig, config)
+    assert [s[0]["h1"].size for s in starts] == [n, n - 1]
+    assert check()["h1"].size == n - 1
+    spec = decoupled.pool_fits(starts[0][0], rig, config, brightness=starts[0][1][-1])
+    assert spec["F"].size != seen[-1][0]["h1"].size  # the mutation's fits: one point more
+
+
+def test_take_runs_a_waiting_task_here_and_leaves_a_started_one(monkeypatch):
+    """Task.take: a task the pool has not started runs in the caller's thread (once: its
+    result is that run's); one the pool has started is left to it, without waiting (the
+    mutation, take() as result(), waits for the pool: 0.5 s here, caught by the clock)."""
+    import threading
+    import time
+
+    _two_threads(monkeypatch)
+    release, started = threading.Event(), threading.Event()
+
+    def busy():
+        started.set()
+        release.wait(5.0)
+        return threading.current_thread().name
+
+    runs = []
+
+    def job():
+        runs.append(threading.current_thread().name)
+        return len(runs)
+
+    first = parallel.submit(busy)
+    started.wait(5.0)
+    queued = parallel.submit(job)
+    queued.take()  # the pool is busy: made here
+    assert runs == [threading.current_thread().name]
+    assert queued.result() == 1 and len(runs) == 1
+    threading.Timer(0.5, release.set).start()
+    t0 = time.perf_counter()
+    first.take()  # started by the pool: left to it
+    assert time.perf_counter() - t0 < 0.25
+    assert first.result().startswith("omniflow-parallel")
