@@ -473,7 +473,12 @@ class GridPools:
             hi = h1[sel]
             s = np.ones((hi.size, 6))
             s[:, 1] = s[:, 2] = 1.0 / hi  # the columns -f_h h_u / h_1,i and f_theta / h_1,i
-            M[sel] = G * s[:, :, None] * s[:, None, :]
+            G *= s[:, :, None]  # in place: (G s_i) s_j as before, without two (N, 6, 6)
+            G *= s[:, None, :]  # temporaries (fresh pages are dear on a sandboxed host)
+            if on.all():
+                M = G
+            else:
+                M[sel] = G
             v[sel] = rhs * s
             yy[sel], wsum[sel], w2[sel] = c0[:, 15], c0[:, 0], sq
         if self.idx is not None:  # the points whose window mixes ranges: their tree pools
