@@ -364,8 +364,9 @@ def start_pool_fits(
                 derivs, brightness, h1, h2, theta, scale=radius, single=True
             )
             query = screen(sums, floor, EDGE_GATE * config.decouple_gain_tol)
-            t_idx, t_w = search(query=query)  # the tree's test where the grid's may pass
-            t_w = np.where(query[:, None], t_w, 0.0)  # the others' rows: not tested (NaN)
+            # the tree's test where the grid's may pass; the others' rows get weight 0
+            # from the search (neighbourhoods' ``query``): not tested (NaN)
+            t_idx, t_w = search(query=query)
         within, kept = (t_idx < h1.size).sum(axis=1), (t_w > 0).sum(axis=1)  # any range; kept
         g = decoupled_linear_gain(derivs, brightness, h1, h2, theta, t_idx, t_w, scale=radius,
                                   min_conditioning=floor)  # fmt: skip
