@@ -264,3 +264,49 @@ def test_take_runs_a_waiting_task_here_and_leaves_a_started_one(monkeypatch):
     first.take()  # started by the pool: left to it
     assert time.perf_counter() - t0 < 0.25
     assert first.result().startswith("omniflow-parallel")
+
+
+def _dense_columns():
+    from omniflow.pipeline import OmniFlowConfig, estimate
+    from omniflow.synthetic import Motion
+    from tests.helpers.scenes import frames, paper_rig, wall_scene
+
+    rig = paper_rig(256)
+    f1, f2 = frames(wall_scene(rig, robot=Motion(velocity=(0.02, 0.01), yaw_rate=0.004)), 2)
+    return estimate(f1, f2, rig, OmniFlowConfig.dense()).columns
+
+
+def test_densify_shares_equal_one_search(monkeypatch):
+    """densify's NCC search in two row shares on two threads: the same matches and flow,
+    bit for bit, as one ncc_offsets call over every candidate (the code before: map_tasks
+    replaced by one call over the shares' union)."""
+    from omniflow.matching import dense
+
+    _two_threads(monkeypatch)
+    got = _dense_columns()
+    monkeypatch.setattr(dense, "map_tasks", lambda fn, *shares: fn(shares[0][0], shares[-1][1]))
+    ref = _dense_columns()
+    assert got["h1"].size == ref["h1"].size > 1000
+    for k in ref:
+        np.testing.assert_array_equal(got[k], ref[k], err_msg=k)
+
+
+def test_densify_shares_check_catches_a_lost_share(monkeypatch):
+    """The mutation: only the first share searched (the second's rows of S as allocated,
+    zero here so that the outcome does not depend on what the memory held): other
+    matches."""
+    from omniflow.matching import dense
+
+    ref = _dense_columns()
+    real_empty = np.empty
+
+    def first_only(fn, *shares):
+        fn(*shares[0])
+
+    monkeypatch.setattr(dense, "map_tasks", first_only)
+    monkeypatch.setattr(dense.np, "empty", lambda *a, **k: np.zeros(*a, **k))
+    try:
+        got = _dense_columns()
+    finally:
+        monkeypatch.setattr(dense.np, "empty", real_empty)
+    assert got["h1"].size != ref["h1"].size
