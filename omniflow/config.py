@@ -206,7 +206,9 @@ class OmniFlowConfig:
         step and drop only those whose pooled system's conditioning (the
         ``confidence`` column) is below this: a ramp across the pool too (its
         gradients all parallel), which neither NCC nor the flow equations can
-        place. None: drop every smooth match in the matcher. Default 0.015:
+        place; the densified matches grown from a smooth match carry its flag
+        (they sit at its disparity). None: drop every smooth match in the
+        matcher. Default 0.015:
         on the five rendered scenes (3 pairs) the smooth matches 13-15 px off
         (all on low_texture's plain wall, whose radial gain they took from 1.01
         to 0.66) have 0.0022-0.0038, the 28 right ones 0.059-0.54; 0.015 is the

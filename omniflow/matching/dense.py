@@ -28,7 +28,14 @@ from omniflow.kernels import profile_stats
 from omniflow.matching.tables import TableGeometry, parabola_offset, sharp_peak
 from omniflow.parallel import map_tasks
 
-__all__ = ["candidates", "candidates_numpy", "densify", "ncc_offsets", "smooth_profiles"]
+__all__ = [
+    "candidates",
+    "candidates_numpy",
+    "densify",
+    "grown_from",
+    "ncc_offsets",
+    "smooth_profiles",
+]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -247,6 +254,35 @@ def smooth_profiles(
     t = np.ascontiguousarray(t1, np.float32)
     ncc_offsets(t, t, k, j, np.clip(cols, lo, hi), int(w), int(stride), int(lines), S)
     return np.any(fits & (S > smooth), axis=1)
+
+
+def grown_from(
+    k: NDArray, j: NDArray, seed_k: NDArray, seed_j: NDArray, flags: NDArray, reach: int
+) -> NDArray:
+    """Whether each densified match at (line k[i], column j[i]) grew from a flagged seed.
+
+    :func:`densify` guesses a candidate's disparity from the nearest seed within
+    ``reach`` columns on each side of it on its line (interpolated between the two
+    where both exist); a match is placed by its seeds, so it carries their flag: True
+    where either of those seeds has ``flags`` set. Columns of matches and seeds are
+    counted alike (both table columns or both core columns).
+    """
+    k = np.asarray(k, dtype=np.int64)
+    j = np.asarray(j, dtype=np.int64)
+    seed_k = np.asarray(seed_k, dtype=np.int64)
+    seed_j = np.asarray(seed_j, dtype=np.int64)
+    flags = np.asarray(flags, dtype=bool)
+    if k.size == 0 or not flags.any():
+        return np.zeros(k.size, dtype=bool)
+    span = int(max(j.max(), seed_j.max())) + 1
+    order = np.lexsort((seed_j, seed_k))
+    key = seed_k[order] * span + seed_j[order]
+    right = np.searchsorted(key, k * span + j)  # the first seed at or right of the match
+    left = right - 1
+    li, ri = np.clip(left, 0, key.size - 1), np.clip(right, 0, key.size - 1)
+    has_l = (left >= 0) & (seed_k[order][li] == k) & (j - seed_j[order][li] <= reach)
+    has_r = (right < key.size) & (seed_k[order][ri] == k) & (seed_j[order][ri] - j <= reach)
+    return (has_l & flags[order][li]) | (has_r & flags[order][ri])
 
 
 def densify(

@@ -85,7 +85,7 @@ from numpy.typing import NDArray
 
 from omniflow import parallel
 from omniflow.dct import DCTFit
-from omniflow.matching.dense import densify, smooth_profiles
+from omniflow.matching.dense import densify, grown_from, smooth_profiles
 from omniflow.matching.paper import match_paper
 from omniflow.matching.robust import RobustSearch
 from omniflow.matching.tables import (
@@ -140,7 +140,9 @@ class Matches:
     ramp : ndarray of bool, shape (N,), optional
         The matches whose image-1 profile is smooth over its own length
         (``edge_smooth`` with ``edge_smooth_floor``: kept for the flow step
-        to judge by its pool's conditioning); None: none flagged.
+        to judge by its pool's conditioning), and the densified matches grown
+        from such a match (placed at its disparity:
+        :func:`~omniflow.matching.dense.grown_from`); None: none flagged.
     """
 
     x: NDArray
@@ -346,7 +348,9 @@ def match_radial(
         With ``edge_smooth``: keep the smooth matches, flagged in
         ``Matches.ramp``, for the flow step, which drops those whose pooled
         system's conditioning is below this (a ramp in two dimensions: every
-        gradient of the pool parallel); None: drop them here.
+        gradient of the pool parallel), with the densified matches grown from
+        them (flagged too: they sit at the smooth match's disparity); None:
+        drop them here (they then seed nothing).
     short_patch : float
         ``robust``: match a second time with profiles of ``short_patch``
         times ``patch_radius`` (all else the same) and add the matches at
@@ -588,11 +592,11 @@ def _finish(p: _Pass) -> Matches:
     if method == "robust" and o["dense_percentile"] < 100.0 and np.any(ok):
         core = slice(pad, pad + n_h)
         thr_d = abs_percentile(fh1[::2, core], o["dense_percentile"])
+        reach = max(1, round(o["dense_reach"] * o["patch_radius"] / h_step))
         dk, dj, dc, ds, n_tried = densify(
             tab, fh1, t1, t2, (k1[ok], j1[ok], c2[ok]), max(thr_d, float(o["min_gradient"])),
             w=w, stride=stride, lines=o["patch_lines"], min_score=o["min_score"],
-            reach=max(1, round(o["dense_reach"] * o["patch_radius"] / h_step)),
-            flatness=o["flatness"], smooth=o["dense_smooth"],
+            reach=reach, flatness=o["flatness"], smooth=o["dense_smooth"],
         )  # fmt: skip
         n_sig += n_tried
         th_d = -np.pi + (2.0 * np.pi / n_theta) * (dk + 0.5)
@@ -604,8 +608,11 @@ def _finish(p: _Pass) -> Matches:
         h1 = np.concatenate([h1[ok], h1_d[in_d]])
         h2 = np.concatenate([h2[ok], h2_d[in_d]])
         score = np.concatenate([score[ok], ds[in_d]])
-        if flagged is not None:  # densified matches have their own test (dense_smooth)
-            flagged = np.concatenate([flagged[ok], np.zeros(np.count_nonzero(in_d), bool)])
+        if flagged is not None:
+            # a densified match sits at its seeds' disparity: a flagged seed's (a ramp's,
+            # placed wherever NCC liked) is no evidence, so its matches carry the flag
+            grown = grown_from(dk, dj, k1[ok], j1[ok], flagged[ok], reach)
+            flagged = np.concatenate([flagged[ok], grown[in_d]])
         ok = np.ones(theta.size, dtype=bool)
     return Matches.from_polar(
         rig,
