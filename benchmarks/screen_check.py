@@ -41,13 +41,14 @@ def main(argv: list[str] | None = None) -> int:
         decoupled_mod.SCREEN_F = args.share
     parallel.THREADS = 1
     pool_fits, screen = decoupled_mod.pool_fits, decoupled_mod.screen
+    start = decoupled_mod.start_pool_fits
     seen = []  # the arguments of the solver's own call
 
     def capture(cols, rig, config, pools=None, brightness=None):
         seen.append((cols, rig, config, brightness))
-        return pool_fits(cols, rig, config, pools=pools, brightness=brightness)
+        return start(cols, rig, config, pools, brightness)
 
-    solve_mod.pool_fits = capture
+    solve_mod.start_pool_fits = capture
     keep_share = []
 
     def screened(sums, *a):

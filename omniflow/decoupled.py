@@ -66,6 +66,7 @@ from omniflow.flow import neighbourhoods
 from omniflow.gain import decoupled_gain, decoupled_linear_gain, gated
 from omniflow.gridpool import GridPools
 from omniflow.kernels import decouple_fits, decouple_sums, nested_fits
+from omniflow.parallel import Task, submit
 from omniflow.rig import Rig
 
 __all__ = [
@@ -79,6 +80,7 @@ __all__ = [
     "model_fits",
     "pool_fits",
     "screen",
+    "start_pool_fits",
     "tests",
 ]
 
@@ -297,9 +299,34 @@ def pool_fits(
     (:meth:`omniflow.gridpool.GridPools.k_window`), which cannot stand in for the tree's
     (its pools hold other points, and the test's gates were set on the tree's), tells
     where the tree's test may pass; elsewhere ``gain_F`` is NaN (not switched).
+
+    :func:`start_pool_fits` makes the same fits with its two independent parts (both
+    models' fits; the linear-gain test) as two tasks of :mod:`omniflow.parallel`.
+    """
+    return start_pool_fits(cols, rig, config, pools, brightness, spawn=_deferred).result()
+
+
+def start_pool_fits(
+    cols: dict[str, NDArray],
+    rig: Rig,
+    config: OmniFlowConfig,
+    pools: tuple[NDArray, NDArray, NDArray] | None = None,
+    brightness: tuple[NDArray, NDArray] | None = None,
+    *,
+    spawn: Callable = submit,
+) -> _Joined:
+    """:func:`pool_fits` as a task: its ``result()`` is pool_fits' answer (the same, bit
+    for bit), ``cancel()`` drops it.
+
+    The pools are set up here (the grid's, and the k-d tree's where ranges mix), then
+    the linear-gain test (``decouple_gain_tol``: the grid's screen, the tree's search
+    and test) and both models' fits are handed to ``spawn`` (:func:`omniflow.parallel.
+    submit`) in that order, the longer first: the pool's thread takes them in turn, and
+    the caller's thread makes the models' fits itself if the pool's thread has not
+    started them when it asks (``take_last()``, or ``result()`` after its own work).
     """
     if not tests(config, np.asarray(cols["h1"]).size):
-        return None
+        return _Joined([_deferred(lambda: None)])
     h1, h2 = (np.asarray(cols[c], dtype=np.float64) for c in ("h1", "h2"))
     radius = rig.cam1.r_m / 8.0 if config.pool_radius is None else config.pool_radius
     search = lambda query=None: neighbourhoods(  # noqa: E731
@@ -309,15 +336,25 @@ def pool_fits(
     derivs = tuple(np.asarray(cols[c], dtype=np.float64) for c in DERIVS)
     chain = config.decouple_gain_tol is not None and brightness is not None
     theta = np.asarray(cols["theta"], dtype=np.float64)
-    idx = w = sums = None
+    floor = max(config.min_conditioning, config.pool_min_conditioning)
+    grid = idx = w = None
     if config.grid_pools:  # the solver's grid windows, the k-d tree's where ranges mix
         grid = GridPools(
             cols["x"], cols["y"], None, (rig.cam1.height, rig.cam1.width), radius=radius,
             cell=config.pool_grid * radius, r=cols["r"], range_tol=config.pool_range_tol,
             tree_pools=lambda mask: search(query=mask),
         )  # fmt: skip
-        fit = fits_from_sums(grid.decouple_sums(derivs, h1, h2), h1, h2)
-        if chain:  # the same Gaussian cut at about the k nearest, as the tree's pools
+    else:
+        idx, w = search() if pools is None else kept_pools(*pools, search)
+
+    def models() -> dict[str, NDArray]:
+        if grid is not None:
+            return fits_from_sums(grid.decouple_sums(derivs, h1, h2), h1, h2)
+        return model_fits(derivs, h1, h2, idx, w)
+
+    def linear_gain() -> dict[str, NDArray]:
+        t_idx, t_w = idx, w
+        if grid is not None:  # the same Gaussian cut at about the k nearest, as the tree's
             near = GridPools(
                 cols["x"], cols["y"], None, (rig.cam1.height, rig.cam1.width), radius=radius,
                 cell=config.pool_grid * radius, r=cols["r"], range_tol=config.pool_range_tol,
@@ -326,21 +363,48 @@ def pool_fits(
             sums = near.linear_gain_sums(
                 derivs, brightness, h1, h2, theta, scale=radius, single=True
             )
-            floor = max(config.min_conditioning, config.pool_min_conditioning)
             query = screen(sums, floor, EDGE_GATE * config.decouple_gain_tol)
-            idx, w = search(query=query)  # the tree's test where the grid's may pass
-            w = np.where(query[:, None], w, 0.0)  # the others' rows: not tested (NaN)
-    else:
-        idx, w = search() if pools is None else kept_pools(*pools, search)
-        fit = model_fits(derivs, h1, h2, idx, w)
-    if chain:
-        floor = max(config.min_conditioning, config.pool_min_conditioning)
-        within, kept = (idx < h1.size).sum(axis=1), (w > 0).sum(axis=1)  # any range; kept
-        g = decoupled_linear_gain(derivs, brightness, h1, h2, theta, idx, w, scale=radius,
+            # the tree's test where the grid's may pass; the others' rows get weight 0
+            # from the search (neighbourhoods' ``query``): not tested (NaN)
+            t_idx, t_w = search(query=query)
+        within, kept = (t_idx < h1.size).sum(axis=1), (t_w > 0).sum(axis=1)  # any range; kept
+        g = decoupled_linear_gain(derivs, brightness, h1, h2, theta, t_idx, t_w, scale=radius,
                                   min_conditioning=floor)  # fmt: skip
-        fit.update(gain_a1=g[0], gain_a2=g[1], gain_b=g[2], gain_F=g[3],
-                   gain_edge=within - kept > EDGE_SHARE * within)  # fmt: skip
-    return fit
+        return dict(gain_a1=g[0], gain_a2=g[1], gain_b=g[2], gain_F=g[3],
+                    gain_edge=within - kept > EDGE_SHARE * within)  # fmt: skip
+
+    return _Joined(([spawn(linear_gain)] if chain else []) + [spawn(models)])
+
+
+class _Joined:
+    """Tasks whose dict results make one: ``result()`` asks the last first (the caller
+    makes it if the pool has not started it) and adds the others' keys after its own."""
+
+    def __init__(self, parts: list[Task]) -> None:
+        self.parts = parts
+
+    def result(self) -> dict[str, NDArray]:
+        try:
+            fit = self.parts[-1].result()
+            for part in self.parts[:-1]:
+                fit.update(part.result())
+        except BaseException:
+            self.cancel()  # no task outlives the call
+            raise
+        return fit
+
+    def take_last(self) -> None:
+        """The last part now, in the caller's thread, if the pool has not started it."""
+        self.parts[-1].take()
+
+    def cancel(self) -> None:
+        for part in self.parts:
+            part.cancel()
+
+
+def _deferred(fn: Callable, *args) -> Task:
+    """``fn(*args)`` as a task run in the caller's thread when its result is asked for."""
+    return Task(fn, args, None)
 
 
 #: :func:`screen`'s least RSS_coupled / RSS_decoupled over the grid's window (the tree's

@@ -41,6 +41,9 @@ from omniflow.parallel import map_tasks
 
 __all__ = ["GridPools"]
 
+#: the strict lower triangle of a 6 x 6 (rows, columns)
+_LOWER = np.tril_indices(6, -1)
+
 
 class GridPools:
     """The pools of every matched point as grid filters (plus k-d tree pools where ranges mix).
@@ -270,9 +273,12 @@ class GridPools:
                      ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2), (0, 3), (1, 3), (2, 3),
                       (3, 3))]  # fmt: skip
             g, g2 = self.gauss, self.gauss**2
-            read = self._filter(np.stack([*parts, np.ones(n)], axis=1), [(g, g, 1)])[0]
-            read2 = self._filter(np.ones((n, 1)), [(g2, g2, 2)])[0]
-            out[:, :11] = read
+            # the count first: the squared weights' filter takes it from the same bins
+            parts = np.stack([np.ones(n), *parts], axis=1)
+            bins = self._bin_images(parts)
+            read = self._filter(parts, [(g, g, 1)], bins)[0]
+            read2 = self._filter(parts[:, :1], [(g2, g2, 2)], _channels(bins, 1))[0]
+            out[:, :10], out[:, 10] = read[:, 1:], read[:, 0]
             out[:, 11] = read2[:, 0]
             out[~self.on_grid] = 0.0
         if self.idx is not None:  # the points whose window mixes ranges: their tree pools
@@ -461,11 +467,18 @@ class GridPools:
             for t, (a, b) in enumerate(pairs[5:11]):
                 G[:, a, b] = c0[:, 6 + t]
             rhs = np.column_stack([c0[:, 12], c0[:, 13], c0[:, 14], c0[:, 5], mx[:, 4], my[:, 4]])
-            G = np.triu(G) + np.swapaxes(np.triu(G, 1), 1, 2)
+            # the lower triangle from the upper, filled above (np.triu(G) + its strict upper
+            # triangle transposed made the same entries through two (N, 6, 6) temporaries)
+            G[:, _LOWER[0], _LOWER[1]] = G[:, _LOWER[1], _LOWER[0]]
             hi = h1[sel]
             s = np.ones((hi.size, 6))
             s[:, 1] = s[:, 2] = 1.0 / hi  # the columns -f_h h_u / h_1,i and f_theta / h_1,i
-            M[sel] = G * s[:, :, None] * s[:, None, :]
+            G *= s[:, :, None]  # in place: (G s_i) s_j as before, without two (N, 6, 6)
+            G *= s[:, None, :]  # temporaries (fresh pages are dear on a sandboxed host)
+            if on.all():
+                M = G
+            else:
+                M[sel] = G
             v[sel] = rhs * s
             yy[sel], wsum[sel], w2[sel] = c0[:, 15], c0[:, 0], sq
         if self.idx is not None:  # the points whose window mixes ranges: their tree pools

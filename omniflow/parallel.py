@@ -63,6 +63,13 @@ class Task:
             self._done = True
         return self._value
 
+    def take(self) -> None:
+        """Run it now in the caller's thread if the pool has not started it; else leave it
+        to the pool (without waiting)."""
+        if not self._done and (self._future is None or self._future.cancel()):
+            self._value = self._fn(*self._args)
+            self._done = True
+
     def cancel(self) -> None:
         """Drop the task if not started; wait for it if it is (its result is ignored)."""
         if self._future is not None and not self._future.cancel():

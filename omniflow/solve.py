@@ -23,7 +23,7 @@ from numpy.typing import NDArray
 
 from omniflow.applications import radial_velocity
 from omniflow.config import OmniFlowConfig
-from omniflow.decoupled import decouple, pool_fits
+from omniflow.decoupled import decouple, start_pool_fits, tests
 from omniflow.flow import conditioning as direct_conditioning
 from omniflow.flow import (
     consistent_neighbours,
@@ -80,7 +80,26 @@ def flow_at_matches(
                       sample_f(cam2["a"], x2, y2, config.sampling))  # fmt: skip
     solve = make_solver(rig, config, x1, y1, theta, h1, h2, r, noise, edge_map=edge_map,
                         static_test=config.static_test, brightness=brightness)  # fmt: skip
-    a, b, conf = solve(f1_h, f1_th, f1_t, f2_h, f2_th, f2_t)
+    # the two-model test's pool fits read no flow, only the points that keep one (those
+    # of the first solve, a refined point keeps a finite flow: checked below)
+    derivs = {"f1_h": f1_h, "f1_theta": f1_th, "f1_t": f1_t,
+              "f2_h": f2_h, "f2_theta": f2_th, "f2_t": f2_t}  # fmt: skip
+    kept = {"x": x1, "y": y1, "r": r, "h1": h1, "h2": h2, "theta": theta, **derivs}
+    speculative = []  # on the grid, every point's: made while the first solve's gain fit runs
+
+    def meanwhile() -> None:
+        pools = None if solve.pools is None else (*solve.pools, np.ones(theta.size, bool))
+        speculative.append(start_pool_fits(kept, rig, config, pools, brightness))
+        speculative[0].take_last()  # the models' fits here if the pool is busy
+
+    ahead = config.grid_pools and tests(config, theta.size)
+    try:
+        a, b, conf = solve(f1_h, f1_th, f1_t, f2_h, f2_th, f2_t,
+                           **({"meanwhile": meanwhile} if ahead else {}))  # fmt: skip
+    except BaseException:
+        for task in speculative:
+            task.cancel()  # no task outlives the call
+        raise
     floor = config.edge_smooth_floor if config.solver == "pooled" else None
     if floor is not None and matches.ramp is not None:
         # a smooth-profile match (edge_smooth) whose pool is a ramp in two dimensions
@@ -89,19 +108,19 @@ def flow_at_matches(
         a, b = np.where(ramp, np.nan, a), np.where(ramp, np.nan, b)
     D = determinant(f1_h, f1_th, f2_h, f2_th, h1, h2)
     k = h2 / h1  # eq. (14)
-    # the two-model test's pool fits read no flow, only the points that keep one:
-    # made on the other thread while this one refines (a refined point keeps a
-    # finite flow, so the kept points are those of the first solve; checked below)
+    # made on the other thread while this one refines (or already, on every point)
     keep0 = np.isfinite(a) & np.isfinite(b)
-    derivs = {"f1_h": f1_h, "f1_theta": f1_th, "f1_t": f1_t,
-              "f2_h": f2_h, "f2_theta": f2_th, "f2_t": f2_t}  # fmt: skip
-    kept = {"x": x1, "y": y1, "r": r, "h1": h1, "h2": h2, "theta": theta, **derivs}
-    f_kept = brightness
-    if not keep0.all():
-        kept = {c: v[keep0] for c, v in kept.items()}
-        f_kept = None if brightness is None else tuple(f[keep0] for f in brightness)
-    pools0 = None if solve.pools is None else (*solve.pools, keep0)
-    early = submit(pool_fits, kept, rig, config, pools0, f_kept)
+    if speculative and keep0.all():
+        early = speculative[0]
+    else:
+        for task in speculative:
+            task.cancel()  # made for points that lost their flow: again for those kept
+        f_kept = brightness
+        if not keep0.all():
+            kept = {c: v[keep0] for c, v in kept.items()}
+            f_kept = None if brightness is None else tuple(f[keep0] for f in brightness)
+        pools0 = None if solve.pools is None else (*solve.pools, keep0)
+        early = start_pool_fits(kept, rig, config, pools0, f_kept)  # on the pool's thread
     try:
         a, b, conf = _refine(a, b, conf, solve, k, cam1, cam2, rig, x1, y1, x2, y2, theta,
                              h1, h2, r, config, noise, brightness)  # fmt: skip
@@ -287,7 +306,9 @@ def make_solver(
             grid=grid, static_test=static_test, static_max_px=config.static_max_px,
         )  # fmt: skip
 
-    def plain(f1_h, f1_th, f1_t, f2_h, f2_th, f2_t):
+    def plain(f1_h, f1_th, f1_t, f2_h, f2_th, f2_t, meanwhile=None):
+        if meanwhile is not None:  # nothing to wait for: the caller's work first
+            meanwhile()
         derivs = (f1_h, f1_th, f1_t, f2_h, f2_th, f2_t)
         weights = w
         if config.pool_min_info is not None:  # the pool's size from the local texture
@@ -309,12 +330,15 @@ def make_solver(
                        noise=noise, residual_noise=config.eiv == "residual",
                        gate=config.brightness_gate, grid=grid)  # fmt: skip
 
-        def solve(*derivs):
-            # the gain fit on the other thread while this one makes the plain solve
+        def solve(*derivs, meanwhile=None):
+            # the gain fit on the other thread while this one makes the plain solve, then
+            # the caller's ``meanwhile()`` (work queued behind the gain fit, or made here)
             task = submit(partial(gain_solution, **gain_kw), derivs, brightness, h1, h2, theta,
                           idx, w)  # fmt: skip
             try:
                 a, b, conf = plain(*derivs)
+                if meanwhile is not None:
+                    meanwhile()
             except BaseException:
                 task.cancel()  # no task outlives the call
                 raise

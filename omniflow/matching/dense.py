@@ -26,6 +26,7 @@ from numpy.typing import NDArray
 
 from omniflow.kernels import profile_stats
 from omniflow.matching.tables import TableGeometry, parabola_offset, sharp_peak
+from omniflow.parallel import map_tasks
 
 __all__ = [
     "candidates",
@@ -347,9 +348,16 @@ def densify(
     cols = np.clip(cj[:, None] + base[:, None] + offs, w * stride, t2.shape[1] - 1 - w * stride)
     # the NCC of the robust rule's profiles (Descriptors), summed from the tables
     S = np.empty(cols.shape)
-    ncc_offsets(np.ascontiguousarray(t1, np.float32), np.ascontiguousarray(t2, np.float32),
-                ck.astype(np.int64), cj.astype(np.int64), cols.astype(np.int64),
-                int(w), int(stride), int(lines), S)  # fmt: skip
+    t1c, t2c = np.ascontiguousarray(t1, np.float32), np.ascontiguousarray(t2, np.float32)
+    ck64, cj64, cols64 = ck.astype(np.int64), cj.astype(np.int64), cols.astype(np.int64)
+
+    def rows(r0: int, r1: int) -> None:  # each share fills its own rows of S
+        ncc_offsets(t1c, t2c, ck64[r0:r1], cj64[r0:r1], cols64[r0:r1], int(w), int(stride),
+                    int(lines), S[r0:r1])  # fmt: skip
+
+    # two shares on omniflow.parallel's threads (the pool's is free by then when the
+    # first pass densifies while the second pass has finished)
+    map_tasks(rows, (0, ck.size // 2), (ck.size // 2, ck.size))
     b = np.argmax(S[:, 1:-1], axis=1) + 1
     r = np.arange(ck.size)
     s_m, s_0, s_p = S[r, b - 1], S[r, b], S[r, b + 1]
