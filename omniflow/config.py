@@ -380,8 +380,10 @@ class OmniFlowConfig:
         larger for the same misfit; 20 and 60 answer the same there, the
         residual ratio deciding). docs/measurements.md, "decouple_gain_tol: eq.
         (14) tested with a linear gain, built" and "decouple_gain_tol gated, and
-        the default". Its fits use the k-d tree pools also with ``pool_grid``
-        (searched once more there: the dense preset's pair takes 1.3-2 times as long).
+        the default". Its fits use the k-d tree pools also with ``pool_grid``,
+        searched there only at the points a test on the grid's windows says may
+        pass (omniflow.decoupled.screen; "The linear-gain test screened on the
+        grid").
     flow_shading : float or None
         Fit the flow step's series to each frame divided by its Gaussian
         local mean of this many pixels (omniflow.shading), so that shading
