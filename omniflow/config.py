@@ -660,14 +660,13 @@ class OmniFlowConfig:
         default's brightness gain (on the grid's windows). About ten times the
         default's points (4 % of the valid pixels of the rendered scenes against
         0.4 %) and a smaller error on every rendered scene, at about three times
-        the default's time per pair without the linear-gain test (about twice
-        without the gain either), and more with it: its k-d tree search and sums
-        are made only where a test on the grid's windows says the tree's may pass
-        (omniflow.decoupled.screen: 11 % of the points; 4 of the 487 switched
-        points on 15 rendered pairs lost, no figure changed), which cuts its
-        cost by two thirds (docs/measurements.md, "The dense preset",
-        "decouple_gain_tol gated, and the default", "Speed after the stop-20
-        merges" and "The linear-gain test screened on the grid"). Not the default
+        DIS medium's time per pair (2.8-3.8x measured at stop 21, with its
+        linear-gain test's k-d tree search and sums made only where a test on
+        the grid's windows says the tree's may pass, omniflow.decoupled.screen:
+        11 % of the points; 4 of the 487 switched points on 15 rendered pairs
+        lost, no figure changed; docs/measurements.md, "The dense preset",
+        "The linear-gain test screened on the grid" and "Speed: the dense
+        preset's pool fits on both threads"). Not the default
         because of that time: the default answers within about DIS medium's time
         (issue 10).
         """
