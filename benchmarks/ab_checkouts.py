@@ -13,6 +13,12 @@ both camera pairs of the first two frames per call. Run::
 ``--set NAME=VALUE`` (repeatable) gives every omniflow variant that
 OmniFlowConfig field (parsed as the CLI's ``--set``), e.g. the densified
 configuration: ``--set dense_percentile=60 --set pool_grid=0.125 --set decouple_tol=60``.
+A variant's own ``:set=ITEMS`` (omniflow.cli.config_from_settings' comma-separated
+items, presets included) is added after those, so one run can time several
+configurations of one checkout against DIS in the same rounds::
+
+    python benchmarks/ab_checkouts.py --dataset /work/data/approach \
+        default=. dense=.:set=dense dense75=.:set=dense,dense_percentile=75 dis=dis
 ``--stage solve`` (repeatable) adds the median wall time of that stage of estimate().
 """
 
@@ -82,7 +88,7 @@ def worker(dataset: str, dis: bool, threads: int | None, settings: str = "") -> 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="ab_checkouts", description=__doc__.split("\n")[0])
     parser.add_argument(
-        "variants", nargs="+", metavar="NAME=CHECKOUT[:threads=N]",
+        "variants", nargs="+", metavar="NAME=CHECKOUT[:threads=N][:set=ITEMS]",
         help="a checkout folder (put on PYTHONPATH), or 'dis' for DIS medium",
     )  # fmt: skip
     parser.add_argument("--dataset", default="/work/data/default")
@@ -106,13 +112,21 @@ def main(argv: list[str] | None = None) -> int:
     procs = {}
     for spec in args.variants:
         name, _, rest = spec.partition("=")
-        where, _, opt = rest.partition(":")
-        threads = opt.removeprefix("threads=") if opt else "-"
+        where, *opts = rest.split(":")
+        threads, settings = "-", list(args.set)
+        for opt in opts:
+            key, _, value = opt.partition("=")
+            if key == "threads":
+                threads = value
+            elif key == "set":
+                settings.append(value)
+            else:
+                raise SystemExit(f"ab_checkouts: {spec}: expected :threads=N or :set=ITEMS")
         kind = "dis" if where == "dis" else "omniflow"
         path = os.path.abspath(os.path.dirname(__file__) + "/.." if kind == "dis" else where)
         env = dict(os.environ, PYTHONPATH=path)
         cmd = [sys.executable, os.path.abspath(__file__), "x", "--worker", args.dataset, kind,
-               threads, ",".join(args.set)]  # fmt: skip
+               threads, ",".join(settings)]  # fmt: skip
         p = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
                              env=env, cwd="/")  # fmt: skip
         if p.stdout.readline().strip() != "ready":
