@@ -168,8 +168,10 @@ def gain_solution(
         (u_j and dh_j the tangential and radial offsets of neighbour j over ``scale``, as
         :func:`decoupled_linear_gain`'s), eq. (14) kept: texture turning through shading
         that stays put (a body spinning about its own axis under fixed lights) changes
-        brightness with no level across the pool, only a gradient. F is then the
-        statistic of the three gain columns against the plain fit, NaN where fewer than
+        brightness with no level across the pool, only a gradient. Where one gain's F
+        (the same Gram's leading block) passes ``gate`` the answer and F stay one gain's
+        (a level of change, approach's face); elsewhere F is the statistic of the three
+        gain columns against the plain fit, NaN where fewer than
         :data:`MIN_RESIDUAL_DOF` residual degrees of freedom estimate the variance or
         every term is below :data:`MIN_CHANGE`. k-d tree pools only (not ``grid``).
 
@@ -196,12 +198,23 @@ def gain_solution(
         M, v, yy, powers, w2 = grid.gain_sums(derivs, f, h1, h2, theta, linear=model == "linear",
                                               scale=scale, single=GRID_SINGLE)  # fmt: skip
         x0, y0 = _own_rows(derivs, f, h1, h2, M.shape[1])
-    x, conf, rss, rss0 = nested_fits(M, v, yy, min_conditioning, drop=M.shape[1] - 1)
+    p = M.shape[1]
+    one = np.zeros(n, bool)  # the pools answered with one gain (``linear_gain``)
     if linear_gain:
+        x, conf, rss, _ = nested_fits(M, v, yy, min_conditioning, drop=p - 1)
         F = _linear_gain_f(M, v, yy, x, rss, powers[:, 0], w2, min_conditioning)
+        # one gain where it passes the gate (the Gram's leading block: the flow and beta)
+        # and the slopes do not add to it (their F against one gain)
+        xc, confc, Fc = _one_gain(M[:, : p - 2, : p - 2], v[:, : p - 2], yy, powers[:, 0], w2,
+                                  min_conditioning)  # fmt: skip
+        if gate is not None:
+            rss_c = yy - np.einsum("np,np->n", xc, v[:, : p - 2])
+            Fs = _f(rss_c, rss, powers[:, 0], w2, p)[0] / 2.0
+            one = gated(Fc, gate) & ~(gated(Fs, gate) & gated(F, gate))
+            x = np.where(one[:, None], np.pad(xc, ((0, 0), (0, 2))), x)
+            conf, F = np.where(one, confc, conf), np.where(one, Fc, F)
     else:
-        F = _f(rss0, rss, powers[:, 0], w2, M.shape[1])[0]  # beta against the plain fit
-        F[~(np.abs(x[:, -1]) >= MIN_CHANGE)] = np.nan  # too small a change to correct
+        x, conf, F = _one_gain(M, v, yy, powers[:, 0], w2, min_conditioning)
     a, c = x[:, 0], x[:, 1]
     if noise[0] > 0 or noise[1] > 0:  # errors in the variables, as the plain solve
         n1, n2 = noise
@@ -214,15 +227,27 @@ def gain_solution(
                 var = np.median(res[ok] ** 2, axis=0) / 0.455 / 2.0
                 n1, n2 = n1 * float(var[0]), n2 * float(var[1])
         sel = np.ones(n, bool) if gate is None else gated(F, gate)
-        if (n1 > 0 or n2 > 0) and sel.any():
-            u_powers = powers[sel] if model == "linear" else powers[sel, :1]
-            ac, cc, confc = _corrected(M[sel], v[sel], u_powers, (h2 / h1)[sel], n1, n2,
-                                       min_conditioning)  # fmt: skip
+        a, c, conf = a.copy(), c.copy(), conf.copy()
+        for part, q in ((sel & ~one, p), (sel & one, p - 2)):  # the fit's own Gram block
+            if not ((n1 > 0 or n2 > 0) and part.any()):
+                continue
+            u_powers = powers[part] if model == "linear" else powers[part, :1]
+            ac, cc, confc = _corrected(M[part, :q, :q], v[part, :q], u_powers, (h2 / h1)[part],
+                                       n1, n2, min_conditioning)  # fmt: skip
             use = np.isfinite(ac) & np.isfinite(cc)
-            rows_c = np.flatnonzero(sel)[use]
-            a, c, conf = a.copy(), c.copy(), conf.copy()
+            rows_c = np.flatnonzero(part)[use]
             a[rows_c], c[rows_c], conf[rows_c] = ac[use], cc[use], confc[use]
     return a, c / h1, conf, F
+
+
+def _one_gain(M, v, yy, w1, w2, min_conditioning):
+    """The fit of Gram ``M`` (N x P x P, its last unknown the gain beta), its confidence and
+    the F statistic of beta against the fit without it; NaN where |beta| is below
+    :data:`MIN_CHANGE` (too small a change to correct)."""
+    x, conf, rss, rss0 = nested_fits(M, v, yy, min_conditioning, drop=M.shape[1] - 1)
+    F = _f(rss0, rss, w1, w2, M.shape[1])[0]  # beta against the plain fit
+    F[~(np.abs(x[:, -1]) >= MIN_CHANGE)] = np.nan
+    return x, conf, F
 
 
 def decoupled_gain(
