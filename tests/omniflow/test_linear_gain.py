@@ -32,10 +32,13 @@ BETA, BETA_U, BETA_H = 0.003, 0.04, -0.03  # the gain and its slopes: little lev
 DERIVS = ("f1_h", "f1_theta", "f1_t", "f2_h", "f2_theta", "f2_t")
 
 
-def _pool(seed: int = 7, noise: float = 0.0, gain: float = 1.0, size: int = N):
+def _pool(seed: int = 7, noise: float = 0.0, gain: float = 1.0, size: int = N,
+          terms: tuple[float, float, float] = (BETA, BETA_U, BETA_H)):  # fmt: skip
     """``size`` points pooling all (unit weights); the flow keeps eq. (14) with the radial
-    flow scaling with h_1 (dh_u,j = A0 h_u,j / h_1,0); ``gain`` times (BETA, BETA_U, BETA_H)
-    the gain across the pool (0: no brightness change), offsets from point 0."""
+    flow scaling with h_1 (dh_u,j = A0 h_u,j / h_1,0); ``gain`` times ``terms`` (beta,
+    beta_u, beta_h) the gain across the pool (0: no brightness change), offsets from
+    point 0."""
+    beta, beta_u, beta_h = terms
     rng = np.random.default_rng(seed)
     h1 = rng.uniform(100.0, 110.0, size)
     h2 = h1 * rng.uniform(2.2, 2.4, size)
@@ -46,7 +49,7 @@ def _pool(seed: int = 7, noise: float = 0.0, gain: float = 1.0, size: int = N):
     for un, h in ((1, h1), (2, h2)):
         fh, fq = rng.normal(0, 0.02, size), rng.normal(0, 2.0, size)
         f = rng.uniform(0.2, 0.6, size)
-        change = gain * f * (BETA + BETA_U * u + BETA_H * dh_off)  # eq. (9) / (15) right side
+        change = gain * f * (beta + beta_u * u + beta_h * dh_off)  # eq. (9) / (15) right side
         d.update({f"f{un}_h": fh, f"f{un}_theta": fq, f"f{un}": f,
                   f"f{un}_t": change - fh * A0 * h / h1[0] - fq * DTHETA
                   + rng.normal(0, noise, size)})  # fmt: skip
@@ -144,6 +147,29 @@ def test_no_f_without_a_change(monkeypatch):
     assert np.isnan(_solve(d, idx, w, linear_gain=True)[3]).all()
     monkeypatch.setattr(gain_mod, "MIN_CHANGE", 0.0)
     assert np.isfinite(_solve(d, idx, w, linear_gain=True)[3]).all()
+
+
+def test_one_gain_where_the_slopes_add_nothing():
+    """With the gate (20, as ``brightness_gate``): a pool whose change is a level (beta 0.02,
+    no slopes: approach's face) keeps the one-gain answer at every point, to rounding (the
+    sums made in another order; one gain's F passes, the slopes' F against it does not);
+    a pool with the slopes and little level (the spinner's) takes the linear gain's (one
+    gain's F does not pass).
+    Mutation caught: the linear gain wherever it passes (no preference, ``gate`` None)
+    moves the level pool's dh1 by up to 3.2e-4 px (the slopes' two unknowns fitting noise)."""
+    d, idx, w = _pool(seed=3, noise=1e-3, terms=(0.02, 0.0, 0.0))
+    one = _solve(d, idx, w)
+    lin = _solve(d, idx, w, linear_gain=True, gate=20.0)
+    assert (one[3] > 20.0).all()
+    for got, ref in zip(lin, one, strict=True):
+        np.testing.assert_allclose(got, ref, rtol=1e-9, atol=1e-12)
+    free = _solve(d, idx, w, linear_gain=True)[0]
+    print(f"level: linear gain moves dh1 by up to {np.abs(free - one[0]).max():.1e} px")
+    assert np.abs(free - one[0]).max() > 1e-4
+    d, idx, w = _pool(seed=3, noise=1e-3)
+    np.testing.assert_array_equal(_solve(d, idx, w, linear_gain=True, gate=20.0)[0],
+                                  _solve(d, idx, w, linear_gain=True)[0])  # fmt: skip
+    assert not (_solve(d, idx, w, gate=20.0)[3] > 20.0).any()
 
 
 def test_config():
