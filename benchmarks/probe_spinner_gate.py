@@ -45,7 +45,11 @@ def statistics(p: dict) -> dict[str, np.ndarray]:
     with np.errstate(divide="ignore", invalid="ignore"):
         ratio = c["rss_A"] / c["rss_L"]
     terms = np.abs(c["terms_L"])
+    with np.errstate(divide="ignore", invalid="ignore"):  # the slopes against one gain
+        slopes_f = (c["rss_C"] - c["rss_L"]) / 2.0 / (c["rss_L"] / (c["n_eff"] - L_UNKNOWNS))
     return {
+        "F_S": slopes_f,
+        "beta_C": np.abs(c["beta_C"]),
         "F": p["F"]["L"],
         "F_C": p["F"]["C"],
         "ratio": ratio,
@@ -72,7 +76,11 @@ def rules(s: dict, gate: float) -> dict[str, np.ndarray]:
         # as built (omniflow.gain, brightness_model "linear"): the residual degrees of
         # freedom and a least term, MIN_RESIDUAL_DOF and MIN_CHANGE
         term = np.maximum(s["beta"], s["slope"])
-        out[f"F>{gate:g} dof>=4 term>=0.002"] = base & (s["dof"] >= 4.0) & (term >= 0.002)
+        lin = base & (s["dof"] >= 4.0) & (term >= 0.002)
+        out[f"F>{gate:g} dof>=4 term>=0.002"] = lin
+        # and one gain kept where it passes and the slopes' F against it does not
+        one = (s["F_C"] > gate) & (s["beta_C"] >= 0.002) & ~(s["F_S"] > gate)
+        out["as built"] = lin & ~one
     return out
 
 

@@ -31,6 +31,14 @@ both units' rows, P the gain fit's unknowns, as the two-model test of
 brightness-change term in the pools: probe" and "brightness_gate: the gated
 gain term built".
 
+With ``OmniFlowConfig.brightness_model`` "linear" the coupled gain may vary linearly
+across the pool, (beta + beta_u u_j + beta_h dh_j) f_j: texture turning through shading
+that stays put (a body spinning under fixed lights) changes brightness with no level
+across a pool, only a gradient, which one gain cannot take up. The pool keeps one gain
+where that passes the gate and the two slopes add nothing to it (their own F against one
+gain), and takes the linear gain where its three columns' F against the plain fit passes
+(docs/measurements.md, "The spinner's linear gain").
+
 :func:`gain_solution` is the coupled solve (eq. 14 assumed), used by
 :func:`omniflow.solve.make_solver` in the first solve and in the refinement;
 :func:`decoupled_gain` the three-unknown model of :mod:`omniflow.decoupled`
