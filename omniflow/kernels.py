@@ -850,6 +850,54 @@ def _add_row6(acc, vacc, ww, r0, r1, r2, r3, r4, r5, y):  # pragma: no cover - c
     acc[5, 5] += wc * r5
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _add_row7(acc, vacc, ww, r0, r1, r2, r3, r4, r5, r6, y):  # pragma: no cover - compiled
+    # one weighted row into a 7 x 7 Gram (upper triangle) and X^T W y, unrolled as
+    # _add_row6 (the coupled linear flow model with the linear gain)
+    wc = ww * r0
+    vacc[0] += wc * y
+    acc[0, 0] += wc * r0
+    acc[0, 1] += wc * r1
+    acc[0, 2] += wc * r2
+    acc[0, 3] += wc * r3
+    acc[0, 4] += wc * r4
+    acc[0, 5] += wc * r5
+    acc[0, 6] += wc * r6
+    wc = ww * r1
+    vacc[1] += wc * y
+    acc[1, 1] += wc * r1
+    acc[1, 2] += wc * r2
+    acc[1, 3] += wc * r3
+    acc[1, 4] += wc * r4
+    acc[1, 5] += wc * r5
+    acc[1, 6] += wc * r6
+    wc = ww * r2
+    vacc[2] += wc * y
+    acc[2, 2] += wc * r2
+    acc[2, 3] += wc * r3
+    acc[2, 4] += wc * r4
+    acc[2, 5] += wc * r5
+    acc[2, 6] += wc * r6
+    wc = ww * r3
+    vacc[3] += wc * y
+    acc[3, 3] += wc * r3
+    acc[3, 4] += wc * r4
+    acc[3, 5] += wc * r5
+    acc[3, 6] += wc * r6
+    wc = ww * r4
+    vacc[4] += wc * y
+    acc[4, 4] += wc * r4
+    acc[4, 5] += wc * r5
+    acc[4, 6] += wc * r6
+    wc = ww * r5
+    vacc[5] += wc * y
+    acc[5, 5] += wc * r5
+    acc[5, 6] += wc * r6
+    wc = ww * r6
+    vacc[6] += wc * y
+    acc[6, 6] += wc * r6
+
+
 @numba.njit(cache=True, nogil=True)
 def _gain_sums(idx, w, rows, f1_h, f1_th, f1_t, f2_h, f2_th, f2_t, f1, f2, h1, h2, th, model,
                scale):  # pragma: no cover - compiled  # fmt: skip
@@ -909,6 +957,10 @@ def _gain_sums(idx, w, rows, f1_h, f1_th, f1_t, f2_h, f2_th, f2_t, f1, f2, h1, h
                             x0[m, unit, c] = row[c]
                         y0[m, unit] = y
                     s_yy += ww * y * y
+                    if model == 5:
+                        _add_row7(acc, vacc, ww, row[0], row[1], row[2], row[3], row[4],
+                                  row[5], row[6], y)  # fmt: skip
+                        continue
                     for c in range(p):
                         wc = ww * row[c]
                         vacc[c] += wc * y
