@@ -368,7 +368,7 @@ class OmniFlowConfig:
         across the pool): its mean-flow error 10.5 / 11.1 % -> 4.1 / 4.3 % (cam1 /
         cam2; tangential gain 0.89 -> 0.96), every other mover and every static
         figure of the five rendered scenes unchanged to the printed digits, for about
-        2-4 ms more per gain fit (its 7 x 7 sums). k-d tree pools only (not with
+        1.5-2.5 ms more solve a pair (its 7 x 7 sums). k-d tree pools only (not with
         ``pool_grid``). docs/measurements.md, "The spinner's linear gain".
     decouple_gain_tol : float or None
         Pooled solver, with ``decouple_tol``: after the two-model test and the
