@@ -116,7 +116,7 @@ def pooled(d: dict, idx: np.ndarray, w: np.ndarray, *, model: str, scale: float,
     sol = pb._solve(M, v, min_conditioning)
     rss = np.einsum("nku,nku,nk->n", y, y, w) - np.einsum("np,np->n", sol, v)
     fit = {"rss": rss, "n_eff": 2.0 * w.sum(axis=1) ** 2 / (w * w).sum(axis=1),
-           "unknowns": X.shape[-1]}  # fmt: skip
+           "unknowns": X.shape[-1], "x": sol}  # fmt: skip
     if decoupled:
         return sol[:, 0] - sol[:, 1], sol[:, 0] - k * sol[:, 1], sol[:, 2] / d["h1"], fit
     a, c = sol[:, 0], sol[:, 1]
@@ -268,7 +268,7 @@ def run_pair(ds, inputs, t, config, seen, args):
     fin = {c: np.where(got, final[c][pos], np.nan) for c in ("dh1_dt", "dh2_dt", "dtheta_dt")}
     switched = got & (np.where(got, final["coupled"][pos], 1.0) == 0.0)
     flows = {"omniflow": (fin["dh1_dt"], fin["dh2_dt"], fin["dtheta_dt"])}
-    fits, stats, ana, decs = {}, {}, {}, {}
+    fits, stats, ana, decs, firsts = {}, {}, {}, {}, {}
     # r analysis at the pools of the points where r is known (others: weight 0)
     dr = {**d, "r1": np.nan_to_num(d["r1"]), "r2": np.nan_to_num(d["r2"])}
     wr = np.where(np.append(valid, False)[idx], w, 0.0)
@@ -278,6 +278,7 @@ def run_pair(ds, inputs, t, config, seen, args):
                   min_conditioning=floor)  # fmt: skip
         ana[name] = r_analysis(dr, idx, wr, model=config.pool_model, scale=radius, terms=terms)
         first_fit = pooled(d, idx, w, **kw)
+        firsts[name] = first_fit[3]
         dec = pooled(d, idx, w, **{**kw, "model": "constant"}, decoupled=True)
         ref = refine(first_fit[0], first_fit[2], seen["refine"], d, kw)
         decs[name] = dec
@@ -367,7 +368,14 @@ def run_pair(ds, inputs, t, config, seen, args):
         flows["A"][0] - flows["omniflow"][0], h1 * (flows["A"][2] - flows["omniflow"][2])
     )
     est = {n: np.stack([a, h1 * b, a2, h2 * b]) for n, (a, a2, b) in flows.items()}
+    # the coupled fits' statistics (benchmarks/probe_spinner_gate.py): the gain models'
+    # RSS and terms, the pool's effective rows, its share of neighbours the range test drops
+    coupled = {"rss_" + n: firsts[n]["rss"] for n in MODELS}
+    coupled.update(n_eff=firsts["L"]["n_eff"], terms_L=firsts["L"]["x"][:, -3:],
+                   beta_C=firsts["C"]["x"][:, -1], switched=switched,
+                   edge_share=(n_all - n_kept) / np.maximum(n_all, 1))  # fmt: skip
     return dict(valid=valid, obj=obj, truth=truth, est=est, F=stats, edge=edge, ana=ana,
+                coupled=coupled,
                 parts=parts, switched=switched, k=h2 / h1,
                 r=np.stack([d["r1"], d["r2"]]), f=np.stack([d["f1"], d["f2"]]),
                 diff=diff[np.isfinite(diff)])  # fmt: skip

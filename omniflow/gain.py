@@ -31,6 +31,14 @@ both units' rows, P the gain fit's unknowns, as the two-model test of
 brightness-change term in the pools: probe" and "brightness_gate: the gated
 gain term built".
 
+With ``OmniFlowConfig.brightness_model`` "linear" the coupled gain may vary linearly
+across the pool, (beta + beta_u u_j + beta_h dh_j) f_j: texture turning through shading
+that stays put (a body spinning under fixed lights) changes brightness with no level
+across a pool, only a gradient, which one gain cannot take up. The pool keeps one gain
+where that passes the gate and the two slopes add nothing to it (their own F against one
+gain), and takes the linear gain where its three columns' F against the plain fit passes
+(docs/measurements.md, "The spinner's linear gain").
+
 :func:`gain_solution` is the coupled solve (eq. 14 assumed), used by
 :func:`omniflow.solve.make_solver` in the first solve and in the refinement;
 :func:`decoupled_gain` the three-unknown model of :mod:`omniflow.decoupled`
@@ -81,6 +89,12 @@ GRID_SINGLE = True
 #: the one cluster of static points the test switched had n_eff 8.0-8.6 at F_U 59-70
 #: (their errors 0.04-0.44 -> 0.13-0.40 px, cam2 up to 1.2 px); the movers it switched
 #: correctly have n_eff 11.0 or more (docs/measurements.md, "decouple_gain_tol gated").
+#: The same floor gates :func:`gain_solution`'s linear gain (``brightness_model``
+#: "linear"): the five static points whose F of the gain's three columns passed 20 had
+#: n_eff - 7 of 2.8-2.9 (independent_movers' wall_xn at the spinner's silhouette, cam1
+#: errors 0.09 -> 1.0 px; approach's wall_yn, unchanged) and 4.9 (approach, 0.08 -> 0.05
+#: px), the spinner's 30-53, approach's face 19-88 (docs/measurements.md, "The spinner's
+#: linear gain").
 MIN_RESIDUAL_DOF = 4.0
 
 #: The least RSS_coupled / RSS_decoupled for which :func:`decoupled_linear_gain` reports
@@ -131,6 +145,7 @@ def gain_solution(
     residual_noise: bool = False,
     gate: float | None = None,
     grid: GridPools | None = None,
+    linear_gain: bool = False,
 ) -> tuple[NDArray, NDArray, NDArray, NDArray]:
     """Eq. (9) and (15) with a gain per pool, pooled as :func:`omniflow.flow.pooled_solution`.
 
@@ -156,6 +171,17 @@ def gain_solution(
     grid : GridPools, optional
         Pool over the grid's windows instead (:meth:`omniflow.gridpool.GridPools.gain_sums`,
         the pools of the plain solve with ``pool_grid``).
+    linear_gain : bool
+        A gain varying linearly across the pool, (beta + beta_u u_j + beta_h dh_j) f_j
+        (u_j and dh_j the tangential and radial offsets of neighbour j over ``scale``, as
+        :func:`decoupled_linear_gain`'s), eq. (14) kept: texture turning through shading
+        that stays put (a body spinning about its own axis under fixed lights) changes
+        brightness with no level across the pool, only a gradient. Where one gain's F
+        (the same Gram's leading block) passes ``gate`` the answer and F stay one gain's
+        (a level of change, approach's face); elsewhere F is the statistic of the three
+        gain columns against the plain fit, NaN where fewer than
+        :data:`MIN_RESIDUAL_DOF` residual degrees of freedom estimate the variance or
+        every term is below :data:`MIN_CHANGE`. k-d tree pools only (not ``grid``).
 
     Returns
     -------
@@ -169,17 +195,34 @@ def gain_solution(
         where either fit is singular or |beta| is below :data:`MIN_CHANGE`.
     """
     n = h1.size
+    if linear_gain and grid is not None:
+        raise ValueError("gain_solution: a linear gain needs the k-d tree pools, not grid")
     if grid is None:
+        sums = model + "_lingain" if linear_gain else model
         M, v, yy, powers, x0, y0 = gain_sums(idx, w, np.arange(n), derivs, f, h1, h2, theta,
-                                             model=model, scale=scale)  # fmt: skip
+                                             model=sums, scale=scale)  # fmt: skip
         w2 = (w * w).sum(axis=1)
     else:
         M, v, yy, powers, w2 = grid.gain_sums(derivs, f, h1, h2, theta, linear=model == "linear",
                                               scale=scale, single=GRID_SINGLE)  # fmt: skip
         x0, y0 = _own_rows(derivs, f, h1, h2, M.shape[1])
-    x, conf, rss, rss0 = nested_fits(M, v, yy, min_conditioning, drop=M.shape[1] - 1)
-    F = _f(rss0, rss, powers[:, 0], w2, M.shape[1])[0]  # beta against the plain fit
-    F[~(np.abs(x[:, -1]) >= MIN_CHANGE)] = np.nan  # too small a change to correct
+    p = M.shape[1]
+    one = np.zeros(n, bool)  # the pools answered with one gain (``linear_gain``)
+    if linear_gain:
+        x, conf, rss, _ = nested_fits(M, v, yy, min_conditioning, drop=p - 1)
+        F = _linear_gain_f(M, v, yy, x, rss, powers[:, 0], w2, min_conditioning)
+        # one gain where it passes the gate (the Gram's leading block: the flow and beta)
+        # and the slopes do not add to it (their F against one gain)
+        xc, confc, Fc = _one_gain(M[:, : p - 2, : p - 2], v[:, : p - 2], yy, powers[:, 0], w2,
+                                  min_conditioning)  # fmt: skip
+        if gate is not None:
+            rss_c = yy - np.einsum("np,np->n", xc, v[:, : p - 2])
+            Fs = _f(rss_c, rss, powers[:, 0], w2, p)[0] / 2.0
+            one = gated(Fc, gate) & ~(gated(Fs, gate) & gated(F, gate))
+            x = np.where(one[:, None], np.pad(xc, ((0, 0), (0, 2))), x)
+            conf, F = np.where(one, confc, conf), np.where(one, Fc, F)
+    else:
+        x, conf, F = _one_gain(M, v, yy, powers[:, 0], w2, min_conditioning)
     a, c = x[:, 0], x[:, 1]
     if noise[0] > 0 or noise[1] > 0:  # errors in the variables, as the plain solve
         n1, n2 = noise
@@ -192,15 +235,27 @@ def gain_solution(
                 var = np.median(res[ok] ** 2, axis=0) / 0.455 / 2.0
                 n1, n2 = n1 * float(var[0]), n2 * float(var[1])
         sel = np.ones(n, bool) if gate is None else gated(F, gate)
-        if (n1 > 0 or n2 > 0) and sel.any():
-            u_powers = powers[sel] if model == "linear" else powers[sel, :1]
-            ac, cc, confc = _corrected(M[sel], v[sel], u_powers, (h2 / h1)[sel], n1, n2,
-                                       min_conditioning)  # fmt: skip
+        a, c, conf = a.copy(), c.copy(), conf.copy()
+        for part, q in ((sel & ~one, p), (sel & one, p - 2)):  # the fit's own Gram block
+            if not ((n1 > 0 or n2 > 0) and part.any()):
+                continue
+            u_powers = powers[part] if model == "linear" else powers[part, :1]
+            ac, cc, confc = _corrected(M[part, :q, :q], v[part, :q], u_powers, (h2 / h1)[part],
+                                       n1, n2, min_conditioning)  # fmt: skip
             use = np.isfinite(ac) & np.isfinite(cc)
-            rows_c = np.flatnonzero(sel)[use]
-            a, c, conf = a.copy(), c.copy(), conf.copy()
+            rows_c = np.flatnonzero(part)[use]
             a[rows_c], c[rows_c], conf[rows_c] = ac[use], cc[use], confc[use]
     return a, c / h1, conf, F
+
+
+def _one_gain(M, v, yy, w1, w2, min_conditioning):
+    """The fit of Gram ``M`` (N x P x P, its last unknown the gain beta), its confidence and
+    the F statistic of beta against the fit without it; NaN where |beta| is below
+    :data:`MIN_CHANGE` (too small a change to correct)."""
+    x, conf, rss, rss0 = nested_fits(M, v, yy, min_conditioning, drop=M.shape[1] - 1)
+    F = _f(rss0, rss, w1, w2, M.shape[1])[0]  # beta against the plain fit
+    F[~(np.abs(x[:, -1]) >= MIN_CHANGE)] = np.nan
+    return x, conf, F
 
 
 def decoupled_gain(
@@ -334,6 +389,22 @@ def _without_gain(M, v, yy, rss, n_eff, min_conditioning):
     rss3 = yy - np.einsum("np,np->n", x3, v[:, :3])
     with np.errstate(divide="ignore", invalid="ignore"):
         return x3, (rss3 - rss) / 3.0 / (rss / (n_eff - M.shape[1]))
+
+
+def _linear_gain_f(M, v, yy, x, rss, w1, w2, min_conditioning):
+    """The F statistic of a linear gain's three columns (the last of Gram ``M``, N x P x P)
+    against the plain fit over the same pool (the leading P - 3 block), for
+    :func:`gain_solution`: ((RSS_plain - RSS) / 3) / (RSS / (n_eff - P)); NaN where
+    n_eff - P is below :data:`MIN_RESIDUAL_DOF` or every fitted term, |beta|, |beta_u|,
+    |beta_h|, below :data:`MIN_CHANGE`."""
+    p = M.shape[1]
+    xp, _ = small_solves(M[:, : p - 3, : p - 3], v[:, : p - 3], min_conditioning)
+    rss_plain = yy - np.einsum("np,np->n", xp, v[:, : p - 3])
+    F, n_eff = _f(rss_plain, rss, w1, w2, p)
+    F = F / 3.0
+    small = ~(np.abs(x[:, p - 3 :]) >= MIN_CHANGE).any(axis=1)  # model error, not a change
+    F[small | ~(n_eff - p >= MIN_RESIDUAL_DOF)] = np.nan
+    return F
 
 
 def gated(F: NDArray, gate: float | NDArray, *answers: NDArray) -> NDArray:

@@ -803,9 +803,12 @@ def cell_knn(
 
 
 #: :func:`gain_sums`'s local models: unknowns (a, h_1,i b, beta), (a, h_1,i b, u a, u h_1,i b,
-#: beta), the decoupled (U, h_1,i W, h_1,i b, beta) of omniflow.decoupled and the decoupled
-#: with a gain varying linearly across the pool (U, h_1,i W, h_1,i b, beta, beta_u, beta_h).
-GAIN_MODELS = {"constant": 0, "linear": 1, "decoupled": 2, "decoupled_linear": 3}
+#: beta), the decoupled (U, h_1,i W, h_1,i b, beta) of omniflow.decoupled, the decoupled
+#: with a gain varying linearly across the pool (U, h_1,i W, h_1,i b, beta, beta_u, beta_h),
+#: and the two coupled models with that gain, (a, h_1,i b, beta, beta_u, beta_h) and
+#: (a, h_1,i b, u a, u h_1,i b, beta, beta_u, beta_h).
+GAIN_MODELS = {"constant": 0, "linear": 1, "decoupled": 2, "decoupled_linear": 3,
+               "constant_lingain": 4, "linear_lingain": 5}  # fmt: skip
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -847,12 +850,60 @@ def _add_row6(acc, vacc, ww, r0, r1, r2, r3, r4, r5, y):  # pragma: no cover - c
     acc[5, 5] += wc * r5
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _add_row7(acc, vacc, ww, r0, r1, r2, r3, r4, r5, r6, y):  # pragma: no cover - compiled
+    # one weighted row into a 7 x 7 Gram (upper triangle) and X^T W y, unrolled as
+    # _add_row6 (the coupled linear flow model with the linear gain)
+    wc = ww * r0
+    vacc[0] += wc * y
+    acc[0, 0] += wc * r0
+    acc[0, 1] += wc * r1
+    acc[0, 2] += wc * r2
+    acc[0, 3] += wc * r3
+    acc[0, 4] += wc * r4
+    acc[0, 5] += wc * r5
+    acc[0, 6] += wc * r6
+    wc = ww * r1
+    vacc[1] += wc * y
+    acc[1, 1] += wc * r1
+    acc[1, 2] += wc * r2
+    acc[1, 3] += wc * r3
+    acc[1, 4] += wc * r4
+    acc[1, 5] += wc * r5
+    acc[1, 6] += wc * r6
+    wc = ww * r2
+    vacc[2] += wc * y
+    acc[2, 2] += wc * r2
+    acc[2, 3] += wc * r3
+    acc[2, 4] += wc * r4
+    acc[2, 5] += wc * r5
+    acc[2, 6] += wc * r6
+    wc = ww * r3
+    vacc[3] += wc * y
+    acc[3, 3] += wc * r3
+    acc[3, 4] += wc * r4
+    acc[3, 5] += wc * r5
+    acc[3, 6] += wc * r6
+    wc = ww * r4
+    vacc[4] += wc * y
+    acc[4, 4] += wc * r4
+    acc[4, 5] += wc * r5
+    acc[4, 6] += wc * r6
+    wc = ww * r5
+    vacc[5] += wc * y
+    acc[5, 5] += wc * r5
+    acc[5, 6] += wc * r6
+    wc = ww * r6
+    vacc[6] += wc * y
+    acc[6, 6] += wc * r6
+
+
 @numba.njit(cache=True, nogil=True)
 def _gain_sums(idx, w, rows, f1_h, f1_th, f1_t, f2_h, f2_th, f2_t, f1, f2, h1, h2, th, model,
                scale):  # pragma: no cover - compiled  # fmt: skip
     n, kk = idx.shape
     npt = h1.size
-    p = (3, 5, 4, 6)[model]
+    p = (3, 5, 4, 6, 5, 7)[model]
     M = np.zeros((n, p, p))
     v = np.zeros((n, p))
     yy = np.zeros(n)
@@ -881,9 +932,44 @@ def _gain_sums(idx, w, rows, f1_h, f1_th, f1_t, f2_h, f2_th, f2_t, f1, f2, h1, h
                 continue
             rel = h1[j] / hi  # the radial flow scales with h_1 on one surface
             u = 0.0
-            if model == 1 or model == 3:  # the tangential offset, as numpy's floor-mod wrap
+            if model != 0 and model != 2:  # the tangential offset, as numpy's floor-mod wrap
                 u = (((th[j] - th[i]) + math.pi) % two_pi - math.pi) * hi / scale
-            dh = (h1[j] - hi) / scale  # the radial offset (model 3)
+            dh = (h1[j] - hi) / scale  # the radial offset (models 3-5)
+            if model >= 4:  # eq. (9); eq. (15) with eq. (14); (beta + beta_u u + beta_h dh) f
+                g = p - 3
+                for unit in range(2):
+                    if unit == 0:
+                        pr, fq, ft, fu = f1_h[j] * rel, f1_th[j], f1_t[j], f1[j]
+                    else:
+                        pr = (h2[j] / h1[j]) * f2_h[j] * rel
+                        fq, ft, fu = f2_th[j], f2_t[j], f2[j]
+                    row[0] = pr
+                    row[1] = fq / hi
+                    if model == 5:
+                        row[2] = pr * u
+                        row[3] = row[1] * u
+                    row[g] = -fu
+                    row[g + 1] = -fu * u
+                    row[g + 2] = -fu * dh
+                    y = -ft
+                    if s == 0:
+                        for c in range(p):
+                            x0[m, unit, c] = row[c]
+                        y0[m, unit] = y
+                    s_yy += ww * y * y
+                    if model == 5:
+                        _add_row7(acc, vacc, ww, row[0], row[1], row[2], row[3], row[4],
+                                  row[5], row[6], y)  # fmt: skip
+                        continue
+                    for c in range(p):
+                        wc = ww * row[c]
+                        vacc[c] += wc * y
+                        for d in range(c, p):
+                            acc[c, d] += wc * row[d]
+                w0 += ww
+                w1 += ww * u
+                w2 += ww * u * u
+                continue
             if model >= 2:  # the decoupled model: dh_u = U - h_u W
                 for unit in range(2):
                     if unit == 0:
@@ -1004,26 +1090,28 @@ def gain_sums(
         Each unit's image at the points.
     h1, h2 : ndarray, shape (N,)
     theta : ndarray, shape (N,), optional
-        Azimuth (``model="linear"`` and ``"decoupled_linear"`` only).
-    model : {"constant", "linear", "decoupled", "decoupled_linear"}
+        Azimuth (every model but ``"constant"`` and ``"decoupled"``).
+    model : {"constant", "linear", "decoupled", "decoupled_linear", "constant_lingain", \
+"linear_lingain"}
         The unknowns, :data:`GAIN_MODELS`.
     scale : float
-        Length that scales the offsets u (tangential, ``linear`` and
-        ``decoupled_linear``) and dh = h_1,j - h_1,i (radial, ``decoupled_linear``), pixels.
+        Length that scales the offsets u (tangential, every model with u) and
+        dh = h_1,j - h_1,i (radial, the models with a gain varying linearly), pixels.
 
     Returns
     -------
     M : ndarray, shape (n, P, P)
         X^T W X over both units' rows of every neighbour (each carrying the
         neighbour's weight); row of unit u at neighbour j, unknowns as
-        :data:`GAIN_MODELS`, the gain's column -f_u,j (``decoupled_linear``: then
-        -f_u,j u_j and -f_u,j dh_j).
+        :data:`GAIN_MODELS`, the gain's column -f_u,j (``decoupled_linear`` and
+        ``*_lingain``: then -f_u,j u_j and -f_u,j dh_j).
     v : ndarray, shape (n, P)
         X^T W y, y = -f_t.
     yy : ndarray, shape (n,)
         y^T W y.
     powers : ndarray, shape (n, 3)
-        sum_j w, sum_j w u, sum_j w u^2 (the last two 0 but for ``linear``).
+        sum_j w, sum_j w u, sum_j w u^2 (the last two 0 but for ``linear`` and the
+        ``*_lingain`` models).
     x0, y0 : ndarray, shapes (n, 2, P) and (n, 2)
         Both units' rows and right sides of each pool's neighbour 0.
     """
