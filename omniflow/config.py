@@ -23,7 +23,7 @@ POOL_MODELS = ("linear", "constant")
 EIVS = ("correct", "residual", "none")
 BAND_RULES = ("gain", "variance")
 SHADING_WHERE = ("everywhere", "moving")
-BRIGHTNESS_MODELS = ("gain", "linear")
+BRIGHTNESS_MODELS = ("linear", "gain")
 
 
 #: The fields :meth:`OmniFlowConfig.dense` changes from the defaults.
@@ -354,22 +354,24 @@ class OmniFlowConfig:
         configuration (eq. 8 as written); docs/measurements.md,
         "brightness_gate: the gated gain term built" and "brightness_gate
         made cheap, and the default".
-    brightness_model : {"gain", "linear"}
+    brightness_model : {"linear", "gain"}
         With ``brightness_gate``: the brightness change of the coupled pools (eq. 14
         kept; the first solve and the refinement). "gain": one gain per pool,
-        beta f_j. "linear": a gain varying linearly across the pool,
+        beta f_j. "linear" (the default): a gain varying linearly across the pool,
         (beta + beta_u u_j + beta_h dh_j) f_j (u_j, dh_j the tangential and radial
         offsets of neighbour j over the pool radius), taken where the F statistic of
         its three columns against the plain fit exceeds ``brightness_gate``, with at
         least omniflow.gain.MIN_RESIDUAL_DOF residual degrees of freedom and a term of
-        at least omniflow.gain.MIN_CHANGE; a pool whose one gain passes keeps it unless
+        at least omniflow.gain.MIN_GAIN_CHANGE; a pool whose one gain passes keeps it unless
         the two slopes' own F against it passes too. For texture turning through
         shading that stays put (independent_movers' spinner: no level, a gradient
         across the pool): its mean-flow error 10.5 / 11.1 % -> 4.1 / 4.3 % (cam1 /
         cam2; tangential gain 0.89 -> 0.96), every other mover and every static
         figure of the five rendered scenes unchanged to the printed digits, for about
-        1.5-2.5 ms more solve a pair (its 7 x 7 sums). k-d tree pools only (not with
-        ``pool_grid``). docs/measurements.md, "The spinner's linear gain".
+        1.5-2.5 ms more solve a pair (its 7 x 7 sums). The k-d tree pools only: with
+        grid pools (``pool_grid``, the dense preset) the gain is one per pool whatever
+        this says, as ``pool_grid`` itself is ignored where a knob needs the tree.
+        docs/measurements.md, "The spinner's linear gain".
     decouple_gain_tol : float or None
         Pooled solver, with ``decouple_tol``: after the two-model test and the
         gain, test eq. (14) again with a brightness gain varying linearly across
@@ -526,7 +528,7 @@ class OmniFlowConfig:
     pool_min_conditioning: float = 1e-3
     decouple_tol: float | None = 20.0
     brightness_gate: float | None = 20.0
-    brightness_model: str = "gain"
+    brightness_model: str = "linear"
     decouple_gain_tol: float | None = 20.0
     flow_shading: float | None = None
     flow_shading_where: str = "everywhere"
@@ -577,11 +579,6 @@ class OmniFlowConfig:
             val = getattr(self, name)
             if val is not None and not val > 0:
                 raise ValueError(f"OmniFlowConfig.{name} = {val!r}: expected > 0 or None")
-        if self.brightness_model == "linear" and self.grid_pools:
-            raise ValueError(
-                "OmniFlowConfig.brightness_model = 'linear' needs the k-d tree pools "
-                "(pool_grid None)"
-            )
         if self.noise_sigma is not None and not self.noise_sigma >= 0:
             raise ValueError(
                 f"OmniFlowConfig.noise_sigma = {self.noise_sigma!r}: expected >= 0 or None"

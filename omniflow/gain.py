@@ -126,6 +126,12 @@ MIN_GAIN_F = 10.0
 #: gain whatever its F (:data:`MIN_GAIN_F`): the ball's switched points 0.015-0.064 (the
 #: ones below 0.02 have F 33-61), the ring's 0.17-0.32; the pillar's spurious terms
 #: 0.012-0.013 (docs/measurements.md, "The linear gain only where it matters").
+#: The least term for which :func:`gain_solution`'s coupled linear gain is tested at all:
+#: on the noise-free striped wall of tests/omniflow/test_brightness_gate.py (no brightness
+#: change, the linearisation's model error only) a least term of MIN_CHANGE let it take
+#: pools there and raised the median error 0.0032 -> 0.0040 px (p90 0.024 -> 0.043); at
+#: 0.01 / 0.02 / 0.05: 0.00325 / 0.00322 / 0.00322 (one gain's 0.00322); the spinner's
+#: slopes are 0.09-0.13 (docs/measurements.md, "The linear gain by default").
 MIN_GAIN_CHANGE = 0.02
 
 
@@ -181,7 +187,7 @@ def gain_solution(
         (a level of change, approach's face); elsewhere F is the statistic of the three
         gain columns against the plain fit, NaN where fewer than
         :data:`MIN_RESIDUAL_DOF` residual degrees of freedom estimate the variance or
-        every term is below :data:`MIN_CHANGE`. k-d tree pools only (not ``grid``).
+        every term is below :data:`MIN_GAIN_CHANGE`. k-d tree pools only (not ``grid``).
 
     Returns
     -------
@@ -396,13 +402,13 @@ def _linear_gain_f(M, v, yy, x, rss, w1, w2, min_conditioning):
     against the plain fit over the same pool (the leading P - 3 block), for
     :func:`gain_solution`: ((RSS_plain - RSS) / 3) / (RSS / (n_eff - P)); NaN where
     n_eff - P is below :data:`MIN_RESIDUAL_DOF` or every fitted term, |beta|, |beta_u|,
-    |beta_h|, below :data:`MIN_CHANGE`."""
+    |beta_h|, below :data:`MIN_GAIN_CHANGE` (model error, not a change)."""
     p = M.shape[1]
     xp, _ = small_solves(M[:, : p - 3, : p - 3], v[:, : p - 3], min_conditioning)
     rss_plain = yy - np.einsum("np,np->n", xp, v[:, : p - 3])
     F, n_eff = _f(rss_plain, rss, w1, w2, p)
     F = F / 3.0
-    small = ~(np.abs(x[:, p - 3 :]) >= MIN_CHANGE).any(axis=1)  # model error, not a change
+    small = ~(np.abs(x[:, p - 3 :]) >= MIN_GAIN_CHANGE).any(axis=1)
     F[small | ~(n_eff - p >= MIN_RESIDUAL_DOF)] = np.nan
     return F
 

@@ -329,7 +329,8 @@ def make_solver(
         gain_kw = dict(model=config.pool_model, scale=pool_radius, min_conditioning=floor,
                        noise=noise, residual_noise=config.eiv == "residual",
                        gate=config.brightness_gate, grid=grid,
-                       linear_gain=config.brightness_model == "linear")  # fmt: skip
+                       linear_gain=grid is None and config.brightness_model == "linear",
+                       )  # fmt: skip
 
         def solve(*derivs, meanwhile=None):
             # the gain fit on the other thread while this one makes the plain solve, then
