@@ -10,6 +10,7 @@ import argparse
 import shlex
 import sys
 import time
+import typing
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -50,8 +51,15 @@ examples:
 """
 
 
+class _Parser(argparse.ArgumentParser):
+    """Usage errors as one line, like omniflow's and omnisim's (not the usage block)."""
+
+    def error(self, message: str) -> typing.NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def _parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(
+    ap = _Parser(
         prog="omnivalidate",
         description="Measure how accurate omniflow's variants and the OpenCV baselines are on an "
         "omnisim dataset (any directory in the dataset contract: dataset.json + "

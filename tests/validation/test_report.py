@@ -264,6 +264,8 @@ def test_cli_help():
         (["{ds}", "--out", "{out}", "--frames", "7"], "no complete frame pair"),
         (["{notds}", "--out", "{out}"], "not an omnisim dataset"),
         (["{ds}", "--out", "{out}", "--check", "{missing}"], "cannot read"),
+        (["{ds}", "--out", "{out}", "--variants", "some"], "invalid choice: 'some'"),
+        (["{ds}"], "required: --out"),
     ],
 )
 def test_cli_bad_input_exits_2_with_one_line(synth, tmp_path, args, needle):
