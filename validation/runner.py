@@ -167,7 +167,8 @@ def run_validation(
     auto = not isinstance(meta.get("camera"), dict) and not any(
         str(c).split("=", 1)[0].strip().removeprefix("camera.") == "exposure" for c in camera
     )
-    inputs = Inputs(ds, camera_model(meta, camera), auto_exposure=auto)
+    model = camera_model(meta, camera, where=str(ds.dir / "dataset.json"))
+    inputs = Inputs(ds, model, auto_exposure=auto)
     scene = meta.get("scene", {}) if isinstance(meta.get("scene"), dict) else {}
     results = Results(
         dataset={
