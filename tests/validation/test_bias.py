@@ -94,6 +94,27 @@ def test_bias_verdict_needs_true_motion():
     assert _biased(block(-0.02, 0.01)).startswith("bias not judged")
 
 
+def test_a_row_with_no_points_is_not_compared(tmp_path):
+    """Zero matches (a dark or constant frame) is an answer: the headline says no points
+    and 'not comparable', not 'NOT clearly below zero flow' nor a bias verdict about a
+    truth rms that was never measured."""
+    d = tmp_path / "ds"
+    write_synthetic_dataset(d, demo_scene(64), 2, name="synthetic-demo", supersample=1)
+    oracle = TruthOracle(d)
+
+    def no_points(*args, **kwargs):
+        res = oracle(*args, **kwargs)
+        res.columns = {k: v[:0] for k, v in res.columns.items()}
+        return res
+
+    res = run_validation(d, variants=[("none", OracleConfig())], estimate=no_points,
+                         baselines=["zero-flow"], progress=False)  # fmt: skip
+    head = write_report(res, tmp_path / "r")["headline"]
+    assert head[0].startswith("cam1, none: no points scored -- 0 points"), head[0]
+    zero = [line for line in head if line.startswith("cam1, omniflow vs zero-flow")]
+    assert zero and zero[0].split(" -- ")[0].endswith(": not comparable"), zero
+
+
 def test_density_and_objects_with_no_points(oracle_summary):
     res, summary = oracle_summary
     f = find_method(summary, "truth-oracle")["flow"]["cam1"]
