@@ -293,6 +293,24 @@ def test_cli_help():
         (["{notds}", "--out", "{out}"], "not an omnisim dataset"),
         (["{ds}", "--out", "{out}", "--check", "{missing}"], "cannot read"),
         (["{ds}", "--out", "{out}", "--variants", "some"], "invalid choice: 'some'"),
+        (
+            [
+                "{ds}",
+                "--out",
+                "{out}",
+                "--variants",
+                "default",
+                "--check",
+                "{thr}",
+                "--scene-key",
+                "default",
+            ],
+            "scenes.default checks 3 row(s) this run does not score",
+        ),
+        (
+            ["{ds}", "--out", "{out}", "--check", "{thr}"],
+            "no thresholds for this dataset's scene 'synthetic-demo'; give --scene-key",
+        ),
         (["{ds}"], "required: --out"),
     ],
 )
@@ -303,6 +321,7 @@ def test_cli_bad_input_exits_2_with_one_line(synth, tmp_path, args, needle):
         "out": str(tmp_path / "out"),
         "ds": str(synth),
         "notds": str(tmp_path / "notds"),
+        "thr": str(Path(__file__).resolve().parents[2] / "validation" / "thresholds.toml"),
     }
     p = _cli(*[a.format(**subs) for a in args])
     assert p.returncode == 2, p.stderr
