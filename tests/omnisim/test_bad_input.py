@@ -482,6 +482,12 @@ CASES = [
         ["nosuch://x"],
     ),
     Case(
+        "scheduler address without a port",
+        _opt("--scheduler", "nonsense", "--scheduler-timeout", "1"),
+        2,
+        ["'nonsense'", "missing port number"],
+    ),
+    Case(
         "sim extra missing",
         _missing_extra,
         1,
