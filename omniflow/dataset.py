@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from omniflow.imageio import to_grey
+from omniflow.imageio import _native_reason, native_output_captured, to_grey
 from omniflow.rig import Rig, RigError, rig_from_dict
 
 __all__ = [
@@ -207,14 +207,18 @@ def read_exr(path: str | Path) -> dict[str, NDArray[np.float32]]:
     path = Path(path)
     if not path.is_file():
         raise DatasetError(f"{path}: EXR file not found")
+    native: list[str] = []
     try:
-        with OpenEXR.File(str(path), separate_channels=True) as exr:
+        with (
+            native_output_captured() as native,
+            OpenEXR.File(str(path), separate_channels=True) as exr,
+        ):
             return {
                 name: np.asarray(ch.pixels, dtype=np.float32).copy()
                 for name, ch in exr.channels().items()
             }
     except Exception as exc:  # OpenEXR raises RuntimeError/OSError on corrupt files
-        raise DatasetError(f"{path}: cannot read EXR: {exc}") from exc
+        raise DatasetError(f"{path}: cannot read EXR: {_native_reason(native, exc, path)}") from exc
 
 
 def flo_known(channels: Mapping[str, NDArray], version: int = FORMAT_VERSION) -> NDArray:

@@ -266,14 +266,13 @@ def draw_flow_points(
 
 
 def _legend(canvas: NDArray[np.uint8], text: str) -> None:
+    """White text in the top-left corner on a black box, readable over any picture
+    (an outline alone is lost over bright texture at the smallest font)."""
     import cv2
 
     h = canvas.shape[0]
-    font_scale = max(0.3, h / 1400.0)
+    font, font_scale = cv2.FONT_HERSHEY_SIMPLEX, max(0.3, h / 1400.0)
     y = int(6 + 18 * font_scale)
-    cv2.putText(
-        canvas, text, (4, y), cv2.FONT_HERSHEY_SIMPLEX, font_scale, (0, 0, 0), 3, cv2.LINE_AA
-    )
-    cv2.putText(
-        canvas, text, (4, y), cv2.FONT_HERSHEY_SIMPLEX, font_scale, (255, 255, 255), 1, cv2.LINE_AA
-    )
+    (tw, th), base = cv2.getTextSize(text, font, font_scale, 1)
+    canvas[max(0, y - th - 3) : y + base + 2, : 4 + tw + 3] = 0
+    cv2.putText(canvas, text, (4, y), font, font_scale, (255, 255, 255), 1, cv2.LINE_AA)

@@ -26,7 +26,9 @@ import errno
 import os
 import secrets
 import shutil
+import sys
 import tempfile
+import threading
 from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
 from types import TracebackType
@@ -45,6 +47,7 @@ __all__ = [
     "atomic_write_text",
     "check_finite",
     "fsync_dir",
+    "native_output_captured",
     "read_exr_channels",
     "read_image",
     "to_grey",
@@ -389,6 +392,70 @@ def to_uint8(image: ArrayLike, *, lo: float | None = 0.0, hi: float | None = 1.0
 # -- readers ---------------------------------------------------------------------
 
 
+_NATIVE_LOCK = threading.RLock()
+
+
+class _HeldLines(list):
+    """The lines :func:`native_output_captured` held; ``echo`` as there."""
+
+    echo = True
+
+
+@contextlib.contextmanager
+def native_output_captured() -> Iterator[list[str]]:
+    """Hold what C libraries print on file descriptors 1 and 2 while a file is decoded.
+
+    libpng and OpenEXR print their own lines on a corrupt file ("libpng error: Read
+    Error"; "Warning: Exception raised reading pixel data ..." and the
+    ``EXR_ERR_...`` reason) before the Python call fails, so a bad file gave two or
+    three lines instead of one. The list yielded holds the non-empty captured lines
+    once the block has exited (catch the error outside the ``with``, then put the
+    library's reason into the one message). After a block that succeeds, the captured
+    text is written back to standard error, delayed, not lost, unless the block set
+    ``echo = False`` on the list (a failure the call reports by its return value, such
+    as ``cv2.imread`` returning None).
+    """
+    lines = _HeldLines()
+    try:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os.fstat(1)
+        os.fstat(2)
+    except (OSError, ValueError):  # no such descriptors (embedded): nothing to hold
+        yield lines
+        return
+    ok = False
+    # One holder at a time: two threads swapping the process's descriptors would each
+    # restore the other's temporary file (a reentrant lock, so a nested hold is fine).
+    with _NATIVE_LOCK, tempfile.TemporaryFile() as tmp:
+        saved = (os.dup(1), os.dup(2))
+        os.dup2(tmp.fileno(), 1)
+        os.dup2(tmp.fileno(), 2)
+        try:
+            yield lines
+            ok = True
+        finally:
+            os.dup2(saved[0], 1)
+            os.dup2(saved[1], 2)
+            os.close(saved[0])
+            os.close(saved[1])
+            tmp.seek(0)
+            data = tmp.read()
+            text = data.decode("utf-8", "replace")
+            lines.extend(" ".join(x.split()) for x in text.splitlines() if x.strip())
+            if ok and lines.echo and data:
+                os.write(2, data)
+
+
+def _native_reason(lines: list[str], exc: BaseException, path: os.PathLike | str) -> str:
+    """The library's own reason for a failed decode of ``path`` (its ``EXR_ERR_`` /
+    ``error`` line, without the path it starts with), else the exception's text."""
+    for line in lines:
+        if "EXR_ERR_" in line or "error" in line.lower():
+            return line.removeprefix(f"{path}: ")
+    return _one_line(exc)
+
+
 def read_exr_channels(path: str | os.PathLike) -> dict[str, NDArray[np.float32]]:
     """All channels of an OpenEXR file by name (``R``, ``G``, ``B``, ``gt.r``, ...).
 
@@ -398,11 +465,16 @@ def read_exr_channels(path: str | os.PathLike) -> dict[str, NDArray[np.float32]]
     _require_file(path)
     import OpenEXR
 
+    native: list[str] = []
     try:
-        with OpenEXR.File(str(path), separate_channels=True) as exr:
+        with (
+            native_output_captured() as native,
+            OpenEXR.File(str(path), separate_channels=True) as exr,
+        ):
             chans = {name: np.asarray(ch.pixels) for name, ch in exr.channels().items()}
     except Exception as exc:  # the bindings raise RuntimeError / OSError variants
-        raise ImageError(f"{path}: cannot be read as OpenEXR: {_one_line(exc)}") from exc
+        reason = _native_reason(native, exc, path)
+        raise ImageError(f"{path}: cannot be read as OpenEXR: {reason}") from exc
     return {name: px.astype(np.float32, copy=False) for name, px in chans.items()}
 
 
@@ -473,13 +545,17 @@ def _read_exr_image(path: Path, channel: str | None) -> NDArray[np.float32]:
 def _read_raster(path: Path) -> NDArray[np.float32]:
     import cv2
 
+    native: list[str] = []
     try:
-        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        with native_output_captured() as native:
+            raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+            native.echo = raw is not None  # None: the reason goes into the error below
     except cv2.error as exc:  # e.g. a header claiming more than OpenCV's 2^30-pixel limit
         raise ImageError(f"{path}: cannot be decoded: {_cv2_reason(exc)}") from exc
     if raw is None:
+        said = f" ({native[0]})" if native else ""
         raise ImageError(
-            f"{path}: cannot be read as an image (expected PNG, 16-bit PNG, JPEG or EXR)"
+            f"{path}: cannot be read as an image{said} (expected PNG, 16-bit PNG, JPEG or EXR)"
         )
     if raw.ndim == 3:
         if raw.shape[2] == 4:

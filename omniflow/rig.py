@@ -310,6 +310,9 @@ def rig_from_dict(data: dict[str, Any], where: str = "rig") -> Rig:
     rig = data["rig"]
     if not isinstance(rig, dict):
         raise RigError(f"{where}: rig = {rig!r}: expected a table with d, R, s")
+    unknown = set(rig) - {"d", "R", "s"}
+    if unknown:  # a typo ('baseline' for 's') would otherwise be silently ignored
+        raise RigError(f"{where}: rig: unknown key(s) {sorted(unknown)}; expected ['R', 'd', 's']")
     vals = {}
     for key in ("d", "R", "s"):
         if key not in rig:

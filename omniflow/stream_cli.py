@@ -35,7 +35,6 @@ from omniflow.cli import (
     _Formatter,
     _make_config,
     _one_line,
-    _one_line_warning,
     _Parser,
     explain_error,
 )
@@ -298,6 +297,11 @@ def run(args: argparse.Namespace, config_fields: list[str], argv: list[str]) -> 
         write_manifest(present == len(wanted), present)
     median = float(np.median(recent_ms)) if recent_ms else None
     return {"written": run_stats["pairs"], "present": present, "out": str(out), "median_ms": median}
+
+
+def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """warnings.showwarning for the command: ``omniflow-stream: warning: ...`` on one line."""
+    print(f"{PROG}: warning: {_one_line(message)}", file=sys.stderr if file is None else file)
 
 
 def main(argv: list[str] | None = None) -> int:

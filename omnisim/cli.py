@@ -239,11 +239,23 @@ def _frame_slice(text: str | None, count: int) -> list[int] | None:
     return list(range(count))[slice(a, b)]
 
 
+def _check_json_out(path: Path) -> None:
+    """Refuse a --json FILE that cannot be written, naming why (before any work)."""
+    if path.is_dir():
+        raise _UsageError(f"--json {path}: is a folder; expected a file name")
+    parent = path.parent
+    if not parent.is_dir():
+        what = "is a file, not a folder" if parent.exists() else "does not exist"
+        raise _UsageError(f"--json {path}: {parent} {what}; expected an existing folder")
+
+
 def _cmd_check(args: argparse.Namespace) -> int:
     from omniflow.dataset import open_dataset
     from omnisim.check import format_results, run_checks
 
     ds = open_dataset(args.dir)
+    if args.json_out:
+        _check_json_out(args.json_out)  # before the checks, which can take minutes
     frames = _frame_slice(args.frames, ds.frame_count)
     done = ds.frames_done()
     wanted = list(range(ds.frame_count)) if frames is None else frames

@@ -91,11 +91,14 @@ def render_task(
 
 def _connect(scheduler: str, timeout: float):
     from distributed import Client
-    from distributed.comm.addressing import parse_address
+    from distributed.comm.addressing import parse_address, parse_host_port
     from distributed.comm.registry import get_backend
 
     try:  # a malformed address is refused before a Client exists (its __del__ complains)
-        get_backend(parse_address(scheduler)[0])
+        scheme, location = parse_address(scheduler)
+        get_backend(scheme)
+        if scheme in ("tcp", "tls"):  # 'nonsense' is tcp://nonsense: no port
+            parse_host_port(location)
     except (ValueError, TypeError) as exc:
         raise ClusterError(
             f"--scheduler {scheduler!r}: not a scheduler address ({exc}); expected e.g. "

@@ -10,6 +10,7 @@ import argparse
 import shlex
 import sys
 import time
+import typing
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -50,8 +51,48 @@ examples:
 """
 
 
+class _Parser(argparse.ArgumentParser):
+    """Usage errors as one line, like omniflow's and omnisim's (not the usage block)."""
+
+    def error(self, message: str) -> typing.NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def _thresholds_unmet(thresholds: dict, args: argparse.Namespace, variants: Any,
+                      baselines: list[str]) -> str | None:  # fmt: skip
+    """Why --check cannot be answered by this run (said before the run, not after it):
+    the dataset's scene has no thresholds, or a threshold names a row not run."""
+    import json
+
+    from .variants import omniflow_variants
+
+    key = args.scene_key
+    if key is None:
+        try:  # the scene's name, as the summary will give it; a broken file is named later
+            scene = json.loads((Path(args.dataset) / "dataset.json").read_text()).get("scene")
+            key = scene.get("name") if isinstance(scene, dict) else None
+        except (OSError, ValueError, AttributeError):
+            return None
+        if key not in thresholds["scenes"]:
+            return (
+                f"--check {args.check}: no thresholds for this dataset's scene {key!r}; "
+                f"give --scene-key, one of {sorted(thresholds['scenes'])}"
+            )
+    if args.method_output:  # rows named by the outputs: known once they are read
+        return None
+    rows = omniflow_variants(variants) if isinstance(variants, str) else variants
+    ran = {name for name, _ in rows} | set(baselines) | {"default"}
+    missing = sorted({c["method"] for c in thresholds["scenes"][key]["check"]} - ran)
+    if not missing:
+        return None
+    return (
+        f"--check {args.check}: scenes.{key} checks {len(missing)} row(s) this run does not "
+        f"score (first: {missing[0]}); use --variants oat or all, or the baselines it names"
+    )
+
+
 def _parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(
+    ap = _Parser(
         prog="omnivalidate",
         description="Measure how accurate omniflow's variants and the OpenCV baselines are on an "
         "omnisim dataset (any directory in the dataset contract: dataset.json + "
@@ -224,6 +265,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             if name in dict(variants):
                 return fail(f"--row {text}: the row {name} is already scored")
             variants.append((name, config))
+    if thresholds is not None:
+        problem = _thresholds_unmet(thresholds, args, variants, names)
+        if problem:
+            return fail(problem)
     levels: list[list[str]] = [[]]
     if args.camera_sweep is not None:
         key, sep, vals = args.camera_sweep.partition("=")

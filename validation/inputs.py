@@ -19,6 +19,7 @@ omniflow gets the float grey image (for an 8-bit camera or no camera, the same
 
 from __future__ import annotations
 
+import json
 from collections.abc import Sequence
 from typing import Any
 
@@ -37,7 +38,9 @@ class InputError(ValueError):
     """The dataset or the request cannot be scored (the message says why)."""
 
 
-def camera_model(meta: dict[str, Any], overrides: Sequence[str] = ()) -> Any:
+def camera_model(
+    meta: dict[str, Any], overrides: Sequence[str] = (), *, where: str = "dataset.json"
+) -> Any:
     """The camera the methods' images come from, or None for the plain 8-bit luminance.
 
     ``meta`` is dataset.json; its ``camera`` section (if any) is the base, and
@@ -46,14 +49,19 @@ def camera_model(meta: dict[str, Any], overrides: Sequence[str] = ()) -> Any:
     exposure as the plain path scales (the 99.5th percentile of frame 0's valid
     pixels fills the well) unless ``exposure`` is given. Raises
     :class:`InputError` (one line naming the key and the expected range) on a bad
-    parameter.
+    parameter, or a ``camera`` section that is not a table (``where`` names the file).
     """
     section = meta.get("camera")
-    if not isinstance(section, dict) and not overrides:
+    if section is not None and not isinstance(section, dict):
+        # Not "no camera": scoring the plain luminance instead would hide the mistake.
+        raise InputError(
+            f"{where}: camera = {json.dumps(section)[:60]}: expected a table of "
+            "camera parameters (or no camera section)"
+        )
+    if section is None and not overrides:
         return None
     try:
-        base = CameraModel.from_mapping(section if isinstance(section, dict) else {},
-                                        where="dataset.json camera")  # fmt: skip
+        base = CameraModel.from_mapping(section or {}, where="dataset.json camera")
         return base.with_overrides(list(overrides)) if overrides else base
     except CameraError as exc:
         raise InputError(str(exc).splitlines()[0]) from exc

@@ -154,6 +154,8 @@ def draw_figures(results: Results, summary: Mapping[str, Any], fig_dir: Path) ->
                     ax.imshow(np.full(valid.shape, np.nan), cmap=cmap, vmin=0, vmax=vmax)
                     im = ax.scatter(sparse[0] - 0.5, sparse[1] - 0.5, c=sparse[2], s=5,
                                     cmap=cmap, vmin=0, vmax=vmax)  # fmt: skip
+                    if not np.size(sparse[2]):  # a grey panel alone reads as a broken figure
+                        _no_data(ax, "no points on this frame")
                 ax.set_title(title, fontsize=9)
                 ax.axis("off")
             if im is not None:
@@ -198,6 +200,8 @@ def draw_figures(results: Results, summary: Mapping[str, Any], fig_dir: Path) ->
         a.grid(alpha=0.3)
         if a.get_legend_handles_labels()[0]:
             a.legend(fontsize=7)
+        else:
+            _no_data(a, "no points to bin: the rows scored none")
     fig.tight_layout()
     save(fig, fig_dir / "error_vs_range.png")
     plt.close(fig)
@@ -216,6 +220,8 @@ def draw_figures(results: Results, summary: Mapping[str, Any], fig_dir: Path) ->
     ax.grid(alpha=0.3)
     if ax.get_legend_handles_labels()[0]:
         ax.legend(fontsize=7)
+    else:
+        _no_data(ax, "no points to bin: the rows scored none")
     fig.tight_layout()
     save(fig, fig_dir / "error_vs_speed.png")
     plt.close(fig)
@@ -278,6 +284,11 @@ def _wrap_at_commas(text: str, width: int) -> str:
     return "\n".join(lines)
 
 
+def _no_data(ax: Any, text: str) -> None:
+    """Say in the middle of the axes why they are empty."""
+    ax.text(0.5, 0.5, text, transform=ax.transAxes, ha="center", va="center", fontsize=9)
+
+
 def _accuracy_vs_time(plt: Any, summary: Mapping[str, Any], path: Path) -> None:
     """Median EPE (cam1) against time per frame pair, one numbered marker per row and a
     legend beside the axes (no labels to overlap). Rows far above the rest (the paper's
@@ -316,6 +327,8 @@ def _accuracy_vs_time(plt: Any, summary: Mapping[str, Any], path: Path) -> None:
         )
         ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(0.0, -0.16), frameon=False,
                   title=note, title_fontsize=7, alignment="left")  # fmt: skip
+    else:  # empty axes alone read as a broken figure
+        _no_data(ax, "no row has a median EPE to plot: no points were scored")
     ax.set_xscale("log")
     plain = matplotlib.ticker.FuncFormatter(lambda v, _: f"{v:g}")
     ax.xaxis.set_major_formatter(plain)

@@ -131,6 +131,7 @@ def run_validation(
     from tqdm import tqdm
 
     from omniflow.dataset import open_dataset
+    from omniflow.pipeline import OmniFlowConfig
 
     if estimate is None:
         from omniflow.pipeline import estimate
@@ -167,7 +168,8 @@ def run_validation(
     auto = not isinstance(meta.get("camera"), dict) and not any(
         str(c).split("=", 1)[0].strip().removeprefix("camera.") == "exposure" for c in camera
     )
-    inputs = Inputs(ds, camera_model(meta, camera), auto_exposure=auto)
+    model = camera_model(meta, camera, where=str(ds.dir / "dataset.json"))
+    inputs = Inputs(ds, model, auto_exposure=auto)
     scene = meta.get("scene", {}) if isinstance(meta.get("scene"), dict) else {}
     results = Results(
         dataset={
@@ -245,6 +247,8 @@ def run_validation(
                     fields = {cam: b.dense(t, cam, units[cam], shape) for cam in CAMERAS}
                     b = b.name
                 else:
+                    if t == pairs[0]:  # untimed warm-up: see the omniflow rows below
+                        bl.dense_baseline(b, first["cam1"], second["cam1"], units["cam1"])
                     fields = {
                         cam: bl.dense_baseline(b, first[cam], second[cam], units[cam])
                         for cam in CAMERAS
@@ -271,6 +275,18 @@ def run_validation(
                     t_rel = 0
                 else:
                     t_rel = t - start
+                if t == pairs[0] and isinstance(cfg, OmniFlowConfig):
+                    # Untimed warm-up: a configuration's first estimate() in a process loads
+                    # its compiled kernels (0.5 s at 512 px against 0.05 s warm), which would
+                    # be most of the time per frame of a run of one or two pairs. A failure
+                    # here shows again, and is reported, in the timed call. (Not for test
+                    # stand-ins such as the truth oracle, which count their calls.)
+                    with warnings.catch_warnings():
+                        warnings.simplefilter("ignore")
+                        try:
+                            estimate(g1, g2, rig, cfg, t=t_rel)
+                        except Exception:  # broad: the timed call below reports it
+                            pass
                 t0 = time.perf_counter()
                 # Warnings and errors of a method are results, reported, not the end of the run.
                 with warnings.catch_warnings(record=True) as caught:

@@ -277,6 +277,8 @@ def _biased(f: Mapping[str, Any], block: str = "all") -> str:
     """'biased (radial gain 0.60)' where a gain with enough true motion under it lies
     outside 1 +- GAIN_BAND; 'unbiased' where every judged gain is inside; 'bias not
     judged' where no component moves enough (truth rms below GAIN_MIN_SIGNAL)."""
+    if _g(f, f"{block}.n") == 0:
+        return "no points scored"
     bad, judged = [], 0
     for comp in ("radial", "tangential"):
         g = _g(f, f"{block}.{comp}.gain")
@@ -348,10 +350,8 @@ def headline(summary: Mapping[str, Any]) -> list[str]:
                 if not fb:
                     continue
                 other = _epe_pair(fb)
-                if name == "zero-flow":
-                    clear = all(math.isfinite(v) for v in (*mine, *other)) and all(
-                        a < ZERO_FLOW_MARGIN * b for a, b in zip(mine, other, strict=True)
-                    )
+                if name == "zero-flow" and all(math.isfinite(v) for v in (*mine, *other)):
+                    clear = all(a < ZERO_FLOW_MARGIN * b for a, b in zip(mine, other, strict=True))
                     verdict = (
                         "clearly below zero flow"
                         if clear

@@ -171,6 +171,32 @@ def _bad_file(name: str, data: bytes | str | None, slot: int = 3):
     return _files((slot, make))
 
 
+def _cut_in_half(name: str, slot: int = 3):
+    """Frame ``slot`` as a real file cut in half, inside its pixel data: libpng and
+    OpenEXR print lines of their own on it (the command must still give one line)."""
+
+    def make(base, work):
+        path = work / name
+        noise = np.random.default_rng(0).random((SIZE, SIZE)).astype(np.float32)
+        whole = work / f"whole{path.suffix}"  # noise: the cut falls inside the pixel data
+        if path.suffix == ".exr":
+            write_exr(whole, noise)
+        else:
+            write_png(whole, noise, bits=16)
+        data = whole.read_bytes()
+        whole.unlink()
+        path.write_bytes(data[: len(data) // 2])
+        return path
+
+    return _files((slot, make))
+
+
+def _cut_frame_exr(ds):
+    path = ds / "frames" / "000001" / "cam1.exr"
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+
+
 def _image(name: str, array_fn, slot: int = 3):
     def make(base, work):
         arr = array_fn(base)
@@ -310,6 +336,8 @@ CASES = {
         "huge.png: cannot be decoded",
     ),
     "garbage exr": (_bad_file("junk.exr", bytes(range(256)) * 8), 2, "junk.exr: cannot be read"),
+    "png cut in its pixel data": (_cut_in_half("half.png"), 2, "half.png: cannot be read as"),
+    "exr cut in its pixel data": (_cut_in_half("half.exr"), 2, "half.exr: cannot be read as"),
     "exr without R G B or Y": (_files((3, _two_channel_exr)), 2, "ab.exr: no R, G, B or Y"),
     "nan pixel": (_image("nan.exr", _nan_exr(np.nan)), 2, "nan.exr: 1 pixel(s) are NaN"),
     "inf pixel": (_image("inf.exr", _nan_exr(np.inf)), 2, "inf.exr: 1 pixel(s) are NaN or inf"),
@@ -388,6 +416,7 @@ CASES = {
         2,
         "cam1.exr",
     ),
+    "frame exr cut in its pixel data": (_dataset(_cut_frame_exr), 2, "cam1.exr: cannot read"),
     "nan radiance in dataset": (_dataset(_nan_in_frame), 2, "NaN"),
     "dataset and images": (
         lambda b, w: [*frames(b), "--dataset", b["dir"] / "dataset"],

@@ -208,3 +208,14 @@ def test_draw_flow_pictures(ramp):
     )
     with pytest.raises(ValueError, match="equal sizes"):
         draw_flow_arrows(img, xx, yy, dx[:2], dy)
+
+
+def test_the_legend_is_readable_over_a_bright_picture():
+    """The legend sits on a black box: over bright texture an outline alone left the
+    smallest font (a panorama 254 px high) unreadable. Mutation caught: no box."""
+    white = np.ones((254, 1596))
+    white[-10:] = 0.0  # a dark strip far from the legend: the 1st percentile, so the rest is bright
+    pts = (np.array([800.5]), np.array([200.5]), np.array([1.0]), np.array([0.0]))
+    for pic in (draw_flow_arrows(white, *pts), draw_flow_points(white, *pts)):
+        label = pic[3:12, 4:60]  # behind the first characters of the text
+        assert (label.max(axis=2) < 64).mean() > 0.6  # mostly the box, not the background

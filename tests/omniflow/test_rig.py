@@ -253,6 +253,7 @@ _DELETE = object()
         (("cameras", 1, "r_m"), True, r"cameras\[1\] \(cam2\)\.r_m = True"),
         (("cameras", 0, "name"), "left", r"name = 'left'"),
         (("cameras", 0, "focal"), 3.0, r"unknown key\(s\) \['focal'\]"),
+        (("rig", "baseline"), 0.3, r"rig: unknown key\(s\) \['baseline'\]; expected \['R', 'd'"),
         (
             ("cameras", 1, "v"),
             999.0,

@@ -154,6 +154,24 @@ def test_a_folder_without_frames_or_rig(folder, tmp_path, capsys):
     assert "needs --rig FILE" in capsys.readouterr().err
 
 
+def test_constant_frames_warn_once_under_this_command_s_name(folder, tmp_path, capsys):
+    """No stereo match is an answer: exit 0, empty CSVs, one warning line naming
+    omniflow-stream (not omniflow)."""
+    _, rig = folder
+    d = tmp_path / "grey"
+    d.mkdir()
+    for k in range(2):
+        for cam in ("cam1", "cam2"):
+            write_png(d / f"{cam}_{k}.png", np.full((128, 128), 0.5), bits=8)
+    (d / "rig.json").write_text(json.dumps(rig.to_dict()))
+    out = tmp_path / "out"
+    assert main([str(d), "--rig", str(d / "rig.json"), "--out", str(out), "--quiet"]) == 0
+    captured = capsys.readouterr()
+    warning = [x for x in captured.err.splitlines() if "warning" in x]
+    assert len(warning) == 1 and warning[0].startswith("omniflow-stream: warning: no stereo")
+    assert len(read_csv(out / "flow_000000_000001.csv")["x"]) == 0
+
+
 def test_module_entry_point_runs():
     """``python -m omniflow.stream_cli`` (the ``omniflow-stream`` script's module) answers."""
     import subprocess

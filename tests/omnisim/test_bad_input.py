@@ -370,6 +370,10 @@ def _check_json_under_file(d):
     return ["check", str(data), "--json", str(d / "afile" / "r.json")]
 
 
+def _check_json_in_no_folder(d):
+    return ["check", str(_dataset(d, frames=1)), "--json", str(d / "nodir" / "r.json")]
+
+
 def _check_frames(text: str):
     def setup(d):
         return ["check", str(_dataset(d, frames=1)), "--frames", text]
@@ -478,6 +482,12 @@ CASES = [
         ["nosuch://x"],
     ),
     Case(
+        "scheduler address without a port",
+        _opt("--scheduler", "nonsense", "--scheduler-timeout", "1"),
+        2,
+        ["'nonsense'", "missing port number"],
+    ),
+    Case(
         "sim extra missing",
         _missing_extra,
         1,
@@ -534,7 +544,20 @@ CASES = [
     Case("check: corrupt EXR", _check_corrupt_exr, 2, ["cam1.exr"], None),
     Case("check: --frames 5:2", _check_frames("5:2"), 2, ["--frames", "5:2"], None),
     Case("check: --frames abc", _check_frames("abc"), 2, ["--frames", "abc"], None),
-    Case("check: --json under a file", _check_json_under_file, 2, ["afile"], "afile/r.json"),
+    Case(
+        "check: --json under a file",
+        _check_json_under_file,
+        2,
+        ["--json {d}/afile/r.json", "afile is a file, not a folder"],
+        "afile/r.json",
+    ),
+    Case(
+        "check: --json in no folder",
+        _check_json_in_no_folder,
+        2,
+        ["--json {d}/nodir/r.json", "does not exist"],
+        "nodir",
+    ),
 ]
 
 

@@ -7,6 +7,7 @@ answers are known exactly (gain 1 for the truth, 0 for zero flow).
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -92,6 +93,43 @@ def test_bias_verdict_needs_true_motion():
     assert _biased(block(0.97, 0.3)) == "unbiased"
     # A static scene: the truth barely moves, the gain is noise over nothing.
     assert _biased(block(-0.02, 0.01)).startswith("bias not judged")
+
+
+def test_a_row_with_no_points_is_not_compared(tmp_path, monkeypatch):
+    """Zero matches (a dark or constant frame) is an answer: the headline says no points
+    and 'not comparable', not 'NOT clearly below zero flow' nor a bias verdict about a
+    truth rms that was never measured; the empty figures say why they are empty."""
+    import matplotlib.text
+
+    import validation.report_figures as figures
+
+    texts: dict[str, list[str]] = {}
+    real_save = figures.save
+
+    def save(fig, path):
+        texts[Path(path).name] = [t.get_text() for t in fig.findobj(matplotlib.text.Text)]
+        real_save(fig, path)
+
+    monkeypatch.setattr(figures, "save", save)
+    d = tmp_path / "ds"
+    write_synthetic_dataset(d, demo_scene(64), 2, name="synthetic-demo", supersample=1)
+    oracle = TruthOracle(d)
+
+    def no_points(*args, **kwargs):
+        res = oracle(*args, **kwargs)
+        res.columns = {k: v[:0] for k, v in res.columns.items()}
+        return res
+
+    res = run_validation(d, variants=[("none", OracleConfig())], estimate=no_points,
+                         baselines=["zero-flow"], progress=False)  # fmt: skip
+    head = write_report(res, tmp_path / "r")["headline"]
+    assert head[0].startswith("cam1, none: no points scored -- 0 points"), head[0]
+    zero = [line for line in head if line.startswith("cam1, omniflow vs zero-flow")]
+    assert zero and zero[0].split(" -- ")[0].endswith(": not comparable"), zero
+    assert "no row has a median EPE to plot: no points were scored" in texts["accuracy_vs_time.png"]
+    assert "no points on this frame" in texts["error_maps.png"]
+    for name in ("error_vs_range.png", "error_vs_speed.png"):
+        assert "no points to bin: the rows scored none" in texts[name], name
 
 
 def test_density_and_objects_with_no_points(oracle_summary):

@@ -68,3 +68,15 @@ def test_camera_sweep_writes_a_table_and_a_plot(synth, tmp_path):
     assert summary["dataset"]["camera"]["read_noise"] == 0  # the report is the first level
     assert (out / "figures" / "camera_sweep.png").is_file()
     assert "Camera sweep" in (out / "report.md").read_text()
+
+
+@pytest.mark.parametrize("section", ["x", [1, 2], 5])
+def test_a_camera_section_that_is_not_a_table_is_refused(section):
+    """A malformed camera section is an input error naming it, not silently 'no camera'
+    (which would score the plain 8-bit luminance instead of the recorded camera)."""
+    from validation.inputs import InputError, camera_model
+
+    with pytest.raises(InputError, match=r"^dataset.json: camera = .*: expected a table"):
+        camera_model({"camera": section})
+    assert camera_model({}) is None  # no section: the plain luminance
+    assert camera_model({"camera": {}}) is not None  # an empty table: the model's defaults
