@@ -203,6 +203,19 @@ def _frames(text: str | None) -> list[int] | None:
     return out
 
 
+def _closing_line(summary: dict, pairs: int, seconds: float, report: Path) -> str:
+    """The run's last line: methods (a baseline scored at two point sets is one method in
+    two table rows), pairs, time and the report."""
+    methods = summary["methods"]
+    names = len({m["name"] for m in methods})
+
+    def count(n: int, word: str) -> str:
+        return f"{n} {word}" + ("" if n == 1 else "s")
+
+    return (f"omnivalidate: {count(names, 'method')} in {count(len(methods), 'table row')}, "
+            f"{count(pairs, 'frame pair')} in {seconds:.1f} s; report: {report}")  # fmt: skip
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     from omniflow.dataset import DatasetError
@@ -314,11 +327,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except OSError as exc:
         return fail(f"{exc.filename or args.out}: {exc.strerror or exc}")
     print("\n".join(summary.get("headline", [])))
-    print(
-        f"omnivalidate: {len(summary['methods'])} rows, {len(results.dataset['pairs'])} frame "
-        f"pair(s) in {time.perf_counter() - start:.1f} s; report: "
-        f"{Path(args.out) / 'report.html'}"
-    )
+    print(_closing_line(summary, len(results.dataset["pairs"]), time.perf_counter() - start,
+                        Path(args.out) / "report.html"))  # fmt: skip
     if thresholds is not None:
         key = args.scene_key or summary["dataset"]["scene"]
         try:

@@ -369,3 +369,17 @@ def test_legend_labels_wrap_between_settings_not_inside_one():
     for setting in name.split(","):
         assert any(setting in s for s in lines), setting
     assert _wrap_at_commas("1: omniflow[robust] (0.017 px, 82 ms)", 110).count("\n") == 0
+
+
+def test_closing_line_counts_methods_not_their_rows():
+    """A baseline scored at two point sets is one method in two table rows; counts are
+    singular at 1 ("1 rows" before; mutation: len(methods) as the method count says 3)."""
+    from validation.cli import _closing_line
+
+    summary = {"methods": [{"name": "omniflow[robust]"}, {"name": "DIS-medium"},
+                           {"name": "DIS-medium"}]}  # fmt: skip
+    line = _closing_line(summary, 1, 2.04, Path("r/report.html"))
+    assert line == ("omnivalidate: 2 methods in 3 table rows, 1 frame pair in 2.0 s; "
+                    "report: r/report.html")  # fmt: skip
+    assert "1 method in 1 table row, 3 frame pairs" in _closing_line(
+        {"methods": [{"name": "x"}]}, 3, 1.0, Path("r"))  # fmt: skip
