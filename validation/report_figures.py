@@ -362,7 +362,15 @@ def _edges(values: NDArray, n: int = 8) -> NDArray:
     return np.unique(np.percentile(v, np.linspace(0, 100, n + 1)))
 
 
+#: Line styles and markers of the binned curves, in turn: rows with the same errors (the
+#: default and a row whose extra knob changes nothing there) would otherwise draw one line
+#: exactly over the other and hide it.
+_LINESTYLES = ("-", "--", "-.", ":")
+_MARKERS = ("o", "s", "^", "D", "v", "P", "X")
+
+
 def _binned(ax: Any, x: NDArray, y: NDArray, edges: NDArray, label: str) -> None:
+    """Medians of y in the bins of x, one line on ``ax``, styled apart from its others."""
     xs, ys = [], []
     for lo, hi in itertools.pairwise(edges):
         sel = (x >= lo) & (x <= hi) & np.isfinite(y)
@@ -370,7 +378,9 @@ def _binned(ax: Any, x: NDArray, y: NDArray, edges: NDArray, label: str) -> None
             xs.append(float(np.median(x[sel])))
             ys.append(float(np.median(y[sel])))
     if xs:
-        ax.plot(xs, ys, marker="o", ms=3, label=label)
+        k = len(ax.get_lines())
+        ax.plot(xs, ys, marker=_MARKERS[k % len(_MARKERS)], ms=4, mfc="none",
+                ls=_LINESTYLES[k % len(_LINESTYLES)], label=label)  # fmt: skip
 
 
 def _scatter_color(

@@ -383,3 +383,25 @@ def test_closing_line_counts_methods_not_their_rows():
                     "report: r/report.html")  # fmt: skip
     assert "1 method in 1 table row, 3 frame pairs" in _closing_line(
         {"methods": [{"name": "x"}]}, 3, 1.0, Path("r"))  # fmt: skip
+
+
+def test_binned_lines_of_equal_rows_stay_apart():
+    """Two rows with the same errors: the second line gets another style and marker (hollow
+    markers), so it does not hide the first (mutation: one style for all, caught)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from validation.report_figures import _binned, _edges
+
+    x = np.linspace(0.5, 5.0, 200)
+    y = 0.01 * x
+    fig, ax = plt.subplots()
+    for label in ("default", "default,monocular_gap=24"):
+        _binned(ax, x, y, _edges(x), label)
+    a, b = ax.get_lines()
+    np.testing.assert_array_equal(a.get_ydata(), b.get_ydata())
+    assert a.get_linestyle() != b.get_linestyle() and a.get_marker() != b.get_marker()
+    plt.close(fig)
