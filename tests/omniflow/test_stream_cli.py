@@ -50,7 +50,11 @@ def _frames(folder):
 def test_one_csv_per_pair_equal_to_estimate(folder, tmp_path, capsys, extra):
     out = tmp_path / "out"
     assert _stream(folder, out, *extra) == 0
-    assert "3 pair(s) written" in capsys.readouterr().out
+    said = capsys.readouterr().out
+    assert "3 pair(s) written" in said
+    # the first pair (loading the compiled kernels) is timed apart from the median of the
+    # others (mutation: the first in the median again, its own figure gone: caught)
+    assert "ms per pair after the first (the first " in said
     names = sorted(p.name for p in out.iterdir())
     assert names == [f"flow_00000{k}_00000{k + 1}.csv" for k in range(3)] + ["stream.json"]
     meta = json.loads((out / "stream.json").read_text())
