@@ -24,9 +24,8 @@ import omniflow.decoupled as decoupled_mod
 import omniflow.gain as gain_mod
 from omniflow.config import OmniFlowConfig
 from omniflow.gain import decoupled_linear_gain
-from omniflow.pipeline import estimate
 from omniflow.synthetic import Motion
-from tests.helpers.scenes import frames, paper_rig, sparse_true_matches, wall_scene
+from tests.helpers.scenes import wall_under_gain_field
 
 N, SCALE = 30, 8.0
 U, W, DTHETA = 0.3, -0.004, 0.002  # dh_u = U - h_u W (px/frame), rad/frame
@@ -185,19 +184,7 @@ AMP = 0.02  # frame t + 1 times 1 + AMP sin(2 theta)
 
 def _run(wall=RISING, amp=AMP, **knobs):
     """(result, cam1 endpoint error per point) on the wall scene under the gain field."""
-    rig = paper_rig(256)
-    scene = wall_scene(rig, wall_motion=wall)
-    f1, f2 = frames(scene, 2)
-    m, gt = sparse_true_matches(scene, 0.03)
-    gains = []
-    for cam in (rig.cam1, rig.cam2):
-        _, theta = cam.polar_of_pixel(*cam.pixel_centres())
-        gains.append((1.0 + amp * np.sin(2.0 * theta)).astype(np.float32))
-    res = estimate([f1[0], f1[1] * gains[0]], [f2[0], f2[1] * gains[1]], rig,
-                   OmniFlowConfig(**knobs), matches=m)  # fmt: skip
-    iy, ix = res["y"].astype(int), res["x"].astype(int)  # true matches: pixel centres
-    dh, hdtheta = gt["gt.flow.dh"][iy, ix], gt["gt.flow.hdtheta"][iy, ix]
-    err = np.hypot(res["dh1_dt"] - dh, res["h1"] * res["dtheta_dt"] - hdtheta)
+    res, err, dh = wall_under_gain_field(wall, amp, **knobs)
     print(f"wall {wall}, amp {amp} {knobs}: {err.size} points, decoupled "
           f"{np.mean(res['coupled'] == 0):.2f}, EPE mean {err.mean():.4f} median "
           f"{np.median(err):.4f}, mean dh {res['dh1_dt'].mean():+.4f} "
