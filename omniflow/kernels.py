@@ -1,7 +1,7 @@
 """Compiled kernels (Numba) for loops that numpy runs only through large temporaries.
 
 :func:`pooled_sums` forms the weighted sums of the pooled flow solver
-(:func:`omniflow.flow.pooled_solution`): for every point, over its K
+(:func:`omniflow.paper.flow.pooled_solution`): for every point, over its K
 neighbours, sum_j w_ij u_ij^m (pp, pq, qq, pf, qf)_j. In numpy that is a
 dozen (N, K) gathers and products and an (N, K, 5) stack before one batched
 product; here it is one pass over the neighbours with nothing stored but
@@ -20,24 +20,24 @@ omniflow.matching.robust.Descriptors, summed straight from the tables instead of
 gathering every profile first.
 
 :func:`cos_bases` makes the cosine series' bases at points
-(:func:`omniflow.dct.DCTFit.evaluate` and its gradients) as the running product
+(:func:`omniflow.paper.dct.DCTFit.evaluate` and its gradients) as the running product
 of a complex exponential, numpy's cumprod value for value, in one pass.
 
 :func:`cos_bases_columns` makes the same products with the loop over the points
 innermost, so that the points' independent chains (one dependent complex product per
 coefficient each) fill the vector units, and stores them transposed, shape (n_coef, M):
 contiguous rows for the stores and for the matrix products of
-:meth:`omniflow.dct.DCTFit.value_and_gradient` (``single``), which take them as
+:meth:`omniflow.paper.dct.DCTFit.value_and_gradient` (``single``), which take them as
 ``coeffs.T @ bases``. Each product is numpy's, (a c - b d, a d + b c), in the same order,
-so the values are :func:`omniflow.dct.bases_numpy`'s, value for value (in float32
+so the values are :func:`omniflow.paper.dct.bases_numpy`'s, value for value (in float32
 output, each rounded once as it is stored).
 
 :func:`grid_scatter` and :func:`grid_read` put the grid pooling's point terms
 into a cell image and read filtered images back bilinearly at the points
-(:mod:`omniflow.gridpool`), without numpy's (N, C) temporaries per corner.
+(:mod:`omniflow.solve.gridpool`), without numpy's (N, C) temporaries per corner.
 
 :func:`cell_knn` finds the k nearest points within a radius
-(:func:`omniflow.flow.neighbourhoods`) by binning the points into square cells of
+(:func:`omniflow.paper.flow.neighbourhoods`) by binning the points into square cells of
 half the radius and visiting the cells around each query point ring by ring,
 keeping the nearest so far in a max-heap whose top bounds the cells still worth
 visiting. It answers what scipy's k-d tree answers (the same squared distances,
@@ -46,19 +46,19 @@ distance are ordered, which the tree decides by its traversal; it flags the rows
 where that decides which points are in, and the caller asks the tree for those.
 
 :func:`gain_sums` forms the normal equations of the pools with a brightness gain
-(:func:`omniflow.gain.gain_solution`): per point the P x P matrix X^T W X, X^T W y
+(:func:`omniflow.solve.gain.gain_solution`): per point the P x P matrix X^T W X, X^T W y
 and y^T W y of both units' rows over the pool, in one pass, instead of numpy's
 (N, K, 2, P) design and a batched product (the gain fit had been most of the gated
 solve's time).
 
-:func:`small_solves` solves those small systems per pool with omniflow.gain's tests
+:func:`small_solves` solves those small systems per pool with omniflow.solve.gain's tests
 (Gauss-Jordan; a positive-definite test by a Cholesky factorisation and the inverse's
 trace, Jacobi rotations only where those bounds leave it open); :func:`nested_fits`
 adds the fit without one unknown (the gain's or eq. (14)'s F test) from the same
 inverse instead of a second solve.
 
 :func:`decouple_sums` and :func:`decouple_fits` are the two-model test of eq. (14)
-(:func:`omniflow.decoupled.model_fits`): the weighted sums of each point's 3x3
+(:func:`omniflow.solve.decoupled.model_fits`): the weighted sums of each point's 3x3
 normal equations in one pass over its pool, then per point the conditioning test
 and the solves of the 3x3 (decoupled) and 2x2 (coupled) systems, without the
 (N, K) temporaries, the batched SVD of ``np.linalg.cond`` and the batched LAPACK
@@ -164,7 +164,7 @@ def pooled_sums(
     theta : ndarray, shape (N + 1,), optional
         Azimuth (``linear`` only).
     relative, linear : bool
-        The local model of :func:`omniflow.flow.pooled_solution`.
+        The local model of :func:`omniflow.paper.flow.pooled_solution`.
     scale : float
         Tangential length that scales u, pixels.
 
@@ -279,7 +279,7 @@ def pooled_solves(
 def cos_bases(e, w, cos, dsin):  # pragma: no cover - compiled
     """cos[i, k] = Re(e[i]^k) and dsin[i, k] = -w[k] Im(e[i]^k) for k < cos.shape[1], the
     powers as the running product z_k = z_{k-1} e[i] (z_0 = 1), each complex product
-    as numpy's, (a c - b d, a d + b c): :func:`omniflow.dct.bases_numpy`'s cumprod
+    as numpy's, (a c - b d, a d + b c): :func:`omniflow.paper.dct.bases_numpy`'s cumprod
     value for value, without its complex table and the copies of its two parts."""
     n, m = cos.shape
     if m == 0:
@@ -803,7 +803,7 @@ def cell_knn(
 
 
 #: :func:`gain_sums`'s local models: unknowns (a, h_1,i b, beta), (a, h_1,i b, u a, u h_1,i b,
-#: beta), the decoupled (U, h_1,i W, h_1,i b, beta) of omniflow.decoupled, the decoupled
+#: beta), the decoupled (U, h_1,i W, h_1,i b, beta) of omniflow.solve.decoupled, the decoupled
 #: with a gain varying linearly across the pool (U, h_1,i W, h_1,i b, beta, beta_u, beta_h),
 #: and the two coupled models with that gain, (a, h_1,i b, beta, beta_u, beta_h) and
 #: (a, h_1,i b, u a, u h_1,i b, beta, beta_u, beta_h).
@@ -1264,7 +1264,7 @@ def _small_solves(M, v, limit, positive):  # pragma: no cover - compiled
 def small_solves(
     M: NDArray, v: NDArray, min_conditioning: float, *, positive: bool = False
 ) -> tuple[NDArray, NDArray]:
-    """Solve M x = v per point (P x P, P >= 2), with omniflow.gain's tests.
+    """Solve M x = v per point (P x P, P >= 2), with omniflow.solve.gain's tests.
 
     Parameters
     ----------

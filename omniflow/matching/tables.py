@@ -18,9 +18,9 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
-from omniflow.dct import DCTFit
-from omniflow.edges import polar_gradient_grid
-from omniflow.rig import Unit
+from omniflow.geometry.rig import Unit
+from omniflow.paper.dct import DCTFit
+from omniflow.paper.edges import polar_gradient_grid
 
 __all__ = [
     "PolarGrids",
@@ -70,7 +70,7 @@ def polar_grids(fit: DCTFit, unit: Unit, *, gradient: bool = True) -> PolarGrids
 def polar_gradient_fast(fit: DCTFit, unit: Unit) -> tuple[NDArray, NDArray]:
     """(df/dh_i, df/dtheta_i) on the pixel grid, float32, eq. (19)-(20).
 
-    :func:`omniflow.edges.polar_gradient_grid` with 0 instead of NaN for f_h at
+    :func:`omniflow.paper.edges.polar_gradient_grid` with 0 instead of NaN for f_h at
     h_i = 0 (the matchers compare magnitudes; a NaN would poison percentiles).
     """
     f_h, f_th = polar_gradient_grid(fit, unit)

@@ -1,6 +1,6 @@
 """The compiled pieces of the gain fit (omniflow.kernels.gain_sums, small_solves) against
 numpy written out from their definitions: the design of every pool built row by row and
-solved with ``np.linalg`` (det, inv, eigvalsh), as omniflow.gain did before the kernels.
+solved with ``np.linalg`` (det, inv, eigvalsh), as omniflow.solve.gain did before the kernels.
 
 Tolerances (measured with these seeds): the sums, in a different order, agree to 3e-16
 of each pool's largest entry (tolerance 1e-13); the solves by Gauss-Jordan against
@@ -113,7 +113,7 @@ def test_gain_sums_check_catches_an_unwrapped_angle():
 
 
 def _numpy_solve(M, v, limit, positive):
-    """omniflow.gain._solve as it was in numpy (stop 18)."""
+    """omniflow.solve.gain._solve as it was in numpy (stop 18)."""
     scale = np.sqrt(np.abs(np.einsum("npp->np", M)))
     scale = np.where(scale > 0, scale, 1.0)
     Ms = M / scale[:, :, None] / scale[:, None, :]

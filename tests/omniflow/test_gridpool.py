@@ -1,4 +1,4 @@
-"""Grid pooling (omniflow.gridpool, ``pool_grid``): the pooled solver's sums by filtering.
+"""Grid pooling (omniflow.solve.gridpool, ``pool_grid``): the pooled solver's sums by filtering.
 
 Checked against closed-form references:
 
@@ -23,12 +23,12 @@ import numpy as np
 import pytest
 
 from omniflow.config import OmniFlowConfig
-from omniflow.decoupled import screen
-from omniflow.flow import neighbourhoods, pooled_solution
-from omniflow.gain import decoupled_linear_gain, gated
-from omniflow.gridpool import GridPools
 from omniflow.kernels import gain_sums, nested_fits
+from omniflow.paper.flow import neighbourhoods, pooled_solution
 from omniflow.pipeline import estimate
+from omniflow.solve.decoupled import screen
+from omniflow.solve.gain import decoupled_linear_gain, gated
+from omniflow.solve.gridpool import GridPools
 from tests.helpers.scenes import band_scene, frames, paper_rig, sparse_true_matches
 
 RADIUS, CELL, SHAPE = 16.0, 2.0, (128, 160)
@@ -362,7 +362,7 @@ def test_gain_f_statistic_from_float32_grid_sums_as_float64(monkeypatch):
     float64 ones, on pools with and without a brightness change: F measured 2.3e-4
     relative at most (tolerance 1e-3; the residual sum, 1e-3 noise under a 2 % gain, is the
     small difference), flow 2.6e-7 px (tolerance 1e-5); the same pools pass gate 20."""
-    import omniflow.gain as gain
+    import omniflow.solve.gain as gain
 
     x, y, tangent, derivs, f, h1, h2 = _gain_case()
     grid = GridPools(x, y, tangent, SHAPE, radius=RADIUS, cell=CELL)
@@ -463,7 +463,7 @@ def _fit_errs(a_fits, b_fits):
 
 def test_grid_linear_gain_test_equals_the_trees_over_the_same_pools():
     """The linear-gain test's fits (omniflow.kernels.nested_fits, as
-    omniflow.gain.decoupled_linear_gain makes them) from the grid's Grams, slopes along
+    omniflow.solve.gain.decoupled_linear_gain makes them) from the grid's Grams, slopes along
     (dx, dy), and from the tree's kernel over the same pools, slopes along (u, dh): the
     same (U, h_1 W, c), confidence and both RSS where the tree's offsets are a linear map
     of the pixel offsets (measured 1.5e-11 relative at most; tolerance 1e-9), at the 99 %
@@ -528,8 +528,8 @@ def _screen_case(n: int = 1500, seed: int = 11):
 
 @pytest.mark.parametrize("mutation", [None, "gate"])
 def test_screen_keeps_every_pool_the_trees_test_passes(mutation):
-    """omniflow.decoupled.screen from the grid's float32 sums keeps every point whose
-    linear-gain test (omniflow.gain.decoupled_linear_gain over the same pools) passes the
+    """omniflow.solve.decoupled.screen from the grid's float32 sums keeps every point whose
+    linear-gain test (omniflow.solve.gain.decoupled_linear_gain over the same pools) passes the
     gate, and drops most of the others (measured: 636 of 1500 pass, the screen keeps them
     and 251 of the 864 others); the mutation (the screen told a 100 times higher gate)
     loses 23 passing points."""
@@ -549,7 +549,7 @@ def test_screen_keeps_every_pool_the_trees_test_passes(mutation):
 
 
 def test_neighbourhoods_of_queried_points_are_the_full_searchs_rows():
-    """omniflow.flow.neighbourhoods with ``query``: the queried rows the full search's, bit
+    """omniflow.paper.flow.neighbourhoods with ``query``: the queried rows the full search's, bit
     for bit (weights made for those rows only), the others index N and weight 0."""
     x, y, _, _, _, r, _, _ = _sums_case(True)
     query = np.random.default_rng(2).random(x.size) < 0.3

@@ -1,4 +1,4 @@
-"""omniflow.jsonio: the one rule for values JSON cannot hold (non-finite -> null)."""
+"""omniflow.io.jsonio: the one rule for values JSON cannot hold (non-finite -> null)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from omniflow import jsonio
-from omniflow.jsonio import json_text, jsonable
+from omniflow.io.jsonio import json_text, jsonable
 
 
 @dataclasses.dataclass

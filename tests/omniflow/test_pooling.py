@@ -1,4 +1,4 @@
-"""Pooling that respects objects: omniflow.flow's edge_between, consistent_neighbours,
+"""Pooling that respects objects: omniflow.paper.flow's edge_between, consistent_neighbours,
 informative_pools, and the pooled solver across a motion boundary.
 
 The closed-form motion boundary (tests.helpers.scenes.band_scene): a textured band
@@ -38,10 +38,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import omniflow.flow as flow
-import omniflow.solve as solve
+import omniflow.paper.flow as flow
+import omniflow.solve.at_matches as solve
 from omniflow.config import OmniFlowConfig
-from omniflow.flow import (
+from omniflow.paper.flow import (
     consistent_neighbours,
     edge_between,
     informative_pools,

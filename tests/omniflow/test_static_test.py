@@ -31,9 +31,9 @@ import math
 import numpy as np
 import pytest
 
-import omniflow.flow as flow_module
+import omniflow.paper.flow as flow_module
 from omniflow.config import OmniFlowConfig
-from omniflow.flow import neighbourhoods, pooled_solution
+from omniflow.paper.flow import neighbourhoods, pooled_solution
 from omniflow.pipeline import estimate
 from tests.helpers.scenes import band_scene, frames, paper_rig, sparse_true_matches
 

@@ -35,7 +35,7 @@ from functools import lru_cache
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from omniflow.dct import DCTFit
+from omniflow.paper.dct import DCTFit
 
 __all__ = [
     "BAND_CANDIDATES",
@@ -160,7 +160,7 @@ def gradient_noise_variance(
     of standard deviation sigma then has variance sigma^2), f_x of the series
     truncated to P x Q has, averaged over the image,
     Var f_x = sigma^2 (Q / Y) (1 / X) sum_{p<P} (pi p / X)^2, and likewise f_y.
-    With ``window`` (Q, P) weights on the coefficients (omniflow.dct.band_window)
+    With ``window`` (Q, P) weights on the coefficients (omniflow.paper.dct.band_window)
     each term carries its weight squared. Returned: the mean of the two (the
     variance of each polar component f_h and f_theta / h_i, which are
     rotations of (f_x, f_y)).

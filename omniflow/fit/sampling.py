@@ -1,6 +1,6 @@
 """Reading the fitted series at the matched points.
 
-From the pixel grids of :class:`omniflow.series.Frame` by cv2.remap (cubic
+From the pixel grids of :class:`omniflow.fit.series.Frame` by cv2.remap (cubic
 or linear), or by evaluating the series exactly (``sampling="exact"``).
 """
 
@@ -9,9 +9,9 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from omniflow.edges import polar_from_cartesian
+from omniflow.fit.series import Frame
 from omniflow.matching import sample_xy
-from omniflow.series import Frame
+from omniflow.paper.edges import polar_from_cartesian
 
 __all__ = ["sample_f", "sample_fine", "sample_polar_grad"]
 

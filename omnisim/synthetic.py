@@ -6,7 +6,7 @@ band-limited function of the surface's own coordinates. Used by the tests and
 the validation suite as exact ground truth (same channel names as the
 ``omnisim`` dataset contract).
 
-Geometry (:mod:`omniflow.rig`, :mod:`omniflow.conventions`). The ray of a
+Geometry (:mod:`omniflow.geometry.rig`, :mod:`omniflow.conventions`). The ray of a
 pixel at image radius h_i and angle theta leaves the cone at radius
 rho = d h_i / (v - h_i) and runs outward in the meridional plane of azimuth
 theta, horizontally along (cos theta, sin theta), with every point obeying
@@ -24,7 +24,7 @@ tangentially a wall at range r spans r / h_i metres per pixel, so near the
 image centre point sampling aliases. ``blur=sigma`` applies a Gaussian pixel
 footprint to every sinusoid analytically (from the Jacobian of the surface
 coordinates), which band-limits the image at the cost of brightness constancy
-holding only to the footprint's change between frames (tests/omniflow/test_synthetic.py
+holding only to the footprint's change between frames (tests/omnisim/test_synthetic.py
 measures both).
 
 World and rig frames. World Z equals rig h (the rig moves only in the plane);
@@ -53,7 +53,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from omniflow.conventions import wrap_angle
-from omniflow.rig import Rig, Unit
+from omniflow.geometry.rig import Rig, Unit
 
 __all__ = [
     "TRUTH_KEYS",

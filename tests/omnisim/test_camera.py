@@ -15,8 +15,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from omniflow.camera import CameraError, CameraModel, camera_image, srgb_encode
-from omniflow.dataset import open_dataset
+from omniflow.io.dataset import open_dataset
+from omnisim.camera import (
+    CameraError,
+    CameraModel,
+    camera_image,
+    dataset_camera,
+    read_camera_dn,
+    read_camera_image,
+    srgb_encode,
+)
 from omnisim.job import render_dataset
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -249,7 +257,7 @@ def test_same_seed_same_bytes_other_camera_seed_other_noise(tmp_path):
     pa, pc = _files(a, "png"), _files(c, "png")
     assert pa.keys() == pc.keys() and all(pa[k] != pc[k] for k in pa)
     da, dc = open_dataset(a), open_dataset(c)
-    assert not np.array_equal(da.read_camera_dn(0, "cam1"), dc.read_camera_dn(0, "cam1"))
+    assert not np.array_equal(read_camera_dn(da, 0, "cam1"), read_camera_dn(dc, 0, "cam1"))
 
 
 def test_exr_keeps_clean_radiance_and_truth_png_is_the_model(tmp_path):
@@ -260,7 +268,7 @@ def test_exr_keeps_clean_radiance_and_truth_png_is_the_model(tmp_path):
     d = _render(tmp_path / "d", **{k: v for k, v in over.items() if k not in SMALL})
     ds = open_dataset(d)
     scene = load_scene(DEFAULT, over)
-    model = ds.camera
+    model = dataset_camera(ds)
     assert model == scene.camera and model.bits == 12
     for k in range(2):
         clean = fakes.render_frame(scene, k)
@@ -272,18 +280,18 @@ def test_exr_keeps_clean_radiance_and_truth_png_is_the_model(tmp_path):
             want = model.apply(
                 ds.read_rgb(k, cam), frame=k, cam=cam, centre=(unit.x_c, unit.y_c), r_m=unit.r_m
             )
-            dn = ds.read_camera_dn(k, cam)
+            dn = read_camera_dn(ds, k, cam)
             assert dn.dtype == np.uint16 and np.array_equal(dn, want)
             # Read-time application equals the stored image; another camera differs.
-            grey = ds.read_camera_image(k, cam, grey=True)
+            grey = read_camera_image(ds, k, cam, grey=True)
             assert np.array_equal(camera_image(ds, k, cam, model), grey)
             noisy = camera_image(ds, k, cam, model.with_overrides(["read_noise=200"]))
             assert noisy.shape == grey.shape and not np.array_equal(noisy, grey)
     # The 16-bit PNG holds DN * 65535 / 4095 (full range), so ordinary readers agree.
-    from omniflow.imageio import read_image
+    from omniflow.io.imageio import read_image
 
     png = read_image(ds.path(1, "cam2", "png"))
-    assert np.abs(png - ds.read_camera_image(1, "cam2")).max() < 1e-5
+    assert np.abs(png - read_camera_image(ds, 1, "cam2")).max() < 1e-5
 
 
 def test_dataset_json_records_every_camera_parameter(tmp_path):
@@ -307,7 +315,7 @@ def test_ci_demo_renders_with_the_camera_defaults(tmp_path):
     assert set(ds.meta["camera"]) == {f.name for f in fields(CameraModel)}
     for cam in ("cam1", "cam2"):
         assert ds.path(1, cam, "png").is_file()
-        assert ds.read_camera_dn(1, cam).dtype == np.uint8
+        assert read_camera_dn(ds, 1, cam).dtype == np.uint8
 
 
 @pytest.mark.parametrize(
@@ -348,7 +356,7 @@ def test_camera_option_on_the_command_line(tmp_path):
     args = ["render", str(DEFAULT), "--out", str(out), "--resolution", "32", "--frames", "1"]
     fake = ["--renderer", FAKE, "--no-progress"]
     assert main([*args, "--camera", "bits=10", "--camera", "response=srgb", *fake]) == 0
-    assert open_dataset(out).camera == CameraModel(bits=10, response="srgb")
+    assert dataset_camera(open_dataset(out)) == CameraModel(bits=10, response="srgb")
     bad = tmp_path / "bad"
     assert main([*args[:2], "--out", str(bad), "--camera", "read_noise=-1", *fake]) == 2
     assert not bad.exists()
@@ -374,7 +382,7 @@ def test_real_render_camera_seed_changes_png_not_exr(tmp_path):
     assert all(_files(a, "png")[k] != v for k, v in _files(c, "png").items())
     # The image is well exposed: the annulus's mean is 20 .. 80 % of the range.
     ds = open_dataset(a)
-    img = ds.read_camera_image(0, "cam1", grey=True)
+    img = read_camera_image(ds, 0, "cam1", grey=True)
     u = ds.unit("cam1")
     yy, xx = np.mgrid[0:40, 0:40] + 0.5
     inside = np.hypot(xx - u.x_c, yy - u.y_c) < u.r_m

@@ -1,4 +1,4 @@
-"""Tests of the closed-form scene generator (omniflow.synthetic).
+"""Tests of the closed-form scene generator (omnisim.synthetic).
 
 Figures measured by printing the maxima on the same scenes (the fixtures of
 tests/conftest.py rebuilt, 128 x 128); each bound states its measured value.
@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from omniflow.synthetic import TRUTH_KEYS, Cylinder, Disc, Motion, SyntheticScene, Texture
+from omnisim.synthetic import TRUTH_KEYS, Cylinder, Disc, Motion, SyntheticScene, Texture
 
 
 def _units(scene, cam):
@@ -333,8 +333,8 @@ def test_blurred_frames_keep_brightness_constancy_along_the_flow(busy_scene):
 
 @pytest.mark.parametrize(("x_c", "y_c", "r_m"), [(61.3, 57.8, 50.37), (64.0, 64.0, 62.0)])
 def test_rim_coverage_is_the_area_inside_the_circle(x_c, y_c, r_m):
-    from omniflow.rig import Unit
-    from omniflow.synthetic import rim_coverage
+    from omniflow.geometry.rig import Unit
+    from omnisim.synthetic import rim_coverage
 
     unit = Unit(d=0.1, R=0.05, x_c=x_c, y_c=y_c, r_m=r_m, width=128, height=128)
     cov = rim_coverage(unit)

@@ -266,7 +266,7 @@ class DCTFit:
             the products would be most of the values' error. Each value then carries
             the rounding of float32 terms (a few float32 ulps of the texture's
             amplitude): for uses where that is far below what they resolve (the
-            refinement's residuals, :mod:`omniflow.refine`).
+            refinement's residuals, :mod:`omniflow.solve.refine`).
 
         Returns
         -------

@@ -16,7 +16,7 @@ displacement in either unit is at least ``OmniFlowConfig.iterate_min_px``
 pixels, and only where at least ``MIN_NEIGHBOURS`` other fast points lie within
 the pool radius, so that a lone wrong match whose first step happens to be fast
 is left as it is. At so few points the fitted series are evaluated exactly
-(:meth:`omniflow.dct.DCTFit.evaluate`) rather than read off pixel grids, so the
+(:meth:`omniflow.paper.dct.DCTFit.evaluate`) rather than read off pixel grids, so the
 step builds no grid. Static points keep the first-order answer, which the extra
 step only makes noisier where the motion is small (the same measurements).
 
@@ -41,9 +41,9 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from omniflow.config import OmniFlowConfig
-from omniflow.edges import polar_from_cartesian
+from omniflow.geometry.rig import Rig
+from omniflow.paper.edges import polar_from_cartesian
 from omniflow.parallel import map_tasks
-from omniflow.rig import Rig
 
 __all__ = ["moving_far", "refine_moving"]
 
@@ -105,17 +105,17 @@ def refine_moving(
 ) -> tuple[NDArray, NDArray, NDArray, NDArray]:
     """``config.iterations`` Gauss-Newton steps at the points :func:`moving_far` selects.
 
-    ``cam1``, ``cam2`` are the per-unit frames of :func:`omniflow.series.unit_frames`
+    ``cam1``, ``cam2`` are the per-unit frames of :func:`omniflow.fit.series.unit_frames`
     (``b``: frame t + 1, ``af``: frame t, both at the flow band);
     ``make_solver(rig, config, x1, y1, theta, h1, h2, r, noise)`` builds the
-    configured solver for a subset (:func:`omniflow.solve.make_solver`, passed
+    configured solver for a subset (:func:`omniflow.solve.at_matches.make_solver`, passed
     in so that this module does not import the module that calls it).
-    ``pools``: the first solve's (idx, w) (:func:`omniflow.flow.neighbourhoods`),
+    ``pools``: the first solve's (idx, w) (:func:`omniflow.paper.flow.neighbourhoods`),
     when it pooled over k-d tree neighbours; the refined points' pool members are
     then solved with them (each linearised about its own first flow, a NaN one
     about zero motion), else the fast points pool among themselves.
     ``brightness``: each unit's image at the points, passed on to ``make_solver`` for
-    the gain term (``config.brightness_gate``, :mod:`omniflow.gain`): the refined
+    the gain term (``config.brightness_gate``, :mod:`omniflow.solve.gain`): the refined
     pools with a brightness change solve with it as the first solve did.
 
     Returns

@@ -19,8 +19,8 @@ from functools import lru_cache
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from omniflow.dct import DCTFit
-from omniflow.rig import Unit
+from omniflow.geometry.rig import Unit
+from omniflow.paper.dct import DCTFit
 
 __all__ = ["polar_from_cartesian", "polar_gradient", "polar_gradient_grid"]
 

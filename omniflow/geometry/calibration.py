@@ -43,8 +43,8 @@ from numpy.typing import ArrayLike, NDArray
 from scipy import ndimage
 from skimage.measure import CircleModel, ransac
 
-from omniflow.imageio import to_grey
-from omniflow.rig import Unit
+from omniflow.geometry.rig import Unit
+from omniflow.io.imageio import to_grey
 
 __all__ = ["RimCircle", "RimError", "calibrate_unit", "find_rim"]
 
@@ -334,7 +334,7 @@ def find_rim(
 def calibrate_unit(
     image: ArrayLike, *, d: float, R: float, tip_h: float = 0.0, name: str = "", **rim_kw
 ) -> Unit:
-    """A :class:`~omniflow.rig.Unit` from an omni image and the mirror's d and R.
+    """A :class:`~omniflow.geometry.rig.Unit` from an omni image and the mirror's d and R.
 
     The rim gives (x_c, y_c, r_m); v follows from eq. (2) through ``Unit.v``.
     Extra keyword arguments go to :func:`find_rim`.

@@ -18,14 +18,14 @@ point of a coaxial rig), so the decoupled model has three unknowns,
 (U, W, dtheta/dt), in eq. (9) of unit 1 and eq. (10) of unit 2, pooled over
 the same neighbours as the coupled solve (U, W and dtheta/dt shared by the
 pool, a rigid patch at one range; with ``pool_grid`` the solver's grid windows,
-:meth:`omniflow.gridpool.GridPools.decouple_sums`)::
+:meth:`omniflow.solve.gridpool.GridPools.decouple_sums`)::
 
     f1_h (U - h_1 W) + f1_theta b = -f1_t                       # eq. (9)
     f2_h (U - h_2 W) + f2_theta b = -f2_t                       # eq. (10)
 
 Detection (:func:`decouple`). Both models are fitted in weighted least
 squares over each point's pool (constant model; with U = 0 the radial flow
-scales with the image radius as in :func:`omniflow.flow.pooled_solution`);
+scales with the image radius as in :func:`omniflow.paper.flow.pooled_solution`);
 the decoupled one has one more unknown, so its residual sum is never
 larger. The F statistic of that one extra unknown,
 
@@ -44,13 +44,13 @@ A brightness change that varies across a pool (a body turning under fixed
 lights) inflates both fits' residuals and hides a failing eq. (14) from that
 test. With ``OmniFlowConfig.decouple_gain_tol`` the test is made again with a
 gain varying linearly across the pool in both models
-(:func:`omniflow.gain.decoupled_linear_gain`), and the points it passes
+(:func:`omniflow.solve.gain.decoupled_linear_gain`), and the points it passes
 (:func:`chained`) take the decoupled model with that gain (without it where
-the gain does not matter: :data:`omniflow.gain.MIN_GAIN_F`).
+the gain does not matter: :data:`omniflow.solve.gain.MIN_GAIN_F`).
 
 Range rate without eq. (14): subtracting the two differentiated equations
 gives dr/dt = -(d + r)(dh_2/dt - dh_1/dt) / (h_2 - h_1)
-(:func:`omniflow.applications.radial_velocity_stereo`), exact whatever dh/dt.
+(:func:`omniflow.applications.navigation.radial_velocity_stereo`), exact whatever dh/dt.
 """
 
 from __future__ import annotations
@@ -60,14 +60,14 @@ from collections.abc import Callable
 import numpy as np
 from numpy.typing import NDArray
 
-from omniflow.applications import radial_velocity_stereo
+from omniflow.applications.navigation import radial_velocity_stereo
 from omniflow.config import OmniFlowConfig
-from omniflow.flow import neighbourhoods
-from omniflow.gain import decoupled_gain, decoupled_linear_gain, gated
-from omniflow.gridpool import GridPools
+from omniflow.geometry.rig import Rig
 from omniflow.kernels import decouple_fits, decouple_sums, nested_fits
+from omniflow.paper.flow import neighbourhoods
 from omniflow.parallel import Task, submit
-from omniflow.rig import Rig
+from omniflow.solve.gain import decoupled_gain, decoupled_linear_gain, gated
+from omniflow.solve.gridpool import GridPools
 
 __all__ = [
     "EDGE_GATE",
@@ -101,7 +101,7 @@ def model_fits(
     h1, h2 : ndarray, shape (N,)
         Matched image radii, pixels.
     idx, w : ndarray, shape (N, K)
-        Pools as :func:`omniflow.flow.neighbourhoods` returns them (index N:
+        Pools as :func:`omniflow.paper.flow.neighbourhoods` returns them (index N:
         no neighbour, weight 0).
 
     Returns
@@ -120,7 +120,7 @@ def model_fits(
 
 def fits_from_sums(sums: NDArray, h1: NDArray, h2: NDArray) -> dict[str, NDArray]:
     """:func:`model_fits` from the pools' sums (:func:`omniflow.kernels.decouple_sums`
-    or :meth:`omniflow.gridpool.GridPools.decouple_sums`, columns
+    or :meth:`omniflow.solve.gridpool.GridPools.decouple_sums`, columns
     :data:`omniflow.kernels.DECOUPLE_SUMS`).
 
     Unknowns (U, W, c): dh_i/dt = U - h_i W in either unit (eq. 3-4 differentiated,
@@ -163,7 +163,7 @@ def decouple(
 ) -> dict[str, NDArray]:
     """Add the ``coupled`` column and, where eq. (14) fails, the decoupled flow.
 
-    ``cols`` are the result columns of :func:`omniflow.solve.flow_at_matches`
+    ``cols`` are the result columns of :func:`omniflow.solve.at_matches.flow_at_matches`
     (the six derivatives, ``x``, ``y``, ``h1``, ``h2``, ``r``, ``theta``
     among them). With ``config.decouple_tol`` None, or the direct solver,
     every point stays coupled and only the column is added. Otherwise the
@@ -171,14 +171,14 @@ def decouple(
     ``config.decouple_tol`` get the three-unknown solution: ``dh1_dt``,
     ``dh2_dt`` and ``dtheta_dt`` from their own pool, the displacements
     from those, and ``dr_dt`` from both radial flows
-    (:func:`omniflow.applications.radial_velocity_stereo`, eq. (14) not
+    (:func:`omniflow.applications.navigation.radial_velocity_stereo`, eq. (14) not
     assumed). ``displacement(unit, h_i, theta, dh, dtheta)`` gives the pixel
     flow (dx, dy) of a polar flow, the solver's own (passed in, so that this
     module does not import the solver that calls it).
 
     ``pools``: (idx, w, keep), the solver's own k-d tree pools of the matches
     before the points without a solution were dropped (``keep`` False), from the
-    same query (:func:`omniflow.flow.neighbourhoods` with the same k, radius,
+    same query (:func:`omniflow.paper.flow.neighbourhoods` with the same k, radius,
     ranges and no edge test): the pools of the kept points are taken from them
     (:func:`kept_pools`) instead of searched again.
 
@@ -186,12 +186,12 @@ def decouple(
     the flow columns, so the solver can start it before its last step); None:
     made here.
 
-    ``brightness``: each unit's image at the points (:mod:`omniflow.gain`); with
+    ``brightness``: each unit's image at the points (:mod:`omniflow.solve.gain`); with
     ``config.brightness_gate`` the decoupled points whose pool's F statistic of a gain
     passes the gate take the decoupled model with the gain (over the k-d tree pools).
     With ``config.decouple_gain_tol`` (and ``fit`` made with ``brightness``), eq. (14)
     is then tested again with a gain varying linearly across the pool in both fits
-    (:func:`omniflow.gain.decoupled_linear_gain`, over the k-d tree pools): the points
+    (:func:`omniflow.solve.gain.decoupled_linear_gain`, over the k-d tree pools): the points
     whose F_U passes :func:`chained`'s gate take the decoupled model with that gain
     and are reported decoupled, whatever the steps before answered.
     """
@@ -231,8 +231,9 @@ def decouple(
 
 
 def _with_gain(cols, rig, config, switch, brightness, a1, a2, b):
-    """(a1, a2, b) with the decoupled model's gain answer (:func:`omniflow.gain.decoupled_gain`)
-    at the switched points whose F statistic of the gain passes ``config.brightness_gate``."""
+    """(a1, a2, b) with the decoupled model's gain answer
+    (:func:`omniflow.solve.gain.decoupled_gain`) at the switched points whose F statistic
+    of the gain passes ``config.brightness_gate``."""
     radius = rig.cam1.r_m / 8.0 if config.pool_radius is None else config.pool_radius
     idx, w = neighbourhoods(cols["x"], cols["y"], k=config.pool_k, radius=radius, r=cols["r"],
                             range_tol=config.pool_range_tol, query=switch)  # fmt: skip
@@ -261,7 +262,7 @@ EDGE_GATE = 0.5
 
 def chained(fit: dict[str, NDArray], tol: float) -> NDArray:
     """Where :func:`decouple` takes the decoupled model with a linear gain: the F_U of
-    :func:`omniflow.gain.decoupled_linear_gain` (``fit["gain_F"]``) above ``tol``, or
+    :func:`omniflow.solve.gain.decoupled_linear_gain` (``fit["gain_F"]``) above ``tol``, or
     above ``EDGE_GATE * tol`` on a range-edge pool (``fit["gain_edge"]``,
     :data:`EDGE_SHARE`), and a finite answer."""
     gate = np.where(fit["gain_edge"], EDGE_GATE * tol, tol)
@@ -286,17 +287,17 @@ def pool_fits(
 
     Reads only the columns ``x``, ``y``, ``r``, ``h1``, ``h2``, ``theta`` and the six
     derivatives, none of the solved flow, so the solver can have it made on the
-    other thread while it refines the flow (:func:`omniflow.solve.flow_at_matches`).
+    other thread while it refines the flow (:func:`omniflow.solve.at_matches.flow_at_matches`).
     ``pools`` as for :func:`decouple`.
 
     With ``config.decouple_gain_tol`` and ``brightness`` (each unit's image at the
     points) also the decoupled model with a linear gain and its F_U
-    (:func:`omniflow.gain.decoupled_linear_gain`) over the k-d tree pools: keys
+    (:func:`omniflow.solve.gain.decoupled_linear_gain`) over the k-d tree pools: keys
     ``gain_a1``, ``gain_a2``, ``gain_b``, ``gain_F`` and ``gain_edge`` (the pool on a range
     edge, :data:`EDGE_SHARE`). With grid pools the tree is searched here (the same k,
     radius and range test), at the points :func:`screen` keeps only: the test made first
     on the grid's windows cut at about the tree's ``pool_k`` points
-    (:meth:`omniflow.gridpool.GridPools.k_window`), which cannot stand in for the tree's
+    (:meth:`omniflow.solve.gridpool.GridPools.k_window`), which cannot stand in for the tree's
     (its pools hold other points, and the test's gates were set on the tree's), tells
     where the tree's test may pass; elsewhere ``gain_F`` is NaN (not switched).
 
@@ -408,7 +409,7 @@ def _deferred(fn: Callable, *args) -> Task:
 
 
 #: :func:`screen`'s least RSS_coupled / RSS_decoupled over the grid's window (the tree's
-#: test asks 2, :data:`omniflow.gain.MIN_RESIDUAL_RATIO`, over its own pools). With
+#: test asks 2, :data:`omniflow.solve.gain.MIN_RESIDUAL_RATIO`, over its own pools). With
 #: :data:`SCREEN_F` it keeps 11 % of the dense preset's points on the five rendered scenes
 #: (15 pairs) and loses 4 of the 487 the tree's test switched there (grid ratio 1.030-1.073),
 #: every omnivalidate figure unchanged; 1.02 keeps 40 % and loses none (the same columns bit
@@ -421,8 +422,8 @@ SCREEN_F = 0.1
 
 
 def screen(sums: tuple[NDArray, ...], min_conditioning: float, gate: float) -> NDArray:
-    """The points whose linear-gain test (:func:`omniflow.gain.decoupled_linear_gain`) may
-    pass ``gate``, from the grid's sums (:meth:`omniflow.gridpool.GridPools.linear_gain_sums`
+    """The points whose linear-gain test (:func:`omniflow.solve.gain.decoupled_linear_gain`) may
+    pass ``gate``, from the grid's sums (:meth:`omniflow.solve.gridpool.GridPools.linear_gain_sums`
     over a window of about the tree's pool): the test's F_U over the grid's window above
     :data:`SCREEN_F` ``gate`` with RSS_coupled at least :data:`SCREEN_RATIO` RSS_decoupled,
     and every point where the grid's test is undecided (a fit without a solution, or fewer
@@ -447,7 +448,7 @@ def kept_pools(
 ) -> tuple[NDArray, NDArray]:
     """The k-nearest pools of the kept points among themselves, from the pools of all.
 
-    ``idx``, ``w`` (N, K): :func:`omniflow.flow.neighbourhoods` of N points;
+    ``idx``, ``w`` (N, K): :func:`omniflow.paper.flow.neighbourhoods` of N points;
     ``keep`` (N,) bool: the points that stay. The pools :func:`neighbourhoods` would
     give the M kept points on their own: a row keeps its kept neighbours, in the
     same order (nearest first) and with the same weights (a weight depends only on

@@ -27,7 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from omniflow.config import OmniFlowConfig
-from omniflow.rig import Rig, Unit
+from omniflow.geometry.rig import Rig, Unit
 
 __all__ = ["MOVING_MIN_POINTS", "flatten_shading", "flow_units", "moving_points", "where_moving"]
 
@@ -64,7 +64,7 @@ def flow_units(
 ) -> tuple[dict, dict]:
     """Both units' flow-step series fitted to shading-flattened frames
     (``config.flow_shading`` px), each keeping the matcher's frame ``a`` of ``cams``."""
-    from omniflow.series import fit_band, unit_fits, unit_frames
+    from omniflow.fit.series import fit_band, unit_fits, unit_frames
 
     out = []
     for frames, unit, cam, what in ((frames1, rig.cam1, cams[0], "frames1"),
@@ -90,7 +90,7 @@ class _Flattened:
     def __getitem__(self, k: int) -> NDArray:
         frame = self.frames[k]
         if self.unit is not None:  # the mirror's outside reflected in first, as the fit will
-            from omniflow.series import fill_outside_rim
+            from omniflow.fit.series import fill_outside_rim
 
             frame = fill_outside_rim(np.asarray(frame, dtype=np.float32), self.unit)
         return flatten_shading(frame, self.sigma)
@@ -99,15 +99,15 @@ class _Flattened:
 def moving_points(cols: dict[str, NDArray], rig: Rig) -> NDArray:
     """(N,) bool: the points of independently moving objects in a flow result's columns.
 
-    Odometry's outliers (:func:`omniflow.applications.odometry` on every point's
+    Odometry's outliers (:func:`omniflow.applications.navigation.odometry` on every point's
     dtheta/dt and dr/dt: the points whose flow the robot's own motion does not
     explain), linked in cam1's image within r_m / 10 px (the command's
     ``--auto-link`` default) into groups of at least :data:`MOVING_MIN_POINTS`
-    (:func:`omniflow.regions.auto_groups`); a stray outlier on a static surface
+    (:func:`omniflow.applications.regions.auto_groups`); a stray outlier on a static surface
     is in no such group. No point where the fit fails (too few points).
     """
-    from omniflow.applications import odometry
-    from omniflow.regions import auto_groups
+    from omniflow.applications.navigation import odometry
+    from omniflow.applications.regions import auto_groups
 
     n = len(cols["x"])
     try:
@@ -124,7 +124,7 @@ def where_moving(
 ) -> tuple[dict[str, NDArray], int]:
     """``plain``'s columns with ``flat``'s values at the moving points (:func:`moving_points`).
 
-    Both are :func:`omniflow.solve.flow_at_matches` columns of the same matches; a point
+    Both are :func:`omniflow.solve.at_matches.flow_at_matches` columns of the same matches; a point
     either solve dropped (non-finite flow) is matched by its cam1 pixel, and one that
     ``flat`` lacks keeps its plain values. Returns the columns and the number of points
     that took the flattened flow.

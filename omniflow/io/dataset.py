@@ -36,8 +36,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from omniflow.imageio import _native_reason, native_output_captured, to_grey
-from omniflow.rig import Rig, RigError, rig_from_dict
+from omniflow.geometry.rig import Rig, RigError, rig_from_dict
+from omniflow.io.imageio import _native_reason, native_output_captured, to_grey
 
 __all__ = [
     "CHANNELS",
@@ -57,7 +57,6 @@ __all__ = [
     "READ_VERSIONS",
     "Dataset",
     "DatasetError",
-    "camera_from_meta",
     "camera_names",
     "channels_for",
     "check_poses",
@@ -78,7 +77,7 @@ __all__ = [
 FORMAT_NAME = "omnisim-dataset"
 FORMAT_VERSION = 2
 #: Format versions this module reads (and writes: a frame of version 1 channels is
-#: written as version 1, e.g. by ``omniflow.synthetic``, which has no backward flow).
+#: written as version 1, e.g. by ``omnisim.synthetic``, which has no backward flow).
 READ_VERSIONS = (1, 2)
 
 #: Ground-truth channel names of format version 1.
@@ -275,29 +274,11 @@ def read_flo(path: str | Path) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
 
 def grey_of(channels: Mapping[str, NDArray]) -> NDArray[np.float32]:
     """Rec. 709 luminance (H, W) float32 of a frame's linear ``R``, ``G``, ``B`` channels
-    (:func:`omniflow.imageio.to_grey`, the project's one luma)."""
+    (:func:`omniflow.io.imageio.to_grey`, the project's one luma)."""
     return to_grey(np.stack([channels["R"], channels["G"], channels["B"]], axis=-1))
 
 
 # -- dataset.json ------------------------------------------------------------------
-
-
-def camera_from_meta(meta: Mapping[str, Any]) -> tuple[Any, Rig | None]:
-    """``(CameraModel, Rig)`` of a dataset.json with a ``camera`` section, else ``(None, None)``.
-
-    Raises :class:`DatasetError` when the section or the rig is malformed.
-    """
-    section = meta.get("camera")
-    if section is None:
-        return None, None
-    from omniflow.camera import CameraError, CameraModel
-
-    try:
-        model = CameraModel.from_mapping(section, where="dataset.json")
-        rig = rig_from_dict(meta, where="dataset.json")
-    except (CameraError, RigError) as exc:
-        raise DatasetError(str(exc)) from exc
-    return model, rig
 
 
 def expected_files(
@@ -421,7 +402,7 @@ class Dataset:
         return channels_for(self.version)
 
     def unit(self, cam: str):
-        """The :class:`omniflow.rig.Unit` of camera ``cam``."""
+        """The :class:`omniflow.geometry.rig.Unit` of camera ``cam``."""
         if cam not in ("cam1", "cam2"):
             raise DatasetError(
                 f"{self.dir}: unknown camera {cam!r}; expected one of {self.cameras}"
@@ -451,7 +432,8 @@ class Dataset:
     def complete(self) -> bool:
         return len(self.frames_done()) == self.frame_count
 
-    def _check(self, k: int, cam: str) -> None:
+    def check_frame(self, k: int, cam: str) -> None:
+        """:class:`DatasetError` unless camera ``cam`` of frame ``k`` is rendered and complete."""
         if cam not in self.cameras:
             raise DatasetError(
                 f"{self.dir}: unknown camera {cam!r}; expected one of {self.cameras}"
@@ -463,7 +445,7 @@ class Dataset:
 
     def read_frame(self, k: int, cam: str) -> dict[str, NDArray[np.float32]]:
         """Channels of frame ``k``, camera ``cam``: name -> float32 (H, W)."""
-        self._check(k, cam)
+        self.check_frame(k, cam)
         path = self.path(k, cam, "exr")
         chans = read_exr(path)
         missing = [c for c in self.channels if c not in chans]
@@ -487,54 +469,15 @@ class Dataset:
         """Rec. 709 luminance (H, W) of frame ``k``, camera ``cam`` (:func:`grey_of`)."""
         return grey_of(self.read_frame(k, cam))
 
-    @property
-    def camera(self):
-        """The dataset's :class:`omniflow.camera.CameraModel` (dataset.json ``camera``), or
-        None for a dataset written without one (no PNGs)."""
-        return camera_from_meta(self.meta)[0]
-
-    def read_camera_dn(self, k: int, cam: str) -> NDArray[np.unsignedinteger]:
-        """Digital numbers (H, W, 3) of the camera image ``cam.png`` of frame ``k``:
-        ``uint8`` for 8 bits, else ``uint16`` in ``[0, 2^bits - 1]``."""
-        import cv2
-
-        self._check(k, cam)
-        model = self.camera
-        path = self.path(k, cam, "png")
-        if model is None:
-            raise DatasetError(f"{self.dir}: dataset.json has no camera section: no camera images")
-        pixels = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-        if pixels is None:
-            raise DatasetError(f"{path}: cannot read the camera image")
-        if pixels.ndim == 3:
-            pixels = pixels[..., ::-1]  # OpenCV's BGR -> RGB
-        unit = self.unit(cam)
-        if pixels.shape[:2] != (unit.height, unit.width):
-            raise DatasetError(
-                f"{path}: image is {pixels.shape[1]}x{pixels.shape[0]}, dataset.json says "
-                f"{unit.width}x{unit.height}"
-            )
-        try:
-            return model.dn_from_png(pixels)
-        except ValueError as exc:
-            raise DatasetError(f"{path}: {exc}") from exc
-
-    def read_camera_image(self, k: int, cam: str, *, grey: bool = False) -> NDArray[np.float32]:
-        """The stored camera image of frame ``k`` as float32 in [0, 1]: RGB (H, W, 3), or
-        with ``grey=True`` its Rec. 709 luma (H, W), as omniflow reads it."""
-        model = self.camera
-        dn = self.read_camera_dn(k, cam)
-        return model.grey(dn) if grey else model.to_float(dn)
-
     def read_flo(self, k: int, cam: str) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
         """The .flo of frame ``k``, camera ``cam``: (flow (H, W, 2), valid (H, W))."""
-        self._check(k, cam)
+        self.check_frame(k, cam)
         return read_flo(self.path(k, cam, "flo"))
 
     def read_flow_masks(self, k: int, cam: str) -> dict[str, NDArray[np.bool_]]:
         """The mask PNGs beside frame ``k``'s .flo: ``{"gt.flow.occluded": (H, W) bool,
         "gt.flow.outside": ...}`` (version 2; a version 1 dataset has none: {})."""
-        self._check(k, cam)
+        self.check_frame(k, cam)
         if self.version < 2:
             return {}
         return {name: read_mask_png(self.path(k, cam, sfx)) for sfx, name in MASK_FILES.items()}

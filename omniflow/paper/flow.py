@@ -54,8 +54,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
-from omniflow.gridpool import GridPools
 from omniflow.kernels import cell_knn, pooled_solves, pooled_sums
+from omniflow.solve.gridpool import GridPools
 
 __all__ = [
     "axial_motion_violation",
@@ -257,7 +257,7 @@ def neighbourhoods(
         this keeps them all (its solve would be near-singular).
     query : ndarray of bool, shape (N,), optional
         Search the pools of these points only (the others get none: index
-        N, weight 0); :class:`omniflow.gridpool.GridPools` pools the rest.
+        N, weight 0); :class:`omniflow.solve.gridpool.GridPools` pools the rest.
 
     Returns
     -------
@@ -628,7 +628,7 @@ def pooled_solution(
         derivative carries little but error) gives way there to the other.
         Generalised least squares with the noise measured, not assumed.
     grid : GridPools, optional
-        Pool by filtering on a grid (:mod:`omniflow.gridpool`) instead of over
+        Pool by filtering on a grid (:mod:`omniflow.solve.gridpool`) instead of over
         ``idx``, ``w`` (``relative`` model, ``"equal"`` weighting only); the
         tangential offset u is then the tangential component of the pixel
         offset, equal to h_1,i (theta_j - theta_i) to first order.

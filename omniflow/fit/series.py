@@ -19,15 +19,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 from omniflow.config import OmniFlowConfig
-from omniflow.dct import DCTFit, _cos3, band_window, fit_dct, fit_dct3
-from omniflow.matching import polar_gradient_fast
-from omniflow.noise import (
+from omniflow.fit.noise import (
     BAND_CANDIDATES,
     choose_band,
     gradient_noise_variance,
     immerkaer_sigma,
 )
-from omniflow.rig import Unit
+from omniflow.geometry.rig import Unit
+from omniflow.matching import polar_gradient_fast
+from omniflow.paper.dct import DCTFit, _cos3, band_window, fit_dct, fit_dct3
 
 __all__ = [
     "Frame",
@@ -184,7 +184,7 @@ def unit_fits(
 
 def truncate(fit: DCTFit, band: float, taper: float = 0.0) -> DCTFit:
     """The series with only the coefficients of ``band`` kept (eq. 18 truncated further),
-    rolled off over the outer ``taper`` of the band (omniflow.dct.band_window; 0: sharp)."""
+    rolled off over the outer ``taper`` of the band (omniflow.paper.dct.band_window; 0: sharp)."""
     q = max(1, round(band * fit.height))
     p = max(1, round(band * fit.width))
     if q >= fit.Q and p >= fit.P and taper == 0.0:

@@ -4,7 +4,7 @@ Generic over where the flow lives: a dense field ``(H, W)`` with an optional
 validity mask, or scattered points ``x, y`` (continuous pixel coordinates,
 pixel centres at ``j + 0.5`` as in :mod:`omniflow.conventions`) with their
 vectors ``dx, dy`` in pixels. Every function returns an RGB ``uint8`` image
-``(H, W, 3)``; save it with :func:`omniflow.imageio.write_png` (``bits=8``).
+``(H, W, 3)``; save it with :func:`omniflow.io.imageio.write_png` (``bits=8``).
 
 Colour coding (Baker et al., "A Database and Evaluation Methodology for Optical
 Flow", IJCV 2011): hue gives the direction, saturation the magnitude relative
@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from omniflow.imageio import to_grey, to_uint8
+from omniflow.io.imageio import to_grey, to_uint8
 
 __all__ = [
     "color_wheel",

@@ -2,7 +2,7 @@
 
 A region is a set of the matched points of one frame pair, named by the user
 or found automatically, over which section 6 of the paper averages the flow
-(:func:`omniflow.applications.region_flow`) to get the object's radial
+(:func:`omniflow.applications.navigation.region_flow`) to get the object's radial
 velocity, time to contact and a steering heading. This module turns the
 ``omniflow`` command's region options into point memberships and rows:
 
@@ -286,17 +286,17 @@ def summarise(
 
     The mean flow of the points with finite values, their mean dr/dt, and the
     centroid's range, bearing, radial velocity and time to contact from
-    :func:`omniflow.applications.region_flow`, the steering headings from
-    :func:`omniflow.applications.steering_heading` (``lead`` frames ahead).
+    :func:`omniflow.applications.navigation.region_flow`, the steering headings from
+    :func:`omniflow.applications.navigation.steering_heading` (``lead`` frames ahead).
     A region without usable points gets 0 points and NaN elsewhere.
 
-    ``monocular`` (the cam1-only columns of :mod:`omniflow.monocular`) and
+    ``monocular`` (the cam1-only columns of :mod:`omniflow.solve.monocular`) and
     ``monocular_member`` (which of them lie in the region) add the
     ``monocular_*`` columns: the bearing and bearing rate of an object the rig
     cannot range (no range, so no dr/dt or time to contact from them). Without
     them those columns are NaN (written empty).
     """
-    from omniflow.applications import region_flow, steering_heading, time_to_contact
+    from omniflow.applications.navigation import region_flow, steering_heading, time_to_contact
 
     row: dict[str, Any] = {"name": name, "kind": kind, "spec": spec}
     member = np.asarray(member, dtype=bool)

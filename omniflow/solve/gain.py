@@ -15,7 +15,7 @@ with f the image at the point (frame t at the matching band, whose grid the
 matcher has made; any smooth image of the brightness serves as its regressor: the
 gradients' own series, the mean of frames t and t + 1 at the flow band, gave the same
 rendered figures within 1 % at a grid more per unit). They are solved in the same
-weighted least squares as :func:`omniflow.flow.pooled_solution` (its local
+weighted least squares as :func:`omniflow.paper.flow.pooled_solution` (its local
 model and its errors-in-variables correction), beta one more unknown.
 
 The extra unknown costs accuracy where nothing changes brightness (it takes
@@ -27,7 +27,7 @@ of beta against the plain fit,
 
 exceeds ``OmniFlowConfig.brightness_gate`` (n_eff = 2 (sum w)^2 / sum w^2,
 both units' rows, P the gain fit's unknowns, as the two-model test of
-:mod:`omniflow.decoupled`). Measured in docs/measurements.md, "A
+:mod:`omniflow.solve.decoupled`). Measured in docs/measurements.md, "A
 brightness-change term in the pools: probe" and "brightness_gate: the gated
 gain term built".
 
@@ -40,8 +40,8 @@ gain), and takes the linear gain where its three columns' F against the plain fi
 (docs/measurements.md, "The spinner's linear gain").
 
 :func:`gain_solution` is the coupled solve (eq. 14 assumed), used by
-:func:`omniflow.solve.make_solver` in the first solve and in the refinement;
-:func:`decoupled_gain` the three-unknown model of :mod:`omniflow.decoupled`
+:func:`omniflow.solve.at_matches.make_solver` in the first solve and in the refinement;
+:func:`decoupled_gain` the three-unknown model of :mod:`omniflow.solve.decoupled`
 with the gain, used where that model was chosen.
 """
 
@@ -50,8 +50,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from omniflow.gridpool import GridPools
 from omniflow.kernels import gain_sums, nested_fits, small_solves
+from omniflow.solve.gridpool import GridPools
 
 __all__ = [
     "MIN_CHANGE",
@@ -74,7 +74,7 @@ __all__ = [
 #: docs/measurements.md, "brightness_gate made cheap, and the default".
 MIN_CHANGE = 0.002
 
-#: The grid windows' sums (``pool_grid``, :meth:`omniflow.gridpool.GridPools.gain_sums`)
+#: The grid windows' sums (``pool_grid``, :meth:`omniflow.solve.gridpool.GridPools.gain_sums`)
 #: filtered in float32 (True, as the plain grid sums) or float64. float32 took the dense
 #: preset's gain sums from 25 to 19 ms at 8,700 points and changed its answers at float32's
 #: rounding (flow 9e-7 of the largest, F 1.2e-5 relative, no gate decision);
@@ -153,7 +153,7 @@ def gain_solution(
     grid: GridPools | None = None,
     linear_gain: bool = False,
 ) -> tuple[NDArray, NDArray, NDArray, NDArray]:
-    """Eq. (9) and (15) with a gain per pool, pooled as :func:`omniflow.flow.pooled_solution`.
+    """Eq. (9) and (15) with a gain per pool, pooled as :func:`omniflow.paper.flow.pooled_solution`.
 
     Parameters
     ----------
@@ -163,9 +163,9 @@ def gain_solution(
         Each unit's image at the points.
     h1, h2, theta : ndarray, shape (N,)
     idx, w : ndarray, shape (N, K), or None
-        Pools as :func:`omniflow.flow.neighbourhoods` returns them (unused with ``grid``).
+        Pools as :func:`omniflow.paper.flow.neighbourhoods` returns them (unused with ``grid``).
     model, scale, min_conditioning
-        As :func:`omniflow.flow.pooled_solution` (``relative`` radial model).
+        As :func:`omniflow.paper.flow.pooled_solution` (``relative`` radial model).
     noise, residual_noise
         Each unit's gradient-noise variance, per unit variance of the image
         noise measured from the residuals with ``residual_noise``
@@ -175,7 +175,7 @@ def gain_solution(
         Correct only the pools whose F exceeds this (the others' answers are not
         taken, :func:`gated`): they keep the uncorrected fit.
     grid : GridPools, optional
-        Pool over the grid's windows instead (:meth:`omniflow.gridpool.GridPools.gain_sums`,
+        Pool over the grid's windows instead (:meth:`omniflow.solve.gridpool.GridPools.gain_sums`,
         the pools of the plain solve with ``pool_grid``).
     linear_gain : bool
         A gain varying linearly across the pool, (beta + beta_u u_j + beta_h dh_j) f_j
@@ -272,11 +272,11 @@ def decoupled_gain(
     idx: NDArray,
     w: NDArray,
 ) -> tuple[NDArray, NDArray, NDArray, NDArray]:
-    """The decoupled model of :mod:`omniflow.decoupled` (U, h_1,i W, c) with a gain per pool.
+    """The decoupled model of :mod:`omniflow.solve.decoupled` (U, h_1,i W, c) with a gain per pool.
 
     Unit u's row of neighbour j: (f_h, -f_h h_u,j / h_1,i, f_theta / h_1,i, -f) .
     (U, h_1,i W, c, beta) = -f_t (eq. 9 and 10 with the gain), constant model, no
-    bias compensation, as :func:`omniflow.decoupled.fits_from_sums`. Returns
+    bias compensation, as :func:`omniflow.solve.decoupled.fits_from_sums`. Returns
     (dh1_dt, dh2_dt, dtheta_dt, F), F the statistic of beta against the
     three-unknown fit; NaN where a pool has no solution or |beta| is below
     :data:`MIN_CHANGE`. The rows of ``idx`` whose
@@ -314,7 +314,7 @@ def decoupled_linear_gain(
     Where a body turns under fixed lights (independent_movers' ring) its texture
     moves along the axis, so eq. (14) fails, and its brightness changes unevenly
     across a pool, which inflates both models' residuals: the plain two-model
-    test (:mod:`omniflow.decoupled`) and the one gain per pool do not find it.
+    test (:mod:`omniflow.solve.decoupled`) and the one gain per pool do not find it.
     Here unit u's row of neighbour j carries the decoupled model of
     :func:`decoupled_gain` and a gain (beta + beta_u u_j + beta_h dh_j) f_u,j,
     u_j and dh_j the tangential and radial offsets of j from the point over
@@ -332,7 +332,7 @@ def decoupled_linear_gain(
 
     (n_eff = 2 (sum w)^2 / sum w^2, both units' rows) is eq. (14)'s test given
     the brightness model. Constant flow model, no bias compensation (as the
-    decoupled model of :func:`omniflow.decoupled.fits_from_sums`); each solve NaN
+    decoupled model of :func:`omniflow.solve.decoupled.fits_from_sums`); each solve NaN
     where the information left on its first two unknowns (the Schur complement)
     is below ``min_conditioning`` (:func:`omniflow.kernels.small_solves`).
     ``slopes`` False: one gain per pool (beta only, 4 and 3 unknowns), the same test.
@@ -445,7 +445,7 @@ def _own_rows(derivs, f, h1, h2, p):
 def _corrected(M, v, powers, k, n1, n2, min_conditioning):
     """(a, c, confidence) with the expected gradient-noise power subtracted from the
     normal matrix's gradient entries (bias-compensated least squares, as
-    :func:`omniflow.flow.pooled_solution`: a row's noise n1 + n2 k^2 times its weight and
+    :func:`omniflow.paper.flow.pooled_solution`: a row's noise n1 + n2 k^2 times its weight and
     power of u, the neighbours' ratios taken as the point's own); NaN where the signal
     does not outweigh the noise on both components or the result is not positive definite."""
     per_row = [n1 * s + n2 * k**2 * s for s in powers.T]

@@ -1,12 +1,12 @@
 """The flow at the matches: sample the derivatives, solve eq. (9) and (15).
 
 :func:`flow_at_matches` reads the gradients and temporal derivatives of both
-units at the matched points (:mod:`omniflow.sampling`), solves for the polar
+units at the matched points (:mod:`omniflow.fit.sampling`), solves for the polar
 flow with the configured solver (:func:`make_solver`: eq. (16) per point, or
-the equations of neighbouring matches pooled, :mod:`omniflow.flow`),
+the equations of neighbouring matches pooled, :mod:`omniflow.paper.flow`),
 optionally iterates (Gauss-Newton), and returns the result columns.
 
-The two-model test of eq. (14) (:mod:`omniflow.decoupled`) pools the
+The two-model test of eq. (14) (:mod:`omniflow.solve.decoupled`) pools the
 derivatives, not the flow, so its pool fits are made on the other thread of
 :mod:`omniflow.parallel` while this one refines the flow; they are used only
 where the refinement kept the same points (it does: a refined flow stays
@@ -21,11 +21,13 @@ from functools import partial
 import numpy as np
 from numpy.typing import NDArray
 
-from omniflow.applications import radial_velocity
+from omniflow.applications.navigation import radial_velocity
 from omniflow.config import OmniFlowConfig
-from omniflow.decoupled import decouple, start_pool_fits, tests
-from omniflow.flow import conditioning as direct_conditioning
-from omniflow.flow import (
+from omniflow.fit.sampling import sample_f, sample_fine, sample_polar_grad
+from omniflow.geometry.rig import Rig, Unit
+from omniflow.matching import Matches
+from omniflow.paper.flow import conditioning as direct_conditioning
+from omniflow.paper.flow import (
     consistent_neighbours,
     determinant,
     direct_solution,
@@ -33,13 +35,11 @@ from omniflow.flow import (
     neighbourhoods,
     pooled_solution,
 )
-from omniflow.gain import gain_solution, gated
-from omniflow.gridpool import GridPools
-from omniflow.matching import Matches
 from omniflow.parallel import submit
-from omniflow.refine import refine_moving
-from omniflow.rig import Rig, Unit
-from omniflow.sampling import sample_f, sample_fine, sample_polar_grad
+from omniflow.solve.decoupled import decouple, start_pool_fits, tests
+from omniflow.solve.gain import gain_solution, gated
+from omniflow.solve.gridpool import GridPools
+from omniflow.solve.refine import refine_moving
 
 __all__ = ["flow_at_matches", "make_solver"]
 
@@ -72,7 +72,7 @@ def flow_at_matches(
     brightness = None
     gains = config.brightness_gate is not None or config.decouple_gain_tol is not None
     if gains and config.solver == "pooled":
-        # the image at the points (omniflow.gain): frame t at the matching band, whose
+        # the image at the points (omniflow.solve.gain): frame t at the matching band, whose
         # grid the matcher has made already (the gradients' series, the mean of frames t
         # and t + 1 at the flow band, would cost a grid per unit; a regressor of the
         # brightness either way: docs/measurements.md, "brightness_gate made cheap")
@@ -179,17 +179,17 @@ def flow_at_matches(
     else:  # the refinement lost a point's flow: the fits of the points kept
         early.cancel()
         fit = None
-    # eq. (14) tested (omniflow.decoupled) over the solver's own pools
-    gain = {} if brightness is None else {"brightness": brightness}  # omniflow.gain
+    # eq. (14) tested (omniflow.solve.decoupled) over the solver's own pools
+    gain = {} if brightness is None else {"brightness": brightness}  # omniflow.solve.gain
     return decouple(cols, rig, config, _displacement, pools=pools, fit=fit, **gain)
 
 
 def _refine(a, b, conf, solve, k, cam1, cam2, rig, x1, y1, x2, y2, theta, h1, h2, r, config,
             noise, brightness=None):  # fmt: skip
     """The first solve's (a, b, conf) refined: at the points that move far
-    (:func:`omniflow.refine.refine_moving`, ``iterate_min_px`` > 0) or at every point
+    (:func:`omniflow.solve.refine.refine_moving`, ``iterate_min_px`` > 0) or at every point
     (``iterations`` Gauss-Newton steps on grids read off-pixel)."""
-    if config.iterate_min_px > 0.0:  # refine only the points that move far (omniflow.refine)
+    if config.iterate_min_px > 0.0:  # refine only the points that move far (omniflow.solve.refine)
         a, b, conf, _ = refine_moving(
             a, b, conf, cam1=cam1, cam2=cam2, rig=rig, x1=x1, y1=y1, x2=x2, y2=y2,
             theta=theta, h1=h1, h2=h2, r=r, config=config, make_solver=make_solver, noise=noise,
@@ -216,7 +216,7 @@ def _refine(a, b, conf, solve, k, cam1, cam2, rig, x1, y1, x2, y2, theta, h1, h2
                 fr["af"], x, y, config.sampling
             )
             # linearised about each point's own flow, solved for the total flow (as
-            # omniflow.refine: a pooled increment would add the neighbours' noise)
+            # omniflow.solve.refine: a pooled increment would add the neighbours' noise)
             inc.append((g_h, g_th, res - g_h * dh - g_th * db0))
         (g1_h, g1_th, r1), (g2_h, g2_th, r2) = inc
         an, bn, conf_i = solve(g1_h, g1_th, r1, g2_h, g2_th, r2)
@@ -251,13 +251,13 @@ def make_solver(
     test of no motion (``config.static_test``; passed for the first solve only: the
     refinement replaces only the flow of points that move a pixel or more).
     ``brightness``: each unit's image f at the points, for the pooled solver's gain
-    term (``config.brightness_gate``, :mod:`omniflow.gain`): the pools whose F statistic
+    term (``config.brightness_gate``, :mod:`omniflow.solve.gain`): the pools whose F statistic
     of the gain passes the gate take the answer with it. The gain fit pools over the
     solver's k-d tree pools as searched (before ``pool_min_info``, ``pool_residual_tol``
     or ``pool_flow_tol`` thin them), or over its grid windows (``pool_grid``).
 
     The returned function's attribute ``pools``: the (idx, w) of
-    :func:`omniflow.flow.neighbourhoods` where the solver pools over them as
+    :func:`omniflow.paper.flow.neighbourhoods` where the solver pools over them as
     searched (k-d tree pools, no edge test), else None."""
     if config.solver == "direct":
 
@@ -348,7 +348,7 @@ def make_solver(
             use = gated(F, config.brightness_gate, ag, bg)
             return np.where(use, ag, a), np.where(use, bg, b), np.where(use, confg, conf)
 
-    # the plain k-nearest pools (no edge test), which omniflow.decoupled would search again
+    # the plain k-nearest pools (no edge test), which omniflow.solve.decoupled would search again
     solve.pools = (idx, w) if grid is None and edge_map is None else None
     return solve
 

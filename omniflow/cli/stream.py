@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from omniflow.cli import (
+from omniflow.cli.pair import (
     CLIError,
     _add_config_options,
     _check_rig_size,
@@ -38,9 +38,9 @@ from omniflow.cli import (
     _Parser,
     explain_error,
 )
-from omniflow.imageio import atomic_write_text, read_image, to_grey
-from omniflow.jsonio import json_text, jsonable
-from omniflow.rig import Rig, load_rig
+from omniflow.geometry.rig import Rig, load_rig
+from omniflow.io.imageio import atomic_write_text, read_image, to_grey
+from omniflow.io.jsonio import json_text, jsonable
 
 PROG = "omniflow-stream"
 MANIFEST = "stream.json"
@@ -76,7 +76,7 @@ def build_parser() -> argparse.ArgumentParser:
             examples:
               omniflow-stream renders/room --out room_flow
               omniflow-stream frames/ --rig rig.toml --out flow --start 100 --stop 200
-              python -m omniflow.stream_cli renders/room --out room_flow  (the same)
+              python -m omniflow.cli.stream renders/room --out room_flow  (the same)
             """
         ),
     )
@@ -135,7 +135,7 @@ def open_source(path: str, rig_file: str | None) -> _Source:
     if not folder.is_dir():
         raise CLIError(f"{path}: not a folder; expected an omnisim dataset or an image folder")
     if (folder / "dataset.json").exists():
-        from omniflow.dataset import DatasetError, open_dataset
+        from omniflow.io.dataset import DatasetError, open_dataset
 
         try:
             ds = open_dataset(folder)
@@ -206,7 +206,7 @@ def _check_resume(out: Path, header: dict) -> None:
 
 
 def run(args: argparse.Namespace, config_fields: list[str], argv: list[str]) -> dict:
-    from omniflow.applications import time_to_contact
+    from omniflow.applications.navigation import time_to_contact
     from omniflow.stream import OmniFlowStream
 
     config = _make_config(args, config_fields)
@@ -338,5 +338,5 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-if __name__ == "__main__":  # python -m omniflow.stream_cli
+if __name__ == "__main__":  # python -m omniflow.cli.stream
     sys.exit(main())

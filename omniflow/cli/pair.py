@@ -9,7 +9,7 @@ option out of range, an ``--out`` that is a file), 1 when the machine refuses
 internal error. Every failure is one line on standard error naming the path,
 option or value and what was expected; ``--debug`` shows the traceback
 instead. The outputs are staged and moved into ``--out`` as a set
-(:class:`omniflow.imageio.OutputSet`), so a failed run changes nothing there.
+(:class:`omniflow.io.imageio.OutputSet`), so a failed run changes nothing there.
 """
 
 from __future__ import annotations
@@ -33,7 +33,9 @@ from typing import Any
 
 import numpy as np
 
-from omniflow.imageio import (
+from omniflow.applications.regions import regions_csv_text
+from omniflow.geometry.rig import Rig, RigError, Unit, load_rig, unwarp
+from omniflow.io.imageio import (
     ImageError,
     OutputError,
     OutputSet,
@@ -42,9 +44,7 @@ from omniflow.imageio import (
     to_grey,
     write_png,
 )
-from omniflow.jsonio import json_text, jsonable
-from omniflow.regions import regions_csv_text
-from omniflow.rig import Rig, RigError, Unit, load_rig, unwarp
+from omniflow.io.jsonio import json_text, jsonable
 
 PROG = "omniflow"
 
@@ -214,14 +214,14 @@ KNOB_LIMITS: dict[str, tuple[float, float, bool, bool]] = {
     "edge_smooth_floor": (0.0, 1.0, True, True),  # lambda_min / lambda_max
     "short_patch": (0.0, 1.0, True, False),  # a fraction of patch_radius; 0 = off
     "pool_flow_tol": (0.0, math.inf, False, False),
-    "decouple_tol": (0.0, math.inf, False, False),  # an F statistic (omniflow.decoupled)
-    "brightness_gate": (0.0, math.inf, False, False),  # an F statistic (omniflow.gain)
-    "decouple_gain_tol": (0.0, math.inf, False, False),  # an F statistic (omniflow.gain)
-    "flow_shading": (0.0, math.inf, False, False),  # px, Gaussian sigma (omniflow.shading)
+    "decouple_tol": (0.0, math.inf, False, False),  # an F statistic (omniflow.solve.decoupled)
+    "brightness_gate": (0.0, math.inf, False, False),  # an F statistic (omniflow.solve.gain)
+    "decouple_gain_tol": (0.0, math.inf, False, False),  # an F statistic (omniflow.solve.gain)
+    "flow_shading": (0.0, math.inf, False, False),  # px, Gaussian sigma (omniflow.solve.shading)
     "pool_edge_tol": (0.0, math.inf, False, False),  # a factor on the median edge at the matches
     "pool_residual_tol": (0.0, math.inf, False, False),  # robust standard deviations
     "pool_min_info": (0.0, math.inf, False, False),  # in typical single points' information
-    "static_test": (0.0, math.inf, False, False),  # a Wald statistic (omniflow.flow)
+    "static_test": (0.0, math.inf, False, False),  # a Wald statistic (omniflow.paper.flow)
     "static_max_px": (0.0, math.inf, False, False),  # px per frame (cam1)
 }
 
@@ -430,7 +430,8 @@ def build_parser() -> argparse.ArgumentParser:
     calib.add_argument(
         "--calibrate",
         action="store_true",
-        help="locate the rim circles with omniflow.calibration (d, R, s from --rig or below)",
+        help="locate the rim circles with omniflow.geometry.calibration "
+        "(d, R, s from --rig or below)",
     )
     calib.add_argument("--d", type=float, metavar="M", help="camera centre to cone tip, metres")
     calib.add_argument("--R", type=float, metavar="M", help="mirror base radius, metres")
@@ -456,7 +457,8 @@ def build_parser() -> argparse.ArgumentParser:
     output.add_argument(
         "--odometry",
         action="store_true",
-        help="also fit the robot's yaw rate and velocity to the flow (omniflow.applications); "
+        help="also fit the robot's yaw rate and velocity to the flow "
+        "(omniflow.applications.navigation); "
         "flow.csv gets a column odometry_inlier (1: the fit used the point)",
     )
     output.add_argument(
@@ -533,7 +535,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=1.0,
         metavar="FRAMES",
         help="steering headings aim at the region's centroid this many frames ahead "
-        "(omniflow.applications.steering_heading) (default: 1.0)",
+        "(omniflow.applications.navigation.steering_heading) (default: 1.0)",
     )
     regions.add_argument(
         "--frame-interval",
@@ -548,7 +550,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=[],
         metavar="NAME:X,Y",
         help="the world position (m) of region NAME's centroid, repeatable: with two or more, "
-        "flow.json gets the robot's pose (omniflow.applications.position_fix)",
+        "flow.json gets the robot's pose (omniflow.applications.navigation.position_fix)",
     )
     algo = parser.add_argument_group("algorithm preset")
     algo.add_argument(
@@ -599,7 +601,7 @@ def _read_dataset(directory: str, k: int, window: int):
     ``window`` time steps are read, placed so that K .. K + 1 sits in the middle
     where the dataset allows; ``t`` is K's index in the returned lists.
     """
-    from omniflow.dataset import DatasetError, open_dataset
+    from omniflow.io.dataset import DatasetError, open_dataset
 
     meta = Path(directory) / "dataset.json"
     try:
@@ -631,14 +633,14 @@ def _read_dataset(directory: str, k: int, window: int):
 
 
 def _calibrated_rig(args, base: Rig | None, f1: np.ndarray, f2: np.ndarray) -> Rig:
-    """The rig with each unit's x_c, y_c, r_m found in its image (omniflow.calibration)."""
+    """The rig with each unit's x_c, y_c, r_m found in its image (omniflow.geometry.calibration)."""
     d = args.d if args.d is not None else (base.d if base else None)
     R = args.R if args.R is not None else (base.R if base else None)
     s = args.s if args.s is not None else (base.s if base else None)
     missing = [n for n, v in (("--d", d), ("--R", R), ("--s", s)) if v is None]
     if missing:
         raise CLIError(f"--calibrate needs {', '.join(missing)} (or a --rig file giving them)")
-    from omniflow.calibration import calibrate_unit
+    from omniflow.geometry.calibration import calibrate_unit
 
     try:
         u1 = calibrate_unit(f1, d=d, R=R, tip_h=s, name="cam1")
@@ -751,7 +753,7 @@ def _check_options(args) -> None:
 
 def _check_region_options(args) -> None:
     """Region, landmark and odometry options: ranges, syntax, names (no file is read here)."""
-    from omniflow.regions import RegionError, parse_landmark, parse_region
+    from omniflow.applications.regions import RegionError, parse_landmark, parse_region
 
     w = args.odometry_radial_weight
     if not (math.isfinite(w) and w >= 0):
@@ -840,7 +842,7 @@ def _load_inputs(args, config):
 
 def _region_masks(args, rig: Rig, shape: tuple[int, int]) -> list[tuple[Any, np.ndarray]]:
     """Each --region as (RegionSpec, cam1 pixel mask (H, W) bool); files read and checked."""
-    from omniflow.regions import RegionError, in_box, parse_region
+    from omniflow.applications.regions import RegionError, in_box, parse_region
 
     out = []
     labels = None
@@ -882,7 +884,7 @@ def _region_masks(args, rig: Rig, shape: tuple[int, int]) -> list[tuple[Any, np.
 
 def _object_labels(directory: str, k: int) -> tuple[np.ndarray, dict[int, str]]:
     """gt.object of cam1 at frame K of a dataset, and the dataset's id -> name table."""
-    from omniflow.dataset import DatasetError, open_dataset
+    from omniflow.io.dataset import DatasetError, open_dataset
 
     try:
         ds = open_dataset(directory)
@@ -924,8 +926,8 @@ def _column_units() -> dict[str, str]:
 def _pictures(
     out: Path, image: np.ndarray, unit: Unit, cols, arrow_scale, outlines=()
 ) -> list[Path]:
-    from omniflow.draw import draw_flow_arrows, draw_flow_points
-    from omniflow.regions import draw_regions
+    from omniflow.applications.regions import draw_regions
+    from omniflow.io.draw import draw_flow_arrows, draw_flow_points
 
     x, y, dx, dy = (np.asarray(cols[c], float) for c in ("x", "y", "dx", "dy"))
     arrows = draw_flow_arrows(image, x, y, dx, dy, scale=arrow_scale)
@@ -934,7 +936,8 @@ def _pictures(
         write_png(out / "flow_arrows.png", arrows, bits=8),
         write_png(out / "flow_color.png", draw_flow_points(image, x, y, dx, dy), bits=8),
     ]
-    # Panorama as omniflow.rig.unwarp (eq. 6-7): column <- theta, row <- h_1, rim at the top.
+    # Panorama as omniflow.geometry.rig.unwarp (eq. 6-7): column <- theta, row <- h_1,
+    # rim at the top.
     width = int(min(2048, max(256, round(2 * math.pi * unit.r_m))))
     height = max(8, round(unit.r_m))
     pano = unwarp(image, unit, width=width, height=height)
@@ -950,7 +953,7 @@ def _pictures(
 
 def _odometry(cols, radial_weight: float):
     """(OdometryFit or None, its summary for flow.json) on every point's flow."""
-    from omniflow.applications import odometry
+    from omniflow.applications.navigation import odometry
 
     radial = cols["dr_dt"] if radial_weight > 0 else None
     rows = "dtheta/dt, r" + (f" and dr/dt (weight {radial_weight:g})" if radial is not None else "")
@@ -960,7 +963,7 @@ def _odometry(cols, radial_weight: float):
     except ValueError as exc:
         return None, {"error": _one_line(exc)}
     return fit, {
-        "fitted_on": f"{rows} of every point (omniflow.applications.odometry, robust)",
+        "fitted_on": f"{rows} of every point (omniflow.applications.navigation.odometry, robust)",
         "yaw_rate_rad_per_frame": fit.w,
         "V_x_m_per_frame": fit.V_x,
         "V_y_m_per_frame": fit.V_y,
@@ -975,7 +978,7 @@ def _regions(args, cols, masks, fit, rig: Rig, frame_interval, mono=None):
     """regions.csv rows, pixel outlines for the pictures, and the flow.json block.
 
     ``mono``: the cam1-only columns (``--monocular-gap``), summarised per given region."""
-    from omniflow.regions import auto_groups, in_box, points_in_mask, summarise
+    from omniflow.applications.regions import auto_groups, in_box, points_in_mask, summarise
 
     rows, outlines = [], []
     for spec, mask in masks:
@@ -1050,9 +1053,9 @@ def _hull_mask(x: np.ndarray, y: np.ndarray, rig: Rig) -> np.ndarray:
 
 
 def _position_fix(args, rows) -> dict:
-    """The robot's pose from --landmark regions (omniflow.applications.position_fix)."""
-    from omniflow.applications import position_fix
-    from omniflow.regions import parse_landmark
+    """The robot's pose from --landmark regions (omniflow.applications.navigation.position_fix)."""
+    from omniflow.applications.navigation import position_fix
+    from omniflow.applications.regions import parse_landmark
 
     by_name = {row["name"]: row for row in rows}
     marks = [parse_landmark(text) for text in args.landmark]
@@ -1088,9 +1091,9 @@ def run(args: argparse.Namespace, config_fields: list[str], argv: list[str]) -> 
     """Do the work of one ``omniflow`` invocation; return the summary written to flow.json.
 
     Inputs and options are checked before anything is computed; the outputs are
-    staged and moved into ``--out`` together (:class:`omniflow.imageio.OutputSet`).
+    staged and moved into ``--out`` together (:class:`omniflow.io.imageio.OutputSet`).
     """
-    from omniflow.applications import time_to_contact
+    from omniflow.applications.navigation import time_to_contact
     from omniflow.pipeline import estimate
 
     config = _make_config(args, config_fields)
@@ -1210,8 +1213,8 @@ def explain_error(exc: BaseException, out: str | None = None) -> tuple[int, str]
         return 2, f"--out {_one_line(exc)}"
     known: tuple[type, ...] = (CLIError, ImageError, RigError)
     for module, name in (
-        ("omniflow.calibration", "RimError"),
-        ("omniflow.dataset", "DatasetError"),
+        ("omniflow.geometry.calibration", "RimError"),
+        ("omniflow.io.dataset", "DatasetError"),
     ):
         if module in sys.modules:
             known += (getattr(sys.modules[module], name),)
@@ -1272,5 +1275,5 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-if __name__ == "__main__":  # python -m omniflow.cli
+if __name__ == "__main__":  # python -m omniflow.cli.pair
     sys.exit(main())
