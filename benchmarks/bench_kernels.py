@@ -1,4 +1,5 @@
-"""A/B of the compiled pooled-solver sums (omniflow.kernels) against numpy's formulation.
+"""A/B of the compiled pooled-solver sums (omniflow.solve.pooled_kernels) against numpy's
+formulation.
 
 Runs ``omniflow.pipeline.estimate`` on the same rendered pair alternately with
 ``omniflow.paper.flow.pooled_sums`` as shipped (Numba) and replaced by the numpy

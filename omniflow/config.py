@@ -345,7 +345,7 @@ class OmniFlowConfig:
         contact's median error 4.0 -> 2.3 %) and most of the ball's radial
         flow (53 -> 79 %), at +2 % static mean error on crossing (equal
         median) and none on default and low_texture, for 1-3 ms a pair
-        (compiled sums, omniflow.kernels.gain_sums). With grid pools
+        (compiled sums, omniflow.solve.gain_kernels.gain_sums). With grid pools
         (``pool_grid``, the dense preset) the gain fit and its test use the
         grid's windows: there 20 takes approach's time-to-contact error 4.2 ->
         1.7 % and the ball's radial flow 45 -> 87 %, static scenes unchanged.

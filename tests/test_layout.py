@@ -105,7 +105,7 @@ LAYERS: dict[str, int] = {
     "omniflow.geometry": 1,
     "omniflow.io": 1,
     "omniflow.paper": 2,
-    "omniflow.kernels": 2,
+    "omniflow.solve.pooled_kernels": 2,
     "omniflow.matching": 3,
     "omniflow.config": 4,
     "omniflow.result": 5,

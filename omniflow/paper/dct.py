@@ -39,7 +39,7 @@ import numpy as np
 import scipy.fft
 from numpy.typing import ArrayLike, NDArray
 
-from omniflow.kernels import cos_bases, cos_bases_columns
+from omniflow.paper.dct_kernels import cos_bases, cos_bases_columns
 
 __all__ = ["DCT3Fit", "DCTFit", "band_window", "fit_dct", "fit_dct3"]
 
@@ -116,7 +116,7 @@ def _bases(
 
     Built as the running product of exp(i pi c / N) (one complex exponential per
     point instead of 2 n_coef trigonometric calls; error ~k eps, 1e-13 at k = 256),
-    compiled (:func:`omniflow.kernels.cos_bases`): :func:`bases_numpy` value for
+    compiled (:func:`omniflow.paper.dct_kernels.cos_bases`): :func:`bases_numpy` value for
     value, about 3 times faster (the refinement's exact evaluations).
 
     The cosines come as a strided view, the layout of bases_numpy's ``table.real``,
@@ -138,7 +138,7 @@ def _bases_columns(
 ) -> tuple[NDArray, NDArray]:
     """:func:`_bases` transposed, shape (n_coef, M), stored as ``dtype``.
 
-    The same running products in float64 (:func:`omniflow.kernels.cos_bases_columns`,
+    The same running products in float64 (:func:`omniflow.paper.dct_kernels.cos_bases_columns`,
     the points' loop innermost: about 4 times faster than :func:`_bases` at a few
     hundred points), each value rounded once as it is stored (a running product in
     float32 would lose ~k float32 ulps by k = 256).

@@ -54,8 +54,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
-from omniflow.kernels import cell_knn, pooled_solves, pooled_sums
 from omniflow.solve.gridpool import GridPools
+from omniflow.solve.pooled_kernels import cell_knn, pooled_solves, pooled_sums
 
 __all__ = [
     "axial_motion_violation",
@@ -678,7 +678,7 @@ def pooled_solution(
     # for unit 2), q = f_theta / h_1, right side -f_t, so every entry of
     # A^T A and A^T rhs is a weighted sum of pp, pq, qq, pf, qf times 1, u or
     # u^2 (both units share j's weight and u): one compiled pass over the
-    # neighbours (omniflow.kernels.pooled_sums).
+    # neighbours (omniflow.solve.pooled_kernels.pooled_sums).
     th = np.append(np.asarray(theta, dtype=np.float64).ravel(), 0.0) if theta is not None else None
     derivs6 = (f1_h, f1_theta, f1_t, k * f2_h, f2_theta, f2_t)
     kw = dict(relative=relative, linear=model == "linear", scale=scale)
@@ -861,7 +861,7 @@ def _solve_sums(
     """
     a, c, conf, explained_, lam_min = pooled_solves(
         sums, linear=model != "constant", min_conditioning=min_conditioning, positive=positive
-    )  # compiled, numpy's operations in numpy's order (omniflow.kernels)
+    )  # compiled, numpy's operations in numpy's order (omniflow.solve.pooled_kernels)
     if explained:
         return a, c, conf, explained_, lam_min
     return a, c, conf

@@ -63,10 +63,11 @@ from numpy.typing import NDArray
 from omniflow.applications.navigation import radial_velocity_stereo
 from omniflow.config import OmniFlowConfig
 from omniflow.geometry.rig import Rig
-from omniflow.kernels import decouple_fits, decouple_sums, nested_fits
 from omniflow.paper.flow import neighbourhoods
 from omniflow.parallel import Task, submit
+from omniflow.solve.decouple_kernels import decouple_fits, decouple_sums
 from omniflow.solve.gain import decoupled_gain, decoupled_linear_gain, gated
+from omniflow.solve.gain_kernels import nested_fits
 from omniflow.solve.gridpool import GridPools
 
 __all__ = [
@@ -119,9 +120,10 @@ def model_fits(
 
 
 def fits_from_sums(sums: NDArray, h1: NDArray, h2: NDArray) -> dict[str, NDArray]:
-    """:func:`model_fits` from the pools' sums (:func:`omniflow.kernels.decouple_sums`
+    """:func:`model_fits` from the pools' sums
+    (:func:`omniflow.solve.decouple_kernels.decouple_sums`
     or :meth:`omniflow.solve.gridpool.GridPools.decouple_sums`, columns
-    :data:`omniflow.kernels.DECOUPLE_SUMS`).
+    :data:`omniflow.solve.decouple_kernels.DECOUPLE_SUMS`).
 
     Unknowns (U, W, c): dh_i/dt = U - h_i W in either unit (eq. 3-4 differentiated,
     U = v dh / (d + r), W = dr / (d + r), both shared by a pool on one surface), W

@@ -50,7 +50,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from omniflow.kernels import gain_sums, nested_fits, small_solves
+from omniflow.solve.gain_kernels import gain_sums, nested_fits, small_solves
 from omniflow.solve.gridpool import GridPools
 
 __all__ = [
@@ -323,7 +323,7 @@ def decoupled_linear_gain(
         (f_h, -f_h h_u,j / h_1,i, f_theta / h_1,i, -f, -f u_j, -f dh_j)
             . (U, h_1,i W, c, beta, beta_u, beta_h) = -f_t
 
-    one 6 x 6 weighted Gram per pool (:func:`omniflow.kernels.gain_sums`,
+    one 6 x 6 weighted Gram per pool (:func:`omniflow.solve.gain_kernels.gain_sums`,
     ``decoupled_linear``). The coupled model with the same gain is the same Gram
     without the U column (U = 0 is eq. 14; the W column is the coupled radial one
     up to sign), so both fits come from one pass, and the statistic of U,
@@ -334,7 +334,7 @@ def decoupled_linear_gain(
     the brightness model. Constant flow model, no bias compensation (as the
     decoupled model of :func:`omniflow.solve.decoupled.fits_from_sums`); each solve NaN
     where the information left on its first two unknowns (the Schur complement)
-    is below ``min_conditioning`` (:func:`omniflow.kernels.small_solves`).
+    is below ``min_conditioning`` (:func:`omniflow.solve.gain_kernels.small_solves`).
     ``slopes`` False: one gain per pool (beta only, 4 and 3 unknowns), the same test.
 
     The answer is the decoupled fit with the gain only where the gain matters (its three
@@ -434,7 +434,7 @@ def _f(rss_without, rss_with, w1, w2, p):
 
 def _own_rows(derivs, f, h1, h2, p):
     """Both units' rows (N, 2, P) and right sides (N, 2) of each point's own equations
-    (u = 0, relative factor 1), the unknowns of :func:`omniflow.kernels.gain_sums`."""
+    (u = 0, relative factor 1), the unknowns of :func:`omniflow.solve.gain_kernels.gain_sums`."""
     x0 = np.zeros((h1.size, 2, p))
     x0[:, 0, 0], x0[:, 1, 0] = derivs[0], (h2 / h1) * derivs[3]  # eq. (9), eq. (15)
     x0[:, 0, 1], x0[:, 1, 1] = derivs[1] / h1, derivs[4] / h1

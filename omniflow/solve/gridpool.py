@@ -36,8 +36,10 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from omniflow.kernels import DECOUPLE_SUMS, decouple_sums, gain_sums, grid_read, grid_scatter
 from omniflow.parallel import map_tasks
+from omniflow.solve.decouple_kernels import DECOUPLE_SUMS, decouple_sums
+from omniflow.solve.gain_kernels import gain_sums
+from omniflow.solve.grid_kernels import grid_read, grid_scatter
 
 __all__ = ["GridPools"]
 
@@ -249,15 +251,16 @@ class GridPools:
         return out
 
     def decouple_sums(self, derivs: tuple[NDArray, ...], h1: NDArray, h2: NDArray) -> NDArray:
-        """The two-model test's pool sums (:func:`omniflow.kernels.decouple_sums`) on the grid.
+        """The two-model test's pool sums (:func:`omniflow.solve.decouple_kernels.decouple_sums`)
+        on the grid.
 
         ``derivs``: f1_h, f1_theta, f1_t, f2_h, f2_theta, f2_t, shape (N,). Every
-        sum of :data:`omniflow.kernels.DECOUPLE_SUMS` is over the neighbours' own
+        sum of :data:`omniflow.solve.decouple_kernels.DECOUPLE_SUMS` is over the neighbours' own
         terms (the point's h_1 enters afterwards), so each is one channel filtered
         with the pool's Gaussian; the sum of squared weights (for the pool's
         effective size) filters the point count with the squared Gaussian and reads
         it with the squared bin shares. In float64: the 3x3 solves of
-        :func:`omniflow.kernels.decouple_fits` test the condition number against
+        :func:`omniflow.solve.decouple_kernels.decouple_fits` test the condition number against
         1e8, beyond float32. Off-grid points get their k-d tree pools' sums.
         Returns (N, 12).
         """
@@ -297,7 +300,8 @@ class GridPools:
         scale: float,
         single: bool = False,
     ) -> tuple[NDArray, ...]:
-        """The gain fit's normal equations (:func:`omniflow.kernels.gain_sums`) on the grid.
+        """The gain fit's normal equations (:func:`omniflow.solve.gain_kernels.gain_sums`) on the
+        grid.
 
         ``derivs``: f1_h, f1_theta, f1_t, f2_h, f2_theta, f2_t; ``f``: each unit's image at
         the points; all shape (N,). The relative model, unknowns (a, h_1,i b[, u a,
@@ -313,7 +317,7 @@ class GridPools:
         Returns
         -------
         M, v, yy, powers
-            As :func:`omniflow.kernels.gain_sums`.
+            As :func:`omniflow.solve.gain_kernels.gain_sums`.
         w2 : ndarray, shape (N,)
             Each pool's sum of squared weights.
         """
@@ -403,7 +407,7 @@ class GridPools:
     ) -> tuple[NDArray, ...]:
         """The linear-gain test's 6 x 6 Grams (``decoupled_linear``) on the grid windows.
 
-        The rows of :func:`omniflow.kernels.gain_sums` (``decoupled_linear``): unit u's
+        The rows of :func:`omniflow.solve.gain_kernels.gain_sums` (``decoupled_linear``): unit u's
         row of neighbour j (f_h, -f_h h_u,j / h_1,i, f_theta / h_1,i, -f, -f u_j, -f dh_j),
         right side -f_t, with the gain's slopes taken along the pixel offsets instead,
         -f dx_j / scale and -f dy_j / scale (dx, dy = x_j - x_i, y_j - y_i). To first
@@ -421,7 +425,7 @@ class GridPools:
         Returns
         -------
         M, v, yy
-            As :func:`omniflow.kernels.gain_sums` (``decoupled_linear``), shapes
+            As :func:`omniflow.solve.gain_kernels.gain_sums` (``decoupled_linear``), shapes
             (N, 6, 6), (N, 6), (N,).
         wsum, w2 : ndarray, shape (N,)
             Each pool's sums of weights and squared weights.

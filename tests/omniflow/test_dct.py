@@ -255,7 +255,7 @@ def test_band_window_rolls_off_to_the_band_edge():
 
 
 def test_compiled_bases_equal_the_numpy_form():
-    """omniflow.kernels.cos_bases (through dct._bases) gives dct.bases_numpy's cumprod
+    """omniflow.paper.dct_kernels.cos_bases (through dct._bases) gives dct.bases_numpy's cumprod
     bases value for value, at any point and number of coefficients (1 included)."""
     from omniflow.paper.dct import _bases, bases_numpy
 
@@ -319,7 +319,7 @@ def test_single_precision_evaluation_agrees_with_double():
 
 
 def test_column_bases_equal_the_numpy_form_transposed():
-    """omniflow.kernels.cos_bases_columns (through dct._bases_columns): dct.bases_numpy's
+    """omniflow.paper.dct_kernels.cos_bases_columns (through dct._bases_columns): dct.bases_numpy's
     cumprod bases transposed, value for value in float64, and those rounded once in
     float32 (mutations caught: the imaginary part updated from the new real part; the
     running product kept in the output's float32)."""

@@ -1,4 +1,5 @@
-"""omniflow.kernels.decouple_sums / decouple_fits and omniflow.solve.decoupled.kept_pools.
+"""omniflow.solve.decouple_kernels.decouple_sums / decouple_fits and
+omniflow.solve.decoupled.kept_pools.
 
 The two-model test of eq. (14) (omniflow.solve.decoupled.model_fits) against the numpy code it
 replaced (kept here as the reference), the conditioning test against np.linalg.cond
@@ -11,9 +12,10 @@ import numpy as np
 import pytest
 
 import omniflow.solve.decoupled
-from omniflow.kernels import cell_knn, decouple_fits
 from omniflow.paper.flow import neighbourhoods
+from omniflow.solve.decouple_kernels import decouple_fits
 from omniflow.solve.decoupled import kept_pools, model_fits
+from omniflow.solve.pooled_kernels import cell_knn
 
 
 def numpy_model_fits(derivs, h1, h2, idx, w):
@@ -183,7 +185,7 @@ def test_kept_pools_equal_a_new_search(n):
     assert _same_pools(short, search()) == (n < 48)
 
 
-# -- omniflow.kernels.cell_knn: the k-d tree's neighbours from a cell search --------------
+# -- omniflow.solve.pooled_kernels.cell_knn: the k-d tree's neighbours from a cell search
 
 
 def _tree_pools(x, y, k, radius, rows=None):

@@ -1,4 +1,5 @@
-"""omniflow.kernels: the compiled pooled-solver sums equal numpy's, and so does the flow."""
+"""omniflow.solve.pooled_kernels: the compiled pooled-solver sums equal numpy's, and so does
+the flow."""
 
 from __future__ import annotations
 
@@ -6,9 +7,9 @@ import numpy as np
 import pytest
 
 import omniflow.paper.flow
-from omniflow.kernels import pooled_sums
 from omniflow.paper.flow import neighbourhoods
 from omniflow.pipeline import OmniFlowConfig, estimate
+from omniflow.solve.pooled_kernels import pooled_sums
 from omnisim.synthetic import Motion
 from tests.helpers.scenes import frames, paper_rig, wall_scene
 
@@ -168,7 +169,8 @@ def test_flow_check_catches_a_changed_sum(pair, monkeypatch):
 
 
 def numpy_solve_sums(sums, model, min_conditioning, *, positive=False, slopes_test=True):
-    """omniflow.paper.flow._solve_sums as it was in numpy (before omniflow.kernels.pooled_solves);
+    """omniflow.paper.flow._solve_sums as it was in numpy (before
+    omniflow.solve.pooled_kernels.pooled_solves);
     ``slopes_test`` False: the mutation of the check below (``positive`` without the test
     of the slopes' block)."""
     pp, pq, qq, pf, qf = (sums[:, :, c] for c in range(5))
@@ -228,7 +230,8 @@ def _solve_cases(linear):
 @pytest.mark.parametrize("positive", [False, True])
 @pytest.mark.parametrize("linear", [False, True])
 def test_pooled_solves_equal_numpy_bit_for_bit(linear, positive):
-    """omniflow.paper.flow._solve_sums (the compiled omniflow.kernels.pooled_solves) against its
+    """omniflow.paper.flow._solve_sums (the compiled omniflow.solve.pooled_kernels.pooled_solves)
+    against its
     numpy form: every output identical, NaN for NaN."""
     from omniflow.paper.flow import _solve_sums
 
