@@ -126,8 +126,8 @@ def mixing(dataset: str) -> list[str]:
     """Share of the default pools' weight that each mover's points draw from other objects."""
     from omniflow.config import OmniFlowConfig
     from omniflow.io.dataset import open_dataset
-    from omniflow.paper.flow import neighbourhoods
     from omniflow.pipeline import estimate
+    from omniflow.solve.pooled import neighbourhoods
     from validation.inputs import Inputs, camera_model
     from validation.scoring_derived import moving_objects
 
@@ -157,8 +157,8 @@ def mixing(dataset: str) -> list[str]:
 
 def boundary(variants: list, band_mean: float, share: float = 0.1) -> list[str]:
     """The closed-form motion boundary of tests/omniflow/test_pooling.py, per variant."""
-    from omniflow.paper.flow import neighbourhoods
     from omniflow.pipeline import estimate
+    from omniflow.solve.pooled import neighbourhoods
     from tests.helpers.scenes import band_scene, frames, paper_rig, sparse_true_matches
 
     rig = paper_rig(256)

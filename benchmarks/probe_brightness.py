@@ -15,7 +15,7 @@ omnivalidate forms the images, captures the first solve's derivatives at its
 points (before the refinement and the two-model test of eq. 14), samples the
 image f there (the series of the gradients: the mean of frames t and t + 1 at
 the flow band), and solves again in plain numpy weighted least squares over
-k-d tree pools (:func:`omniflow.paper.flow.neighbourhoods`, the configuration's
+k-d tree pools (:func:`omniflow.solve.pooled.neighbourhoods`, the configuration's
 pool_k, radius r_m / 8, range test), with omniflow's local model (relative
 radial flow, linear in the tangential offset) and its errors-in-variables
 correction (``eiv="residual"``), for
@@ -66,7 +66,7 @@ def pooled_brightness(d: dict, idx: np.ndarray, w: np.ndarray, *, model: str, sc
     ``d`` holds the point columns (f1_h ... f2_t, h1, h2, theta, f1, f2).
     Unknowns (a, c = h_1 b[, slopes u a, u c][, alpha][, beta]); rows of neighbour
     j: unit 1 (f1_h rel, f1_theta / h_1,i, ...), unit 2 (k_j f2_h rel, ...), as
-    :func:`omniflow.paper.flow.pooled_solution`; NaN where the pool has no solution.
+    :func:`omniflow.solve.pooled.pooled_solution`; NaN where the pool has no solution.
     ``decoupled``: the two-model test's three-unknown model instead
     (:func:`omniflow.solve.decoupled.fits_from_sums`: (U, h_1,i W, c), dh_u = U - h_u W,
     constant model, no bias compensation), eq. (14) not assumed.
@@ -159,7 +159,7 @@ def refine(a, b, call, d, kw):
     each linearised about its own flow in (a, b), solved for the total flow.
     Returns (dh1_dt, dh2_dt, dtheta_dt)."""
     from omniflow import refine as ref
-    from omniflow.paper.flow import neighbourhoods
+    from omniflow.solve.pooled import neighbourhoods
 
     (_, _, _, c), sel = call
     n = a.size
@@ -195,8 +195,8 @@ def refine(a, b, call, d, kw):
 def run_pair(ds, inputs, t, config, seen, args):
     """omniflow on pair t, the first solve captured; the variants solved again."""
     from omniflow.fit.sampling import sample_f
-    from omniflow.paper.flow import neighbourhoods
     from omniflow.pipeline import estimate
+    from omniflow.solve.pooled import neighbourhoods
 
     seen.clear()
     g1 = [inputs.grey(j, "cam1") for j in (t, t + 1)]

@@ -70,7 +70,7 @@ def design(d: dict, idx: np.ndarray, *, model: str, scale: float, terms: tuple[s
     """The pools' design (N, K, 2, P), right sides (N, K, 2) and tangential offsets u.
 
     ``d`` holds the point columns (f1_h ... f2_t, h1, h2, theta, f1, f2[, r1, r2]).
-    Flow unknowns (a, c = h_1 b[, u a, u c]) as :func:`omniflow.paper.flow.pooled_solution`
+    Flow unknowns (a, c = h_1 b[, u a, u c]) as :func:`omniflow.solve.pooled.pooled_solution`
     (or (U, h_1,i W, c) with ``decoupled``, :mod:`omniflow.solve.decoupled`), then the
     brightness unknowns of ``terms`` in order; both units' rows share them.
     ``right``: "t" the equations' right side -f_t, "r" the brightness change along
@@ -192,7 +192,7 @@ def refine(a, b, call, d, kw):
     """omniflow's refinement step from (a, b) with the brightness terms of ``kw``, at the
     points omniflow refined (benchmarks/probe_brightness.py's ``refine``, any terms)."""
     from omniflow import refine as ref
-    from omniflow.paper.flow import neighbourhoods
+    from omniflow.solve.pooled import neighbourhoods
 
     (_, _, _, c), sel = call
     n = a.size
@@ -226,8 +226,8 @@ def run_pair(ds, inputs, t, config, seen, args):
     """omniflow on pair t, the first solve captured, the truth sampled; the models
     solved again and the brightness change along the truth analysed."""
     from omniflow.fit.sampling import sample_f
-    from omniflow.paper.flow import neighbourhoods
     from omniflow.pipeline import estimate
+    from omniflow.solve.pooled import neighbourhoods
     from validation.sampling import sample_truth
 
     seen.clear()

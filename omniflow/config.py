@@ -10,7 +10,6 @@ from __future__ import annotations
 from dataclasses import dataclass, fields, replace
 
 from omniflow.matching import MATCH_METHODS
-from omniflow.paper.flow import UNIT_WEIGHTINGS
 
 __all__ = ["OmniFlowConfig"]
 
@@ -24,6 +23,8 @@ EIVS = ("correct", "residual", "none")
 BAND_RULES = ("gain", "variance")
 SHADING_WHERE = ("everywhere", "moving")
 BRIGHTNESS_MODELS = ("linear", "gain")
+#: Weightings of the two units' equations in :func:`omniflow.solve.pooled.pooled_solution`.
+UNIT_WEIGHTINGS = ("equal", "global", "local")
 
 
 #: The fields :meth:`OmniFlowConfig.dense` changes from the defaults.
@@ -259,7 +260,7 @@ class OmniFlowConfig:
         an image edge stronger than this many times the typical edge at the
         matches (the largest gradient magnitude of the flow step's fitted
         cam1 image on the segment between them, against its median at the
-        matches; omniflow.paper.flow.edge_between): an object's outline bounds the
+        matches; omniflow.solve.pooled.edge_between): an object's outline bounds the
         pool where it is a stronger edge than the texture. None: no test.
         Off by default: on the rendered scenes the range test already keeps
         the movers' pools on the movers, and the edge test only thins the
@@ -268,20 +269,20 @@ class OmniFlowConfig:
         Pooled solver: solve twice, and in the second pass leave out the
         neighbours whose own eq. (9) and (15) miss the point's first-pass
         flow by more than this many robust standard deviations of the
-        residuals (omniflow.paper.flow.consistent_neighbours): another motion, or
+        residuals (omniflow.solve.pooled.consistent_neighbours): another motion, or
         another surface. None: one pass (unless ``pool_flow_tol``).
     pool_min_info : float or None
         Pooled solver: adapt each pool's size to the local texture; the pool
         grows over the neighbours, nearest first, until the weaker direction
         of its normal matrix holds this many typical points' information
-        (omniflow.paper.flow.informative_pools), so rich texture pools a few close
+        (omniflow.solve.pooled.informative_pools), so rich texture pools a few close
         neighbours and poor texture all of them. None: every neighbour.
     pool_model : {"linear", "constant"}
-        Pooled solver: local flow model (omniflow.paper.flow.pooled_solution),
+        Pooled solver: local flow model (omniflow.solve.pooled.pooled_solution),
         varying linearly with theta or constant.
     pool_unit_weighting : {"equal", "global", "local"}
         Pooled solver: weight of each unit's equations, eq. (9) against
-        eq. (15) (omniflow.paper.flow.pooled_solution): alike, or by the inverse of
+        eq. (15) (omniflow.solve.pooled.pooled_solution): alike, or by the inverse of
         each unit's residual variance, one figure per unit ("global") or
         measured around each point ("local"). "equal" is the default: with
         the default roll-off "local" halves the mean EPE on closed-form
@@ -295,7 +296,7 @@ class OmniFlowConfig:
         motion: where the squared residual of eq. (9) and (15) that the
         pool's flow explains is below this many times the pool's remaining
         residual variance per equation (a Wald test of zero flow, the noise
-        measured in the pool itself; omniflow.paper.flow.motion_statistic). With
+        measured in the pool itself; omniflow.solve.pooled.motion_statistic). With
         independent equations the statistic of a still pool is chi-squared
         with 2 degrees of freedom (mean 2); neighbouring matches share the
         fitted images' noise, which inflates it. It removes the noise of the

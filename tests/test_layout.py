@@ -123,6 +123,9 @@ KNOWN_UPWARD: set[tuple[str, str]] = {
     ("omniflow.geometry.calibration", "omniflow.io.imageio"),
     # io.dataset builds the dataset's Rig from dataset.json
     ("omniflow.io.dataset", "omniflow.geometry.rig"),
+    # flow_shading_where="moving" finds the movers as odometry's outliers, grouped
+    ("omniflow.solve.shading", "omniflow.applications.navigation"),
+    ("omniflow.solve.shading", "omniflow.applications.regions"),
 }
 
 

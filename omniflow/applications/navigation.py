@@ -6,11 +6,12 @@ from above, from +X), velocities per frame interval (multiply by
 ``1 / frame_interval`` for seconds). The robot and the objects move on the
 floor (no motion along the axis), the assumption under eq. (14).
 
-- :func:`radial_velocity` and :func:`time_to_contact`: dr/dt from the radial
-  image flow, ``dr/dt = -(d + r) (dh_1/dt) / h_1`` (eq. 11, 13), and
-  ``-r / (dr/dt)``: braking, time of arrival. :func:`radial_velocity_stereo`
-  gives dr/dt from both units' radial flows without eq. (14), for points that
-  move along the axis (the ``coupled`` = False points of the result).
+- :func:`time_to_contact`: ``-r / (dr/dt)``, braking, time of arrival, from the
+  range rate of the result (:func:`omniflow.paper.flow.radial_velocity`,
+  ``dr/dt = -(d + r) (dh_1/dt) / h_1``, eq. 11, 13; or
+  :func:`omniflow.paper.flow.radial_velocity_stereo` from both units' radial flows
+  without eq. (14), for points that move along the axis: the ``coupled`` = False
+  points of the result).
 - :func:`region_flow` and :func:`steering_heading`: the mean flow over an
   object's points, and the heading that homes in on it (steer with its flow)
   or avoids it (steer against it).
@@ -45,8 +46,6 @@ __all__ = [
     "RegionFlow",
     "odometry",
     "position_fix",
-    "radial_velocity",
-    "radial_velocity_stereo",
     "region_flow",
     "steering_heading",
     "time_to_contact",
@@ -59,68 +58,6 @@ def _arrays(*values: ArrayLike) -> list[NDArray]:
 
 
 # -- radial velocity and time to contact ------------------------------------------
-
-
-def radial_velocity(r: ArrayLike, h1: ArrayLike, dh1_dt: ArrayLike, *, d: float) -> NDArray:
-    """dr/dt of scene points from their radial image flow in camera 1.
-
-    ``dr/dt = -(d + r) (dh_1/dt) / h_1``: eq. (11) with eq. (13)
-    (``dr/dh_i = -(d + r) / h_i`` at constant h).
-
-    Parameters
-    ----------
-    r : ndarray
-        Range from the axis, metres (from stereo, eq. 5).
-    h1 : ndarray
-        Image radius in camera 1, pixels.
-    dh1_dt : ndarray
-        Radial image flow in camera 1, pixels per frame.
-    d : float
-        Camera centre to cone tip, metres (``Rig.d``).
-
-    Returns
-    -------
-    ndarray
-        dr/dt in metres per frame (negative when approaching).
-    """
-    r, h1, dh1_dt = _arrays(r, h1, dh1_dt)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return -(d + r) * dh1_dt / h1
-
-
-def radial_velocity_stereo(
-    r: ArrayLike, h1: ArrayLike, h2: ArrayLike, dh1_dt: ArrayLike, dh2_dt: ArrayLike, *, d: float
-) -> NDArray:
-    """dr/dt from both units' radial flows, valid whatever the motion along the axis.
-
-    Differentiating eq. (3) and (4), ``dr h_1 + (d + r) dh_1 = v dh`` and
-    ``dr h_2 + (d + r) dh_2 = v dh``; their difference eliminates dh::
-
-        dr/dt = -(d + r) (dh_2/dt - dh_1/dt) / (h_2 - h_1)
-
-    With dh_2 = (h_2/h_1) dh_1 (eq. 14) this is :func:`radial_velocity`. It
-    rests on the difference of the two radial flows, so it is noisier by
-    about h_1 / (h_2 - h_1); use it only where eq. (14) does not hold.
-
-    Parameters
-    ----------
-    r : ndarray
-        Range from the axis, metres (eq. 5).
-    h1, h2 : ndarray
-        Image radii of the match in camera 1 and 2, pixels.
-    dh1_dt, dh2_dt : ndarray
-        Radial image flow in camera 1 and 2, pixels per frame.
-    d : float
-        Camera centre to cone tip, metres (``Rig.d``).
-
-    Returns
-    -------
-    ndarray
-        dr/dt in metres per frame (negative when approaching).
-    """
-    r, h1, h2, dh1_dt, dh2_dt = _arrays(r, h1, h2, dh1_dt, dh2_dt)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return -(d + r) * (dh2_dt - dh1_dt) / (h2 - h1)
 
 
 def time_to_contact(r: ArrayLike, dr_dt: ArrayLike) -> NDArray:

@@ -25,7 +25,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from omniflow.matching.dense_kernels import profile_stats
-from omniflow.matching.tables import TableGeometry, parabola_offset, sharp_peak
+from omniflow.matching.tables import sharp_peak
+from omniflow.paper.matching import TableGeometry, parabola_offset
 from omniflow.parallel import map_tasks
 
 __all__ = [

@@ -89,7 +89,6 @@ from omniflow.matching.dense import densify, grown_from, smooth_profiles
 from omniflow.matching.robust import RobustSearch
 from omniflow.matching.tables import (
     PolarGrids,
-    TableGeometry,
     abs_percentile,
     blur_lines,
     polar_grids,
@@ -100,7 +99,7 @@ from omniflow.matching.tables import (
 )
 from omniflow.matching.vote import consistent
 from omniflow.paper.dct import DCTFit
-from omniflow.paper.matching import match_paper
+from omniflow.paper.matching import TableGeometry, match_paper
 
 __all__ = ["MATCH_METHODS", "Matches", "match_radial"]
 

@@ -1,12 +1,40 @@
-"""The paper's matching rule: the most similar polar gradient vector (section 5.2)."""
+"""The paper's matching rule: the most similar polar gradient vector (section 5.2).
+
+Both rules search the same polar tables (:class:`TableGeometry`, one row per radial
+line) and place a match to sub-pixel at the vertex of a parabola (:func:`parabola_offset`).
+"""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
+from numpy.typing import NDArray
 
-from omniflow.matching.tables import TableGeometry, parabola_offset
+__all__ = ["TableGeometry", "match_paper", "parabola_offset"]
 
-__all__ = ["match_paper"]
+
+@dataclass(frozen=True)
+class TableGeometry:
+    """Geometry of the two polar tables (columns include ``pad`` on each side)."""
+
+    maps1: tuple
+    maps2: tuple
+    pad: int
+    n_h: int
+    h0: float
+    h_step: float
+    scale2: float
+    n_theta: int
+    win: tuple[int, int]  # column offsets j2 - j1 that can hold the match
+
+
+def parabola_offset(s_m: NDArray, s_0: NDArray, s_p: NDArray) -> NDArray:
+    """Vertex offset in [-1, 1] of the parabola through (-1, s_m), (0, s_0), (1, s_p)."""
+    den = s_m - 2.0 * s_0 + s_p
+    with np.errstate(divide="ignore", invalid="ignore"):
+        off = np.where(np.abs(den) > 1e-12, 0.5 * (s_m - s_p) / den, 0.0)
+    return np.clip(off, -1.0, 1.0)
 
 
 def match_paper(tab: TableGeometry, fh1, fh2, ft1, ft2, thr):

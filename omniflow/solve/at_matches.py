@@ -21,24 +21,22 @@ from functools import partial
 import numpy as np
 from numpy.typing import NDArray
 
-from omniflow.applications.navigation import radial_velocity
 from omniflow.config import OmniFlowConfig
 from omniflow.fit.sampling import sample_f, sample_fine, sample_polar_grad
 from omniflow.geometry.rig import Rig, Unit
 from omniflow.matching import Matches
 from omniflow.paper.flow import conditioning as direct_conditioning
-from omniflow.paper.flow import (
-    consistent_neighbours,
-    determinant,
-    direct_solution,
-    informative_pools,
-    neighbourhoods,
-    pooled_solution,
-)
+from omniflow.paper.flow import determinant, direct_solution, radial_velocity
 from omniflow.parallel import submit
 from omniflow.solve.decoupled import decouple, start_pool_fits, tests
 from omniflow.solve.gain import gain_solution, gated
 from omniflow.solve.gridpool import GridPools
+from omniflow.solve.pooled import (
+    consistent_neighbours,
+    informative_pools,
+    neighbourhoods,
+    pooled_solution,
+)
 from omniflow.solve.refine import refine_moving
 
 __all__ = ["flow_at_matches", "make_solver"]
@@ -257,7 +255,7 @@ def make_solver(
     or ``pool_flow_tol`` thin them), or over its grid windows (``pool_grid``).
 
     The returned function's attribute ``pools``: the (idx, w) of
-    :func:`omniflow.paper.flow.neighbourhoods` where the solver pools over them as
+    :func:`omniflow.solve.pooled.neighbourhoods` where the solver pools over them as
     searched (k-d tree pools, no edge test), else None."""
     if config.solver == "direct":
 

@@ -25,7 +25,7 @@ pool, a rigid patch at one range; with ``pool_grid`` the solver's grid windows,
 
 Detection (:func:`decouple`). Both models are fitted in weighted least
 squares over each point's pool (constant model; with U = 0 the radial flow
-scales with the image radius as in :func:`omniflow.paper.flow.pooled_solution`);
+scales with the image radius as in :func:`omniflow.solve.pooled.pooled_solution`);
 the decoupled one has one more unknown, so its residual sum is never
 larger. The F statistic of that one extra unknown,
 
@@ -50,7 +50,7 @@ the gain does not matter: :data:`omniflow.solve.gain.MIN_GAIN_F`).
 
 Range rate without eq. (14): subtracting the two differentiated equations
 gives dr/dt = -(d + r)(dh_2/dt - dh_1/dt) / (h_2 - h_1)
-(:func:`omniflow.applications.navigation.radial_velocity_stereo`), exact whatever dh/dt.
+(:func:`omniflow.paper.flow.radial_velocity_stereo`), exact whatever dh/dt.
 """
 
 from __future__ import annotations
@@ -60,15 +60,15 @@ from collections.abc import Callable
 import numpy as np
 from numpy.typing import NDArray
 
-from omniflow.applications.navigation import radial_velocity_stereo
 from omniflow.config import OmniFlowConfig
 from omniflow.geometry.rig import Rig
-from omniflow.paper.flow import neighbourhoods
+from omniflow.paper.flow import radial_velocity_stereo
 from omniflow.parallel import Task, submit
 from omniflow.solve.decouple_kernels import decouple_fits, decouple_sums
 from omniflow.solve.gain import decoupled_gain, decoupled_linear_gain, gated
 from omniflow.solve.gain_kernels import nested_fits
 from omniflow.solve.gridpool import GridPools
+from omniflow.solve.pooled import neighbourhoods
 
 __all__ = [
     "EDGE_GATE",
@@ -102,7 +102,7 @@ def model_fits(
     h1, h2 : ndarray, shape (N,)
         Matched image radii, pixels.
     idx, w : ndarray, shape (N, K)
-        Pools as :func:`omniflow.paper.flow.neighbourhoods` returns them (index N:
+        Pools as :func:`omniflow.solve.pooled.neighbourhoods` returns them (index N:
         no neighbour, weight 0).
 
     Returns
@@ -173,14 +173,14 @@ def decouple(
     ``config.decouple_tol`` get the three-unknown solution: ``dh1_dt``,
     ``dh2_dt`` and ``dtheta_dt`` from their own pool, the displacements
     from those, and ``dr_dt`` from both radial flows
-    (:func:`omniflow.applications.navigation.radial_velocity_stereo`, eq. (14) not
+    (:func:`omniflow.paper.flow.radial_velocity_stereo`, eq. (14) not
     assumed). ``displacement(unit, h_i, theta, dh, dtheta)`` gives the pixel
     flow (dx, dy) of a polar flow, the solver's own (passed in, so that this
     module does not import the solver that calls it).
 
     ``pools``: (idx, w, keep), the solver's own k-d tree pools of the matches
     before the points without a solution were dropped (``keep`` False), from the
-    same query (:func:`omniflow.paper.flow.neighbourhoods` with the same k, radius,
+    same query (:func:`omniflow.solve.pooled.neighbourhoods` with the same k, radius,
     ranges and no edge test): the pools of the kept points are taken from them
     (:func:`kept_pools`) instead of searched again.
 
@@ -450,7 +450,7 @@ def kept_pools(
 ) -> tuple[NDArray, NDArray]:
     """The k-nearest pools of the kept points among themselves, from the pools of all.
 
-    ``idx``, ``w`` (N, K): :func:`omniflow.paper.flow.neighbourhoods` of N points;
+    ``idx``, ``w`` (N, K): :func:`omniflow.solve.pooled.neighbourhoods` of N points;
     ``keep`` (N,) bool: the points that stay. The pools :func:`neighbourhoods` would
     give the M kept points on their own: a row keeps its kept neighbours, in the
     same order (nearest first) and with the same weights (a weight depends only on

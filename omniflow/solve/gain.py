@@ -15,7 +15,7 @@ with f the image at the point (frame t at the matching band, whose grid the
 matcher has made; any smooth image of the brightness serves as its regressor: the
 gradients' own series, the mean of frames t and t + 1 at the flow band, gave the same
 rendered figures within 1 % at a grid more per unit). They are solved in the same
-weighted least squares as :func:`omniflow.paper.flow.pooled_solution` (its local
+weighted least squares as :func:`omniflow.solve.pooled.pooled_solution` (its local
 model and its errors-in-variables correction), beta one more unknown.
 
 The extra unknown costs accuracy where nothing changes brightness (it takes
@@ -153,7 +153,8 @@ def gain_solution(
     grid: GridPools | None = None,
     linear_gain: bool = False,
 ) -> tuple[NDArray, NDArray, NDArray, NDArray]:
-    """Eq. (9) and (15) with a gain per pool, pooled as :func:`omniflow.paper.flow.pooled_solution`.
+    """Eq. (9) and (15) with a gain per pool, pooled as
+    :func:`omniflow.solve.pooled.pooled_solution`.
 
     Parameters
     ----------
@@ -163,9 +164,9 @@ def gain_solution(
         Each unit's image at the points.
     h1, h2, theta : ndarray, shape (N,)
     idx, w : ndarray, shape (N, K), or None
-        Pools as :func:`omniflow.paper.flow.neighbourhoods` returns them (unused with ``grid``).
+        Pools as :func:`omniflow.solve.pooled.neighbourhoods` returns them (unused with ``grid``).
     model, scale, min_conditioning
-        As :func:`omniflow.paper.flow.pooled_solution` (``relative`` radial model).
+        As :func:`omniflow.solve.pooled.pooled_solution` (``relative`` radial model).
     noise, residual_noise
         Each unit's gradient-noise variance, per unit variance of the image
         noise measured from the residuals with ``residual_noise``
@@ -445,7 +446,7 @@ def _own_rows(derivs, f, h1, h2, p):
 def _corrected(M, v, powers, k, n1, n2, min_conditioning):
     """(a, c, confidence) with the expected gradient-noise power subtracted from the
     normal matrix's gradient entries (bias-compensated least squares, as
-    :func:`omniflow.paper.flow.pooled_solution`: a row's noise n1 + n2 k^2 times its weight and
+    :func:`omniflow.solve.pooled.pooled_solution`: a row's noise n1 + n2 k^2 times its weight and
     power of u, the neighbours' ratios taken as the point's own); NaN where the signal
     does not outweigh the noise on both components or the result is not positive definite."""
     per_row = [n1 * s + n2 * k**2 * s for s in powers.T]

@@ -1,6 +1,6 @@
 """Pooling by filtering on a grid: the pooled solver's sums without a neighbour search.
 
-:func:`omniflow.paper.flow.pooled_solution` needs, for every matched point i, the
+:func:`omniflow.solve.pooled.pooled_solution` needs, for every matched point i, the
 Gaussian-weighted sums over its neighbours j of the products of their
 derivatives (pp, pq, qq, pf, qf) times 1, u and u^2, u the tangential offset.
 With the ``relative`` model every product factors into a part of j alone and a
@@ -16,7 +16,7 @@ or the size of the pools. A pool then holds every point within its radius
 (the k-d tree's keeps the ``pool_k`` nearest), so denser matches pool more
 equations on the same area.
 
-The range test of :func:`omniflow.paper.flow.neighbourhoods` (neighbours whose range
+The range test of :func:`omniflow.solve.pooled.neighbourhoods` (neighbours whose range
 differs from the point's by more than ``range_tol``, another surface, left out)
 becomes a third axis of the grid, as in a bilateral grid: the points are
 binned by log r in bins of delta = log(1 + range_tol), each bin's image is
@@ -125,7 +125,7 @@ class GridPools:
     def sums(
         self, derivs6: tuple[NDArray, ...], h1: NDArray, *, linear: bool, scale: float
     ) -> tuple[NDArray, NDArray]:
-        """Pooled sums of :func:`omniflow.paper.flow.pooled_solution` (``relative`` model).
+        """Pooled sums of :func:`omniflow.solve.pooled.pooled_solution` (``relative`` model).
 
         ``derivs6``: f1_h, f1_theta, f1_t, (h2/h1) f2_h, f2_theta, f2_t and ``h1``,
         shape (N,) (no sentinel). Returns sums (N, 1 or 3, 5) of
@@ -499,7 +499,7 @@ class GridPools:
         the on-grid points, pixels (at most the window's own): the density is each
         window's Gaussian-weighted count of points (any range) over the Gaussian's sum
         on the cells, so that a window of this half-width holds about the ``k`` nearest
-        neighbours of :func:`omniflow.paper.flow.neighbourhoods` (its pools cut at ``k``,
+        neighbours of :func:`omniflow.solve.pooled.neighbourhoods` (its pools cut at ``k``,
         the grid's at the window)."""
         if not self.on_grid.any():
             return self.half * self.cell

@@ -8,7 +8,7 @@ crossing pillar"). cam1 alone still has eq. (9),
     f1_h dh_1/dt + f1_theta dtheta/dt + f1_t = 0,
 
 one equation in the two unknowns at a point, which the pooled solver
-(:func:`omniflow.paper.flow.pooled_solution`, the same local model and weights as
+(:func:`omniflow.solve.pooled.pooled_solution`, the same local model and weights as
 the stereo solve, cam2's terms zero) makes determined over a neighbourhood:
 the polar form of Lucas-Kanade. There is no range, so no range test in the
 pools, no dr/dt and no time to contact.
@@ -41,8 +41,8 @@ from scipy.spatial import cKDTree
 from omniflow.config import OmniFlowConfig
 from omniflow.fit.sampling import sample_f, sample_polar_grad
 from omniflow.geometry.rig import Unit
-from omniflow.paper.flow import neighbourhoods, pooled_solution
 from omniflow.result import MONOCULAR_COLUMNS, OmniFlowResult
+from omniflow.solve.pooled import neighbourhoods, pooled_solution
 
 __all__ = [
     "BLOCK",

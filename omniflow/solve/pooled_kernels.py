@@ -1,7 +1,7 @@
 """Compiled kernels (Numba) of the pooled solver: its sums, its 2 x 2 solves, the neighbours.
 
 :func:`pooled_sums` forms the weighted sums of the pooled flow solver
-(:func:`omniflow.paper.flow.pooled_solution`): for every point, over its K
+(:func:`omniflow.solve.pooled.pooled_solution`): for every point, over its K
 neighbours, sum_j w_ij u_ij^m (pp, pq, qq, pf, qf)_j. In numpy that is a
 dozen (N, K) gathers and products and an (N, K, 5) stack before one batched
 product; here it is one pass over the neighbours with nothing stored but
@@ -14,7 +14,7 @@ for the linear model) per point, numpy's operations in numpy's order, so bit for
 answers of the numpy form it replaced, without its (N,) temporaries.
 
 :func:`cell_knn` finds the k nearest points within a radius
-(:func:`omniflow.paper.flow.neighbourhoods`) by binning the points into square cells of
+(:func:`omniflow.solve.pooled.neighbourhoods`) by binning the points into square cells of
 half the radius and visiting the cells around each query point ring by ring,
 keeping the nearest so far in a max-heap whose top bounds the cells still worth
 visiting. It answers what scipy's k-d tree answers (the same squared distances,
@@ -106,7 +106,7 @@ def pooled_sums(
     theta : ndarray, shape (N + 1,), optional
         Azimuth (``linear`` only).
     relative, linear : bool
-        The local model of :func:`omniflow.paper.flow.pooled_solution`.
+        The local model of :func:`omniflow.solve.pooled.pooled_solution`.
     scale : float
         Tangential length that scales u, pixels.
 

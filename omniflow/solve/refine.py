@@ -110,7 +110,7 @@ def refine_moving(
     ``make_solver(rig, config, x1, y1, theta, h1, h2, r, noise)`` builds the
     configured solver for a subset (:func:`omniflow.solve.at_matches.make_solver`, passed
     in so that this module does not import the module that calls it).
-    ``pools``: the first solve's (idx, w) (:func:`omniflow.paper.flow.neighbourhoods`),
+    ``pools``: the first solve's (idx, w) (:func:`omniflow.solve.pooled.neighbourhoods`),
     when it pooled over k-d tree neighbours; the refined points' pool members are
     then solved with them (each linearised about its own first flow, a NaN one
     about zero motion), else the fast points pool among themselves.

@@ -14,12 +14,12 @@ import pytest
 from omniflow.applications.navigation import (
     odometry,
     position_fix,
-    radial_velocity,
     region_flow,
     steering_heading,
     time_to_contact,
 )
 from omniflow.geometry.rig import Rig
+from omniflow.paper.flow import radial_velocity
 from omnisim.synthetic import Cylinder, Motion, SyntheticScene, Texture
 
 

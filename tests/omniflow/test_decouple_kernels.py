@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 import omniflow.solve.decoupled
-from omniflow.paper.flow import neighbourhoods
 from omniflow.solve.decouple_kernels import decouple_fits
 from omniflow.solve.decoupled import kept_pools, model_fits
+from omniflow.solve.pooled import neighbourhoods
 from omniflow.solve.pooled_kernels import cell_knn
 
 
@@ -189,7 +189,7 @@ def test_kept_pools_equal_a_new_search(n):
 
 
 def _tree_pools(x, y, k, radius, rows=None):
-    """scipy's answer, as omniflow.paper.flow.neighbourhoods took it before the cell search."""
+    """scipy's answer, as omniflow.solve.pooled.neighbourhoods took it before the cell search."""
     from scipy.spatial import cKDTree
 
     pts = np.column_stack([x, y])
@@ -225,7 +225,7 @@ def test_cell_knn_is_the_trees_answer(case):
 
 
 def test_neighbourhoods_equal_the_trees_with_ties():
-    """omniflow.paper.flow.neighbourhoods (cell search, the tree where distances tie) against the
+    """omniflow.solve.pooled.neighbourhoods (cell search, the tree where distances tie) against the
     tree alone; the mutation: ignoring the tie flag changes pools of the pixel-centre case."""
     x, y = _cases()["pixel centres"]
     idx, _ = neighbourhoods(x, y, k=48, radius=16.0, r=None)

@@ -26,9 +26,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from omniflow.applications.navigation import radial_velocity, radial_velocity_stereo
 from omniflow.config import OmniFlowConfig
 from omniflow.geometry.rig import Rig
+from omniflow.paper.flow import radial_velocity, radial_velocity_stereo
 from omniflow.pipeline import COLUMNS, estimate
 from omniflow.solve.decoupled import model_fits
 from tests.helpers.scenes import frames, sparse_true_matches

@@ -56,12 +56,11 @@ from omniflow.paper.flow import (
     conditioning,
     direct_solution,
     flow_residual,
-    neighbourhoods,
     partial_solutions,
-    pooled_solution,
     predicted_bias,
 )
 from omniflow.pipeline import OmniFlowConfig, estimate
+from omniflow.solve.pooled import neighbourhoods, pooled_solution
 from omnisim.synthetic import Motion, SyntheticScene
 from tests.helpers.scenes import dis_flow, frames, paper_rig, true_matches, wall_scene
 

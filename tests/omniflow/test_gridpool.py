@@ -23,12 +23,12 @@ import numpy as np
 import pytest
 
 from omniflow.config import OmniFlowConfig
-from omniflow.paper.flow import neighbourhoods, pooled_solution
 from omniflow.pipeline import estimate
 from omniflow.solve.decoupled import screen
 from omniflow.solve.gain import decoupled_linear_gain, gated
 from omniflow.solve.gain_kernels import gain_sums, nested_fits
 from omniflow.solve.gridpool import GridPools
+from omniflow.solve.pooled import neighbourhoods, pooled_solution
 from tests.helpers.scenes import band_scene, frames, paper_rig, sparse_true_matches
 
 RADIUS, CELL, SHAPE = 16.0, 2.0, (128, 160)
@@ -551,7 +551,7 @@ def test_screen_keeps_every_pool_the_trees_test_passes(mutation):
 
 
 def test_neighbourhoods_of_queried_points_are_the_full_searchs_rows():
-    """omniflow.paper.flow.neighbourhoods with ``query``: the queried rows the full search's, bit
+    """omniflow.solve.pooled.neighbourhoods with ``query``: the queried rows the full search's, bit
     for bit (weights made for those rows only), the others index N and weight 0."""
     x, y, _, _, _, r, _, _ = _sums_case(True)
     query = np.random.default_rng(2).random(x.size) < 0.3

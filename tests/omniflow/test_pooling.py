@@ -41,14 +41,14 @@ import pytest
 import omniflow.paper.flow as flow
 import omniflow.solve.at_matches as solve
 from omniflow.config import OmniFlowConfig
-from omniflow.paper.flow import (
+from omniflow.pipeline import estimate
+from omniflow.solve.pooled import (
     consistent_neighbours,
     edge_between,
     informative_pools,
     neighbourhoods,
     pooled_solution,
 )
-from omniflow.pipeline import estimate
 from tests.helpers.scenes import band_scene, frames, paper_rig, sparse_true_matches
 
 YAW = 0.01  # rad per frame: 0.2-0.5 px of tangential flow on the band in cam1

@@ -33,8 +33,8 @@ import pytest
 
 import omniflow.paper.flow as flow_module
 from omniflow.config import OmniFlowConfig
-from omniflow.paper.flow import neighbourhoods, pooled_solution
 from omniflow.pipeline import estimate
+from omniflow.solve.pooled import neighbourhoods, pooled_solution
 from tests.helpers.scenes import band_scene, frames, paper_rig, sparse_true_matches
 
 
