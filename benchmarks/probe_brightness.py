@@ -265,7 +265,7 @@ def main() -> None:
 
     import omniflow.pipeline as pipeline
     import omniflow.solve.at_matches as solve_mod
-    from omniflow.cli.pair import config_from_settings
+    from omniflow.cli.common import config_from_settings
     from omniflow.config import OmniFlowConfig
     from omniflow.io.dataset import open_dataset
     from validation.inputs import Inputs, camera_model

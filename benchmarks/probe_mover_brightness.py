@@ -531,7 +531,7 @@ def main() -> None:
     args.gates = [float(g) for g in args.gates.split(",")]
     args.dec_gates = [float(g) for g in args.dec_gates.split(",")]
 
-    from omniflow.cli.pair import config_from_settings
+    from omniflow.cli.common import config_from_settings
     from omniflow.config import OmniFlowConfig
     from omniflow.io.dataset import open_dataset
     from validation.inputs import Inputs, camera_model

@@ -66,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
 
     from omniflow import parallel
-    from omniflow.cli.pair import config_from_settings
+    from omniflow.cli.common import config_from_settings
     from omniflow.io.dataset import open_dataset
     from omniflow.pipeline import OmniFlowConfig, estimate
 

@@ -264,7 +264,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return fail("--method-name: more names than --method-output directories")
     variants: Any = args.variants
     if args.row:
-        from omniflow.cli.pair import CLIError, config_from_settings
+        from omniflow.cli.common import CLIError, config_from_settings
 
         from .variants import omniflow_variants, variant_name
 

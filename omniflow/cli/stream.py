@@ -27,16 +27,16 @@ from typing import Any
 
 import numpy as np
 
-from omniflow.cli.pair import (
+from omniflow.cli.common import (
     CLIError,
-    _add_config_options,
-    _check_rig_size,
-    _column_units,
-    _Formatter,
-    _make_config,
-    _one_line,
-    _Parser,
+    Formatter,
+    Parser,
+    add_config_options,
+    check_rig_size,
+    column_units,
     explain_error,
+    make_config,
+    one_line,
 )
 from omniflow.geometry.rig import Rig, load_rig
 from omniflow.io.imageio import atomic_write_text, read_image, to_grey
@@ -49,10 +49,10 @@ IMAGE_SUFFIXES = (".png", ".exr", ".tif", ".tiff", ".jpg", ".jpeg")
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``omniflow stream`` argument parser (every OmniFlowConfig knob included)."""
-    parser = _Parser(
+    parser = Parser(
         prog=PROG,
         allow_abbrev=False,
-        formatter_class=_Formatter,
+        formatter_class=Formatter,
         description=textwrap.dedent(
             """\
             Omni flow of every consecutive pair of a sequence, streamed: each stereo frame
@@ -99,7 +99,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--dense", action="store_true", help="start from OmniFlowConfig.dense() (see omniflow)"
     )
-    parser._config_fields = _add_config_options(parser)  # type: ignore[attr-defined]
+    parser._config_fields = add_config_options(parser)  # type: ignore[attr-defined]
     return parser
 
 
@@ -115,7 +115,7 @@ class _Source:
 
     def read(self, k: int) -> tuple[np.ndarray, np.ndarray]:
         pair = self._read(k)
-        _check_rig_size(self.rig, pair[0].shape, "the rig")
+        check_rig_size(self.rig, pair[0].shape, "the rig")
         for cam, img in zip(("cam1", "cam2"), pair, strict=True):
             if img.shape != pair[0].shape:
                 raise CLIError(f"{self.name_of(k, cam)}: {img.shape} pixels, cam1 {pair[0].shape}")
@@ -196,7 +196,7 @@ def _check_resume(out: Path, header: dict) -> None:
     try:
         old = json.loads(manifest.read_text(encoding="utf-8"))
     except (ValueError, UnicodeDecodeError) as exc:
-        raise CLIError(f"{manifest}: not a stream manifest ({_one_line(exc)})") from exc
+        raise CLIError(f"{manifest}: not a stream manifest ({one_line(exc)})") from exc
     for key in ("input", "rig", "config"):
         if old.get(key) != header[key]:
             raise CLIError(
@@ -209,7 +209,7 @@ def run(args: argparse.Namespace, config_fields: list[str], argv: list[str]) -> 
     from omniflow.applications.navigation import time_to_contact
     from omniflow.stream import OmniFlowStream
 
-    config = _make_config(args, config_fields)
+    config = make_config(args, config_fields)
     source = open_source(args.input, args.rig)
     stop = source.count if args.stop is None else args.stop
     need = config.temporal_frames if config.temporal == "dct3d" else 2
@@ -226,7 +226,7 @@ def run(args: argparse.Namespace, config_fields: list[str], argv: list[str]) -> 
         "input": jsonable(source.describe),
         "rig": source.rig.to_dict(),
         "config": jsonable(config),
-        "columns": _column_units(),
+        "columns": column_units(),
     }
     _check_resume(out, header)
     out.mkdir(parents=True, exist_ok=True)
@@ -272,7 +272,7 @@ def run(args: argparse.Namespace, config_fields: list[str], argv: list[str]) -> 
                 result = stream.push(f1, f2)
             except ValueError as exc:  # a knob combination these images do not allow
                 raise CLIError(
-                    f"the algorithm options do not fit frame {k}: {_one_line(exc)}"
+                    f"the algorithm options do not fit frame {k}: {one_line(exc)}"
                 ) from exc
             ms = 1e3 * (time.perf_counter() - t0)
             pushed = k
@@ -306,7 +306,7 @@ def run(args: argparse.Namespace, config_fields: list[str], argv: list[str]) -> 
 
 def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
     """warnings.showwarning for the command: ``omniflow-stream: warning: ...`` on one line."""
-    print(f"{PROG}: warning: {_one_line(message)}", file=sys.stderr if file is None else file)
+    print(f"{PROG}: warning: {one_line(message)}", file=sys.stderr if file is None else file)
 
 
 def main(argv: list[str] | None = None) -> int:

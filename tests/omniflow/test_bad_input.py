@@ -522,7 +522,7 @@ def test_bad_input_is_one_line_and_changes_nothing(base, tmp_path, name):
 
 def test_knob_limits_cover_every_numeric_knob():
     # A numeric OmniFlowConfig field without a range would reach the pipeline unchecked.
-    from omniflow.cli.pair import KNOB_LIMITS
+    from omniflow.cli.common import KNOB_LIMITS
     from omniflow.pipeline import OmniFlowConfig
 
     config = OmniFlowConfig()
@@ -536,7 +536,7 @@ def test_knob_limits_cover_every_numeric_knob():
     assert numeric - set(KNOB_LIMITS) == set()
     assert set(KNOB_LIMITS) - {f.name for f in dataclasses.fields(config)} == set()
     for name in KNOB_LIMITS:  # every default lies in its range
-        from omniflow.cli.pair import check_knobs
+        from omniflow.cli.common import check_knobs
 
         check_knobs({name: getattr(config, name)})
         check_knobs({name: getattr(OmniFlowConfig.paper(), name)})

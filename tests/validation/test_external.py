@@ -220,10 +220,10 @@ def test_cli_refuses_a_bad_row(synth, tmp_path):
 
 
 def test_row_presets_start_from_the_preset():
-    """``--row dense`` and ``--row dense,NAME=VALUE`` (omniflow.cli.pair.config_from_settings)
+    """``--row dense`` and ``--row dense,NAME=VALUE`` (omniflow.cli.common.config_from_settings)
     start from OmniFlowConfig.dense(), ``paper`` from OmniFlowConfig.paper(); both at once
     is refused in one line. Mutation caught: a preset word ignored (the defaults)."""
-    from omniflow.cli.pair import CLIError, config_from_settings
+    from omniflow.cli.common import CLIError, config_from_settings
     from omniflow.config import DENSE, OmniFlowConfig
 
     assert config_from_settings("dense") == OmniFlowConfig.dense() != OmniFlowConfig()
