@@ -158,7 +158,7 @@ def refine(a, b, call, d, kw):
     refined (``call``: its arguments and answer), with the same group of pool members,
     each linearised about its own flow in (a, b), solved for the total flow.
     Returns (dh1_dt, dh2_dt, dtheta_dt)."""
-    from omniflow import refine as ref
+    from omniflow.solve import refine as ref
     from omniflow.solve.pooled import neighbourhoods
 
     (_, _, _, c), sel = call

@@ -20,12 +20,12 @@ import numpy as np
 
 
 def probe(directory: str, t: int, args: argparse.Namespace) -> None:
-    from omniflow import monocular as mono
     from omniflow.config import OmniFlowConfig
     from omniflow.fit.sampling import sample_fine, sample_polar_grad
     from omniflow.fit.series import choose_flow_band, unit_frames
     from omniflow.io.dataset import open_dataset
     from omniflow.pipeline import _unit_series, estimate
+    from omniflow.solve import monocular as mono
     from omniflow.solve.pooled import neighbourhoods, pooled_solution
     from validation.inputs import Inputs, camera_model
     from validation.sampling import sample_truth

@@ -191,7 +191,7 @@ def decomposition(d: dict, idx: np.ndarray, w: np.ndarray, *, model: str,
 def refine(a, b, call, d, kw):
     """omniflow's refinement step from (a, b) with the brightness terms of ``kw``, at the
     points omniflow refined (benchmarks/probe_brightness.py's ``refine``, any terms)."""
-    from omniflow import refine as ref
+    from omniflow.solve import refine as ref
     from omniflow.solve.pooled import neighbourhoods
 
     (_, _, _, c), sel = call

@@ -25,7 +25,7 @@ def increment_form(a, b, conf, *, cam1, cam2, rig, x1, y1, x2, y2, theta, h1, h2
     """The refinement of commit 0099986: fast points only, pooled increments."""
     from scipy.spatial import cKDTree
 
-    from omniflow import refine
+    from omniflow.solve import refine
 
     sel = refine.moving_far(a, b, h1, h2, config.iterate_min_px)
     radius = rig.cam1.r_m / 8.0 if config.pool_radius is None else config.pool_radius

@@ -144,8 +144,8 @@ def test_early_pool_fits_are_used_only_for_the_same_points(monkeypatch):
     columns too (the mutation of not passing the image to the early fits fails here;
     every point keeps its flow in this scene, so the image's subsetting to the kept
     points is not exercised)."""
-    from omniflow import solve as solve_mod
     from omniflow.pipeline import OmniFlowConfig, estimate
+    from omniflow.solve import at_matches as solve_mod
     from omniflow.solve.decoupled import pool_fits
     from omnisim.synthetic import Motion
     from tests.helpers.scenes import frames, paper_rig, wall_scene

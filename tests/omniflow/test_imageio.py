@@ -147,7 +147,7 @@ def test_atomic_write_fsyncs_the_file_before_the_rename_and_the_folder_after(tmp
     rename synced after (a writer without either fails this)."""
     import os
 
-    from omniflow import imageio
+    from omniflow.io import imageio
 
     events = []
     real_fsync, real_replace = os.fsync, os.replace

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from omniflow import jsonio
+from omniflow.io import jsonio
 from omniflow.io.jsonio import json_text, jsonable
 
 

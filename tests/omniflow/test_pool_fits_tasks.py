@@ -17,7 +17,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from omniflow import decoupled, gridpool, parallel
+from omniflow import parallel
+from omniflow.solve import decoupled, gridpool
 from omniflow.solve.gridpool import GridPools
 from tests.omniflow.test_gridpool import (
     CELL,
@@ -34,8 +35,8 @@ from tests.omniflow.test_gridpool import (
 def solver_call():
     """The arguments of the solver's own pool fits: the dense preset with the linear-gain
     test on a closed-form wall (as tests/omniflow/test_decoupled.py's early-fits test)."""
-    from omniflow import solve as solve_mod
     from omniflow.pipeline import OmniFlowConfig, estimate
+    from omniflow.solve import at_matches as solve_mod
     from omnisim.synthetic import Motion
     from tests.helpers.scenes import frames, paper_rig, wall_scene
 
@@ -171,8 +172,8 @@ def test_speculative_pool_fits_only_when_every_point_keeps_its_flow(monkeypatch)
     columns bit for bit; started again for the kept points where the first solve loses
     one. The mutation, the speculative fits used anyway, would hand decouple fits of one
     point more than its columns (checked: their lengths differ)."""
-    from omniflow import solve as solve_mod
     from omniflow.pipeline import OmniFlowConfig, estimate
+    from omniflow.solve import at_matches as solve_mod
     from omnisim.synthetic import Motion
     from tests.helpers.scenes import frames, paper_rig, wall_scene
 
