@@ -39,7 +39,7 @@ REQUIRED = ("x", "y", "theta", "h1", "h2", "r", "h", "dh1_dt", "dtheta_dt", "dr_
 
 def run_cli(*args, cwd=None) -> subprocess.CompletedProcess:
     return subprocess.run(
-        [sys.executable, "-m", "omniflow.cli.pair", *map(str, args)],
+        [sys.executable, "-m", "omniflow.cli", *map(str, args)],
         capture_output=True,
         text=True,
         timeout=300,

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import omniflow.paper.flow
+import omniflow.solve.pooled
 from omniflow.pipeline import OmniFlowConfig, estimate
 from omniflow.solve.pooled import neighbourhoods
 from omniflow.solve.pooled_kernels import pooled_sums
@@ -148,7 +148,7 @@ def test_flow_columns_unchanged_by_the_kernel(name, pair, monkeypatch):
     f1, f2, rig = pair
     config = CONFIGS[name]
     fast = estimate(f1, f2, rig, config)
-    monkeypatch.setattr(omniflow.paper.flow, "pooled_sums", numpy_pooled_sums)
+    monkeypatch.setattr(omniflow.solve.pooled, "pooled_sums", numpy_pooled_sums)
     before = estimate(f1, f2, rig, config)
     assert len(fast) == len(before) > 100
     assert _worst(fast, before) <= FLOW_TOL, name
@@ -164,7 +164,7 @@ def test_flow_check_catches_a_changed_sum(pair, monkeypatch):
         sums[..., 3] *= 1 + 1e-6  # the pf sums
         return sums, wsum
 
-    monkeypatch.setattr(omniflow.paper.flow, "pooled_sums", perturbed)
+    monkeypatch.setattr(omniflow.solve.pooled, "pooled_sums", perturbed)
     assert _worst(fast, estimate(f1, f2, rig)) > 100 * FLOW_TOL
 
 

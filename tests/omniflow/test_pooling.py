@@ -38,8 +38,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import omniflow.paper.flow as flow
 import omniflow.solve.at_matches as solve
+import omniflow.solve.pooled as flow
 from omniflow.config import OmniFlowConfig
 from omniflow.pipeline import estimate
 from omniflow.solve.pooled import (

@@ -31,7 +31,7 @@ import math
 import numpy as np
 import pytest
 
-import omniflow.paper.flow as flow_module
+import omniflow.solve.pooled as flow_module
 from omniflow.config import OmniFlowConfig
 from omniflow.pipeline import estimate
 from omniflow.solve.pooled import neighbourhoods, pooled_solution
