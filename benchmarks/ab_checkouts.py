@@ -13,7 +13,7 @@ both camera pairs of the first two frames per call. Run::
 ``--set NAME=VALUE`` (repeatable) gives every omniflow variant that
 OmniFlowConfig field (parsed as the CLI's ``--set``), e.g. the densified
 configuration: ``--set dense_percentile=60 --set pool_grid=0.125 --set decouple_tol=60``.
-A variant's own ``:set=ITEMS`` (omniflow.cli.config_from_settings' comma-separated
+A variant's own ``:set=ITEMS`` (omniflow.cli.common.config_from_settings' comma-separated
 items, presets included) is added after those, so one run can time several
 configurations of one checkout against DIS in the same rounds::
 
@@ -37,8 +37,8 @@ def worker(dataset: str, dis: bool, threads: int | None, settings: str = "") -> 
     """Answer each line N on stdin with the wall and CPU seconds of N calls (JSON)."""
     import cv2
 
-    from omniflow.dataset import open_dataset
-    from omniflow.imageio import to_uint8
+    from omniflow.io.dataset import open_dataset
+    from omniflow.io.imageio import to_uint8
 
     ds = open_dataset(dataset)
     f1 = [ds.read_grey(j, "cam1") for j in range(2)]
@@ -56,7 +56,7 @@ def worker(dataset: str, dis: bool, threads: int | None, settings: str = "") -> 
 
         config = OmniFlowConfig()
         if settings:
-            from omniflow.cli import config_from_settings
+            from omniflow.cli.common import config_from_settings
 
             config = config_from_settings(settings)
 

@@ -29,7 +29,7 @@ def worker(dataset: str, threads: int | None, sets: list[str]) -> None:
     """Answer each line N on stdin with the wall and CPU seconds of N calls (JSON)."""
     from omniflow import parallel
     from omniflow import pipeline as P
-    from omniflow.dataset import open_dataset
+    from omniflow.io.dataset import open_dataset
 
     if threads is not None:
         parallel.THREADS = threads

@@ -30,7 +30,7 @@ import time
 
 import numpy as np
 
-from omniflow.dataset import grey_of, open_dataset
+from omniflow.io.dataset import grey_of, open_dataset
 from omnisim.dataset import DatasetWriter
 from omnisim.denoise import guide_integrator_dict
 from omnisim.groundtruth import ground_truth_frame

@@ -18,7 +18,7 @@ import time
 
 import numpy as np
 
-from omniflow.camera import CameraModel
+from omnisim.camera import CameraModel
 
 #: (parameters, mean charge in electrons) of the noise table.
 CASES: list[tuple[dict, float]] = [

@@ -1,7 +1,8 @@
-"""A/B of the compiled pooled-solver sums (omniflow.kernels) against numpy's formulation.
+"""A/B of the compiled pooled-solver sums (omniflow.solve.pooled_kernels) against numpy's
+formulation.
 
 Runs ``omniflow.pipeline.estimate`` on the same rendered pair alternately with
-``omniflow.flow.pooled_sums`` as shipped (Numba) and replaced by the numpy
+``omniflow.paper.flow.pooled_sums`` as shipped (Numba) and replaced by the numpy
 formulation it replaced (``tests/omniflow/test_kernels.py``), at the default
 configuration and at a dense one (more matches, as the accuracy work aims for),
 and prints the medians of wall time, CPU time and the solve stage, and the
@@ -20,8 +21,8 @@ import time
 
 import numpy as np
 
-import omniflow.flow
-from omniflow.dataset import open_dataset
+import omniflow.paper.flow
+from omniflow.io.dataset import open_dataset
 from omniflow.pipeline import OmniFlowConfig, estimate
 from tests.omniflow.test_kernels import numpy_pooled_sums
 
@@ -42,13 +43,13 @@ def main(argv: list[str] | None = None) -> int:
     ds = open_dataset(args.dataset)
     f1 = [ds.read_grey(k, "cam1") for k in (args.frame, args.frame + 1)]
     f2 = [ds.read_grey(k, "cam2") for k in (args.frame, args.frame + 1)]
-    variants = {"numpy": numpy_pooled_sums, "kernel": omniflow.flow.pooled_sums}
+    variants = {"numpy": numpy_pooled_sums, "kernel": omniflow.paper.flow.pooled_sums}
     for label, config in CONFIGS.items():
         wall, cpu, solve, cols = ({k: [] for k in variants} for _ in range(4))
         for i in range(args.runs + 2):  # 2 warm-up rounds; the order alternates
             names = list(variants) if i % 2 else list(variants)[::-1]
             for name in names:
-                omniflow.flow.pooled_sums = variants[name]
+                omniflow.paper.flow.pooled_sums = variants[name]
                 c0, t0 = time.process_time(), time.perf_counter()
                 result = estimate(f1, f2, ds.rig, config)
                 t1, c1 = time.perf_counter(), time.process_time()
@@ -57,7 +58,7 @@ def main(argv: list[str] | None = None) -> int:
                     cpu[name].append(c1 - c0)
                     solve[name].append(result.timings["solve"])
                 cols[name] = result.columns
-        omniflow.flow.pooled_sums = variants["kernel"]
+        omniflow.paper.flow.pooled_sums = variants["kernel"]
         worst = max(
             float(np.max(np.abs(cols["kernel"][k] - v)) / np.max(np.abs(v)))
             for k, v in cols["numpy"].items()

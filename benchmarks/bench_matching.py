@@ -38,15 +38,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_omniflow import parse_set
 
-from omniflow.imageio import atomic_write_text
-from omniflow.jsonio import json_text
+from omniflow.io.imageio import atomic_write_text
+from omniflow.io.jsonio import json_text
 
 TRUTH = ("gt.valid", "gt.object", "gt.stereo.valid", "gt.stereo.h_other")
 
 
 def score_dataset(directory: str, config) -> dict:
     """Matching figures of ``config`` on every complete frame pair of one dataset."""
-    from omniflow.dataset import open_dataset
+    from omniflow.io.dataset import open_dataset
     from omniflow.pipeline import estimate
     from validation.inputs import Inputs, camera_model
     from validation.sampling import sample_truth

@@ -25,7 +25,7 @@ closed-form frames, each size in a fresh process) closes the report. The
 targets (issue 10): omniflow / DIS-medium <= 1 for the pair; 10 ms per
 stereo frame streamed at 512 x 512.
 
-Frames: closed-form scenes from :mod:`omniflow.synthetic` (a textured round
+Frames: closed-form scenes from :mod:`omnisim.synthetic` (a textured round
 room, the robot turning and driving slowly), or rendered frames with
 ``--dataset DIR --frame K``. Run::
 
@@ -51,14 +51,14 @@ from pathlib import Path
 
 import numpy as np
 
-from omniflow.imageio import atomic_write_text, to_uint8
-from omniflow.jsonio import json_text
-from omniflow.rig import Rig
+from omniflow.geometry.rig import Rig
+from omniflow.io.imageio import atomic_write_text, to_uint8
+from omniflow.io.jsonio import json_text
 
 
 def synthetic_frames(size: int, count: int) -> tuple[list, list, Rig, str]:
     """Closed-form frames of both cameras: textured room, robot turning and driving."""
-    from omniflow.synthetic import Motion, SyntheticScene
+    from omnisim.synthetic import Motion, SyntheticScene
 
     rig = Rig.symmetric(d=0.10, R=0.05, s=0.30, size=size)
     scene = SyntheticScene.room(
@@ -67,12 +67,12 @@ def synthetic_frames(size: int, count: int) -> tuple[list, list, Rig, str]:
     )  # fmt: skip
     f1 = [scene.render("cam1", t).astype(np.float32) for t in range(count)]
     f2 = [scene.render("cam2", t).astype(np.float32) for t in range(count)]
-    return f1, f2, rig, f"omniflow.synthetic room {size}x{size}, robot 4.5 mm + 2 mrad per frame"
+    return f1, f2, rig, f"omnisim.synthetic room {size}x{size}, robot 4.5 mm + 2 mrad per frame"
 
 
 def dataset_frames(directory: str, k: int, count: int) -> tuple[list, list, Rig, str]:
     """Rendered frames k .. k + count - 1 of an omnisim dataset."""
-    from omniflow.dataset import open_dataset
+    from omniflow.io.dataset import open_dataset
 
     ds = open_dataset(directory)
     f1 = [ds.read_grey(j, "cam1") for j in range(k, k + count)]
@@ -320,7 +320,7 @@ def main(argv: list[str] | None = None) -> int:
     pair_frames = config.temporal_frames if config.temporal == "dct3d" else 2
     count = max(pair_frames, 4)
     if args.dataset:
-        from omniflow.dataset import open_dataset
+        from omniflow.io.dataset import open_dataset
 
         available = open_dataset(args.dataset).frame_count - args.frame
         f1, f2, rig, source = dataset_frames(args.dataset, args.frame, min(count, available))

@@ -125,9 +125,9 @@ TABLE_HEAD = (
 def mixing(dataset: str) -> list[str]:
     """Share of the default pools' weight that each mover's points draw from other objects."""
     from omniflow.config import OmniFlowConfig
-    from omniflow.dataset import open_dataset
-    from omniflow.flow import neighbourhoods
+    from omniflow.io.dataset import open_dataset
     from omniflow.pipeline import estimate
+    from omniflow.solve.pooled import neighbourhoods
     from validation.inputs import Inputs, camera_model
     from validation.scoring_derived import moving_objects
 
@@ -157,8 +157,8 @@ def mixing(dataset: str) -> list[str]:
 
 def boundary(variants: list, band_mean: float, share: float = 0.1) -> list[str]:
     """The closed-form motion boundary of tests/omniflow/test_pooling.py, per variant."""
-    from omniflow.flow import neighbourhoods
     from omniflow.pipeline import estimate
+    from omniflow.solve.pooled import neighbourhoods
     from tests.helpers.scenes import band_scene, frames, paper_rig, sparse_true_matches
 
     rig = paper_rig(256)
@@ -187,7 +187,7 @@ def outline(dataset: str, config, within: float = 3.0) -> list[str]:
     """Each mover's radial flow (est / true means) at matched points near its outline and inside."""
     from scipy.ndimage import distance_transform_edt
 
-    from omniflow.dataset import open_dataset
+    from omniflow.io.dataset import open_dataset
     from omniflow.pipeline import estimate
     from validation.inputs import Inputs, camera_model
     from validation.scoring_derived import moving_objects
@@ -240,7 +240,7 @@ def main() -> None:
     args = parser.parse_args()
     datasets = [a for a in args.datasets if ":" not in a]
     variants = [parse_variant(a) for a in args.datasets if ":" in a] or [parse_variant("default:")]
-    from omniflow.jsonio import jsonable
+    from omniflow.io.jsonio import jsonable
     from validation.runner import run_validation
     from validation.summary import summarize
 

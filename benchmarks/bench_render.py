@@ -48,8 +48,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from omniflow.imageio import atomic_write_text, to_grey  # noqa: E402
-from omniflow.jsonio import json_text  # noqa: E402
+from omniflow.io.imageio import atomic_write_text, to_grey  # noqa: E402
+from omniflow.io.jsonio import json_text  # noqa: E402
 from omnisim import render  # noqa: E402
 from omnisim.groundtruth import ground_truth_frame  # noqa: E402
 from omnisim.scene import load_scene, parse_override  # noqa: E402

@@ -21,7 +21,7 @@ import numpy as np
 
 
 def main(directory: str) -> None:
-    from omniflow.dataset import open_dataset
+    from omniflow.io.dataset import open_dataset
     from validation.inputs import Inputs, camera_model
 
     ds = open_dataset(directory)

@@ -31,7 +31,7 @@ import ast
 
 import numpy as np
 
-from omniflow.dataset import open_dataset
+from omniflow.io.dataset import open_dataset
 from omniflow.matching import Matches
 from omniflow.pipeline import OmniFlowConfig, estimate
 from validation import baselines as bl

@@ -31,7 +31,7 @@ from bench_omniflow import parse_set
 
 
 def columns(datasets: list[str], pairs: int, config) -> dict[str, np.ndarray]:
-    from omniflow.dataset import open_dataset
+    from omniflow.io.dataset import open_dataset
     from omniflow.pipeline import estimate
 
     out = {}

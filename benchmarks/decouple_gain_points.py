@@ -2,9 +2,9 @@
 
 For each dataset and pair (t, t + 1), t in ``--frames``: :func:`omniflow.pipeline.estimate`
 with ``decouple_gain_tol`` None and with ``--tol`` (20) with the gates of
-:mod:`omniflow.gain` opened (``MIN_RESIDUAL_DOF`` just above 0 and ``MIN_RESIDUAL_RATIO``
+:mod:`omniflow.solve.gain` opened (``MIN_RESIDUAL_DOF`` just above 0 and ``MIN_RESIDUAL_RATIO``
 1: F_U alone, as first built), its linear-gain fits taken from
-:func:`omniflow.decoupled.chained`. Prints every point whose F_U passes the gate (half of
+:func:`omniflow.solve.decoupled.chained`. Prints every point whose F_U passes the gate (half of
 it on range-edge pools, ``EDGE_GATE``): its object (moving or static), F_U, n_eff, the
 residual ratio RSS_coupled / RSS_decoupled = 1 + F_U / (n_eff - 6), whether each gate
 keeps it, the F statistic of the gain's three columns and its largest fitted term
@@ -22,10 +22,10 @@ import argparse
 
 import numpy as np
 
-import omniflow.decoupled as decoupled_mod
-import omniflow.gain as gain_mod
+import omniflow.solve.decoupled as decoupled_mod
+import omniflow.solve.gain as gain_mod
 from omniflow.config import OmniFlowConfig
-from omniflow.dataset import open_dataset
+from omniflow.io.dataset import open_dataset
 from omniflow.pipeline import estimate
 from validation.inputs import Inputs, camera_model
 from validation.sampling import sample_truth

@@ -1,4 +1,4 @@
-"""Time of the brightness-gain fit (omniflow.gain.gain_solution) on a dataset's pools.
+"""Time of the brightness-gain fit (omniflow.solve.gain.gain_solution) on a dataset's pools.
 
 Runs the flow step on one pair with the defaults and with the dense preset, captures
 every call of the gain fit (first solve, refinement) and times each again, the median of
@@ -22,11 +22,11 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=15)
     args = parser.parse_args()
 
-    import omniflow.solve as solve_mod
+    import omniflow.solve.at_matches as solve_mod
     from omniflow.config import OmniFlowConfig
-    from omniflow.dataset import open_dataset
-    from omniflow.gain import gated
+    from omniflow.io.dataset import open_dataset
     from omniflow.pipeline import estimate
+    from omniflow.solve.gain import gated
     from validation.inputs import Inputs, camera_model
 
     calls = []

@@ -47,7 +47,7 @@ from collections import defaultdict
 import cv2
 import numpy as np
 
-from omniflow.dataset import grey_of, open_dataset
+from omniflow.io.dataset import grey_of, open_dataset
 from omniflow.pipeline import OmniFlowConfig, estimate
 from validation.baselines import dis_flow, farneback_flow
 from validation.inputs import CAMERAS, Inputs, camera_model

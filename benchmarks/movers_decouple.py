@@ -9,7 +9,7 @@ runs ``omnivalidate DATASET --out OUT --variants default`` with every
 default OmniFlowConfig carrying ``decouple_tol=TOL`` ('none' for None; or
 the NAME=VALUE fields given) and writes OUT/decouple.json: the share of
 points switched to the decoupled model and the quantiles of the F statistic
-(omniflow.decoupled.model_fits).
+(omniflow.solve.decoupled.model_fits).
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 import omniflow.config as config
-import omniflow.decoupled as decoupled
+import omniflow.solve.decoupled as decoupled
 
 
 def main(argv: list[str]) -> int:

@@ -3,7 +3,7 @@
     python benchmarks/movers_timing.py [DATASET] [REPEATS]
 
 DATASET defaults to /work/data/default (frame pair 0, grey = Rec. 709 luma of R, G, B);
-prints the median total and the median time of omniflow.decoupled.decouple per
+prints the median total and the median time of omniflow.solve.decoupled.decouple per
 configuration (docs/measurements.md, "Movers: decoupled radial flow").
 """
 
@@ -14,10 +14,10 @@ import time
 
 import numpy as np
 
-import omniflow.decoupled as decoupled
-import omniflow.solve as solve
+import omniflow.solve.at_matches as solve
+import omniflow.solve.decoupled as decoupled
 from omniflow.config import OmniFlowConfig
-from omniflow.dataset import open_dataset
+from omniflow.io.dataset import open_dataset
 from omniflow.pipeline import estimate
 
 

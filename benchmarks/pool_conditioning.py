@@ -12,7 +12,7 @@ import argparse
 
 import numpy as np
 
-from omniflow.dataset import open_dataset
+from omniflow.io.dataset import open_dataset
 from omniflow.pipeline import OmniFlowConfig, estimate
 from validation.inputs import Inputs, camera_model
 

@@ -15,7 +15,7 @@ omnivalidate forms the images, captures the first solve's derivatives at its
 points (before the refinement and the two-model test of eq. 14), samples the
 image f there (the series of the gradients: the mean of frames t and t + 1 at
 the flow band), and solves again in plain numpy weighted least squares over
-k-d tree pools (:func:`omniflow.flow.neighbourhoods`, the configuration's
+k-d tree pools (:func:`omniflow.solve.pooled.neighbourhoods`, the configuration's
 pool_k, radius r_m / 8, range test), with omniflow's local model (relative
 radial flow, linear in the tangential offset) and its errors-in-variables
 correction (``eiv="residual"``), for
@@ -33,10 +33,10 @@ pixel, eq. 14 tested), "first" its first solve, which A should reproduce
 (the largest difference is printed).
 
 "X+ref+dec": variant X carried through omniflow's later steps with the same
-term: the refinement (:func:`omniflow.refine.refine_moving`, at the points
+term: the refinement (:func:`omniflow.solve.refine.refine_moving`, at the points
 omniflow refined, each linearised about X's own first flow, solved for the
 total flow) and, at the points where omniflow switched to the decoupled model
-of :mod:`omniflow.decoupled`, that model (U, W, dtheta/dt) with the term.
+of :mod:`omniflow.solve.decoupled`, that model (U, W, dtheta/dt) with the term.
 "A+ref+dec" should reproduce omniflow's final answer. With ``--gate G``, also
 B, C, D (+ref+dec) only where the F statistic of the brightness unknowns
 against A (the pool's residual sum of squares, effective rows
@@ -66,9 +66,9 @@ def pooled_brightness(d: dict, idx: np.ndarray, w: np.ndarray, *, model: str, sc
     ``d`` holds the point columns (f1_h ... f2_t, h1, h2, theta, f1, f2).
     Unknowns (a, c = h_1 b[, slopes u a, u c][, alpha][, beta]); rows of neighbour
     j: unit 1 (f1_h rel, f1_theta / h_1,i, ...), unit 2 (k_j f2_h rel, ...), as
-    :func:`omniflow.flow.pooled_solution`; NaN where the pool has no solution.
+    :func:`omniflow.solve.pooled.pooled_solution`; NaN where the pool has no solution.
     ``decoupled``: the two-model test's three-unknown model instead
-    (:func:`omniflow.decoupled.fits_from_sums`: (U, h_1,i W, c), dh_u = U - h_u W,
+    (:func:`omniflow.solve.decoupled.fits_from_sums`: (U, h_1,i W, c), dh_u = U - h_u W,
     constant model, no bias compensation), eq. (14) not assumed.
     """
     n = d["h1"].size
@@ -153,13 +153,13 @@ def _solve(M, v, min_conditioning, positive=False):
 
 
 def refine(a, b, call, d, kw):
-    """:func:`omniflow.refine.refine_moving`'s step from the flow (a, b), with the pools'
+    """:func:`omniflow.solve.refine.refine_moving`'s step from the flow (a, b), with the pools'
     brightness term of ``kw`` (:func:`pooled_brightness`): at the points omniflow
     refined (``call``: its arguments and answer), with the same group of pool members,
     each linearised about its own flow in (a, b), solved for the total flow.
     Returns (dh1_dt, dh2_dt, dtheta_dt)."""
-    from omniflow import refine as ref
-    from omniflow.flow import neighbourhoods
+    from omniflow.solve import refine as ref
+    from omniflow.solve.pooled import neighbourhoods
 
     (_, _, _, c), sel = call
     n = a.size
@@ -194,9 +194,9 @@ def refine(a, b, call, d, kw):
 
 def run_pair(ds, inputs, t, config, seen, args):
     """omniflow on pair t, the first solve captured; the variants solved again."""
-    from omniflow.flow import neighbourhoods
+    from omniflow.fit.sampling import sample_f
     from omniflow.pipeline import estimate
-    from omniflow.sampling import sample_f
+    from omniflow.solve.pooled import neighbourhoods
 
     seen.clear()
     g1 = [inputs.grey(j, "cam1") for j in (t, t + 1)]
@@ -264,10 +264,10 @@ def main() -> None:
     args = parser.parse_args()
 
     import omniflow.pipeline as pipeline
-    import omniflow.solve as solve_mod
-    from omniflow.cli import config_from_settings
+    import omniflow.solve.at_matches as solve_mod
+    from omniflow.cli.common import config_from_settings
     from omniflow.config import OmniFlowConfig
-    from omniflow.dataset import open_dataset
+    from omniflow.io.dataset import open_dataset
     from validation.inputs import Inputs, camera_model
     from validation.metrics import gain as gain_of
     from validation.sampling import sample_truth

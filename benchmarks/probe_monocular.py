@@ -1,8 +1,8 @@
-"""Probe: omniflow.monocular's choices on a dataset, against the truth, per object.
+"""Probe: omniflow.solve.monocular's choices on a dataset, against the truth, per object.
 
 The crossing pillar gets no stereo match because cam2 sees 3 % of it, at its
 rim (docs/measurements.md, "The crossing pillar"). This runs
-:func:`omniflow.monocular.monocular_flow` (cam1's eq. (9) alone, pooled) with
+:func:`omniflow.solve.monocular.monocular_flow` (cam1's eq. (9) alone, pooled) with
 its block size (``--step``), gradient percentile (``--percentile``) and gap
 (``--gap``) set, optionally followed by ``--iterations`` Gauss-Newton steps
 (as ``iterations`` does for the stereo solve; not in omniflow). Prints, per
@@ -20,13 +20,13 @@ import numpy as np
 
 
 def probe(directory: str, t: int, args: argparse.Namespace) -> None:
-    from omniflow import monocular as mono
     from omniflow.config import OmniFlowConfig
-    from omniflow.dataset import open_dataset
-    from omniflow.flow import neighbourhoods, pooled_solution
+    from omniflow.fit.sampling import sample_fine, sample_polar_grad
+    from omniflow.fit.series import choose_flow_band, unit_frames
+    from omniflow.io.dataset import open_dataset
     from omniflow.pipeline import _unit_series, estimate
-    from omniflow.sampling import sample_fine, sample_polar_grad
-    from omniflow.series import choose_flow_band, unit_frames
+    from omniflow.solve import monocular as mono
+    from omniflow.solve.pooled import neighbourhoods, pooled_solution
     from validation.inputs import Inputs, camera_model
     from validation.sampling import sample_truth
 

@@ -1,6 +1,6 @@
 """Probe: richer per-pool brightness models on the movers, against the truth.
 
-A single gain per pool (``OmniFlowConfig.brightness_gate``, omniflow/gain.py)
+A single gain per pool (``OmniFlowConfig.brightness_gate``, omniflow/solve/gain.py)
 fixes approach's incoming face and most of the rolling ball but leaves the
 ring, the poster and the spinner of independent_movers where they were. This
 probe asks why, and whether a richer brightness model does better. It runs
@@ -25,7 +25,7 @@ image f there (the series of the gradients) and the truth, and
    model (as benchmarks/probe_brightness.py):
 
    * A: none (omniflow, re-coded; the difference from its answer is printed),
-   * C: a gain beta f_j per pool (omniflow/gain.py),
+   * C: a gain beta f_j per pool (omniflow/solve/gain.py),
    * BC: an offset and a gain, alpha + beta f_j,
    * L: a gain varying linearly across the pool,
      (beta + beta_u u_j + beta_h dh_j) f_j, with u_j the tangential and dh_j
@@ -33,7 +33,7 @@ image f there (the series of the gradients) and the truth, and
      radius, as the linear pool model's u),
 
    each ungated and gated by its F statistic against A (the extra unknowns'
-   F, as omniflow.gain) at ``--gates``; and "edge": the gain (C) with the low
+   F, as omniflow.solve.gain) at ``--gates``; and "edge": the gain (C) with the low
    gate ``--edge-gate`` only where the pool lies on an object whose range
    differs from its surroundings (more than ``--edge-share`` of the pool's
    neighbours within the radius dropped by the range test), the high gate
@@ -70,8 +70,8 @@ def design(d: dict, idx: np.ndarray, *, model: str, scale: float, terms: tuple[s
     """The pools' design (N, K, 2, P), right sides (N, K, 2) and tangential offsets u.
 
     ``d`` holds the point columns (f1_h ... f2_t, h1, h2, theta, f1, f2[, r1, r2]).
-    Flow unknowns (a, c = h_1 b[, u a, u c]) as :func:`omniflow.flow.pooled_solution`
-    (or (U, h_1,i W, c) with ``decoupled``, :mod:`omniflow.decoupled`), then the
+    Flow unknowns (a, c = h_1 b[, u a, u c]) as :func:`omniflow.solve.pooled.pooled_solution`
+    (or (U, h_1,i W, c) with ``decoupled``, :mod:`omniflow.solve.decoupled`), then the
     brightness unknowns of ``terms`` in order; both units' rows share them.
     ``right``: "t" the equations' right side -f_t, "r" the brightness change along
     the truth, -r (the error it alone causes)."""
@@ -191,8 +191,8 @@ def decomposition(d: dict, idx: np.ndarray, w: np.ndarray, *, model: str,
 def refine(a, b, call, d, kw):
     """omniflow's refinement step from (a, b) with the brightness terms of ``kw``, at the
     points omniflow refined (benchmarks/probe_brightness.py's ``refine``, any terms)."""
-    from omniflow import refine as ref
-    from omniflow.flow import neighbourhoods
+    from omniflow.solve import refine as ref
+    from omniflow.solve.pooled import neighbourhoods
 
     (_, _, _, c), sel = call
     n = a.size
@@ -225,9 +225,9 @@ def refine(a, b, call, d, kw):
 def run_pair(ds, inputs, t, config, seen, args):
     """omniflow on pair t, the first solve captured, the truth sampled; the models
     solved again and the brightness change along the truth analysed."""
-    from omniflow.flow import neighbourhoods
+    from omniflow.fit.sampling import sample_f
     from omniflow.pipeline import estimate
-    from omniflow.sampling import sample_f
+    from omniflow.solve.pooled import neighbourhoods
     from validation.sampling import sample_truth
 
     seen.clear()
@@ -290,7 +290,7 @@ def run_pair(ds, inputs, t, config, seen, args):
         fits[name]["unknowns"] = np.where(switched, dec[3]["unknowns"], first_fit[3]["unknowns"])
     # the two-model test with the brightness terms: the decoupled model (U, h_1 W, c)
     # plus the terms of X against the coupled one (constant model, no term), the F of
-    # the extra unknowns, as omniflow.decoupled's test (X = A: that test itself)
+    # the extra unknowns, as omniflow.solve.decoupled's test (X = A: that test itself)
     cpl = pooled(d, idx, w, model="constant", scale=radius, terms=(), noise=(0.0, 0.0),
                  min_conditioning=floor)[3]  # fmt: skip
     for name in DEC_MODELS:
@@ -382,10 +382,10 @@ def run_pair(ds, inputs, t, config, seen, args):
 
 
 def capture(seen: dict) -> None:
-    """Wrap omniflow.solve's steps so that a run leaves its first solve's inputs and
+    """Wrap omniflow.solve.at_matches's steps so that a run leaves its first solve's inputs and
     answer, its cameras and its refinement's call in ``seen`` (as probe_brightness)."""
     import omniflow.pipeline as pipeline
-    import omniflow.solve as solve_mod
+    import omniflow.solve.at_matches as solve_mod
 
     flow_at_matches, make_solver = solve_mod.flow_at_matches, solve_mod.make_solver
     refine_moving = solve_mod.refine_moving
@@ -531,9 +531,9 @@ def main() -> None:
     args.gates = [float(g) for g in args.gates.split(",")]
     args.dec_gates = [float(g) for g in args.dec_gates.split(",")]
 
-    from omniflow.cli import config_from_settings
+    from omniflow.cli.common import config_from_settings
     from omniflow.config import OmniFlowConfig
-    from omniflow.dataset import open_dataset
+    from omniflow.io.dataset import open_dataset
     from validation.inputs import Inputs, camera_model
     from validation.scoring_derived import moving_objects
 

@@ -2,7 +2,7 @@
 
 For each dataset and frame pair, runs omniflow with ``iterations=1,
 iterate_min_px=1.0`` (or the dense preset, ``--dense``), keeps the first-order
-flow that :func:`omniflow.refine.refine_moving` receives and scores, at the
+flow that :func:`omniflow.solve.refine.refine_moving` receives and scores, at the
 points it refines (the fast ones), three answers against the truth: the first
 step, the refinement as an increment pooled over neighbours that each moved by
 their own first estimate (omniflow's form before stop 18, re-coded here for the
@@ -25,7 +25,7 @@ def increment_form(a, b, conf, *, cam1, cam2, rig, x1, y1, x2, y2, theta, h1, h2
     """The refinement of commit 0099986: fast points only, pooled increments."""
     from scipy.spatial import cKDTree
 
-    from omniflow import refine
+    from omniflow.solve import refine
 
     sel = refine.moving_far(a, b, h1, h2, config.iterate_min_px)
     radius = rig.cam1.r_m / 8.0 if config.pool_radius is None else config.pool_radius
@@ -53,10 +53,10 @@ def main() -> None:
     parser.add_argument("--dense", action="store_true", help="the dense preset")
     args = parser.parse_args()
 
-    import omniflow.refine as refine
-    import omniflow.solve as solve_mod
+    import omniflow.solve.at_matches as solve_mod
+    import omniflow.solve.refine as refine
     from omniflow.config import OmniFlowConfig
-    from omniflow.dataset import open_dataset
+    from omniflow.io.dataset import open_dataset
     from omniflow.pipeline import estimate
     from validation.inputs import Inputs, camera_model
     from validation.sampling import sample_truth

@@ -3,9 +3,9 @@ would switch (docs/measurements.md, "The ring's unswitched points (stop 22, help
 
 For each dataset and pair (t, t + 1), t in ``--frames``: :func:`omniflow.pipeline.estimate`
 at the defaults with ``decouple_gain_tol`` None (the answer without the test) and at the
-defaults with the gates of :mod:`omniflow.gain` opened (``MIN_RESIDUAL_DOF`` just above 0,
+defaults with the gates of :mod:`omniflow.solve.gain` opened (``MIN_RESIDUAL_DOF`` just above 0,
 ``MIN_RESIDUAL_RATIO`` 1), its linear-gain fits taken from
-:func:`omniflow.decoupled.chained` at every point: F_U, the residual degrees of freedom
+:func:`omniflow.solve.decoupled.chained` at every point: F_U, the residual degrees of freedom
 n_eff - 6, the ratio RSS_coupled / RSS_decoupled = 1 + F_U / (n_eff - 6), the share of the
 pool's neighbours the range test drops (``EDGE_SHARE``), and the decoupled + linear-gain
 answer. A rule is a set of switched points; its flow is that answer there and the answer
@@ -32,10 +32,10 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.stats import f as f_dist
 
-import omniflow.decoupled as decoupled_mod
-import omniflow.gain as gain_mod
+import omniflow.solve.decoupled as decoupled_mod
+import omniflow.solve.gain as gain_mod
 from omniflow.config import OmniFlowConfig
-from omniflow.dataset import open_dataset
+from omniflow.io.dataset import open_dataset
 from omniflow.pipeline import estimate
 from validation.inputs import Inputs, camera_model
 from validation.sampling import sample_truth

@@ -10,7 +10,7 @@ at the points omniflow left coupled it replaces omniflow's answer by the refined
 coupled L answer where a candidate gate passes:
 
 * ``F``: the F of L's three gain columns against the plain fit (A),
-* ``ratio``: RSS_A / RSS_L, the effect size (as ``omniflow.gain.MIN_RESIDUAL_RATIO``),
+* ``ratio``: RSS_A / RSS_L, the effect size (as ``omniflow.solve.gain.MIN_RESIDUAL_RATIO``),
 * ``dof``: n_eff - 7 (L's unknowns, linear flow model), as ``MIN_RESIDUAL_DOF``,
 * ``slope``: the larger fitted slope |beta_u|, |beta_h| (over one pool radius),
 * ``edge``: the range test drops more than a quarter of the pool's neighbours.
@@ -73,7 +73,7 @@ def rules(s: dict, gate: float) -> dict[str, np.ndarray]:
         for g in (0.01, 0.02, 0.03):
             out[f"F>{gate:g} slope>={g:g}"] = base & (s["slope"] >= g)
         out[f"F>{gate:g} not edge"] = base & ~(s["edge"] > 0.25)
-        # as built (omniflow.gain, brightness_model "linear"): the residual degrees of
+        # as built (omniflow.solve.gain, brightness_model "linear"): the residual degrees of
         # freedom and a least term, MIN_RESIDUAL_DOF and MIN_CHANGE
         term = np.maximum(s["beta"], s["slope"])
         lin = base & (s["dof"] >= 4.0) & (term >= 0.002)
@@ -160,7 +160,7 @@ def main() -> None:
     args = parser.parse_args()
 
     from omniflow.config import OmniFlowConfig
-    from omniflow.dataset import open_dataset
+    from omniflow.io.dataset import open_dataset
     from validation.inputs import Inputs, camera_model
     from validation.scoring_derived import moving_objects
 

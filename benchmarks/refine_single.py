@@ -1,8 +1,8 @@
 """The refinement's exact evaluations in float32 against float64, on rendered pairs.
 
-:func:`omniflow.refine.refine_moving` evaluates the fitted series exactly at its
-points (:meth:`omniflow.dct.DCTFit.value_and_gradient`), in float32 products by
-default (``omniflow.refine.SINGLE``). For each dataset and pair this prints, over
+:func:`omniflow.solve.refine.refine_moving` evaluates the fitted series exactly at its
+points (:meth:`omniflow.paper.dct.DCTFit.value_and_gradient`), in float32 products by
+default (``omniflow.solve.refine.SINGLE``). For each dataset and pair this prints, over
 every point of the pair (each unit's series at the flow band, displaced by the
 first solve's flow as the refinement does), the largest and rms difference of the
 float32 evaluation from the float64 one: the value of frame t + 1, the residual
@@ -34,10 +34,10 @@ def _frames(ds, t):
 
 
 def accuracy(directory: str, pairs: int) -> None:
-    import omniflow.refine as refine
-    import omniflow.solve as solve_mod
+    import omniflow.solve.at_matches as solve_mod
+    import omniflow.solve.refine as refine
     from omniflow.config import OmniFlowConfig
-    from omniflow.dataset import open_dataset
+    from omniflow.io.dataset import open_dataset
     from omniflow.pipeline import estimate
 
     seen = []
@@ -85,9 +85,9 @@ def accuracy(directory: str, pairs: int) -> None:
 def timing(directory: str, repeats: int) -> None:
     import os
 
-    import omniflow.refine as refine
+    import omniflow.solve.refine as refine
     from omniflow.config import OmniFlowConfig
-    from omniflow.dataset import open_dataset
+    from omniflow.io.dataset import open_dataset
     from omniflow.pipeline import estimate
 
     ds = open_dataset(directory)
@@ -116,11 +116,11 @@ def timing(directory: str, repeats: int) -> None:
 def evaluation_time(directory: str, points: list[int], repeats: int = 51) -> None:
     """One value_and_gradient at N random points of frame 0's flow-band series (cam1),
     float64 and float32 alternating, one BLAS thread (as the refinement runs it)."""
-    import omniflow.refine as refine
+    import omniflow.solve.refine as refine
     from omniflow.config import OmniFlowConfig
-    from omniflow.dataset import open_dataset
-    from omniflow.dct import fit_dct
-    from omniflow.series import fit_band, grey_input, truncate
+    from omniflow.fit.series import fit_band, grey_input, truncate
+    from omniflow.io.dataset import open_dataset
+    from omniflow.paper.dct import fit_dct
 
     ds = open_dataset(directory)
     config = OmniFlowConfig()

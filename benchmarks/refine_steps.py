@@ -2,7 +2,7 @@
 
 For each dataset (pairs 0-2, images as omnivalidate forms them) runs omniflow with the
 default configuration and the given solver and prints, at the points
-:func:`omniflow.refine.refine_moving` refines (for ``direct``, which it declines, those it
+:func:`omniflow.solve.refine.refine_moving` refines (for ``direct``, which it declines, those it
 would refine were the solve pooled), the step's size as a share of the first
 step's displacement (percentiles, the share above 0.5) and cam1's endpoint error, mean
 and median, of the first and of the refined flow, overall and at the steps above 0.5.
@@ -19,10 +19,10 @@ import numpy as np
 
 
 def main(solver: str, directories: list[str]) -> None:
-    import omniflow.refine as refine
-    import omniflow.solve as solve_mod
+    import omniflow.solve.at_matches as solve_mod
+    import omniflow.solve.refine as refine
     from omniflow.config import OmniFlowConfig
-    from omniflow.dataset import open_dataset
+    from omniflow.io.dataset import open_dataset
     from omniflow.pipeline import estimate
     from validation.inputs import Inputs, camera_model
     from validation.sampling import sample_truth

@@ -6,7 +6,7 @@ prints, per region of ``regions.csv``: its points and which ground-truth
 objects they lie on, and each figure against the truth at the same points
 (estimate/truth): mean flow dx, dy, dh1_dt (the ground truth's flow channels
 at the points' pixels), the centroid's dr/dt, time to contact (frames and
-seconds), bearing and home-in heading (``omniflow.regions.summarise`` of the
+seconds), bearing and home-in heading (``omniflow.applications.regions.summarise`` of the
 ground truth's r and theta at the points with the mover's known velocity: the
 scenes' robots stand still with yaw 0, so a mover's world velocity is its
 velocity relative to the rig), and for automatic groups their median own
@@ -27,8 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
-from omniflow.dataset import open_dataset
-from omniflow.regions import summarise
+from omniflow.applications.regions import summarise
+from omniflow.io.dataset import open_dataset
 
 #: Movers of each scene and their velocity in m/frame (world = rig frame: robot static,
 #: yaw 0), from scenes/*.toml: velocity x frame_interval 0.05 s.

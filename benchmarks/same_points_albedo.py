@@ -21,7 +21,7 @@ import numpy as np
 
 def main(lit_dir: str, albedo_dir: str, base: str = "default") -> None:
     from omniflow.config import OmniFlowConfig
-    from omniflow.dataset import open_dataset
+    from omniflow.io.dataset import open_dataset
     from omniflow.matching import Matches
     from omniflow.pipeline import estimate
     from validation.inputs import Inputs, camera_model

@@ -1,10 +1,10 @@
-"""What :func:`omniflow.decoupled.screen` keeps, what it loses, and what it saves.
+"""What :func:`omniflow.solve.decoupled.screen` keeps, what it loses, and what it saves.
 
 For each dataset and pair (t, t + 1), t in ``--frames``: :func:`omniflow.pipeline.estimate`
-with the dense preset, then its :func:`omniflow.decoupled.pool_fits` made again twice on
+with the dense preset, then its :func:`omniflow.solve.decoupled.pool_fits` made again twice on
 the same columns, with the screen and with every point kept (the k-d tree's test at every
 point, as before the screen). Prints the points, the share the screen keeps, the points
-the unscreened test switches (:func:`omniflow.decoupled.chained`), those the screened one
+the unscreened test switches (:func:`omniflow.solve.decoupled.chained`), those the screened one
 loses or adds, whether the switched points' answers are the same bit for bit, and each
 pool_fits' median time over ``--repeats`` calls (one thread)::
 
@@ -19,11 +19,11 @@ import time
 
 import numpy as np
 
-import omniflow.decoupled as decoupled_mod
-import omniflow.solve as solve_mod
+import omniflow.solve.at_matches as solve_mod
+import omniflow.solve.decoupled as decoupled_mod
 from omniflow import parallel
 from omniflow.config import OmniFlowConfig
-from omniflow.dataset import open_dataset
+from omniflow.io.dataset import open_dataset
 from omniflow.pipeline import estimate
 
 
@@ -32,8 +32,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("datasets", nargs="+")
     parser.add_argument("--frames", default="0,1,2")
     parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--ratio", type=float, help="omniflow.decoupled.SCREEN_RATIO")
-    parser.add_argument("--share", type=float, help="omniflow.decoupled.SCREEN_F")
+    parser.add_argument("--ratio", type=float, help="omniflow.solve.decoupled.SCREEN_RATIO")
+    parser.add_argument("--share", type=float, help="omniflow.solve.decoupled.SCREEN_F")
     args = parser.parse_args(argv)
     if args.ratio is not None:
         decoupled_mod.SCREEN_RATIO = args.ratio

@@ -20,7 +20,7 @@ import numpy as np
 
 def main(directory: str, sigma: float) -> None:
     from omniflow.config import OmniFlowConfig
-    from omniflow.dataset import open_dataset
+    from omniflow.io.dataset import open_dataset
     from omniflow.pipeline import estimate
     from validation.inputs import Inputs, camera_model
     from validation.sampling import sample_truth

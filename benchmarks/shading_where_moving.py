@@ -5,7 +5,7 @@ Why: on a static scene lit by static lights the shading is attached to the surfa
 (``flow_shading``) only removes signal; on an object that turns under those lights the
 shading stays put while the texture moves, and flattening is what brings the rolling
 ball's radial flow to the truth (docs/measurements.md, "Movers: decoupled radial
-flow"). Odometry's outliers (omniflow.applications.odometry on the default run's flow,
+flow"). Odometry's outliers (omniflow.applications.navigation.odometry on the default run's flow,
 the points whose motion the robot's own does not explain) are a trigger that sees
 every independent mover, turning or not, and few static points.
 
@@ -56,11 +56,11 @@ def common_points(a: dict, b: dict) -> tuple[dict, dict]:
 
 
 def main(directory: str, sigma: float, base: str, pairs: list[int], trigger: str) -> None:
-    from omniflow.applications import odometry
+    from omniflow.applications.navigation import odometry
+    from omniflow.applications.regions import auto_groups
     from omniflow.config import OmniFlowConfig
-    from omniflow.dataset import open_dataset
+    from omniflow.io.dataset import open_dataset
     from omniflow.pipeline import estimate
-    from omniflow.regions import auto_groups
     from validation.inputs import Inputs, camera_model
     from validation.sampling import sample_truth
     from validation.scoring_flow import omniflow_points

@@ -30,17 +30,21 @@ COMPONENTS = (
     ("omniflow.pipeline", "stereo_matches", "match: all"),
     ("omniflow.matching.radial", "densify", "match: densification"),
     ("omniflow.pipeline", "flow_at_matches", "sample + solve: flow_at_matches"),
-    ("omniflow.solve", "pooled_solution", "solve: plain pooled solves (first, refinement)"),
-    ("omniflow.solve", "gain_solution", "solve: gain fits (first, refinement)"),
-    ("omniflow.solve", "_refine", "solve: refinement (its solves included)"),
-    ("omniflow.refine", "_unit_rows", "solve: refinement's exact evaluations"),
-    ("omniflow.gridpool.GridPools", "decouple_sums", "pool fits: two-model sums"),
-    ("omniflow.decoupled", "fits_from_sums", "pool fits: two-model fits"),
-    ("omniflow.gridpool.GridPools", "linear_gain_sums", "pool fits: linear-gain grid sums"),
-    ("omniflow.decoupled", "screen", "pool fits: screen"),
-    ("omniflow.decoupled", "neighbourhoods", "pool fits: tree search"),
-    ("omniflow.decoupled", "decoupled_linear_gain", "pool fits: tree linear-gain test"),
-    ("omniflow.solve", "decouple", "decouple"),
+    (
+        "omniflow.solve.at_matches",
+        "pooled_solution",
+        "solve: plain pooled solves (first, refinement)",
+    ),
+    ("omniflow.solve.at_matches", "gain_solution", "solve: gain fits (first, refinement)"),
+    ("omniflow.solve.at_matches", "_refine", "solve: refinement (its solves included)"),
+    ("omniflow.solve.refine", "_unit_rows", "solve: refinement's exact evaluations"),
+    ("omniflow.solve.gridpool.GridPools", "decouple_sums", "pool fits: two-model sums"),
+    ("omniflow.solve.decoupled", "fits_from_sums", "pool fits: two-model fits"),
+    ("omniflow.solve.gridpool.GridPools", "linear_gain_sums", "pool fits: linear-gain grid sums"),
+    ("omniflow.solve.decoupled", "screen", "pool fits: screen"),
+    ("omniflow.solve.decoupled", "neighbourhoods", "pool fits: tree search"),
+    ("omniflow.solve.decoupled", "decoupled_linear_gain", "pool fits: tree linear-gain test"),
+    ("omniflow.solve.at_matches", "decouple", "decouple"),
 )
 
 
@@ -62,8 +66,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
 
     from omniflow import parallel
-    from omniflow.cli import config_from_settings
-    from omniflow.dataset import open_dataset
+    from omniflow.cli.common import config_from_settings
+    from omniflow.io.dataset import open_dataset
     from omniflow.pipeline import OmniFlowConfig, estimate
 
     if args.mode == "cpu":

@@ -32,7 +32,7 @@ from mover_warp import (
     rms,
 )
 
-from omniflow.dataset import open_dataset
+from omniflow.io.dataset import open_dataset
 from validation.baselines import dis_flow
 
 EDGES_512 = np.array([0, 30, 50, 70, 90, 110, 130, 160, 200, 260], dtype=float)

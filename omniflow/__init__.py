@@ -1,18 +1,20 @@
 """Omni Flow (Spacek): optic flow and stereo of a coaxial conical-mirror rig.
 
-Modules, in the order of the paper:
+Packages, from the base up (``tests/test_layout.py`` guards the order):
 
 - :mod:`omniflow.conventions` axes, angle sense, pixel centres, units
-- :mod:`omniflow.rig` one unit and the coaxial pair, eq. (1)-(7)
-- :mod:`omniflow.calibration` the rim circle and v, eq. (2)
-- :mod:`omniflow.dct` the DCT fit, eq. (17)-(18), and its 3-D form
-- :mod:`omniflow.edges` the polar edge finder, eq. (19)-(20)
-- :mod:`omniflow.matching` radial stereo matching, section 5.2
-- :mod:`omniflow.flow` omni flow, eq. (8), (9), (15), (16)
-- :mod:`omniflow.pipeline` the whole step: ``estimate(frames1, frames2, rig, config)``
-- :mod:`omniflow.applications` section 6: time to contact, steering, position fix, odometry
-- :mod:`omniflow.synthetic` closed-form scenes with exact ground truth
-- :mod:`omniflow.imageio`, :mod:`omniflow.draw`, :mod:`omniflow.cli` files, pictures, the command
+- :mod:`omniflow.geometry` the rig, eq. (1)-(7), and its calibration
+- :mod:`omniflow.paper` the paper's equations as written: DCT fit (17-18), polar
+  edges (19-20), radial matching (5.2), the flow equation and eq. (16)
+- :mod:`omniflow.fit` each unit's fitted series, the flow band, sampling at points
+- :mod:`omniflow.matching` the robust radial matcher
+- :mod:`omniflow.solve` the pooled solver and its extensions
+- :mod:`omniflow.config`, :mod:`omniflow.result`, :mod:`omniflow.pipeline`
+  (``estimate``), :mod:`omniflow.stream` (``OmniFlowStream``): the flow step
+- :mod:`omniflow.applications` section 6: time to contact, steering, position fix,
+  odometry; regions
+- :mod:`omniflow.io` image, JSON and dataset files, pictures
+- :mod:`omniflow.cli` the commands (nothing imports them)
 """
 
 __version__ = "0.1.0"

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, fields, replace
 
-from omniflow.flow import UNIT_WEIGHTINGS
 from omniflow.matching import MATCH_METHODS
 
 __all__ = ["OmniFlowConfig"]
@@ -24,6 +23,8 @@ EIVS = ("correct", "residual", "none")
 BAND_RULES = ("gain", "variance")
 SHADING_WHERE = ("everywhere", "moving")
 BRIGHTNESS_MODELS = ("linear", "gain")
+#: Weightings of the two units' equations in :func:`omniflow.solve.pooled.pooled_solution`.
+UNIT_WEIGHTINGS = ("equal", "global", "local")
 
 
 #: The fields :meth:`OmniFlowConfig.dense` changes from the defaults.
@@ -56,7 +57,7 @@ class OmniFlowConfig:
         DCT band of the series the flow step differentiates (gradients and
         f_t of eq. 9 and 15); 0.5 by default, rolled off over its outer
         half (``flow_taper``). None: chosen per frame pair from the images
-        by ``flow_band_rule`` (omniflow.noise.choose_band, with the noise
+        by ``flow_band_rule`` (omniflow.fit.noise.choose_band, with the noise
         measured by Immerkaer's estimator on each unit's annulus; the
         narrower of the two units' choices). The band trades noise (in f_t,
         and in the gradients, which shrinks the flow: an errors-in-variables
@@ -65,7 +66,7 @@ class OmniFlowConfig:
         (docs/measurements.md, "flow band default").
     flow_taper : float
         Fraction of the flow band over which the flow series rolls off to 0
-        (omniflow.dct.band_window, a radial cos^2 window on the DCT
+        (omniflow.paper.dct.band_window, a radial cos^2 window on the DCT
         coefficients); 0 is the sharp truncation of eq. (18) (the paper).
         The sharp truncation rings, and near the image centre, where the
         mirror compresses the texture tangentially, its ringing shrank the
@@ -77,8 +78,8 @@ class OmniFlowConfig:
     flow_band_rule : {"gain", "variance"}
         With ``flow_band=None``: the widest band whose fitted gradient keeps
         ``flow_band_gain`` of its power as signal
-        (omniflow.noise.predicted_gain), or the widest whose predicted flow
-        variance (omniflow.noise.predicted_variance) is within
+        (omniflow.fit.noise.predicted_gain), or the widest whose predicted flow
+        variance (omniflow.fit.noise.predicted_variance) is within
         ``flow_band_tolerance`` of the least; docs/measurements.md compares
         the two rules.
     flow_band_tolerance : float
@@ -89,11 +90,11 @@ class OmniFlowConfig:
     noise_sigma : float or None
         Standard deviation of the image noise, grey levels (images in
         [0, 1]); None: Immerkaer's estimate on each unit's frame t
-        (omniflow.noise.immerkaer_sigma; it also counts fine texture, so it
+        (omniflow.fit.noise.immerkaer_sigma; it also counts fine texture, so it
         errs high). Used by ``flow_band=None`` and ``eiv="correct"``.
     eiv : {"correct", "none"}
         Errors-in-variables correction of the pooled solver: the expected
-        contribution of gradient noise (omniflow.noise.gradient_noise_variance
+        contribution of gradient noise (omniflow.fit.noise.gradient_noise_variance
         at the flow band, halved for averaged gradients) is subtracted from
         the normal matrix (bias-compensated least squares), where that leaves
         it positive definite; "none" solves the plain least squares. The
@@ -236,7 +237,7 @@ class OmniFlowConfig:
         Pooled solver: most neighbours, the point itself included
         (docs/measurements.md has 48 against 24).
     pool_grid : float or None
-        Pooled solver: pool by filtering on a grid (omniflow.gridpool)
+        Pooled solver: pool by filtering on a grid (omniflow.solve.gridpool)
         with cells of this fraction of ``pool_radius``, so each pool holds
         every match within the radius (not the ``pool_k`` nearest) at a cost
         that does not grow with the number of matches; points whose window
@@ -259,7 +260,7 @@ class OmniFlowConfig:
         an image edge stronger than this many times the typical edge at the
         matches (the largest gradient magnitude of the flow step's fitted
         cam1 image on the segment between them, against its median at the
-        matches; omniflow.flow.edge_between): an object's outline bounds the
+        matches; omniflow.solve.pooled.edge_between): an object's outline bounds the
         pool where it is a stronger edge than the texture. None: no test.
         Off by default: on the rendered scenes the range test already keeps
         the movers' pools on the movers, and the edge test only thins the
@@ -268,20 +269,20 @@ class OmniFlowConfig:
         Pooled solver: solve twice, and in the second pass leave out the
         neighbours whose own eq. (9) and (15) miss the point's first-pass
         flow by more than this many robust standard deviations of the
-        residuals (omniflow.flow.consistent_neighbours): another motion, or
+        residuals (omniflow.solve.pooled.consistent_neighbours): another motion, or
         another surface. None: one pass (unless ``pool_flow_tol``).
     pool_min_info : float or None
         Pooled solver: adapt each pool's size to the local texture; the pool
         grows over the neighbours, nearest first, until the weaker direction
         of its normal matrix holds this many typical points' information
-        (omniflow.flow.informative_pools), so rich texture pools a few close
+        (omniflow.solve.pooled.informative_pools), so rich texture pools a few close
         neighbours and poor texture all of them. None: every neighbour.
     pool_model : {"linear", "constant"}
-        Pooled solver: local flow model (omniflow.flow.pooled_solution),
+        Pooled solver: local flow model (omniflow.solve.pooled.pooled_solution),
         varying linearly with theta or constant.
     pool_unit_weighting : {"equal", "global", "local"}
         Pooled solver: weight of each unit's equations, eq. (9) against
-        eq. (15) (omniflow.flow.pooled_solution): alike, or by the inverse of
+        eq. (15) (omniflow.solve.pooled.pooled_solution): alike, or by the inverse of
         each unit's residual variance, one figure per unit ("global") or
         measured around each point ("local"). "equal" is the default: with
         the default roll-off "local" halves the mean EPE on closed-form
@@ -295,7 +296,7 @@ class OmniFlowConfig:
         motion: where the squared residual of eq. (9) and (15) that the
         pool's flow explains is below this many times the pool's remaining
         residual variance per equation (a Wald test of zero flow, the noise
-        measured in the pool itself; omniflow.flow.motion_statistic). With
+        measured in the pool itself; omniflow.solve.pooled.motion_statistic). With
         independent equations the statistic of a still pool is chi-squared
         with 2 degrees of freedom (mean 2); neighbouring matches share the
         fitted images' noise, which inflates it. It removes the noise of the
@@ -324,7 +325,7 @@ class OmniFlowConfig:
         0) where the two units' equations cannot share one radial flow,
         eq. (14) failing (motion along the axis: a rolling or tumbling
         object's texture): the F statistic of a separate radial flow per
-        unit over the point's pool above this (omniflow.decoupled). There
+        unit over the point's pool above this (omniflow.solve.decoupled). There
         dh1_dt, dh2_dt and dtheta_dt come from eq. (9) and (10) with one
         shared dtheta/dt, and dr_dt from both radial flows. None: every
         point coupled (the paper's model). 20 switches no point of the
@@ -332,7 +333,7 @@ class OmniFlowConfig:
         19) and 41 of the 47 points on the ball of independent_movers;
         docs/measurements.md, "Movers: decoupled radial flow".
     brightness_gate : float or None
-        Pooled solver: a brightness gain per pool (omniflow.gain), eq. (9) and
+        Pooled solver: a brightness gain per pool (omniflow.solve.gain), eq. (9) and
         (15) of every neighbour written f_h a + f_theta b + f_t = beta f (f the
         image at the point, beta one unknown per pool shared by both units),
         taken only by the pools whose F statistic of beta against the plain
@@ -345,11 +346,11 @@ class OmniFlowConfig:
         contact's median error 4.0 -> 2.3 %) and most of the ball's radial
         flow (53 -> 79 %), at +2 % static mean error on crossing (equal
         median) and none on default and low_texture, for 1-3 ms a pair
-        (compiled sums, omniflow.kernels.gain_sums). With grid pools
+        (compiled sums, omniflow.solve.gain_kernels.gain_sums). With grid pools
         (``pool_grid``, the dense preset) the gain fit and its test use the
         grid's windows: there 20 takes approach's time-to-contact error 4.2 ->
         1.7 % and the ball's radial flow 45 -> 87 %, static scenes unchanged.
-        A fitted |beta| below omniflow.gain.MIN_CHANGE (0.2 % per frame) is
+        A fitted |beta| below omniflow.solve.gain.MIN_CHANGE (0.2 % per frame) is
         never taken (model error, not a change). Off in the paper's
         configuration (eq. 8 as written); docs/measurements.md,
         "brightness_gate: the gated gain term built" and "brightness_gate
@@ -361,8 +362,8 @@ class OmniFlowConfig:
         (beta + beta_u u_j + beta_h dh_j) f_j (u_j, dh_j the tangential and radial
         offsets of neighbour j over the pool radius), taken where the F statistic of
         its three columns against the plain fit exceeds ``brightness_gate``, with at
-        least omniflow.gain.MIN_RESIDUAL_DOF residual degrees of freedom and a term of
-        at least omniflow.gain.MIN_GAIN_CHANGE; a pool whose one gain passes keeps it unless
+        least omniflow.solve.gain.MIN_RESIDUAL_DOF residual degrees of freedom and a term of
+        at least omniflow.solve.gain.MIN_GAIN_CHANGE; a pool whose one gain passes keeps it unless
         the two slopes' own F against it passes too. For texture turning through
         shading that stays put (independent_movers' spinner: no level, a gradient
         across the pool): its mean-flow error 10.5 / 11.1 % -> 4.1 / 4.3 % (cam1 /
@@ -376,14 +377,14 @@ class OmniFlowConfig:
         Pooled solver, with ``decouple_tol``: after the two-model test and the
         gain, test eq. (14) again with a brightness gain varying linearly across
         the pool, (beta + beta_u u_j + beta_h dh_j) f_j, in both models' fits
-        (omniflow.gain.decoupled_linear_gain), and report decoupled, with that
+        (omniflow.solve.gain.decoupled_linear_gain), and report decoupled, with that
         model's flow (without the gain where it does not matter:
-        omniflow.gain.MIN_GAIN_F, MIN_GAIN_CHANGE), the points whose F
+        omniflow.solve.gain.MIN_GAIN_F, MIN_GAIN_CHANGE), the points whose F
         statistic of the axial share U exceeds
-        this (half of it on pools at a range edge, omniflow.decoupled.EDGE_GATE),
+        this (half of it on pools at a range edge, omniflow.solve.decoupled.EDGE_GATE),
         where at least 4 residual degrees of freedom estimate the variance
-        (omniflow.gain.MIN_RESIDUAL_DOF) and the coupled fit's residual is at
-        least twice the decoupled one's (omniflow.gain.MIN_RESIDUAL_RATIO: F
+        (omniflow.solve.gain.MIN_RESIDUAL_DOF) and the coupled fit's residual is at
+        least twice the decoupled one's (omniflow.solve.gain.MIN_RESIDUAL_RATIO: F
         grows with the pool's rows for the same relative misfit). For a body turning
         about a tilted axis under fixed lights (independent_movers' ring and
         ball): its texture moves along the axis and its shading changes across a
@@ -401,11 +402,11 @@ class OmniFlowConfig:
         (14) tested with a linear gain, built" and "decouple_gain_tol gated, and
         the default". Its fits use the k-d tree pools also with ``pool_grid``,
         searched there only at the points a test on the grid's windows says may
-        pass (omniflow.decoupled.screen; "The linear-gain test screened on the
+        pass (omniflow.solve.decoupled.screen; "The linear-gain test screened on the
         grid").
     flow_shading : float or None
         Fit the flow step's series to each frame divided by its Gaussian
-        local mean of this many pixels (omniflow.shading), so that shading
+        local mean of this many pixels (omniflow.solve.shading), so that shading
         that stays put while a curved body turns (a rolling ball, a spinning
         pillar) does not shorten its flow; the matcher keeps the frames as
         given. None: the frames as given. Costs a second fit of both units.
@@ -414,8 +415,8 @@ class OmniFlowConfig:
         With ``flow_shading``: the flattened frames' flow at every point
         ("everywhere"), or only at the points of independently moving objects
         ("moving": odometry's outliers on the plain flow, in groups of at least
-        ``omniflow.shading.MOVING_MIN_POINTS`` linked within r_m / 10 px;
-        omniflow.shading.moving_points), the plain flow elsewhere. On static
+        ``omniflow.solve.shading.MOVING_MIN_POINTS`` linked within r_m / 10 px;
+        omniflow.solve.shading.moving_points), the plain flow elsewhere. On static
         surfaces under static lights the shading moves with the surface and
         flattening only removes signal; on a body turning under those lights it
         stays put (docs/measurements.md, "Ball, ring and spinner"). Costs a
@@ -446,7 +447,7 @@ class OmniFlowConfig:
         have 8 such points within the pool radius (a moving surface, not a
         stray wrong match), each linearised about its own first flow and
         solved for the total flow with the pools of the first solve, the
-        series evaluated exactly (:mod:`omniflow.refine`); with the pooled
+        series evaluated exactly (:mod:`omniflow.solve.refine`); with the pooled
         solver only (the direct solution's fast points are mostly its
         ill-conditioned failures, from which the step diverges). The first-order step
         overstates a large motion (by about (k d)^2 / 12 for a texture
@@ -456,7 +457,7 @@ class OmniFlowConfig:
     monocular_gap : float or None
         Also solve cam1's eq. (9) alone, pooled over its neighbours like the
         stereo solve, at significant cam1 points farther than this (px) from
-        every stereo match (:mod:`omniflow.monocular`): flow without range
+        every stereo match (:mod:`omniflow.solve.monocular`): flow without range
         where the matcher has no answer, e.g. an object outside cam2's view
         (the crossing pillar). Returned as :attr:`OmniFlowResult.monocular`
         (the ``omniflow`` CLI writes monocular.csv). None (default): off.
@@ -683,7 +684,7 @@ class OmniFlowConfig:
         0.4 %) and a smaller error on every rendered scene, at about three times
         DIS medium's time per pair (2.8-3.8x measured at stop 21, with its
         linear-gain test's k-d tree search and sums made only where a test on
-        the grid's windows says the tree's may pass, omniflow.decoupled.screen:
+        the grid's windows says the tree's may pass, omniflow.solve.decoupled.screen:
         11 % of the points; 4 of the 487 switched points on 15 rendered pairs
         lost, no figure changed; docs/measurements.md, "The dense preset",
         "The linear-gain test screened on the grid" and "Speed: the dense
@@ -697,7 +698,7 @@ class OmniFlowConfig:
 
     @property
     def grid_pools(self) -> bool:
-        """Whether the pools are grid filters (``pool_grid``, omniflow.gridpool): only for
+        """Whether the pools are grid filters (``pool_grid``, omniflow.solve.gridpool): only for
         the one-pass, equal-weight solver; the knobs that thin each pool by its neighbours
         need the k-d tree's."""
         return (

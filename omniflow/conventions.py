@@ -43,11 +43,11 @@ Time and flow
 Images
     Grey images are float arrays, shape (H, W), indexed [row, col]. Colour
     inputs are reduced to luminance with Rec. 709 weights
-    (``omniflow.imageio.to_grey``, :data:`LUMA_WEIGHTS`). Radiance is linear.
+    (``omniflow.io.imageio.to_grey``, :data:`LUMA_WEIGHTS`). Radiance is linear.
 
 JSON
     A number JSON cannot hold (NaN, +inf, -inf) is written as null, in every
-    file the project writes (``omniflow.jsonio.jsonable``).
+    file the project writes (``omniflow.io.jsonio.jsonable``).
 """
 
 import numpy as np

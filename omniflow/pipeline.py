@@ -5,14 +5,14 @@ two frames of each unit, evaluates the fitted images and their polar
 gradients (eq. 18-20) on the pixel grid by fast transforms, matches along the
 radial lines (section 5.2, :mod:`omniflow.matching`), samples the gradients
 and temporal derivatives at the matched points and solves for the flow
-(section 5.3, :mod:`omniflow.flow`). Every choice is a field of
+(section 5.3, :mod:`omniflow.paper.flow`). Every choice is a field of
 :class:`OmniFlowConfig`; :meth:`OmniFlowConfig.paper` gives the paper's.
 
 Output per point (:class:`OmniFlowResult`, columns in :data:`COLUMNS`): cam1
 position (x, y, theta, h1), its match h2 and cam2 position (x2, y2), range
 and height (r, h; eq. 5), the polar flow (dh1_dt, dtheta_dt;
 dh2_dt = (h2/h1) dh1_dt, eq. 14, except where ``coupled`` is 0:
-:mod:`omniflow.decoupled`), dr_dt = -(d + r) dh1_dt / h1, the pixel
+:mod:`omniflow.solve.decoupled`), dr_dt = -(d + r) dh1_dt / h1, the pixel
 flow of both units (dx, dy; dx2, dy2), the determinant D of eq. (16), a
 confidence in [0, 1] and the derivatives that entered eq. (9) and (15). The
 pixel flow is the displacement of the point's image over one frame,
@@ -26,9 +26,9 @@ docstrings". Eq. (14) assumes no motion along the axis
 
 Where each step lives: the knobs in :mod:`omniflow.config`, the result in
 :mod:`omniflow.result`, the per-unit series (fits, bands, noise, rim fill)
-in :mod:`omniflow.series`, the stereo matching in :mod:`omniflow.matching`,
-reading the series at the points in :mod:`omniflow.sampling` and the solvers
-in :mod:`omniflow.solve`; this module only runs them in order.
+in :mod:`omniflow.fit.series`, the stereo matching in :mod:`omniflow.matching`,
+reading the series at the points in :mod:`omniflow.fit.sampling` and the solvers
+in :mod:`omniflow.solve.at_matches`; this module only runs them in order.
 
 Speed: the two units' fits run in two threads, and the grids the flow step
 samples are made on the second thread while the first matches
@@ -50,12 +50,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from omniflow.config import OmniFlowConfig
-from omniflow.matching import Matches, PolarGrids, match_radial
-from omniflow.monocular import add_monocular
-from omniflow.parallel import map_tasks, submit
-from omniflow.result import COLUMNS, NoMatchesWarning, OmniFlowResult, no_points
-from omniflow.rig import Rig
-from omniflow.series import (
+from omniflow.fit.series import (
     Frame,
     choose_flow_band,
     fill_outside_rim,
@@ -67,8 +62,13 @@ from omniflow.series import (
     unit_frames,
     unit_noise_sigma,
 )
-from omniflow.shading import flow_units, where_moving
-from omniflow.solve import flow_at_matches
+from omniflow.geometry.rig import Rig
+from omniflow.matching import Matches, PolarGrids, match_radial
+from omniflow.parallel import map_tasks, submit
+from omniflow.result import COLUMNS, NoMatchesWarning, OmniFlowResult, no_points
+from omniflow.solve.at_matches import flow_at_matches
+from omniflow.solve.monocular import add_monocular
+from omniflow.solve.shading import flow_units, where_moving
 
 __all__ = [
     "COLUMNS",

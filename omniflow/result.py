@@ -48,7 +48,7 @@ COLUMNS: dict[str, str] = {
     "f2_h": "grey/px, df2/dh_2 used in eq. (15)",
     "f2_theta": "grey/rad, df2/dtheta used in eq. (15)",
     "f2_t": "grey/frame, df2/dt used in eq. (15)",
-    "coupled": "1/0, eq. (14) ties dh2_dt to dh1_dt (0: decoupled, omniflow.decoupled)",
+    "coupled": "1/0, eq. (14) ties dh2_dt to dh1_dt (0: decoupled, omniflow.solve.decoupled)",
 }
 
 
@@ -89,7 +89,7 @@ class OmniFlowResult:
         grey levels; 0 when not needed).
     monocular : dict[str, ndarray]
         With ``config.monocular_gap``: cam1's flow alone where no stereo match is
-        near (:mod:`omniflow.monocular`, columns in its ``MONOCULAR_COLUMNS``);
+        near (:mod:`omniflow.solve.monocular`, columns in its ``MONOCULAR_COLUMNS``);
         else empty.
     """
 
@@ -125,7 +125,7 @@ def _write_csv(
     path: str | Path, columns: Mapping[str, NDArray], known: Mapping[str, str], title: str
 ) -> Path:
     """Columns to CSV atomically: a '#' line naming each column's unit, then the header."""
-    from omniflow.imageio import atomic_output
+    from omniflow.io.imageio import atomic_output
 
     names = list(columns)
     data = (

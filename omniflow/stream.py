@@ -35,13 +35,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from omniflow.config import OmniFlowConfig
-from omniflow.dct import DCTFit, fit_dct
-from omniflow.monocular import add_monocular
-from omniflow.parallel import map_tasks, submit
-from omniflow.pipeline import estimate, flow_grids, matching_grid, stereo_matches
-from omniflow.result import OmniFlowResult, no_points
-from omniflow.rig import Rig, Unit
-from omniflow.series import (
+from omniflow.fit.series import (
     Frame,
     choose_flow_band,
     fit_band,
@@ -51,7 +45,13 @@ from omniflow.series import (
     truncate,
     unit_noise_sigma,
 )
-from omniflow.solve import flow_at_matches
+from omniflow.geometry.rig import Rig, Unit
+from omniflow.paper.dct import DCTFit, fit_dct
+from omniflow.parallel import map_tasks, submit
+from omniflow.pipeline import estimate, flow_grids, matching_grid, stereo_matches
+from omniflow.result import OmniFlowResult, no_points
+from omniflow.solve.at_matches import flow_at_matches
+from omniflow.solve.monocular import add_monocular
 
 __all__ = ["OmniFlowStream", "StereoFrame"]
 
@@ -64,7 +64,7 @@ class _UnitFrame:
         self._frames: dict[tuple[float, float], Frame] = {}
 
     def frame(self, band: float, taper: float = 0.0) -> Frame:
-        """The fit truncated to ``band`` and rolled off by ``taper`` (omniflow.series.truncate),
+        """The fit truncated to ``band`` and rolled off by ``taper`` (omniflow.fit.series.truncate),
         as a lazy-grid frame made once per (band, taper)."""
         fr = self._frames.get((band, taper))
         if fr is None:

@@ -66,7 +66,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from omniflow.dataset import Dataset, DatasetError, grey_of
+from omniflow.io.dataset import Dataset, DatasetError, grey_of
 
 __all__ = ["CheckResult", "Tolerances", "format_results", "run_checks"]
 
@@ -207,7 +207,7 @@ def _noise_sigma(img: NDArray, mask: NDArray) -> tuple[float, int]:
 
 
 def _luma(ch: dict[str, NDArray]) -> NDArray:
-    """The frame's Rec. 709 luma (the project's one: omniflow.dataset.grey_of), float64."""
+    """The frame's Rec. 709 luma (the project's one: omniflow.io.dataset.grey_of), float64."""
     return grey_of(ch).astype(np.float64)
 
 

@@ -250,7 +250,7 @@ def _check_json_out(path: Path) -> None:
 
 
 def _cmd_check(args: argparse.Namespace) -> int:
-    from omniflow.dataset import open_dataset
+    from omniflow.io.dataset import open_dataset
     from omnisim.check import format_results, run_checks
 
     ds = open_dataset(args.dir)
@@ -277,7 +277,7 @@ def _cmd_check(args: argparse.Namespace) -> int:
     results = run_checks(ds, frames=frames, progress=args.progress)
     print(format_results(results))
     if args.json_out:
-        from omniflow.jsonio import jsonable
+        from omniflow.io.jsonio import jsonable
         from omnisim.dataset import atomic_write_json
 
         atomic_write_json(
@@ -324,7 +324,7 @@ def _error(msg: object) -> None:
 
 def _describe_exception(exc: BaseException) -> tuple[str, int] | None:
     """(one-line message, exit status) for an exception the handler knows, else None."""
-    from omniflow.dataset import DatasetError
+    from omniflow.io.dataset import DatasetError
     from omnisim.distributed import ClusterError
 
     if isinstance(exc, DatasetError | _UsageError | _IncompleteError):

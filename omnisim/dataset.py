@@ -1,7 +1,7 @@
 """The omnisim dataset writer: dataset.json and frames, written atomically.
 
 The contract itself (layout, channel names, units, format versions) and its reader
-live in :mod:`omniflow.dataset`, so a dataset is read without this package; see
+live in :mod:`omniflow.io.dataset`, so a dataset is read without this package; see
 ``docs/dataset_format.md`` for every key and channel. The contract's names are
 re-exported here so ``from omnisim.dataset import open_dataset, CHANNELS`` keeps
 working.
@@ -41,8 +41,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-# The contract and the reader, re-exported (their home is omniflow.dataset).
-from omniflow.dataset import (
+# The contract and the reader, re-exported (their home is omniflow.io.dataset).
+from omniflow.io.dataset import (
     CHANNEL_INFO,
     CHANNELS,
     CHANNELS_V1,
@@ -60,7 +60,6 @@ from omniflow.dataset import (
     READ_VERSIONS,
     Dataset,
     DatasetError,
-    camera_from_meta,
     camera_names,
     channels_for,
     expected_files,
@@ -75,7 +74,8 @@ from omniflow.dataset import (
 )
 
 # The one atomic, fsynced file writer (re-exported for old imports).
-from omniflow.imageio import atomic_write_bytes, fsync_dir
+from omniflow.io.imageio import atomic_write_bytes, fsync_dir
+from omnisim.camera import camera_from_meta
 
 __all__ = [
     "CHANNELS",

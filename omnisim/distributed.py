@@ -211,7 +211,7 @@ def render_on_cluster(
 
 def _result(fut, where: str):
     """The future's result; a failure of the task or its workers as ClusterError."""
-    from omniflow.dataset import DatasetError
+    from omniflow.io.dataset import DatasetError
 
     try:
         return fut.result()

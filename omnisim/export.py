@@ -64,7 +64,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from omniflow.dataset import Dataset, DatasetError, open_dataset
+from omniflow.io.dataset import Dataset, DatasetError, open_dataset
 from omnisim.dataset import flo_bytes
 
 __all__ = [

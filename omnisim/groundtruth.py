@@ -18,7 +18,7 @@
     centre, pixels: the point is moved with its object's pose
     (``pose(frame + 1) @ inv(pose(frame))``), expressed in the rig frame of
     frame + 1 (``inv(robot.pose(frame + 1))``) and projected with eq. (1)
-    (``omniflow.rig.Unit.project``).
+    (``omniflow.geometry.rig.Unit.project``).
 ``gt.flow.dh``, ``gt.flow.hdtheta``
     The same displacement as (dh_i, h_i dtheta) with dtheta wrapped to
     [-pi, pi) and h_i at this frame (``omniflow.conventions``).
@@ -73,7 +73,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from omniflow.dataset import GT_CHANNELS
+from omniflow.io.dataset import GT_CHANNELS
 from omnisim.mitsuba_scene import CAMERAS, MitsubaFrame, camera_unit, get_mitsuba_scene
 from omnisim.sensor import apply_affine, ensure_mitsuba, mirror_rays, transform_rays
 
@@ -86,7 +86,7 @@ __all__ = [
     "trace",
 ]
 
-# The contract's channel names live in omniflow.dataset, the one place that defines them.
+# The contract's channel names live in omniflow.io.dataset, the one place that defines them.
 
 #: Same-point test of the visibility traces: |t_hit - t_expected| <= REL * t + ABS.
 TRACE_TOL_REL = 1e-4

@@ -24,14 +24,14 @@ from typing import Any
 
 import numpy as np
 
-from omniflow.dataset import (
+from omniflow.io.dataset import (
     CHANNELS,
     FLO_UNKNOWN,
     FLO_UNKNOWN_THRESH,
     FORMAT_NAME,
     FORMAT_VERSION,
 )
-from omniflow.jsonio import jsonable
+from omniflow.io.jsonio import jsonable
 
 __all__ = [
     "DEFAULT_RENDERER",
@@ -118,7 +118,7 @@ def load_scene_for_job(path: str | Path, overrides: Mapping[str, Any] | None = N
 
 
 def _jsonable(obj: Any) -> Any:
-    """:func:`omniflow.jsonio.jsonable`, arrays of more than 64 elements (an environment
+    """:func:`omniflow.io.jsonio.jsonable`, arrays of more than 64 elements (an environment
     map, a texture) as a short description: too big for the metadata."""
     return jsonable(obj, max_array=64)
 

@@ -64,7 +64,8 @@ FRAME_SLOTS = 2
 
 
 def camera_unit(scene, cam: str):
-    """The ``omniflow.rig.Unit`` of camera ``cam`` (``"cam1"`` or ``"cam2"``) of ``scene``."""
+    """The ``omniflow.geometry.rig.Unit`` of camera ``cam`` (``"cam1"`` or ``"cam2"``) of
+    ``scene``."""
     if cam not in CAMERAS:
         raise ValueError(f"camera {cam!r}: expected 'cam1' or 'cam2'")
     return getattr(scene.rig, cam)

@@ -3,7 +3,7 @@
 A scene is a TOML file (``scenes/*.toml``, documented key by key in
 ``docs/scene_format.md``). :func:`load_scene` parses it, applies command-line
 overrides, checks every key and value, builds the rig
-(:class:`omniflow.rig.Rig`), the robot's motion, the objects' meshes
+(:class:`omniflow.geometry.rig.Rig`), the robot's motion, the objects' meshes
 (trimesh, with UVs) and textures, and the lights, and checks that the rig is
 possible in that scene at every frame. Any problem raises :class:`SceneError`
 naming the file, the key and what was expected, before anything is rendered.
@@ -49,9 +49,9 @@ import trimesh
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from omniflow.camera import CameraError, CameraModel
-from omniflow.rig import Rig, RigError, rig_from_dict
+from omniflow.geometry.rig import Rig, RigError, rig_from_dict
 from omnisim import geometry, textures
+from omnisim.camera import CameraError, CameraModel
 from omnisim.motion import (
     ConstantMotion,
     KeyframeMotion,
@@ -622,7 +622,7 @@ def _render_settings(chk: _Checker, tbl: Any) -> RenderSettings:
 
 
 def _camera(chk: _Checker, tbl: Any) -> CameraModel:
-    """The ``[camera]`` table (:class:`omniflow.camera.CameraModel`; defaults for missing keys)."""
+    """The ``[camera]`` table (:class:`omnisim.camera.CameraModel`; defaults for missing keys)."""
     if not isinstance(tbl, dict):
         raise chk.bad("camera", tbl, "a table of camera parameters ([camera])")
     try:

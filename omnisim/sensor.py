@@ -1,6 +1,6 @@
 """The cone-mirror unit as an analytic Mitsuba sensor, and its exact ray geometry.
 
-One unit (paper section 2, ``omniflow.rig.Unit``) is a pinhole camera on the
+One unit (paper section 2, ``omniflow.geometry.rig.Unit``) is a pinhole camera on the
 rig axis at Z = tip_h - d looking up (+Z) at a 90-degree cone mirror whose tip
 points down at it. The mirror is traced *analytically* instead of being
 tessellated: a film sample at continuous pixel (x, y) is turned straight into
@@ -60,7 +60,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from omniflow.rig import Unit
+from omniflow.geometry.rig import Unit
 
 __all__ = [
     "DEFAULT_VARIANT",
@@ -212,7 +212,7 @@ def _define_sensor_class(mi):
         """Pinhole camera + 90-degree cone mirror, traced analytically.
 
         Properties: ``d``, ``R``, ``x_c``, ``y_c``, ``r_m``, ``tip_h`` (as in
-        ``omniflow.rig.Unit``), ``pose`` (16 floats, row-major world-from-rig
+        ``omniflow.geometry.rig.Unit``), ``pose`` (16 floats, row-major world-from-rig
         matrix), plus the usual ``film`` and ``sampler``. Every number is held
         as an opaque JIT scalar, so changing the pose or the unit between
         renders re-uses the compiled kernels.

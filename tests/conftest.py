@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from omniflow.rig import Rig
-from omniflow.synthetic import Cylinder, Motion, SyntheticScene, Texture
+from omniflow.geometry.rig import Rig
+from omnisim.synthetic import Cylinder, Motion, SyntheticScene, Texture
 
 
 @pytest.fixture(scope="session")

@@ -5,7 +5,7 @@
 * ``Farneback``: ``cv2.calcOpticalFlowFarneback`` (pyramid scale 0.5, 3
   levels, window 15, 3 iterations, poly_n 5, poly_sigma 1.2) on the raw images;
 * ``DIS-medium-panorama``: DIS on the unwarped panoramas
-  (:func:`omniflow.rig.unwarp`), the panorama flow mapped back to an
+  (:func:`omniflow.geometry.rig.unwarp`), the panorama flow mapped back to an
   image-plane displacement at each point. The paper's method avoids unwarping;
   this row measures what unwarping costs and buys;
 * ``zero-flow``: predicts no motion anywhere. Not a method but the floor a
@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from omniflow.rig import Unit, unwarp
+from omniflow.geometry.rig import Unit, unwarp
 
 from .metrics import polar_components
 from .sampling import bilinear
@@ -98,7 +98,7 @@ class PanoramaFlow:
     """Flow computed on the unwarped panorama, mapped back to the image plane.
 
     Panorama column X (continuous, centres at index + 0.5) is theta = 2 pi X / W
-    and row Y is h_i = r_m (1 - Y / H), the inverse of :func:`omniflow.rig.unwarp`.
+    and row Y is h_i = r_m (1 - Y / H), the inverse of :func:`omniflow.geometry.rig.unwarp`.
     A point (x, y) goes to (X, Y); the panorama flow (du, dv) sampled there
     moves it to (X + du, Y + dv), which maps back to (x', y'); the image-plane
     displacement is (x' - x, y' - y).

@@ -260,7 +260,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             spec["pending"] = pending
     new = _render_file(_header(text), scenes)
     if args.write:
-        from omniflow.imageio import atomic_write_text
+        from omniflow.io.imageio import atomic_write_text
 
         atomic_write_text(path, new)  # a reader never sees half a file
         print(f"wrote {path} in {time.perf_counter() - start:.0f} s", file=sys.stderr)

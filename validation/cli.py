@@ -166,7 +166,7 @@ def _parser() -> argparse.ArgumentParser:
         action="append",
         default=[],
         metavar="KEY=VALUE",
-        help="camera-model parameter (omniflow.camera: exposure, full_well, read_noise, gain, "
+        help="camera-model parameter (omnisim.camera: exposure, full_well, read_noise, gain, "
         "bits, response, vignetting, defocus, seed) applied to the radiance when the images "
         "are formed, over the dataset's own camera; repeatable",
     )
@@ -218,8 +218,8 @@ def _closing_line(summary: dict, pairs: int, seconds: float, report: Path) -> st
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = _parser().parse_args(argv)
-    from omniflow.dataset import DatasetError
-    from omniflow.rig import RigError
+    from omniflow.geometry.rig import RigError
+    from omniflow.io.dataset import DatasetError
 
     from . import baselines as bl
     from .external import ExternalOutput
@@ -264,7 +264,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return fail("--method-name: more names than --method-output directories")
     variants: Any = args.variants
     if args.row:
-        from omniflow.cli import CLIError, config_from_settings
+        from omniflow.cli.common import CLIError, config_from_settings
 
         from .variants import omniflow_variants, variant_name
 
@@ -311,7 +311,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 partial=args.partial,
             )
             if level:
-                from omniflow.jsonio import jsonable
+                from omniflow.io.jsonio import jsonable
 
                 from .summary import summarize
 

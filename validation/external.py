@@ -87,7 +87,7 @@ class ExternalOutput:
 
     def dense(self, t: int, cam: str, unit: Any, shape: tuple[int, int]) -> DenseFlow:
         """The method's flow of camera ``cam`` from frame t to t + 1, NaN where unknown."""
-        from omniflow.dataset import DatasetError, read_flo
+        from omniflow.io.dataset import DatasetError, read_flo
 
         path = self._path(t, f"{cam}.flo")
         try:

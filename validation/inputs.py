@@ -2,7 +2,7 @@
 
 Two sources, chosen once per run:
 
-* **a camera model** (:mod:`omniflow.camera`): the dataset's own ``camera`` section
+* **a camera model** (:mod:`omnisim.camera`): the dataset's own ``camera`` section
   of ``dataset.json`` (the camera the renderer recorded, whose images are the
   ``camN.png`` files), with ``--camera KEY=VALUE`` overrides, applied to the
   EXR's linear radiance at read time. One render, many cameras: the noise is
@@ -26,8 +26,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from omniflow.camera import CameraError, CameraModel
-from omniflow.dataset import grey_of
+from omniflow.io.dataset import grey_of
+from omnisim.camera import CameraError, CameraModel
 
 __all__ = ["CAMERAS", "Inputs", "camera_model"]
 
@@ -72,8 +72,8 @@ class Inputs:
 
     Parameters
     ----------
-    ds : omniflow.dataset.Dataset
-    camera : omniflow.camera.CameraModel or None
+    ds : omniflow.io.dataset.Dataset
+    camera : omnisim.camera.CameraModel or None
         See the module docstring; :func:`camera_model` picks it.
     """
 
@@ -97,7 +97,7 @@ class Inputs:
             )
         params = ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
                            for k, v in self.camera.to_dict().items())  # fmt: skip
-        return f"camera model (omniflow.camera) applied to the EXR radiance: {params}"
+        return f"camera model (omnisim.camera) applied to the EXR radiance: {params}"
 
     def _set_scale(self) -> None:
         vals = []

@@ -7,7 +7,7 @@ an estimate from images.
 
 * :func:`robot_motion`: the rig's motion from frame t to t + 1 expressed in the
   rig frame at t: yaw rate w (rad/frame) and velocity (V_x, V_y) (m/frame).
-  This is what odometry (``omniflow.applications``) estimates.
+  This is what odometry (``omniflow.applications.navigation``) estimates.
 * :func:`point_motion`: where a material point seen at frame t (world X, Y, Z
   and its object id) is at t + 1 in the rig's cylindrical coordinates, hence
   its true dr/dt (m/frame) and time to contact -r / (dr/dt) (frames).

@@ -45,7 +45,7 @@ class TruthOracle:
     """
 
     def __init__(self, dataset_dir: str | Path):
-        from omniflow.dataset import open_dataset
+        from omniflow.io.dataset import open_dataset
 
         self.ds = open_dataset(dataset_dir)
         self.pairs = [t for t in range(self.ds.frame_count - 1)]

@@ -28,8 +28,8 @@ from typing import Any
 
 import numpy as np
 
-from omniflow.imageio import atomic_write_text
-from omniflow.jsonio import jsonable
+from omniflow.io.imageio import atomic_write_text
+from omniflow.io.jsonio import jsonable
 
 from .report_doc import Doc, fmt
 from .report_figures import draw_figures, sweep_figure
@@ -145,7 +145,8 @@ def _document(summary: Mapping[str, Any], figures: Mapping[str, str], command: s
     doc.p(
         "dr/dt and time to contact (TTC, frames) against the objects' known motion from the "
         "poses in dataset.json (TTC over points whose true range shrinks by more than 0.1 % per "
-        "frame); odometry (omniflow.applications.odometry, robust fit) against the robot's "
+        "frame); odometry (omniflow.applications.navigation.odometry, robust fit) against the "
+        "robot's "
         "known motion."
     )
     doc.table(*derived_table(summary))

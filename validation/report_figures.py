@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from omniflow.imageio import atomic_output
+from omniflow.io.imageio import atomic_output
 
 from .report_doc import num
 from .results import Results
@@ -36,7 +36,7 @@ def draw_figures(results: Results, summary: Mapping[str, Any], fig_dir: Path) ->
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from omniflow.draw import color_wheel, flow_to_color
+    from omniflow.io.draw import color_wheel, flow_to_color
 
     out: dict[str, str] = {}
     snap = results.snapshot
@@ -233,7 +233,7 @@ def draw_figures(results: Results, summary: Mapping[str, Any], fig_dir: Path) ->
     return out
 
 
-#: Units of the camera parameters (omniflow.camera), for the sweep's axis label.
+#: Units of the camera parameters (omnisim.camera), for the sweep's axis label.
 _UNITS = {"read_noise": "electrons rms", "full_well": "electrons", "bits": "bits",
           "defocus": "px, Gaussian sigma", "vignetting": "fraction lost at the rim",
           "exposure": "fraction of full well per unit radiance", "gain": "unitless"}  # fmt: skip
@@ -386,7 +386,7 @@ def _binned(ax: Any, x: NDArray, y: NDArray, edges: NDArray, label: str) -> None
 def _scatter_color(
     x: NDArray, y: NDArray, dx: NDArray, dy: NDArray, shape: tuple[int, int], vmax: float
 ) -> NDArray:
-    from omniflow.draw import flow_to_color
+    from omniflow.io.draw import flow_to_color
 
     img = np.zeros((*shape, 3), dtype=np.uint8)
     ok = np.isfinite(x) & np.isfinite(y) & np.isfinite(dx) & np.isfinite(dy)

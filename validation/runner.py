@@ -1,6 +1,6 @@
 """The run loop: every omniflow variant, baseline and external method on every frame pair.
 
-The harness reads the dataset only through :func:`omniflow.dataset.open_dataset`
+The harness reads the dataset only through :func:`omniflow.io.dataset.open_dataset`
 (``dataset.json`` and the EXR channels), so any generator that writes that
 contract is scored the same way. The pieces it strings together each live in
 their own module: the images (:mod:`validation.inputs`), the omniflow rows
@@ -130,7 +130,7 @@ def run_validation(
     """
     from tqdm import tqdm
 
-    from omniflow.dataset import open_dataset
+    from omniflow.io.dataset import open_dataset
     from omniflow.pipeline import OmniFlowConfig
 
     if estimate is None:

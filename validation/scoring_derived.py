@@ -130,15 +130,15 @@ def ttc_scores(est: NDArray, true: NDArray) -> dict[str, float]:
 
 
 def _time_to_contact(r: NDArray, dr_dt: NDArray) -> NDArray:
-    from omniflow.applications import time_to_contact
+    from omniflow.applications.navigation import time_to_contact
 
     return np.asarray(time_to_contact(r, dr_dt), dtype=np.float64)
 
 
 def _odometry(cols: dict) -> dict[str, dict[str, float]] | None:
-    """omniflow.applications.odometry on all matched points: both flow components,
+    """omniflow.applications.navigation.odometry on all matched points: both flow components,
     and the bearing rates alone (omni flow's radial component is the noisier one)."""
-    from omniflow.applications import odometry
+    from omniflow.applications.navigation import odometry
 
     theta = np.asarray(cols["theta"], np.float64)
     r = np.asarray(cols["r"], np.float64)

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from omniflow.jsonio import jsonable
+from omniflow.io.jsonio import jsonable
 
 from .metrics import flow_summary, stats, stereo_summary
 from .results import Results
@@ -161,7 +161,8 @@ def _derived_block(
 
 
 def summarize(results: Results) -> dict[str, Any]:
-    """The summary as a JSON-able dict (NaN written as null by :func:`omniflow.jsonio.jsonable`)."""
+    """The summary as a JSON-able dict (NaN written as null by
+    :func:`omniflow.io.jsonio.jsonable`)."""
     methods = []
     default = next((m.name for m in results.methods if m.kind == "omniflow"), None)
     for m in results.methods:

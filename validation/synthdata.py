@@ -1,4 +1,4 @@
-"""Write a closed-form scene (:mod:`omniflow.synthetic`) as an omnisim dataset.
+"""Write a closed-form scene (:mod:`omnisim.synthetic`) as an omnisim dataset.
 
 The validation harness reads only the dataset contract, so a dataset made
 here without any renderer is scored exactly like a rendered one. Used by the
@@ -24,8 +24,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from omniflow.rig import Rig
-from omniflow.synthetic import Cylinder, Motion, SyntheticScene, Texture
+from omniflow.geometry.rig import Rig
+from omnisim.synthetic import Cylinder, Motion, SyntheticScene, Texture
 
 __all__ = [
     "SCENES",
@@ -51,7 +51,7 @@ def scene_meta(
     supersample: int = 2,
 ) -> dict[str, Any]:
     """``dataset.json`` content for a closed-form scene (contract layout)."""
-    from omniflow.dataset import FORMAT_NAME
+    from omniflow.io.dataset import FORMAT_NAME
 
     robot = []
     for k in range(frames):
@@ -66,13 +66,13 @@ def scene_meta(
         objects.append({"id": int(body.id), "name": body.name or f"body{body.id}", "poses": poses})
     return {
         "format": FORMAT_NAME,
-        # version 1: omniflow.synthetic gives forward flow only, without the occluded /
+        # version 1: omnisim.synthetic gives forward flow only, without the occluded /
         # outside split and the backward flow of version 2
         "format_version": 1,
         "scene": {
             "name": name,
             "path": "",
-            "source": "omniflow.synthetic closed-form scene",
+            "source": "omnisim.synthetic closed-form scene",
             "overrides": {},
         },
         **scene.rig.to_dict(),
@@ -81,13 +81,13 @@ def scene_meta(
         "render": {
             "width": scene.rig.cam1.width,
             "height": scene.rig.cam1.height,
-            "generator": "omniflow.synthetic",
+            "generator": "omnisim.synthetic",
             "supersample": int(supersample),
         },
         "seed": 0,
         "objects": objects,
         "robot": {"poses": robot},
-        "versions": {"generator": "omniflow.synthetic"},
+        "versions": {"generator": "omnisim.synthetic"},
     }
 
 
@@ -168,7 +168,7 @@ SCENES = {"demo": demo_scene, "vertical": vertical_scene}
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
         prog="python -m validation.synthdata",
-        description="Write the closed-form demo scene (omniflow.synthetic) as an omnisim dataset.",
+        description="Write the closed-form demo scene (omnisim.synthetic) as an omnisim dataset.",
     )
     ap.add_argument("out", help="output dataset directory (created)")
     ap.add_argument("--size", type=int, default=128, help="image width = height, px (default 128)")

@@ -138,12 +138,12 @@ def true_matches(
     """The true stereo matches at cam1's significant pixels (see :class:`TrueMatches`).
 
     ``image`` is cam1's grey float frame; its radial gradient comes from the DCT fit
-    (``band`` as the variant's) through :func:`omniflow.edges.polar_gradient_grid`,
+    (``band`` as the variant's) through :func:`omniflow.paper.edges.polar_gradient_grid`,
     the same eq. (19) the pipeline uses.
     """
-    from omniflow.dct import fit_dct
-    from omniflow.edges import polar_gradient_grid
     from omniflow.matching import Matches
+    from omniflow.paper.dct import fit_dct
+    from omniflow.paper.edges import polar_gradient_grid
 
     unit = rig.cam1
     x, y = unit.pixel_centres()

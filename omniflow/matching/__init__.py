@@ -8,7 +8,7 @@ The public API; one job per module:
   polar tables (one row per radial line), and sampling them;
 - :mod:`omniflow.matching.robust`: NCC of radial profiles with uniqueness and
   left-right checks;
-- :mod:`omniflow.matching.paper`: the paper's most similar gradient vector;
+- :mod:`omniflow.paper.matching`: the paper's most similar gradient vector;
 - :mod:`omniflow.matching.vote`: the disparity consistency vote.
 """
 

@@ -24,8 +24,9 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
-from omniflow.kernels import profile_stats
-from omniflow.matching.tables import TableGeometry, parabola_offset, sharp_peak
+from omniflow.matching.dense_kernels import profile_stats
+from omniflow.matching.tables import sharp_peak
+from omniflow.paper.matching import TableGeometry, parabola_offset
 from omniflow.parallel import map_tasks
 
 __all__ = [
@@ -52,7 +53,7 @@ def ncc_offsets(t1, t2, k, j, cols, w, stride, lines, out):  # pragma: no cover 
     A profile: the 2 w + 1 samples every ``stride`` columns centred on the column, on
     the 2 ``lines`` + 1 lines around k (wrapping in theta); zero-mean, unit-norm (a
     flat profile has norm 1e-12). Columns must keep the profile inside the table.
-    Writes out[i, s]. :func:`omniflow.kernels.ncc_offsets`, value for value: each
+    Writes out[i, s]. :func:`omniflow.matching.dense_kernels.ncc_offsets`, value for value: each
     sum is taken in the same order, but four columns' sums at once (independent
     chains of additions the processor overlaps).
     """

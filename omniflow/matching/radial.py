@@ -68,7 +68,7 @@ Two methods:
     thread of their own. The short pass reads the long pass's tables where
     their radii coincide (no second remap).
 
-Measured on closed-form scenes (``omniflow.synthetic``, see
+Measured on closed-form scenes (``omnisim.synthetic``, see
 ``tests/omniflow/test_matching.py``): see that file's module docstring for the
 figures and the command.
 
@@ -84,13 +84,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from omniflow import parallel
-from omniflow.dct import DCTFit
+from omniflow.geometry.rig import Rig
 from omniflow.matching.dense import densify, grown_from, smooth_profiles
-from omniflow.matching.paper import match_paper
 from omniflow.matching.robust import RobustSearch
 from omniflow.matching.tables import (
     PolarGrids,
-    TableGeometry,
     abs_percentile,
     blur_lines,
     polar_grids,
@@ -100,7 +98,8 @@ from omniflow.matching.tables import (
     radial_derivative,
 )
 from omniflow.matching.vote import consistent
-from omniflow.rig import Rig
+from omniflow.paper.dct import DCTFit
+from omniflow.paper.matching import TableGeometry, match_paper
 
 __all__ = ["MATCH_METHODS", "Matches", "match_radial"]
 

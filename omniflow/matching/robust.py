@@ -13,7 +13,7 @@ from numpy.typing import NDArray
 
 from omniflow import parallel
 from omniflow.matching.ncc import LineSearch, profiles
-from omniflow.matching.tables import TableGeometry
+from omniflow.paper.matching import TableGeometry
 
 __all__ = ["Descriptors", "RobustSearch", "match_robust"]
 
@@ -155,7 +155,7 @@ class RobustSearch:
         The sub-pixel step (taken in the kernel, line by line): a parabola
         through the NCC at the neighbouring columns, after moving one column
         if a neighbour scores higher
-        (:func:`~omniflow.matching.tables.parabola_offset`); kept where the
+        (:func:`~omniflow.paper.matching.parabola_offset`); kept where the
         vertex's NCC is at least min_score and the peak sharp enough
         (:func:`~omniflow.matching.tables.sharp_peak`, ``flatness``).
         """

@@ -2,9 +2,9 @@
 
 A polar table has one row per radial line theta_k and one column per image
 radius; both units' tables are made with one cv2.remap each
-(:func:`polar_table`), their geometry is :class:`TableGeometry`. Also the
-small primitives both matching rules share (local maxima along a line, the
-parabola's vertex).
+(:func:`polar_table`), their geometry is
+:class:`omniflow.paper.matching.TableGeometry`. Also the small primitives of the robust
+rule (local maxima along a line, the peak's sharpness, percentiles).
 """
 
 from __future__ import annotations
@@ -18,17 +18,15 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
-from omniflow.dct import DCTFit
-from omniflow.edges import polar_gradient_grid
-from omniflow.rig import Unit
+from omniflow.geometry.rig import Unit
+from omniflow.paper.dct import DCTFit
+from omniflow.paper.edges import polar_gradient_grid
 
 __all__ = [
     "PolarGrids",
-    "TableGeometry",
     "abs_percentile",
     "blur_lines",
     "local_maxima",
-    "parabola_offset",
     "polar_gradient_fast",
     "polar_grids",
     "polar_maps",
@@ -70,7 +68,7 @@ def polar_grids(fit: DCTFit, unit: Unit, *, gradient: bool = True) -> PolarGrids
 def polar_gradient_fast(fit: DCTFit, unit: Unit) -> tuple[NDArray, NDArray]:
     """(df/dh_i, df/dtheta_i) on the pixel grid, float32, eq. (19)-(20).
 
-    :func:`omniflow.edges.polar_gradient_grid` with 0 instead of NaN for f_h at
+    :func:`omniflow.paper.edges.polar_gradient_grid` with 0 instead of NaN for f_h at
     h_i = 0 (the matchers compare magnitudes; a NaN would poison percentiles).
     """
     f_h, f_th = polar_gradient_grid(fit, unit)
@@ -226,14 +224,6 @@ def local_maxima(a: NDArray) -> NDArray:
     return m
 
 
-def parabola_offset(s_m: NDArray, s_0: NDArray, s_p: NDArray) -> NDArray:
-    """Vertex offset in [-1, 1] of the parabola through (-1, s_m), (0, s_0), (1, s_p)."""
-    den = s_m - 2.0 * s_0 + s_p
-    with np.errstate(divide="ignore", invalid="ignore"):
-        off = np.where(np.abs(den) > 1e-12, 0.5 * (s_m - s_p) / den, 0.0)
-    return np.clip(off, -1.0, 1.0)
-
-
 def sharp_peak(peak: NDArray, s_m: NDArray, s_0: NDArray, s_p: NDArray, flatness: float) -> NDArray:
     """Whether an NCC peak is sharp enough to place its vertex to sub-pixel.
 
@@ -245,21 +235,6 @@ def sharp_peak(peak: NDArray, s_m: NDArray, s_0: NDArray, s_p: NDArray, flatness
     if flatness <= 0:
         return np.ones(np.broadcast(peak, s_0).shape, dtype=bool)
     return (1.0 - peak) <= flatness * (2.0 * s_0 - s_m - s_p)
-
-
-@dataclass(frozen=True)
-class TableGeometry:
-    """Geometry of the two polar tables (columns include ``pad`` on each side)."""
-
-    maps1: tuple
-    maps2: tuple
-    pad: int
-    n_h: int
-    h0: float
-    h_step: float
-    scale2: float
-    n_theta: int
-    win: tuple[int, int]  # column offsets j2 - j1 that can hold the match
 
 
 @numba.njit(cache=True, nogil=True)

@@ -4,7 +4,7 @@
   ``"tests.helpers.fakes:render_frame"``): deterministic arrays with every contract channel,
   a function of the scene's rig, seed and the frame only. ``OMNISIM_FAKE_DELAY`` (s)
   slows each frame down so a test can interrupt a render.
-* :func:`write_synthetic_dataset` - a dataset built from :mod:`omniflow.synthetic`'s
+* :func:`write_synthetic_dataset` - a dataset built from :mod:`omnisim.synthetic`'s
   closed-form room (exact truth), with dataset.json poses that match it, for the checks.
 """
 
@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from omniflow.rig import Rig
+from omniflow.geometry.rig import Rig
 from omnisim.dataset import CHANNELS, CHANNELS_V1, FORMAT_NAME, DatasetWriter
 
 
@@ -46,7 +46,7 @@ def _pose(x: float, y: float, yaw: float, z: float = 0.0) -> list:
 
 
 def synthetic_scene(size: int = 64, *, moving_pillar: bool = True):
-    from omniflow.synthetic import Cylinder, Motion, SyntheticScene, Texture
+    from omnisim.synthetic import Cylinder, Motion, SyntheticScene, Texture
 
     rig = Rig.symmetric(d=0.1, R=0.05, s=0.3, size=size)
     bodies = []
@@ -81,9 +81,9 @@ def write_synthetic_dataset(
     supersample: int = 1,
     moving_pillar: bool = True,
 ) -> Path:
-    """A complete dataset from omniflow.synthetic: exact truth, images with Gaussian noise.
+    """A complete dataset from omnisim.synthetic: exact truth, images with Gaussian noise.
 
-    Format version 1 (omniflow.synthetic gives forward flow without the occlusion /
+    Format version 1 (omnisim.synthetic gives forward flow without the occlusion /
     outside split): the tests' version 1 fixture.
     """
     sc = synthetic_scene(size, moving_pillar=moving_pillar)

@@ -10,9 +10,9 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from omniflow.geometry.rig import Rig, Unit
 from omniflow.matching import Matches
-from omniflow.rig import Rig, Unit
-from omniflow.synthetic import Cylinder, Motion, SyntheticScene, Texture
+from omnisim.synthetic import Cylinder, Motion, SyntheticScene, Texture
 
 
 def paper_rig(size: int = 256) -> Rig:

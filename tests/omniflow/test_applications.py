@@ -1,4 +1,4 @@
-"""omniflow.applications against exact values from known motions and poses.
+"""omniflow.applications.navigation against exact values from known motions and poses.
 
 Tolerances are measured (the values quoted beside each bound, with the seeds
 used) and given a margin; exact-data cases are checked to float precision.
@@ -11,16 +11,16 @@ import math
 import numpy as np
 import pytest
 
-from omniflow.applications import (
+from omniflow.applications.navigation import (
     odometry,
     position_fix,
-    radial_velocity,
     region_flow,
     steering_heading,
     time_to_contact,
 )
-from omniflow.rig import Rig
-from omniflow.synthetic import Cylinder, Motion, SyntheticScene, Texture
+from omniflow.geometry.rig import Rig
+from omniflow.paper.flow import radial_velocity
+from omnisim.synthetic import Cylinder, Motion, SyntheticScene, Texture
 
 
 def _wrap(a):
@@ -64,7 +64,7 @@ def test_radial_velocity_is_exact_for_the_instantaneous_flow(rig):
 
 
 def test_radial_velocity_from_closed_form_flow_of_a_driving_robot(rig):
-    # Exact per-pixel truth (omniflow.synthetic): the robot drives 11 mm per frame
+    # Exact per-pixel truth (omnisim.synthetic): the robot drives 11 mm per frame
     # in a textured round room; the wall is static, so dr of each wall point is
     # known from the world positions. gt.flow.dh is a one-frame displacement, so
     # the first-order formula has a second-order error: measured max 4.0e-5 m
@@ -335,7 +335,7 @@ def test_odometry_on_bearing_rates_only():
 
 
 def test_odometry_on_a_closed_form_scene_with_moving_pillars(rig):
-    # omniflow.synthetic: robot driving (1 cm, -0.5 cm)/frame and turning 4 mrad/frame
+    # omnisim.synthetic: robot driving (1 cm, -0.5 cm)/frame and turning 4 mrad/frame
     # in a textured room with two pillars moving on their own (about 30 % of the
     # points). Per-pixel truth flow (one-frame displacements) goes through the same
     # formulas omni flow's output would: dtheta = hdtheta / h_i, dr from radial_velocity.

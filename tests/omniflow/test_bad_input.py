@@ -42,9 +42,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from omniflow.imageio import read_exr_channels, write_exr, write_png
-from omniflow.rig import Rig
-from omniflow.synthetic import Motion, SyntheticScene
+from omniflow.geometry.rig import Rig
+from omniflow.io.imageio import read_exr_channels, write_exr, write_png
+from omnisim.synthetic import Motion, SyntheticScene
 
 ROOT = Path(__file__).resolve().parents[2]
 SIZE = 96
@@ -522,7 +522,7 @@ def test_bad_input_is_one_line_and_changes_nothing(base, tmp_path, name):
 
 def test_knob_limits_cover_every_numeric_knob():
     # A numeric OmniFlowConfig field without a range would reach the pipeline unchecked.
-    from omniflow.cli import KNOB_LIMITS
+    from omniflow.cli.common import KNOB_LIMITS
     from omniflow.pipeline import OmniFlowConfig
 
     config = OmniFlowConfig()
@@ -536,7 +536,7 @@ def test_knob_limits_cover_every_numeric_knob():
     assert numeric - set(KNOB_LIMITS) == set()
     assert set(KNOB_LIMITS) - {f.name for f in dataclasses.fields(config)} == set()
     for name in KNOB_LIMITS:  # every default lies in its range
-        from omniflow.cli import check_knobs
+        from omniflow.cli.common import check_knobs
 
         check_knobs({name: getattr(config, name)})
         check_knobs({name: getattr(OmniFlowConfig.paper(), name)})
@@ -746,17 +746,17 @@ def test_failure_while_writing_leaves_the_old_set(base, tmp_path, monkeypatch, c
     # flow.json must stay as they were (the issue saw a new CSV beside an old JSON).
     import errno as errno_mod
 
-    import omniflow.cli
+    import omniflow.cli.pair
 
     def refuse(path, *args, **kwargs):
         raise OSError(errno_mod.EIO, "Input/output error", str(path))
 
-    monkeypatch.setattr(omniflow.cli, "write_png", refuse)
+    monkeypatch.setattr(omniflow.cli.pair, "write_png", refuse)
     out = tmp_path / "out"
     _old_outputs(out)
     before = snapshot(tmp_path)
     argv = [*map(str, frames(base)), "--rig", str(base["dir"] / "rig.toml"), "--out", str(out)]
-    assert omniflow.cli.main(argv) == 1
+    assert omniflow.cli.pair.main(argv) == 1
     err = capsys.readouterr().err.splitlines()
     assert len(err) == 1 and "Input/output error" in err[0], err
     assert f"{out}/flow_arrows.png" in err[0]  # the path under --out, not the staging folder
@@ -766,7 +766,7 @@ def test_failure_while_writing_leaves_the_old_set(base, tmp_path, monkeypatch, c
 def test_orphaned_staging_folders_are_removed(base, tmp_path):
     # A run killed with -9 leaves its staging folder; the next run into the same place
     # removes it (its process is gone) and leaves a live process's folder alone.
-    from omniflow.imageio import STAGING_PREFIX
+    from omniflow.io.imageio import STAGING_PREFIX
 
     out = tmp_path / "out"
     _old_outputs(out)

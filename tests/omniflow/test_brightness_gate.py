@@ -12,11 +12,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import omniflow.decoupled as decoupled_mod
-import omniflow.solve as solve_mod
+import omniflow.solve.at_matches as solve_mod
+import omniflow.solve.decoupled as decoupled_mod
 from omniflow.config import OmniFlowConfig
 from omniflow.pipeline import estimate
-from omniflow.synthetic import Motion
+from omnisim.synthetic import Motion
 from tests.helpers.scenes import frames, paper_rig, sparse_true_matches, wall_scene
 
 GATE = 20.0  # the probe's gate (docs/measurements.md, "A brightness-change term in the pools")
@@ -81,7 +81,7 @@ def test_gate_never_fires_without_a_brightness_change():
     13.3 in the first solve, 17.1 in the refinement's pools), so every column equals the
     plain solve's. Mutation caught: a gate of 1 (the gain taken almost everywhere)
     changes the flow (EPE mean 0.0111 -> measured 0.0112; 0.0123 before gains below
-    omniflow.gain.MIN_CHANGE were left out)."""
+    omniflow.solve.gain.MIN_CHANGE were left out)."""
     plain, _, _ = _run(robot=SLOW)
     gated, _, _ = _run(robot=SLOW, gate=GATE)
     assert plain.columns.keys() == gated.columns.keys()
@@ -163,9 +163,9 @@ def test_small_gains_are_model_error_not_a_change(monkeypatch):
     tests/omniflow/test_flow.py, robot driving, every pixel's true match): the F test
     alone passes 23 % of the pools there, their fitted |beta| median 0.0006, and taking
     those answers raised the median error from 0.0032 to 0.0040 px. With gains below
-    omniflow.gain.MIN_CHANGE (0.002) left out the default equals the plain solve's
+    omniflow.solve.gain.MIN_CHANGE (0.002) left out the default equals the plain solve's
     median (measured 0.0032 both). Mutation caught: MIN_CHANGE 0 (0.0040)."""
-    import omniflow.gain as gain_mod
+    import omniflow.solve.gain as gain_mod
     from tests.helpers.scenes import true_matches
     from tests.omniflow.test_flow import MOTIONS, _scene
 

@@ -1,6 +1,6 @@
-"""Tests of omniflow.calibration: the rim circle and a Unit from it (eq. 2).
+"""Tests of omniflow.geometry.calibration: the rim circle and a Unit from it (eq. 2).
 
-Rim images come from omniflow.synthetic: the textured room seen by one unit,
+Rim images come from omnisim.synthetic: the textured room seen by one unit,
 the rim antialiased by its area coverage in each pixel (synthetic.rim_coverage:
 exact chords integrated by Gauss-Legendre quadrature, error < 2e-4 px^2).
 A real rig's lit, textured surround is pasted outside the rim with the same
@@ -18,9 +18,9 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from omniflow.calibration import RimError, calibrate_unit, find_rim
-from omniflow.rig import Rig, Unit
-from omniflow.synthetic import SyntheticScene, rim_coverage
+from omniflow.geometry.calibration import RimError, calibrate_unit, find_rim
+from omniflow.geometry.rig import Rig, Unit
+from omnisim.synthetic import SyntheticScene, rim_coverage
 
 
 def _unit(width, height, x_c, y_c, r_m) -> Unit:

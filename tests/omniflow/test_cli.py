@@ -3,7 +3,7 @@
 Scene: a textured round room (wall radius 3 m, no ceiling) around the rig, the
 robot turning in place by W rad per frame. The truth is then the same at every
 point: r = 3 m, dtheta/dt = -W, dh = 0, dr/dt = 0, plus the exact per-pixel
-flow of omniflow.synthetic. Frames are written as 16-bit PNG, EXR and JPEG.
+flow of omnisim.synthetic. Frames are written as 16-bit PNG, EXR and JPEG.
 
 Checks: the CSV holds the documented columns; its numbers are exactly what
 omniflow.pipeline.estimate gives in-process on the same frames (so the
@@ -26,9 +26,9 @@ import pytest
 from scipy.ndimage import map_coordinates
 
 from omniflow.config import DENSE
-from omniflow.imageio import read_image, to_grey, to_uint8, write_exr, write_png
-from omniflow.rig import Rig
-from omniflow.synthetic import Motion, SyntheticScene, rim_coverage
+from omniflow.geometry.rig import Rig
+from omniflow.io.imageio import read_image, to_grey, to_uint8, write_exr, write_png
+from omnisim.synthetic import Motion, SyntheticScene, rim_coverage
 from tests.omniflow.test_calibration import surround_texture
 
 SIZE = 192
@@ -123,7 +123,7 @@ def check_against_truth(case, cols, epe_max=0.15):
     np.testing.assert_allclose(cols["h1"], h1, atol=1e-5)
     np.testing.assert_allclose(np.angle(np.exp(1j * (cols["theta"] - theta))), 0, atol=1e-6)
     # dr/dt is the documented function of the columns: eq. (14)'s where the point is
-    # coupled, the two-unit formula where eq. (14) was rejected (omniflow.decoupled).
+    # coupled, the two-unit formula where eq. (14) was rejected (omniflow.solve.decoupled).
     # On this scene eq. (14) holds everywhere; with the densified matches
     # (dense_percentile 60, pool_grid 0.125, decouple_tol 60) the test rejected it at
     # 0.7 % of the points (16-bit PNG, EXR) and 4.1 % (JPEG), measured with the CLI on
@@ -239,7 +239,7 @@ def test_dataset_mode(case, tmp_path):
 
 @pytest.mark.parametrize("surround", ["black", "lit texture"])
 def test_calibrate_finds_the_rims(tmp_path, surround):
-    # omniflow.calibration on the antialiased rims of 256 px closed-form frames, black
+    # omniflow.geometry.calibration on the antialiased rims of 256 px closed-form frames, black
     # outside the mirror or a lit texture (mean 0.75, amplitude 0.12) pasted there:
     # measured centre and radius within 0.002 px (black) and 0.016 px (texture).
     rig = Rig.symmetric(d=0.10, R=0.05, s=0.30, size=256)
@@ -418,7 +418,7 @@ def test_no_matched_points_still_writes_every_output(case, tmp_path, monkeypatch
     # In-process with the pipeline replaced by one that finds nothing (as on a
     # textureless scene): the command must still write a header-only CSV, the
     # JSON and the pictures, and report the odometry as not computable.
-    import omniflow.cli
+    import omniflow.cli.pair
     import omniflow.pipeline
 
     real = omniflow.pipeline.estimate
@@ -431,7 +431,7 @@ def test_no_matched_points_still_writes_every_output(case, tmp_path, monkeypatch
     monkeypatch.setattr(omniflow.pipeline, "estimate", nothing)
     out = tmp_path / "out"
     argv = [*map(str, inputs(case, "png")), "--rig", str(case["dir"] / "rig.toml")]
-    assert omniflow.cli.main([*argv, "--out", str(out), "--odometry"]) == 0
+    assert omniflow.cli.pair.main([*argv, "--out", str(out), "--odometry"]) == 0
     assert "0 points" in capsys.readouterr().out
     cols = read_csv(out / "flow.csv")
     assert all(len(v) == 0 for v in cols.values()) and "dx" in cols

@@ -1,4 +1,4 @@
-"""Tests of omniflow.dct: eq. (17)-(18), the fast grid paths and the 3-D fit.
+"""Tests of omniflow.paper.dct: eq. (17)-(18), the fast grid paths and the 3-D fit.
 
 Tolerances were measured by printing the maxima on these inputs (random images,
 40 x 56 with the seed of each test; the figures are repeated next to each
@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from omniflow.dct import DCTFit, band_window, fit_dct, fit_dct3
+from omniflow.paper.dct import DCTFit, band_window, fit_dct, fit_dct3
 
 # Per-dtype bound on reconstruction / path agreement, relative to grey levels in [0, 1].
 # Measured max: float64 8e-15 (full-band evaluate), float32 2.7e-7 (full-band grid).
@@ -239,7 +239,7 @@ def test_detrended_dct3_derivatives_and_slices_are_consistent():
 
 
 def test_band_window_rolls_off_to_the_band_edge():
-    """omniflow.dct.band_window: 1 inside (1 - taper) of the band, 0 from its edge on,
+    """omniflow.paper.dct.band_window: 1 inside (1 - taper) of the band, 0 from its edge on,
     cos^2 between, radial; taper 0 is the sharp truncation (all ones)."""
     assert np.array_equal(band_window(8, 6, 0.0), np.ones((8, 6)))
     w = band_window(64, 64, 0.5)
@@ -255,9 +255,9 @@ def test_band_window_rolls_off_to_the_band_edge():
 
 
 def test_compiled_bases_equal_the_numpy_form():
-    """omniflow.kernels.cos_bases (through dct._bases) gives dct.bases_numpy's cumprod
+    """omniflow.paper.dct_kernels.cos_bases (through dct._bases) gives dct.bases_numpy's cumprod
     bases value for value, at any point and number of coefficients (1 included)."""
-    from omniflow.dct import _bases, bases_numpy
+    from omniflow.paper.dct import _bases, bases_numpy
 
     rng = np.random.default_rng(7)
     for n_coef, n in ((256, 512), (37, 100), (1, 8), (2, 8)):
@@ -272,7 +272,7 @@ def test_compiled_bases_equal_the_numpy_form():
 def test_contiguous_bases_give_the_same_products():
     """dct._bases(contiguous=True): the same cosines as a plain array, and the matrix
     product the fits take of them is the strided view's, bit for bit."""
-    from omniflow.dct import _bases
+    from omniflow.paper.dct import _bases
 
     rng = np.random.default_rng(3)
     c = rng.uniform(0.0, 512.0, 500)
@@ -296,7 +296,7 @@ def test_single_precision_evaluation_agrees_with_double():
     """
     from scipy.ndimage import gaussian_filter
 
-    from omniflow.series import truncate
+    from omniflow.fit.series import truncate
 
     rng = np.random.default_rng(11)
     tex = gaussian_filter(rng.standard_normal((256, 256)), 1.5)
@@ -319,11 +319,11 @@ def test_single_precision_evaluation_agrees_with_double():
 
 
 def test_column_bases_equal_the_numpy_form_transposed():
-    """omniflow.kernels.cos_bases_columns (through dct._bases_columns): dct.bases_numpy's
+    """omniflow.paper.dct_kernels.cos_bases_columns (through dct._bases_columns): dct.bases_numpy's
     cumprod bases transposed, value for value in float64, and those rounded once in
     float32 (mutations caught: the imaginary part updated from the new real part; the
     running product kept in the output's float32)."""
-    from omniflow.dct import _bases_columns, bases_numpy
+    from omniflow.paper.dct import _bases_columns, bases_numpy
 
     rng = np.random.default_rng(5)
     for n_coef, n in ((256, 512), (37, 100), (1, 8), (2, 8)):

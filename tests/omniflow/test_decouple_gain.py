@@ -2,7 +2,7 @@
 
 1. One closed-form pool whose flow breaks eq. (14) (dh_u = U - h_u W) under a gain
    varying linearly across it (as tests/test_probe_mover_brightness.py): the decoupled
-   model with the linear gain (:func:`omniflow.gain.decoupled_linear_gain`) returns the
+   model with the linear gain (:func:`omniflow.solve.gain.decoupled_linear_gain`) returns the
    flow exactly, and its sums equal a brute-force numpy design's.
 2. End to end through :func:`omniflow.pipeline.estimate`: the striped wall of
    tests/helpers/scenes.py (256 px, true matches at 3 % of the pixels, 419 points)
@@ -20,11 +20,11 @@ import functools
 import numpy as np
 import pytest
 
-import omniflow.decoupled as decoupled_mod
-import omniflow.gain as gain_mod
+import omniflow.solve.decoupled as decoupled_mod
+import omniflow.solve.gain as gain_mod
 from omniflow.config import OmniFlowConfig
-from omniflow.gain import decoupled_linear_gain
-from omniflow.synthetic import Motion
+from omniflow.solve.gain import decoupled_linear_gain
+from omnisim.synthetic import Motion
 from tests.helpers.scenes import wall_under_gain_field
 
 N, SCALE = 30, 8.0
@@ -246,7 +246,7 @@ def test_no_switch_where_eq14_holds(monkeypatch):
 
 
 def test_the_lower_gate_at_range_edges(monkeypatch):
-    """:func:`omniflow.decoupled.chained`: F_U 12 passes on a range-edge pool (gate 10 at
+    """:func:`omniflow.solve.decoupled.chained`: F_U 12 passes on a range-edge pool (gate 10 at
     decouple_gain_tol 20) and not elsewhere; 25 passes both; NaN answers never. Mutation
     caught: EDGE_GATE 1 (no lower gate) rejects the edge pool."""
     one = np.ones(4)

@@ -1,6 +1,7 @@
-"""omniflow.kernels.decouple_sums / decouple_fits and omniflow.decoupled.kept_pools.
+"""omniflow.solve.decouple_kernels.decouple_sums / decouple_fits and
+omniflow.solve.decoupled.kept_pools.
 
-The two-model test of eq. (14) (omniflow.decoupled.model_fits) against the numpy code it
+The two-model test of eq. (14) (omniflow.solve.decoupled.model_fits) against the numpy code it
 replaced (kept here as the reference), the conditioning test against np.linalg.cond
 near its threshold, and the reuse of the solver's pools against a new k-d tree search.
 """
@@ -10,14 +11,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import omniflow.decoupled
-from omniflow.decoupled import kept_pools, model_fits
-from omniflow.flow import neighbourhoods
-from omniflow.kernels import cell_knn, decouple_fits
+import omniflow.solve.decoupled
+from omniflow.solve.decouple_kernels import decouple_fits
+from omniflow.solve.decoupled import kept_pools, model_fits
+from omniflow.solve.pooled import neighbourhoods
+from omniflow.solve.pooled_kernels import cell_knn
 
 
 def numpy_model_fits(derivs, h1, h2, idx, w):
-    """omniflow.decoupled.model_fits before the kernels (numpy, verbatim)."""
+    """omniflow.solve.decoupled.model_fits before the kernels (numpy, verbatim)."""
     ext = lambda v: np.append(np.asarray(v, dtype=np.float64), 0.0)[idx]  # noqa: E731
     f1_h, f1_th, f1_t, f2_h, f2_th, f2_t = (ext(v) for v in derivs)
     hi = h1[:, None]
@@ -99,14 +101,14 @@ def test_fit_check_catches_a_changed_sum(monkeypatch):
     """A right-hand side off by one part in 1e7 fails FIT_TOL."""
     args = _problem()
     ref = numpy_model_fits(*args)
-    real = omniflow.decoupled.decouple_sums
+    real = omniflow.solve.decoupled.decouple_sums
 
     def perturbed(*a):
         sums = real(*a)
         sums[:, 6] *= 1 + 1e-7  # sum of f_h f_t
         return sums
 
-    monkeypatch.setattr(omniflow.decoupled, "decouple_sums", perturbed)
+    monkeypatch.setattr(omniflow.solve.decoupled, "decouple_sums", perturbed)
     assert _worst(model_fits(*args), ref) > 10 * FIT_TOL
 
 
@@ -183,11 +185,11 @@ def test_kept_pools_equal_a_new_search(n):
     assert _same_pools(short, search()) == (n < 48)
 
 
-# -- omniflow.kernels.cell_knn: the k-d tree's neighbours from a cell search --------------
+# -- omniflow.solve.pooled_kernels.cell_knn: the k-d tree's neighbours from a cell search
 
 
 def _tree_pools(x, y, k, radius, rows=None):
-    """scipy's answer, as omniflow.flow.neighbourhoods took it before the cell search."""
+    """scipy's answer, as omniflow.solve.pooled.neighbourhoods took it before the cell search."""
     from scipy.spatial import cKDTree
 
     pts = np.column_stack([x, y])
@@ -223,7 +225,7 @@ def test_cell_knn_is_the_trees_answer(case):
 
 
 def test_neighbourhoods_equal_the_trees_with_ties():
-    """omniflow.flow.neighbourhoods (cell search, the tree where distances tie) against the
+    """omniflow.solve.pooled.neighbourhoods (cell search, the tree where distances tie) against the
     tree alone; the mutation: ignoring the tie flag changes pools of the pixel-centre case."""
     x, y = _cases()["pixel centres"]
     idx, _ = neighbourhoods(x, y, k=48, radius=16.0, r=None)

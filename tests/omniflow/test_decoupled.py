@@ -1,4 +1,4 @@
-"""omniflow.decoupled: where eq. (14) fails, each unit's radial flow on its own.
+"""omniflow.solve.decoupled: where eq. (14) fails, each unit's radial flow on its own.
 
 Closed-form truth: validation.synthdata.vertical_scene at 256 px (a textured
 pillar 1.2 m from the axis rising 2 mm per frame in front of the static room;
@@ -26,11 +26,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from omniflow.applications import radial_velocity, radial_velocity_stereo
 from omniflow.config import OmniFlowConfig
-from omniflow.decoupled import model_fits
+from omniflow.geometry.rig import Rig
+from omniflow.paper.flow import radial_velocity, radial_velocity_stereo
 from omniflow.pipeline import COLUMNS, estimate
-from omniflow.rig import Rig
+from omniflow.solve.decoupled import model_fits
 from tests.helpers.scenes import frames, sparse_true_matches
 from validation.synthdata import vertical_scene
 
@@ -144,10 +144,10 @@ def test_early_pool_fits_are_used_only_for_the_same_points(monkeypatch):
     columns too (the mutation of not passing the image to the early fits fails here;
     every point keeps its flow in this scene, so the image's subsetting to the kept
     points is not exercised)."""
-    from omniflow import solve as solve_mod
-    from omniflow.decoupled import pool_fits
     from omniflow.pipeline import OmniFlowConfig, estimate
-    from omniflow.synthetic import Motion
+    from omniflow.solve import at_matches as solve_mod
+    from omniflow.solve.decoupled import pool_fits
+    from omnisim.synthetic import Motion
     from tests.helpers.scenes import frames, paper_rig, wall_scene
 
     rig = paper_rig(256)

@@ -1,4 +1,5 @@
-"""omniflow.kernels.ncc_offsets (the densification's search) against the robust rule's
+"""omniflow.matching.dense_kernels.ncc_offsets (the densification's search) against the robust
+rule's
 profiles (omniflow.matching.robust.Descriptors): the same normalised cross-correlation.
 
 Random float32 tables (n_theta 40, 120 columns), profiles of 2 w + 1 = 9 samples every
@@ -11,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from omniflow.kernels import ncc_offsets
+from omniflow.matching.dense_kernels import ncc_offsets
 from omniflow.matching.robust import Descriptors
 
 
@@ -63,7 +64,7 @@ def test_ncc_check_catches_a_profile_off_by_one_line():
 @pytest.mark.parametrize(("lines", "n_cols"), [(0, 7), (1, 5), (2, 1), (0, 9)])
 def test_densifys_kernel_equals_ncc_offsets_bit_for_bit(lines, n_cols):
     """omniflow.matching.dense.ncc_offsets (four columns' sums at once) against
-    omniflow.kernels.ncc_offsets: every value equal, for column counts that fill the
+    omniflow.matching.dense_kernels.ncc_offsets: every value equal, for column counts that fill the
     groups of four or leave one to three over. Mutation caught: a group's last
     column written from the wrong accumulator (any n_cols not a multiple of 4)."""
     from omniflow.matching.dense import ncc_offsets as grouped

@@ -20,7 +20,7 @@ import pytest
 
 from omniflow.matching import Matches
 from omniflow.pipeline import OmniFlowConfig, estimate
-from omniflow.synthetic import Cylinder, Motion, SyntheticScene, Texture
+from omnisim.synthetic import Cylinder, Motion, SyntheticScene, Texture
 from tests.helpers.scenes import frames, paper_rig, true_h_other, wall_scene
 
 ROBOT = Motion(velocity=(0.01, 0.005), yaw_rate=0.002)

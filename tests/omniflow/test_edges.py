@@ -9,9 +9,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from omniflow.dct import fit_dct
-from omniflow.edges import polar_gradient, polar_gradient_grid
-from omniflow.rig import Unit
+from omniflow.geometry.rig import Unit
+from omniflow.paper.dct import fit_dct
+from omniflow.paper.edges import polar_gradient, polar_gradient_grid
 
 # Off-centre axis, non-square image, so x/y or row/col mix-ups show.
 UNIT = Unit(d=0.1, R=0.05, x_c=60.3, y_c=66.8, r_m=55.0, width=128, height=120)

@@ -1,11 +1,11 @@
-"""omniflow.flow: eq. (8), (9), (15), (16), the partial and pooled solutions.
+"""omniflow.paper.flow: eq. (8), (9), (15), (16), the partial and pooled solutions.
 
-End-to-end figures use closed-form scenes (omniflow.synthetic) at 256 x 256
+End-to-end figures use closed-form scenes (omnisim.synthetic) at 256 x 256
 with the TRUE stereo matches at cam1's pixel centres, so only the flow step
 is measured. Measured with ``python -m pytest tests/omniflow/test_flow.py -s -k best``
 (the table is printed); median endpoint error in pixels, three robot motions
 (turn 0.002 rad/frame; drive (0.01, 0.005) m/frame; both), two textures
-(striped wall r = 2 m; omniflow.synthetic's default room texture, r = 3 m),
+(striped wall r = 2 m; omnisim.synthetic's default room texture, r = 3 m),
 true motion 0.10 to 0.27 px median::
 
     band gradients temporal  solver              striped: turn drive  both | room: turn  drive  both
@@ -29,7 +29,7 @@ true motion 0.10 to 0.27 px median::
 (all 16 combinations are printed; they use the sharp truncation of eq. (18),
 ``flow_taper=0``; "units local" weights each unit's equations by its local
 residual variance, ``pool_unit_weighting="local"``). The paper's direct solution
-is ill-conditioned radially (omniflow.flow's module docstring): here 1.6 to 6
+is ill-conditioned radially (omniflow.paper.flow's module docstring): here 1.6 to 6
 times worse than DIS. Averaged gradients and band 0.5 help the direct solution
 2-5 times; pooling eq. (9) and (15) over the neighbouring matches helps most (48
 neighbours within r_m / 8 = 16 px, a flow linear in theta: the previous default,
@@ -51,18 +51,17 @@ import itertools
 import numpy as np
 import pytest
 
-from omniflow.flow import (
+from omniflow.paper.flow import (
     axial_motion_violation,
     conditioning,
     direct_solution,
     flow_residual,
-    neighbourhoods,
     partial_solutions,
-    pooled_solution,
     predicted_bias,
 )
 from omniflow.pipeline import OmniFlowConfig, estimate
-from omniflow.synthetic import Motion, SyntheticScene
+from omniflow.solve.pooled import neighbourhoods, pooled_solution
+from omnisim.synthetic import Motion, SyntheticScene
 from tests.helpers.scenes import dis_flow, frames, paper_rig, true_matches, wall_scene
 
 # -- the algebra, on exact equations -------------------------------------------------
@@ -351,7 +350,7 @@ def test_vertical_motion_bias_matches_prediction():
     """A wall moving up 2 mm/frame breaks eq. (14) by e = s v dh / ((d + r)(s - h))
     (-0.39 px median here, for 0.36 px of true radial flow); eq. (15) then
     misses f2_h e and the direct solution is off by A^-1 (0, f2_h e)
-    (omniflow.flow.predicted_bias). Measured (band 0.5, direct): radial error
+    (omniflow.paper.flow.predicted_bias). Measured (band 0.5, direct): radial error
     -0.355 px median against -0.354 predicted (the radial flow comes out ~0),
     per point within 0.012 px median of the prediction; tangential error
     1.03 px median, per point within 0.053 px of the prediction; endpoint error
@@ -394,7 +393,7 @@ def test_iterations_reduce_the_error_of_a_large_motion():
     and 0.70, plus 0.16 and 0.15). Every point refined here
     (iterate_min_px 0, grids); iterations=0 is the paper's single step. On
     rendered frames (noise-dominated errors) refining every point hurts, so
-    the default refines only where it moves (omniflow.refine); see
+    the default refines only where it moves (omniflow.solve.refine); see
     OmniFlowConfig.iterations."""
     rig = paper_rig()
     scene = wall_scene(rig, robot=Motion(velocity=(0.03, 0.0)))
@@ -429,7 +428,7 @@ def test_iterations_reduce_the_error_of_a_large_motion():
 
 def _paper_by_hand(f1, f2, rig, m):
     """Eq. (16) at the matches from eq. (17)-(20) written out here, independently of omniflow."""
-    from omniflow.dct import fit_dct
+    from omniflow.paper.dct import fit_dct
 
     out = []
     for frames_, unit, h in ((f1, rig.cam1, m.h1), (f2, rig.cam2, m.h2)):

@@ -1,6 +1,6 @@
-"""The compiled pieces of the gain fit (omniflow.kernels.gain_sums, small_solves) against
+"""The compiled pieces of the gain fit (omniflow.solve.gain_kernels.gain_sums, small_solves) against
 numpy written out from their definitions: the design of every pool built row by row and
-solved with ``np.linalg`` (det, inv, eigvalsh), as omniflow.gain did before the kernels.
+solved with ``np.linalg`` (det, inv, eigvalsh), as omniflow.solve.gain did before the kernels.
 
 Tolerances (measured with these seeds): the sums, in a different order, agree to 3e-16
 of each pool's largest entry (tolerance 1e-13); the solves by Gauss-Jordan against
@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from omniflow.kernels import gain_sums, small_solves
+from omniflow.solve.gain_kernels import gain_sums, small_solves
 
 N, K = 40, 12
 
@@ -113,7 +113,7 @@ def test_gain_sums_check_catches_an_unwrapped_angle():
 
 
 def _numpy_solve(M, v, limit, positive):
-    """omniflow.gain._solve as it was in numpy (stop 18)."""
+    """omniflow.solve.gain._solve as it was in numpy (stop 18)."""
     scale = np.sqrt(np.abs(np.einsum("npp->np", M)))
     scale = np.where(scale > 0, scale, 1.0)
     Ms = M / scale[:, :, None] / scale[:, None, :]
@@ -201,7 +201,7 @@ def test_positive_test_check_catches_a_missing_jacobi_fallback(monkeypatch):
     """The mutation: the Cholesky pivots (all above 1e-13) taken as the whole test, without
     the rotations where the inverse's trace leaves it open: systems whose least eigenvalue
     is 1e-13 to 1e-12 of the largest then pass."""
-    import omniflow.kernels as kernels
+    import omniflow.solve.gain_kernels as kernels
 
     rng = np.random.default_rng(11)
     p = 5
@@ -217,7 +217,7 @@ def test_positive_test_check_catches_a_missing_jacobi_fallback(monkeypatch):
 
     assert np.isnan(small_solves(M, v, 0.0, positive=True)[0]).all()
     assert np.isnan(solve_py(M, v)).all()  # the Python run agrees with the compiled one
-    monkeypatch.setattr(kernels, "_jacobi", lambda a, n: None)  # rotations skipped
+    monkeypatch.setattr(kernels, "jacobi", lambda a, n: None)  # rotations skipped
     assert np.isfinite(solve_py(M, v)).all()
 
 
@@ -251,7 +251,7 @@ def test_nested_fits_equal_a_second_solve(p, drop):
     on its own (measured 4.7e-16 of the largest y^T W y; tolerance 1e-11), NaN exactly where
     that solve fails its tests, including a nested fit ill-conditioned on its first two
     unknowns where the full fit is not."""
-    from omniflow.kernels import nested_fits
+    from omniflow.solve.gain_kernels import nested_fits
 
     rng = np.random.default_rng(p)
     M, v, yy = _pools_with_conditioning_cases(rng, p)
@@ -275,7 +275,7 @@ def test_nested_fits_equal_a_second_solve(p, drop):
 def test_nested_fits_check_catches_a_missing_nested_test(monkeypatch):
     """The mutation: the nested fit's conditioning test left out (its RSS always taken):
     the system whose nested fit is ill-conditioned on (a, c) gets a finite RSS."""
-    import omniflow.kernels as kernels
+    import omniflow.solve.gain_kernels as kernels
 
     p = 5
     M, v, yy = _pools_with_conditioning_cases(np.random.default_rng(p), p)

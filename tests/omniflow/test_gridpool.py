@@ -1,4 +1,4 @@
-"""Grid pooling (omniflow.gridpool, ``pool_grid``): the pooled solver's sums by filtering.
+"""Grid pooling (omniflow.solve.gridpool, ``pool_grid``): the pooled solver's sums by filtering.
 
 Checked against closed-form references:
 
@@ -23,12 +23,12 @@ import numpy as np
 import pytest
 
 from omniflow.config import OmniFlowConfig
-from omniflow.decoupled import screen
-from omniflow.flow import neighbourhoods, pooled_solution
-from omniflow.gain import decoupled_linear_gain, gated
-from omniflow.gridpool import GridPools
-from omniflow.kernels import gain_sums, nested_fits
 from omniflow.pipeline import estimate
+from omniflow.solve.decoupled import screen
+from omniflow.solve.gain import decoupled_linear_gain, gated
+from omniflow.solve.gain_kernels import gain_sums, nested_fits
+from omniflow.solve.gridpool import GridPools
+from omniflow.solve.pooled import neighbourhoods, pooled_solution
 from tests.helpers.scenes import band_scene, frames, paper_rig, sparse_true_matches
 
 RADIUS, CELL, SHAPE = 16.0, 2.0, (128, 160)
@@ -117,7 +117,8 @@ def test_grid_sums_check_catches_mutations(mutation):
 
 
 def _brute_force_decouple(x, y, derivs, h1, h2, r, tol):
-    """The two-model test's sums (omniflow.kernels.DECOUPLE_SUMS) by the definition."""
+    """The two-model test's sums (omniflow.solve.decouple_kernels.DECOUPLE_SUMS) by the
+    definition."""
     f1h, f1th, f1t, f2h, f2th, f2t = derivs
     _, _, w = _window_weights(x, y, r, tol)
     a, bb, q, t = (f1h, f2h), (f1h * h1, f2h * h2), (f1th, f2th), (f1t, f2t)
@@ -262,7 +263,8 @@ def test_knobs_that_thin_each_pool_keep_the_tree(boundary):
 
 
 def _brute_force_gain(x, y, tangent, derivs, f, h1, h2, r, tol, scale):
-    """The gain fit's normal equations (omniflow.kernels.gain_sums's layout, linear model)
+    """The gain fit's normal equations (omniflow.solve.gain_kernels.gain_sums's layout, linear
+    model)
     by the definition: every pair's two rows (p, q, p u, q u, -f) and right side -f_t,
     weighted; and the sums of the weights and their squares."""
     f1h, f1th, f1t, f2h, f2th, f2t = derivs
@@ -362,7 +364,7 @@ def test_gain_f_statistic_from_float32_grid_sums_as_float64(monkeypatch):
     float64 ones, on pools with and without a brightness change: F measured 2.3e-4
     relative at most (tolerance 1e-3; the residual sum, 1e-3 noise under a 2 % gain, is the
     small difference), flow 2.6e-7 px (tolerance 1e-5); the same pools pass gate 20."""
-    import omniflow.gain as gain
+    import omniflow.solve.gain as gain
 
     x, y, tangent, derivs, f, h1, h2 = _gain_case()
     grid = GridPools(x, y, tangent, SHAPE, radius=RADIUS, cell=CELL)
@@ -383,7 +385,7 @@ def test_gain_f_statistic_from_float32_grid_sums_as_float64(monkeypatch):
 
 
 def _brute_force_linear_gain(x, y, derivs, f, h1, h2, r, tol, scale, basis=None):
-    """The linear-gain test's Grams (omniflow.kernels.gain_sums's ``decoupled_linear``
+    """The linear-gain test's Grams (omniflow.solve.gain_kernels.gain_sums's ``decoupled_linear``
     layout) by the definition: every pair's two rows (f_h, -f_h h_u,j / h_1,i,
     f_theta / h_1,i, -f, -f e1 . d / scale, -f e2 . d / scale), d = (x_j - x_i, y_j - y_i),
     right side -f_t, weighted. ``basis`` (N, 2, 2): each point's e1, e2 (default the pixel
@@ -462,8 +464,8 @@ def _fit_errs(a_fits, b_fits):
 
 
 def test_grid_linear_gain_test_equals_the_trees_over_the_same_pools():
-    """The linear-gain test's fits (omniflow.kernels.nested_fits, as
-    omniflow.gain.decoupled_linear_gain makes them) from the grid's Grams, slopes along
+    """The linear-gain test's fits (omniflow.solve.gain_kernels.nested_fits, as
+    omniflow.solve.gain.decoupled_linear_gain makes them) from the grid's Grams, slopes along
     (dx, dy), and from the tree's kernel over the same pools, slopes along (u, dh): the
     same (U, h_1 W, c), confidence and both RSS where the tree's offsets are a linear map
     of the pixel offsets (measured 1.5e-11 relative at most; tolerance 1e-9), at the 99 %
@@ -528,8 +530,8 @@ def _screen_case(n: int = 1500, seed: int = 11):
 
 @pytest.mark.parametrize("mutation", [None, "gate"])
 def test_screen_keeps_every_pool_the_trees_test_passes(mutation):
-    """omniflow.decoupled.screen from the grid's float32 sums keeps every point whose
-    linear-gain test (omniflow.gain.decoupled_linear_gain over the same pools) passes the
+    """omniflow.solve.decoupled.screen from the grid's float32 sums keeps every point whose
+    linear-gain test (omniflow.solve.gain.decoupled_linear_gain over the same pools) passes the
     gate, and drops most of the others (measured: 636 of 1500 pass, the screen keeps them
     and 251 of the 864 others); the mutation (the screen told a 100 times higher gate)
     loses 23 passing points."""
@@ -549,7 +551,7 @@ def test_screen_keeps_every_pool_the_trees_test_passes(mutation):
 
 
 def test_neighbourhoods_of_queried_points_are_the_full_searchs_rows():
-    """omniflow.flow.neighbourhoods with ``query``: the queried rows the full search's, bit
+    """omniflow.solve.pooled.neighbourhoods with ``query``: the queried rows the full search's, bit
     for bit (weights made for those rows only), the others index N and weight 0."""
     x, y, _, _, _, r, _, _ = _sums_case(True)
     query = np.random.default_rng(2).random(x.size) < 0.3

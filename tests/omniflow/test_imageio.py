@@ -1,4 +1,4 @@
-"""omniflow.imageio (read/write, scaling, NaN checks, atomic writes) and omniflow.draw."""
+"""omniflow.io.imageio (read/write, scaling, NaN checks, atomic writes) and omniflow.io.draw."""
 
 from __future__ import annotations
 
@@ -7,14 +7,14 @@ import numpy as np
 import pytest
 
 from omniflow.conventions import LUMA_WEIGHTS
-from omniflow.draw import (
+from omniflow.io.draw import (
     color_wheel,
     draw_flow_arrows,
     draw_flow_points,
     flow_to_color,
     grey_background,
 )
-from omniflow.imageio import (
+from omniflow.io.imageio import (
     ImageError,
     atomic_output,
     atomic_write_text,
@@ -147,7 +147,7 @@ def test_atomic_write_fsyncs_the_file_before_the_rename_and_the_folder_after(tmp
     rename synced after (a writer without either fails this)."""
     import os
 
-    from omniflow import imageio
+    from omniflow.io import imageio
 
     events = []
     real_fsync, real_replace = os.fsync, os.replace

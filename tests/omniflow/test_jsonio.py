@@ -1,4 +1,4 @@
-"""omniflow.jsonio: the one rule for values JSON cannot hold (non-finite -> null)."""
+"""omniflow.io.jsonio: the one rule for values JSON cannot hold (non-finite -> null)."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from omniflow import jsonio
-from omniflow.jsonio import json_text, jsonable
+from omniflow.io import jsonio
+from omniflow.io.jsonio import json_text, jsonable
 
 
 @dataclasses.dataclass

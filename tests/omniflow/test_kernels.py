@@ -1,20 +1,21 @@
-"""omniflow.kernels: the compiled pooled-solver sums equal numpy's, and so does the flow."""
+"""omniflow.solve.pooled_kernels: the compiled pooled-solver sums equal numpy's, and so does
+the flow."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-import omniflow.flow
-from omniflow.flow import neighbourhoods
-from omniflow.kernels import pooled_sums
+import omniflow.solve.pooled
 from omniflow.pipeline import OmniFlowConfig, estimate
-from omniflow.synthetic import Motion
+from omniflow.solve.pooled import neighbourhoods
+from omniflow.solve.pooled_kernels import pooled_sums
+from omnisim.synthetic import Motion
 from tests.helpers.scenes import frames, paper_rig, wall_scene
 
 
 def numpy_pooled_sums(idx, w, derivs, h1, theta, *, relative, linear, scale):
-    """The sums as omniflow.flow.pooled_solution formed them before the kernel (numpy)."""
+    """The sums as omniflow.solve.pooled.pooled_solution formed them before the kernel (numpy)."""
     f1_h, f1_theta, f1_t, kf2_h, f2_theta, f2_t = derivs
     n = h1.size - 1
     hi = h1[:n, None]
@@ -147,7 +148,7 @@ def test_flow_columns_unchanged_by_the_kernel(name, pair, monkeypatch):
     f1, f2, rig = pair
     config = CONFIGS[name]
     fast = estimate(f1, f2, rig, config)
-    monkeypatch.setattr(omniflow.flow, "pooled_sums", numpy_pooled_sums)
+    monkeypatch.setattr(omniflow.solve.pooled, "pooled_sums", numpy_pooled_sums)
     before = estimate(f1, f2, rig, config)
     assert len(fast) == len(before) > 100
     assert _worst(fast, before) <= FLOW_TOL, name
@@ -163,12 +164,13 @@ def test_flow_check_catches_a_changed_sum(pair, monkeypatch):
         sums[..., 3] *= 1 + 1e-6  # the pf sums
         return sums, wsum
 
-    monkeypatch.setattr(omniflow.flow, "pooled_sums", perturbed)
+    monkeypatch.setattr(omniflow.solve.pooled, "pooled_sums", perturbed)
     assert _worst(fast, estimate(f1, f2, rig)) > 100 * FLOW_TOL
 
 
 def numpy_solve_sums(sums, model, min_conditioning, *, positive=False, slopes_test=True):
-    """omniflow.flow._solve_sums as it was in numpy (before omniflow.kernels.pooled_solves);
+    """omniflow.solve.pooled._solve_sums as it was in numpy (before
+    omniflow.solve.pooled_kernels.pooled_solves);
     ``slopes_test`` False: the mutation of the check below (``positive`` without the test
     of the slopes' block)."""
     pp, pq, qq, pf, qf = (sums[:, :, c] for c in range(5))
@@ -228,9 +230,10 @@ def _solve_cases(linear):
 @pytest.mark.parametrize("positive", [False, True])
 @pytest.mark.parametrize("linear", [False, True])
 def test_pooled_solves_equal_numpy_bit_for_bit(linear, positive):
-    """omniflow.flow._solve_sums (the compiled omniflow.kernels.pooled_solves) against its
+    """omniflow.solve.pooled._solve_sums (the compiled omniflow.solve.pooled_kernels.pooled_solves)
+    against its
     numpy form: every output identical, NaN for NaN."""
-    from omniflow.flow import _solve_sums
+    from omniflow.solve.pooled import _solve_sums
 
     sums = _solve_cases(linear)
     model = "linear" if linear else "constant"
@@ -244,7 +247,7 @@ def test_pooled_solves_equal_numpy_bit_for_bit(linear, positive):
 def test_pooled_solves_check_catches_a_missing_slopes_test():
     """The mutation: the corrected solve (``positive``) without the test that the slopes'
     block is positive definite: pools with an indefinite slopes block get a flow."""
-    from omniflow.flow import _solve_sums
+    from omniflow.solve.pooled import _solve_sums
 
     sums = _solve_cases(True)
     got = _solve_sums(sums, "linear", 1e-3, positive=True)

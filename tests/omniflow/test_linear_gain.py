@@ -3,7 +3,7 @@
 1. One closed-form pool whose flow keeps eq. (14) (dh_2 = (h_2 / h_1) dh_1, the pooled
    model's relative radial column) under a gain varying linearly across it,
    (beta + beta_u u_j + beta_h dh_j) f_j (texture turning through shading that stays
-   put: independent_movers' spinner): :func:`omniflow.gain.gain_solution` with
+   put: independent_movers' spinner): :func:`omniflow.solve.gain.gain_solution` with
    ``linear_gain`` returns the flow exactly, and its sums and F statistic equal a
    brute-force numpy design's, for both pool models.
 2. Its gates: no F where fewer than MIN_RESIDUAL_DOF residual degrees of freedom
@@ -19,10 +19,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import omniflow.gain as gain_mod
+import omniflow.solve.gain as gain_mod
 from omniflow.config import OmniFlowConfig
-from omniflow.gain import gain_solution
-from omniflow.synthetic import Motion
+from omniflow.solve.gain import gain_solution
+from omnisim.synthetic import Motion
 from tests.helpers.scenes import wall_under_gain_field
 
 N, SCALE = 30, 8.0

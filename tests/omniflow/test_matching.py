@@ -46,11 +46,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from omniflow.dct import fit_dct
-from omniflow.edges import polar_gradient_grid
 from omniflow.matching import Matches, match_radial, polar_gradient_fast, sample_xy
+from omniflow.paper.dct import fit_dct
+from omniflow.paper.edges import polar_gradient_grid
 from omniflow.pipeline import fill_outside_rim
-from omniflow.synthetic import Cylinder, SyntheticScene, Texture
+from omnisim.synthetic import Cylinder, SyntheticScene, Texture
 from tests.helpers.scenes import asymmetric_rig, paper_rig, true_h_other, wall_scene
 
 
@@ -219,7 +219,7 @@ def test_bad_arguments():
 
 
 def test_polar_gradient_fast_and_sampling():
-    """The cached fast path equals omniflow.edges.polar_gradient_grid (to float32
+    """The cached fast path equals omniflow.paper.edges.polar_gradient_grid (to float32
     rounding), and remap sampling of the grid agrees with the series evaluated
     at sub-pixel points: measured max 0.0089 (cubic) and 0.034 (linear) grey
     levels, medians 0.0015 and 0.0023, for a texture spanning 0.1-0.9 at
@@ -299,7 +299,7 @@ def test_rendered_frame_fewer_outliers_than_earlier_defaults(tmp_path):
     from pathlib import Path
 
     from omniflow.conventions import LUMA_WEIGHTS
-    from omniflow.dataset import open_dataset
+    from omniflow.io.dataset import open_dataset
     from validation.sampling import sample_truth
 
     scene_file = Path(__file__).resolve().parents[2] / "scenes" / "default.toml"
@@ -365,7 +365,7 @@ def _periodic_wall(rig, period: float, radius: float, detail: float = 0.1) -> Sy
 
 
 def test_periodic_walls_at_most_2_percent_outliers():
-    """Walls with strong horizontal stripes (omniflow.synthetic.Texture.periodic):
+    """Walls with strong horizontal stripes (omnisim.synthetic.Texture.periodic):
     along a radial line the profile repeats every period, and an alias a
     period away in cam2 scores as well as the truth or better (0.1 m stripes
     at 3 m: the alias 2 periods away 0.999, the truth 0.98). Measured with the

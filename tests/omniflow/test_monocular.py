@@ -1,4 +1,4 @@
-"""omniflow.monocular: cam1's flow alone where no stereo match is near.
+"""omniflow.solve.monocular: cam1's flow alone where no stereo match is near.
 
 Closed-form case: a textured wall (r = 2 m) turning about the rig's axis at
 0.006 rad per frame in front of the still rig, 256 px; the true stereo matches

@@ -1,4 +1,4 @@
-"""Tests of omniflow.noise: Immerkaer's estimate, the fitted gradient's noise, the band choice.
+"""Tests of omniflow.fit.noise: Immerkaer's estimate, the fitted gradient's noise, the band choice.
 
 Every bound was measured by printing the figure on these inputs (seeds fixed in
 each test) and is written next to it.
@@ -11,8 +11,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from omniflow.dct import band_window, fit_dct
-from omniflow.noise import (
+from omniflow.fit.noise import (
     BAND_CANDIDATES,
     choose_band,
     gradient_noise_variance,
@@ -20,6 +19,7 @@ from omniflow.noise import (
     predicted_gain,
     predicted_variance,
 )
+from omniflow.paper.dct import band_window, fit_dct
 
 
 def _smooth(size: int, seed: int, cutoff: float = 0.1) -> np.ndarray:
@@ -45,7 +45,7 @@ def test_immerkaer_recovers_white_noise_on_a_smooth_image(sigma):
 
 def test_tiles_ignore_fine_texture():
     """A textured closed-form room: the whole-image estimate counts texture as noise."""
-    from omniflow.synthetic import SyntheticScene
+    from omnisim.synthetic import SyntheticScene
     from tests.helpers.scenes import frames, paper_rig
 
     rig = paper_rig(256)
@@ -87,7 +87,7 @@ def test_gradient_noise_variance_matches_fitted_white_noise(band):
 
 @pytest.mark.parametrize("taper", [0.5, 1.0])
 def test_gradient_noise_variance_with_a_band_window(taper):
-    """The rolled-off series (omniflow.dct.band_window) keeps less gradient noise: the
+    """The rolled-off series (omniflow.paper.dct.band_window) keeps less gradient noise: the
     prediction with the window's weights matches fitted white noise."""
     rng = np.random.default_rng(5)
     size, sigma, band = 128, 0.01, 0.5

@@ -1,4 +1,4 @@
-"""Every column of OmniFlowResult against the closed-form truth of omniflow.synthetic.
+"""Every column of OmniFlowResult against the closed-form truth of omnisim.synthetic.
 
 Audit (what the other tests already compare with ground truth, not just check
 for presence): ``dx, dy`` (endpoint error, tests/omniflow/test_flow.py,
@@ -9,7 +9,7 @@ tests/omniflow/test_cli.py), ``dr_dt`` (median error, tests/omniflow/test_pipeli
 ``dtheta_dt`` (median of a pure rotation, tests/omniflow/test_cli.py), ``h1, theta``
 (consistent with x, y, tests/omniflow/test_cli.py), ``confidence`` (range, and the
 confident half beats the overall median, tests/omniflow/test_pipeline.py), D only
-through ``omniflow.flow.direct_solution`` on random systems (tests/omniflow/test_flow.py).
+through ``omniflow.paper.flow.direct_solution`` on random systems (tests/omniflow/test_flow.py).
 Not compared with truth anywhere: ``x, y`` (as cam1 points of the scene),
 ``h``, ``x2, y2``, ``dh1_dt`` and ``dh2_dt`` (without a vertical bias),
 ``dtheta_dt`` per point, ``score``, ``D`` as output by the pipeline, and the
@@ -40,11 +40,11 @@ import numpy as np
 import pytest
 
 from omniflow.conventions import wrap_angle
-from omniflow.dct import band_window, fit_dct
+from omniflow.geometry.rig import Rig
 from omniflow.matching import Matches
+from omniflow.paper.dct import band_window, fit_dct
 from omniflow.pipeline import COLUMNS, OmniFlowConfig, estimate, fill_outside_rim
-from omniflow.rig import Rig
-from omniflow.synthetic import Motion, SyntheticScene
+from omnisim.synthetic import Motion, SyntheticScene
 
 SIZE = 224
 WALL = 3.0
@@ -156,7 +156,7 @@ def _series_derivatives(scene, frames, result, band: float) -> dict:
     """The derivative columns recomputed from the fitted series itself (eq. 17-18).
 
     Default configuration: rim filled by reflection, the flow step's band
-    (``band``) rolled off by the default ``flow_taper`` (omniflow.dct.band_window),
+    (``band``) rolled off by the default ``flow_taper`` (omniflow.paper.dct.band_window),
     gradient of the mean of the fits of frames 0 and 1, f_t their difference;
     evaluated exactly at the points (the pipeline samples grids, cubic).
     """

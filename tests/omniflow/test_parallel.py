@@ -65,7 +65,7 @@ def test_nested_map_in_a_pool_task_does_not_wait_on_itself(two_threads):
 def test_estimate_columns_do_not_depend_on_threads(monkeypatch):
     """Two threads or one: every column bit for bit the same (closed-form frames)."""
     from omniflow.pipeline import OmniFlowConfig, estimate
-    from omniflow.synthetic import Motion
+    from omnisim.synthetic import Motion
     from tests.helpers.scenes import frames, paper_rig, wall_scene
 
     rig = paper_rig(256)
@@ -85,7 +85,7 @@ def test_dense_preset_columns_do_not_depend_on_threads(monkeypatch):
     other thread while the flow is refined): every column bit for bit the same on one
     thread and two, on a scene moving fast enough that the refinement has points."""
     from omniflow.pipeline import OmniFlowConfig, estimate
-    from omniflow.synthetic import Motion
+    from omnisim.synthetic import Motion
     from tests.helpers.scenes import frames, paper_rig, wall_scene
 
     rig = paper_rig(256)

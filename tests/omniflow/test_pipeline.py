@@ -29,7 +29,7 @@ import pytest
 
 from omniflow.matching import sample_xy
 from omniflow.pipeline import COLUMNS, OmniFlowConfig, OmniFlowResult, estimate
-from omniflow.synthetic import Motion, SyntheticScene
+from omnisim.synthetic import Motion, SyntheticScene
 from tests.helpers.scenes import dis_flow, frames, paper_rig, true_h_other, wall_scene
 
 DRIVE_AND_TURN = Motion(velocity=(0.01, 0.005), yaw_rate=0.002)

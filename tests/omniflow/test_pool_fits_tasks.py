@@ -1,12 +1,13 @@
 """The two-model test's pool fits as two tasks, and the grid sums' shared bins
 (docs/measurements.md, "Speed: the dense preset's pool fits on both threads").
 
-* :func:`omniflow.decoupled.start_pool_fits` answers as :func:`omniflow.decoupled.pool_fits`
+* :func:`omniflow.solve.decoupled.start_pool_fits` answers as
+  :func:`omniflow.solve.decoupled.pool_fits`
   (the two parts made in turn) bit for bit, on two threads, and hands the linear-gain
   test to the pool before the models' fits;
-* :meth:`omniflow.gridpool.GridPools.decouple_sums` takes the squared weights' count from
+* :meth:`omniflow.solve.gridpool.GridPools.decouple_sums` takes the squared weights' count from
   the bins of its first filter: the same sums, bit for bit, as binning the count again;
-* :meth:`omniflow.gridpool.GridPools.linear_gain_sums` mirrors its Grams' upper triangle.
+* :meth:`omniflow.solve.gridpool.GridPools.linear_gain_sums` mirrors its Grams' upper triangle.
 
 Each check has a mutation that it catches.
 """
@@ -16,8 +17,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from omniflow import decoupled, gridpool, parallel
-from omniflow.gridpool import GridPools
+from omniflow import parallel
+from omniflow.solve import decoupled, gridpool
+from omniflow.solve.gridpool import GridPools
 from tests.omniflow.test_gridpool import (
     CELL,
     RADIUS,
@@ -33,9 +35,9 @@ from tests.omniflow.test_gridpool import (
 def solver_call():
     """The arguments of the solver's own pool fits: the dense preset with the linear-gain
     test on a closed-form wall (as tests/omniflow/test_decoupled.py's early-fits test)."""
-    from omniflow import solve as solve_mod
     from omniflow.pipeline import OmniFlowConfig, estimate
-    from omniflow.synthetic import Motion
+    from omniflow.solve import at_matches as solve_mod
+    from omnisim.synthetic import Motion
     from tests.helpers.scenes import frames, paper_rig, wall_scene
 
     rig = paper_rig(256)
@@ -170,9 +172,9 @@ def test_speculative_pool_fits_only_when_every_point_keeps_its_flow(monkeypatch)
     columns bit for bit; started again for the kept points where the first solve loses
     one. The mutation, the speculative fits used anyway, would hand decouple fits of one
     point more than its columns (checked: their lengths differ)."""
-    from omniflow import solve as solve_mod
     from omniflow.pipeline import OmniFlowConfig, estimate
-    from omniflow.synthetic import Motion
+    from omniflow.solve import at_matches as solve_mod
+    from omnisim.synthetic import Motion
     from tests.helpers.scenes import frames, paper_rig, wall_scene
 
     _two_threads(monkeypatch)
@@ -268,7 +270,7 @@ def test_take_runs_a_waiting_task_here_and_leaves_a_started_one(monkeypatch):
 
 def _dense_columns():
     from omniflow.pipeline import OmniFlowConfig, estimate
-    from omniflow.synthetic import Motion
+    from omnisim.synthetic import Motion
     from tests.helpers.scenes import frames, paper_rig, wall_scene
 
     rig = paper_rig(256)

@@ -1,4 +1,4 @@
-"""Pooling that respects objects: omniflow.flow's edge_between, consistent_neighbours,
+"""Pooling that respects objects: omniflow.paper.flow's edge_between, consistent_neighbours,
 informative_pools, and the pooled solver across a motion boundary.
 
 The closed-form motion boundary (tests.helpers.scenes.band_scene): a textured band
@@ -38,17 +38,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import omniflow.flow as flow
-import omniflow.solve as solve
+import omniflow.solve.at_matches as solve
+import omniflow.solve.pooled as flow
 from omniflow.config import OmniFlowConfig
-from omniflow.flow import (
+from omniflow.pipeline import estimate
+from omniflow.solve.pooled import (
     consistent_neighbours,
     edge_between,
     informative_pools,
     neighbourhoods,
     pooled_solution,
 )
-from omniflow.pipeline import estimate
 from tests.helpers.scenes import band_scene, frames, paper_rig, sparse_true_matches
 
 YAW = 0.01  # rad per frame: 0.2-0.5 px of tangential flow on the band in cam1

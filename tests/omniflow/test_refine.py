@@ -1,4 +1,4 @@
-"""omniflow.refine: the Gauss-Newton step only where the motion is large.
+"""omniflow.solve.refine: the Gauss-Newton step only where the motion is large.
 
 Closed-form case: a textured wall (r = 2 m) turning about the rig's axis at
 0.012 rad per frame in front of the still rig, 256 px, the true stereo matches
@@ -12,7 +12,7 @@ than a pixel in cam2. Measured (``python -m pytest tests/omniflow/test_refine.py
     refined where it moves (iterations 1, 1 px)         1.000   0.991 (unchanged)
     every point refined (iterations 1, 0 px; grids)     1.001   0.956
 
-The first-order overshoot is the finite-difference bias of omniflow.refine's
+The first-order overshoot is the finite-difference bias of omniflow.solve.refine's
 docstring, (k d)^2 / 12 for a wavenumber k and displacement d.
 """
 
@@ -21,11 +21,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import omniflow.refine as refine
+import omniflow.solve.refine as refine
 from omniflow.config import OmniFlowConfig
 from omniflow.matching import Matches
 from omniflow.pipeline import estimate
-from omniflow.refine import moving_far
+from omniflow.solve.refine import moving_far
 from tests.helpers.scenes import frames, paper_rig, sparse_true_matches, turning_wall_scene
 
 YAW = 0.012  # rad per frame

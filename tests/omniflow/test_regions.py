@@ -1,11 +1,11 @@
 """Regions from the ``omniflow`` command: boxes, masks, objects and automatic groups.
 
-The pure pieces (:mod:`omniflow.regions`) are checked against hand-made
+The pure pieces (:mod:`omniflow.applications.regions`) are checked against hand-made
 points; the command against a closed-form scene with one mover: a textured
 pillar (radius 0.4 m, its centre 1.6 m ahead on +X) driving straight at the
 static robot at 2 cm per frame inside a textured round room, written as an
 omnisim dataset (frame interval 0.1 s) so that object regions and seconds are
-available. The truth of a region is :func:`omniflow.regions.summarise` applied
+available. The truth of a region is :func:`omniflow.applications.regions.summarise` applied
 to the exact per-point values at the same points (the scene's truth channels,
 and the pillar's closed-form dr/dt and dtheta/dt).
 """
@@ -20,8 +20,7 @@ import numpy as np
 import pytest
 from scipy.ndimage import map_coordinates
 
-from omniflow.imageio import write_png
-from omniflow.regions import (
+from omniflow.applications.regions import (
     RegionError,
     auto_groups,
     in_box,
@@ -30,7 +29,8 @@ from omniflow.regions import (
     points_in_mask,
     summarise,
 )
-from omniflow.synthetic import Cylinder, Motion, SyntheticScene
+from omniflow.io.imageio import write_png
+from omnisim.synthetic import Cylinder, Motion, SyntheticScene
 from tests.helpers.scenes import paper_rig, striped_wall
 from tests.omniflow.test_bad_input import base, check_clean_failure, run_omniflow, snapshot
 from tests.omniflow.test_cli import read_csv
@@ -287,7 +287,7 @@ def test_box_region_flow_and_time_to_contact_against_truth(mover):
 
 def test_monocular_columns_of_a_region(mover, tmp_path):
     """With ``--monocular-gap``, a region's row also summarises the cam1-only points in it
-    (omniflow.monocular): their count, mean bearing and bearing rate; without it those
+    (omniflow.solve.monocular): their count, mean bearing and bearing rate; without it those
     columns are empty. The pillar moves towards the axis along -X, so its true bearing rate
     is SPEED sin(theta) / r, small; its radial flow is large. Measured (this test's print):
     203 points;
@@ -342,7 +342,7 @@ def test_position_fix_from_landmark_regions(mover, tmp_path):
 
 
 def test_regions_are_drawn(mover):
-    from omniflow.imageio import read_image
+    from omniflow.io.imageio import read_image
 
     picture = read_image(mover["out"] / "flow_arrows.png")
     # the first region's outline colour (magenta) is on the picture

@@ -1,4 +1,4 @@
-"""Tests of the rig model omniflow.rig (eq. 1-7): geometry, stereo, unwarping, files.
+"""Tests of the rig model omniflow.geometry.rig (eq. 1-7): geometry, stereo, unwarping, files.
 
 Float64 geometry round trips are exact to rounding. Maxima measured by
 printing them on the same points: see each bound's comment.
@@ -13,7 +13,7 @@ import math
 import numpy as np
 import pytest
 
-from omniflow.rig import Rig, RigError, Unit, load_rig, rig_from_dict, unwarp
+from omniflow.geometry.rig import Rig, RigError, Unit, load_rig, rig_from_dict, unwarp
 
 D, R_MIRROR, S = 0.10, 0.05, 0.30
 

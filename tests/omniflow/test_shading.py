@@ -1,4 +1,4 @@
-"""omniflow.shading: flow under shading that stays put while the texture moves.
+"""omniflow.solve.shading: flow under shading that stays put while the texture moves.
 
 Closed form: validation.synthdata.vertical_scene at 256 px (the textured pillar
 rising 2 mm per frame, 0.54 px of radial flow in both units; true stereo matches
@@ -22,7 +22,7 @@ The linear-gain test of eq. (14) (``decouple_gain_tol`` 20, the default since st
 on this scene: shaded, not flattened, switched 0.90, dh1_dt 0.806, dh2_dt 1.019, room
 0.00038 (its gain varying across the pool takes up the static ramp the texture moves
 through); flattened (4) and it: 0.77, 0.650, 0.995, 0.00078, the same as the row above
-(once flattened, its gain is too small to be taken: omniflow.gain.MIN_GAIN_F and
+(once flattened, its gain is too small to be taken: omniflow.solve.gain.MIN_GAIN_F and
 MIN_GAIN_CHANGE; 0.660, 1.013 when it was always taken). The rows above are measured
 with it off (``decouple_gain_tol`` None).
 """
@@ -34,7 +34,7 @@ import pytest
 
 from omniflow.config import OmniFlowConfig
 from omniflow.pipeline import estimate
-from omniflow.shading import flatten_shading
+from omniflow.solve.shading import flatten_shading
 from tests.helpers.scenes import frames, sparse_true_matches
 from validation.synthdata import vertical_scene
 
@@ -105,9 +105,9 @@ def test_flatten_shading_divides_a_slow_ramp_away():
 
 def test_where_moving_takes_the_flattened_flow_only_at_the_movers(shaded):
     """The closed-form shaded scene above: with ``flow_shading_where = "moving"`` every
-    column is the flattened run's at the points omniflow.shading.moving_points picks on
+    column is the flattened run's at the points omniflow.solve.shading.moving_points picks on
     the plain run's flow and the plain run's elsewhere, exactly."""
-    from omniflow.shading import moving_points
+    from omniflow.solve.shading import moving_points
 
     rig, f1, f2, m, _ = shaded
     plain = estimate(f1, f2, rig, OmniFlowConfig(), matches=m)
@@ -131,10 +131,10 @@ def test_where_moving_takes_the_flattened_flow_only_at_the_movers(shaded):
 
 def _odometry_field(seed: int = 1):
     """Columns of a closed-form flow field: the robot turning and driving (the odometry
-    model of omniflow.applications), 600 static points with 1 % noise, a group of 30
+    model of omniflow.applications.navigation), 600 static points with 1 % noise, a group of 30
     points on an object with its own motion, and 3 stray points far apart whose flow is
     wrong."""
-    from omniflow.rig import Rig
+    from omniflow.geometry.rig import Rig
 
     rig = Rig.symmetric(d=0.10, R=0.05, s=0.30, size=256)
     rng = np.random.default_rng(seed)
@@ -160,7 +160,7 @@ def _odometry_field(seed: int = 1):
 
 
 def test_moving_points_finds_the_object_not_the_strays():
-    from omniflow.shading import moving_points
+    from omniflow.solve.shading import moving_points
 
     rig, cols, truth = _odometry_field()
     np.testing.assert_array_equal(moving_points(cols, rig), truth)
@@ -168,7 +168,7 @@ def test_moving_points_finds_the_object_not_the_strays():
 
 def test_the_group_size_check_catches_strays(monkeypatch):
     """The mutation the check above catches: odometry's outliers taken one by one."""
-    import omniflow.shading as shading
+    import omniflow.solve.shading as shading
 
     rig, cols, truth = _odometry_field()
     monkeypatch.setattr(shading, "MOVING_MIN_POINTS", 1)

@@ -27,9 +27,9 @@ import numpy as np
 import pytest
 
 from omniflow.config import OmniFlowConfig
+from omniflow.geometry.rig import Rig
 from omniflow.pipeline import estimate
-from omniflow.rig import Rig
-from omniflow.synthetic import Cylinder, Motion, SyntheticScene, Texture
+from omnisim.synthetic import Cylinder, Motion, SyntheticScene, Texture
 
 REFERENCE = Path(__file__).resolve().parents[1] / "data" / "speed_reference.npz"
 SIZE = 512
@@ -145,7 +145,7 @@ def test_rim_fill_equals_whole_image_remap(rig_name):
     remap (whose map is the identity inside, an exact copy there)."""
     import cv2
 
-    from omniflow.series import fill_outside_rim
+    from omniflow.fit.series import fill_outside_rim
     from tests.helpers.scenes import asymmetric_rig, paper_rig
 
     rig = paper_rig(256) if rig_name == "paper" else asymmetric_rig(256)

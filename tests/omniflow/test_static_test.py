@@ -31,10 +31,10 @@ import math
 import numpy as np
 import pytest
 
-import omniflow.flow as flow_module
+import omniflow.solve.pooled as flow_module
 from omniflow.config import OmniFlowConfig
-from omniflow.flow import neighbourhoods, pooled_solution
 from omniflow.pipeline import estimate
+from omniflow.solve.pooled import neighbourhoods, pooled_solution
 from tests.helpers.scenes import band_scene, frames, paper_rig, sparse_true_matches
 
 

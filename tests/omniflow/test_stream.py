@@ -10,7 +10,7 @@ import pytest
 
 from omniflow.pipeline import COLUMNS, NoMatchesWarning, OmniFlowConfig, estimate
 from omniflow.stream import OmniFlowStream, StereoFrame, stream_frames
-from omniflow.synthetic import Motion
+from omnisim.synthetic import Motion
 from tests.helpers.scenes import frames, paper_rig, wall_scene
 
 DRIVE_AND_TURN = Motion(velocity=(0.01, 0.005), yaw_rate=0.002)
@@ -61,7 +61,7 @@ def _worst_relative(a, b) -> float:
 
 
 def _same_monocular(got: dict, want: dict) -> None:
-    """omniflow.monocular's columns, where configured, within REL_TOL at the points both
+    """omniflow.solve.monocular's columns, where configured, within REL_TOL at the points both
     have. The sets may differ by a point whose gradient sits at the selection percentile
     or whose distance to a match at the gap (the series agree to rounding only):
     measured 313 against 312 at 128 px; allowed 2 %."""

@@ -7,10 +7,10 @@ import json
 import numpy as np
 import pytest
 
-from omniflow.imageio import read_image, to_grey, write_png
+from omniflow.cli.stream import main
+from omniflow.io.imageio import read_image, to_grey, write_png
 from omniflow.pipeline import OmniFlowConfig, estimate
-from omniflow.stream_cli import main
-from omniflow.synthetic import Motion
+from omnisim.synthetic import Motion
 from tests.helpers.scenes import paper_rig, wall_scene
 from tests.omniflow.test_cli import read_csv
 
@@ -73,7 +73,7 @@ def test_one_csv_per_pair_equal_to_estimate(folder, tmp_path, capsys, extra):
 
 def test_monocular_gap_writes_one_monocular_csv_per_pair(folder, tmp_path):
     """``--monocular-gap`` adds monocular_K0_K1.csv beside each flow CSV: cam1's flow alone
-    (omniflow.monocular), equal to the pair's in-process result at the points both have
+    (omniflow.solve.monocular), equal to the pair's in-process result at the points both have
     (tests/omniflow/test_stream.py::_same_monocular)."""
     from tests.omniflow.test_stream import _same_monocular
 
@@ -177,10 +177,10 @@ def test_constant_frames_warn_once_under_this_command_s_name(folder, tmp_path, c
 
 
 def test_module_entry_point_runs():
-    """``python -m omniflow.stream_cli`` (the ``omniflow-stream`` script's module) answers."""
+    """``python -m omniflow.cli.stream`` (the ``omniflow-stream`` script's module) answers."""
     import subprocess
     import sys
 
-    proc = subprocess.run([sys.executable, "-m", "omniflow.stream_cli", "--help"],
+    proc = subprocess.run([sys.executable, "-m", "omniflow.cli.stream", "--help"],
                           capture_output=True, text=True, timeout=120, check=False)  # fmt: skip
     assert proc.returncode == 0 and "usage: omniflow-stream" in proc.stdout

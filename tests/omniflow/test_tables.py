@@ -64,8 +64,8 @@ def test_equal_radii_give_equal_map_columns():
     """The short pass reads the long pass's table columns where polar_radii are equal
     (radial._sampled_columns): the premise, that polar_maps' columns are then equal
     value for value, for cam1 (h0, step) and cam2 (both scaled), on the default rig."""
+    from omniflow.geometry.rig import Rig
     from omniflow.matching.tables import polar_maps, polar_radii
-    from omniflow.rig import Rig
 
     rig = Rig.symmetric(d=0.10, R=0.05, s=0.30, size=512)
     scale2 = rig.cam2.v / rig.cam1.v

@@ -9,7 +9,7 @@ from omnisim.check import format_results, run_checks
 from omnisim.cli import main
 from omnisim.dataset import open_dataset, read_exr, write_exr
 
-pytest.importorskip("omniflow.synthetic")
+pytest.importorskip("omnisim.synthetic")
 from tests.helpers.fakes import write_synthetic_dataset
 
 

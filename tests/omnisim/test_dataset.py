@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from omniflow.rig import Rig
+from omniflow.geometry.rig import Rig
 from omnisim import dataset as ds
 from omnisim.dataset import (
     CHANNELS,

@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
+from omnisim.camera import dataset_camera, read_camera_dn
 from omnisim.cli import main
 from omnisim.dataset import open_dataset
 from omnisim.export import export_dataset
@@ -76,7 +77,7 @@ def test_sintel_layout_reads_back(real, exports):
     d = open_dataset(real)
     name = d.meta["scene"]["name"]
     want = ["README.txt"]
-    assert d.camera is not None  # scenes/default.toml has a [camera]: Sintel's final pass
+    assert dataset_camera(d) is not None  # scenes/default.toml has a [camera]: Sintel's final pass
     for cam in ("cam1", "cam2"):
         for k in range(1, 4):
             kinds = (("clean", "png"), ("final", "png"), ("depth", "dpt"), ("segmentation", "png"))
@@ -110,7 +111,7 @@ def test_sintel_layout_reads_back(real, exports):
             final = out / "training/final" / folder / f"{base}.png"
             assert final.read_bytes() == d.path(k, cam, "png").read_bytes()
             np.testing.assert_array_equal(
-                cv2.imread(str(final), cv2.IMREAD_UNCHANGED)[..., ::-1], d.read_camera_dn(k, cam)
+                cv2.imread(str(final), cv2.IMREAD_UNCHANGED)[..., ::-1], read_camera_dn(d, k, cam)
             )
             img = cv2.imread(str(out / "training/clean" / folder / f"{base}.png"), -1)
             assert img.dtype == np.uint8 and img.shape == (64, 64, 3)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from omniflow.rig import Rig
+from omniflow.geometry.rig import Rig
 from omnisim import geometry
 from omnisim.scene import Scene, SceneError, apply_overrides, load_scene, parse_override
 

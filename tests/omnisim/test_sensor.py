@@ -7,7 +7,7 @@ import gc
 import numpy as np
 import pytest
 
-from omniflow.rig import Rig
+from omniflow.geometry.rig import Rig
 from omnisim.sensor import apply_affine, mirror_rays, pixel_rays_world, transform_rays
 
 RIG = Rig.symmetric(d=0.10, R=0.05, s=0.30, size=128)

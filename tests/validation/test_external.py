@@ -220,10 +220,10 @@ def test_cli_refuses_a_bad_row(synth, tmp_path):
 
 
 def test_row_presets_start_from_the_preset():
-    """``--row dense`` and ``--row dense,NAME=VALUE`` (omniflow.cli.config_from_settings)
+    """``--row dense`` and ``--row dense,NAME=VALUE`` (omniflow.cli.common.config_from_settings)
     start from OmniFlowConfig.dense(), ``paper`` from OmniFlowConfig.paper(); both at once
     is refused in one line. Mutation caught: a preset word ignored (the defaults)."""
-    from omniflow.cli import CLIError, config_from_settings
+    from omniflow.cli.common import CLIError, config_from_settings
     from omniflow.config import DENSE, OmniFlowConfig
 
     assert config_from_settings("dense") == OmniFlowConfig.dense() != OmniFlowConfig()
@@ -238,7 +238,7 @@ def test_row_presets_start_from_the_preset():
 
 
 def test_monocular_row_is_scored_on_cam1(tmp_path):
-    """``--row monocular_gap=8``: the row's cam1-only flow (omniflow.monocular) is scored
+    """``--row monocular_gap=8``: the row's cam1-only flow (omniflow.solve.monocular) is scored
     as its own block (``monocular``, cam1 only), with DIS-medium at the same points and a
     headline line; rows without it have no such block. Mutation caught: the monocular
     points dropped, or scored at the stereo points (the counts would agree)."""

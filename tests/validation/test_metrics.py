@@ -10,7 +10,7 @@ import math
 import numpy as np
 import pytest
 
-from omniflow.rig import Rig
+from omniflow.geometry.rig import Rig
 from validation import baselines as bl
 from validation.metrics import (
     bin_label,
@@ -260,7 +260,7 @@ def test_panorama_flow_maps_back_to_image_displacement():
 
 
 def test_panorama_dis_sees_a_rotation():
-    from omniflow.synthetic import Motion, SyntheticScene
+    from omnisim.synthetic import Motion, SyntheticScene
 
     rig = Rig.symmetric(d=0.1, R=0.05, s=0.3, size=128)
     scene = SyntheticScene.room(rig, wall_radius=3.0, robot=Motion(yaw_rate=0.02))

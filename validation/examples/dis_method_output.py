@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from omniflow.imageio import atomic_write_bytes
+from omniflow.io.imageio import atomic_write_bytes
 
 __all__ = ["main", "write_dis_outputs"]
 
