@@ -36,7 +36,6 @@ For the renderer (a backend; this module imports no renderer):
 from __future__ import annotations
 
 import copy
-import math
 import re
 import tomllib
 from collections.abc import Mapping
@@ -50,7 +49,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from omniflow.geometry.rig import Rig, RigError, rig_from_dict
-from omnisim import geometry, textures
+from omnisim import geometry, scene_placement, textures
 from omnisim.camera import CameraError, CameraModel
 from omnisim.motion import (
     ConstantMotion,
@@ -59,6 +58,7 @@ from omnisim.motion import (
     StaticMotion,
     euler_deg,
 )
+from omnisim.scene_checker import REQUIRED, Checker, SceneError
 
 __all__ = [
     "AreaLight",
@@ -77,10 +77,6 @@ __all__ = [
     "load_scene",
     "parse_override",
 ]
-
-
-class SceneError(ValueError):
-    """A scene file is wrong: the message names the file, the key and what was expected."""
 
 
 # ---------------------------------------------------------------------------
@@ -315,156 +311,6 @@ def apply_overrides(data: dict, overrides: Mapping[str, Any] | None, where: str)
 
 
 # ---------------------------------------------------------------------------
-# Checking values
-# ---------------------------------------------------------------------------
-
-_REQUIRED = object()
-
-
-class _Checker:
-    """Reads typed values out of tables, raising SceneError naming file and key."""
-
-    def __init__(self, file: Path, overridden: set[str]):
-        self.scene_file = file
-        self.overridden = overridden
-
-    def error(self, key: str, msg: str) -> SceneError:
-        note = " (set by an override)" if key in self.overridden else ""
-        return SceneError(f"{self.scene_file}: {key}{note}: {msg}")
-
-    def bad(self, key: str, value: Any, expected: str) -> SceneError:
-        return self.error(key, f"got {value!r}, expected {expected}")
-
-    def table(self, value: Any, key: str, allowed: set[str] | frozenset[str]) -> dict:
-        if not isinstance(value, dict):
-            raise self.bad(key, value, "a table")
-        unknown = sorted(set(value) - set(allowed))
-        if unknown:
-            name = f"{key}.{unknown[0]}" if key else unknown[0]
-            raise self.error(name, f"unknown key; expected one of: {', '.join(sorted(allowed))}")
-        return value
-
-    def _get(self, tbl: dict, key: str, where: str, default: Any) -> tuple[str, Any]:
-        full = f"{where}.{key}" if where else key
-        if key not in tbl:
-            if default is _REQUIRED:
-                raise self.error(full, "missing; this key is required")
-            return full, default
-        return full, tbl[key]
-
-    def number(
-        self,
-        tbl: dict,
-        key: str,
-        where: str,
-        default: Any = _REQUIRED,
-        *,
-        lo: float | None = None,
-        hi: float | None = None,
-        lo_open: bool = False,
-    ) -> float:
-        full, v = self._get(tbl, key, where, default)
-        if v is default and key not in tbl:
-            return v
-        expected = _range_text("a number", lo, hi, lo_open)
-        if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
-            raise self.bad(full, v, expected)
-        if (lo is not None and (v < lo or (lo_open and v == lo))) or (hi is not None and v > hi):
-            raise self.bad(full, v, expected)
-        return float(v)
-
-    def integer(
-        self,
-        tbl: dict,
-        key: str,
-        where: str,
-        default: Any = _REQUIRED,
-        *,
-        lo: int | None = None,
-        hi: int | None = None,
-    ) -> int:
-        full, v = self._get(tbl, key, where, default)
-        if v is default and key not in tbl:
-            return v
-        expected = _range_text("an integer", lo, hi, False)
-        if isinstance(v, bool) or not isinstance(v, int):
-            raise self.bad(full, v, expected)
-        if (lo is not None and v < lo) or (hi is not None and v > hi):
-            raise self.bad(full, v, expected)
-        return int(v)
-
-    def boolean(self, tbl: dict, key: str, where: str, default: Any = _REQUIRED) -> bool:
-        full, v = self._get(tbl, key, where, default)
-        if not isinstance(v, bool):
-            raise self.bad(full, v, "true or false")
-        return v
-
-    def string(
-        self, tbl: dict, key: str, where: str, default: Any = _REQUIRED, *, choices=None
-    ) -> str:
-        full, v = self._get(tbl, key, where, default)
-        if not isinstance(v, str):
-            expected = "one of " + ", ".join(repr(c) for c in choices) if choices else "a string"
-            raise self.bad(full, v, expected)
-        if choices is not None and v not in choices:
-            raise self.bad(full, v, "one of " + ", ".join(repr(c) for c in choices))
-        return v
-
-    def vector(
-        self,
-        tbl: dict,
-        key: str,
-        where: str,
-        default: Any = _REQUIRED,
-        *,
-        n: int = 3,
-        lo: float | None = None,
-        hi: float | None = None,
-        lo_open: bool = False,
-        scalar_ok: bool = False,
-    ) -> NDArray[np.float64]:
-        full, v = self._get(tbl, key, where, default)
-        if key not in tbl:
-            return np.asarray(v, dtype=np.float64)
-        unit = _range_text("numbers", lo, hi, lo_open)
-        expected = f"a list of {n} {unit}" + (" (or one number)" if scalar_ok else "")
-        if scalar_ok and isinstance(v, int | float) and not isinstance(v, bool):
-            v = [v] * n
-        if not isinstance(v, list | tuple) or len(v) != n:
-            raise self.bad(full, v, expected)
-        for x in v:
-            if isinstance(x, bool) or not isinstance(x, int | float) or not math.isfinite(x):
-                raise self.bad(full, v, expected)
-            if (lo is not None and (x < lo or (lo_open and x == lo))) or (
-                hi is not None and x > hi
-            ):
-                raise self.bad(full, v, expected)
-        return np.asarray(v, dtype=np.float64)
-
-    def file(self, tbl: dict, key: str, where: str, base: Path, suffixes=None) -> Path:
-        full, v = self._get(tbl, key, where, _REQUIRED)
-        if not isinstance(v, str) or not v:
-            raise self.bad(full, v, "a file path (relative to the scene file)")
-        p = Path(v)
-        p = p if p.is_absolute() else base / p
-        if suffixes is not None and p.suffix.lower() not in suffixes:
-            raise self.bad(full, v, "a file ending in " + ", ".join(suffixes))
-        if not p.is_file():
-            raise self.error(full, f"file not found: {p} (expected an existing file)")
-        return p
-
-
-def _range_text(what: str, lo, hi, lo_open) -> str:
-    if lo is not None and hi is not None:
-        return f"{what} in {'(' if lo_open else '['}{lo:g}, {hi:g}]"
-    if lo is not None:
-        return f"{what} {'>' if lo_open else '>='} {lo:g}"
-    if hi is not None:
-        return f"{what} <= {hi:g}"
-    return what
-
-
-# ---------------------------------------------------------------------------
 # Schema (the allowed keys of each table)
 # ---------------------------------------------------------------------------
 
@@ -548,7 +394,7 @@ def load_scene(path: str | Path, overrides: Mapping[str, Any] | None = None) -> 
     overrides = dict(overrides or {})
     data = apply_overrides(raw, overrides, str(path))
     # Error keys write list items as objects[1]; overrides as objects.1.
-    chk = _Checker(path, {re.sub(r"\.(\d+)(?=\.|$)", r"[\1]", str(k)) for k in overrides})
+    chk = Checker(path, {re.sub(r"\.(\d+)(?=\.|$)", r"[\1]", str(k)) for k in overrides})
     return _build(chk, path, source, data, overrides)
 
 
@@ -564,7 +410,7 @@ def _read_text(path: Path) -> str:
         raise SceneError(f"{path}: cannot read: {exc.strerror or exc}") from None
 
 
-def _build(chk: _Checker, path: Path, source: str, data: dict, overrides: dict) -> Scene:
+def _build(chk: Checker, path: Path, source: str, data: dict, overrides: dict) -> Scene:
     chk.table(data, "", TOP_KEYS)
     name = chk.string(data, "name", "", path.stem)
     description = chk.string(data, "description", "", "")
@@ -574,10 +420,10 @@ def _build(chk: _Checker, path: Path, source: str, data: dict, overrides: dict) 
     dt = chk.number(data, "frame_interval", "", 0.1, lo=0.0, lo_open=True)
 
     render = _render_settings(chk, data.get("render", {}))
-    rig = _rig(chk, data.get("rig", _REQUIRED), render, path)
+    rig = _rig(chk, data.get("rig", REQUIRED), render, path)
     robot = _robot(chk, data.get("robot", {}), dt)
     objects, rooms = _objects(chk, data.get("objects", []), dt, path.parent)
-    lights = _lights(chk, data.get("lights", _REQUIRED), path.parent)
+    lights = _lights(chk, data.get("lights", REQUIRED), path.parent)
     camera = _camera(chk, data.get("camera", {}))
 
     scene = Scene(
@@ -597,12 +443,12 @@ def _build(chk: _Checker, path: Path, source: str, data: dict, overrides: dict) 
         overrides=overrides,
         camera=camera,
     )
-    _check_rig_in_scene(chk, scene)
-    _check_not_enclosed(chk, scene)
+    scene_placement.check_rig_in_scene(chk, scene)
+    scene_placement.check_not_enclosed(chk, scene)
     return scene
 
 
-def _render_settings(chk: _Checker, tbl: Any) -> RenderSettings:
+def _render_settings(chk: Checker, tbl: Any) -> RenderSettings:
     chk.table(tbl, "render", RENDER_KEYS)
     w = "render"
     d = RenderSettings()
@@ -621,7 +467,7 @@ def _render_settings(chk: _Checker, tbl: Any) -> RenderSettings:
     )
 
 
-def _camera(chk: _Checker, tbl: Any) -> CameraModel:
+def _camera(chk: Checker, tbl: Any) -> CameraModel:
     """The ``[camera]`` table (:class:`omnisim.camera.CameraModel`; defaults for missing keys)."""
     if not isinstance(tbl, dict):
         raise chk.bad("camera", tbl, "a table of camera parameters ([camera])")
@@ -636,8 +482,8 @@ def _camera(chk: _Checker, tbl: Any) -> CameraModel:
         raise SceneError(str(exc)) from exc
 
 
-def _rig(chk: _Checker, tbl: Any, render: RenderSettings, path: Path) -> Rig:
-    if tbl is _REQUIRED:
+def _rig(chk: Checker, tbl: Any, render: RenderSettings, path: Path) -> Rig:
+    if tbl is REQUIRED:
         raise chk.error("rig", "missing; expected a table with d, R, s (metres)")
     chk.table(tbl, "rig", RIG_KEYS)
     d = chk.number(tbl, "d", "rig", lo=0, lo_open=True)
@@ -668,7 +514,7 @@ def _rig(chk: _Checker, tbl: Any, render: RenderSettings, path: Path) -> Rig:
 
 
 def _motion(
-    chk: _Checker, tbl: Any, where: str, position: NDArray, rotation: Rotation, dt: float
+    chk: Checker, tbl: Any, where: str, position: NDArray, rotation: Rotation, dt: float
 ) -> Motion:
     if tbl is None:
         return StaticMotion(position, rotation)
@@ -692,11 +538,11 @@ def _motion(
         w = chk.vector(tbl, "angular_velocity", where, [0.0, 0.0, 0.0])
         return ConstantMotion(position, rotation, v, np.radians(w))
     interp = chk.string(tbl, "interpolation", where, "linear", choices=("linear", "cubic"))
-    keys = tbl.get("keys", _REQUIRED)
-    if keys is _REQUIRED or not isinstance(keys, list) or not keys:
+    keys = tbl.get("keys", REQUIRED)
+    if keys is REQUIRED or not isinstance(keys, list) or not keys:
         raise chk.bad(
             f"{where}.keys",
-            keys if keys is not _REQUIRED else None,
+            keys if keys is not REQUIRED else None,
             "a non-empty list of tables with time (s) or frame, position, rotation",
         )
     times, positions, rotations = [], [], []
@@ -720,18 +566,18 @@ def _motion(
     )
 
 
-def _pose_and_motion(chk: _Checker, tbl: dict, where: str, default_pos, dt: float) -> Motion:
+def _pose_and_motion(chk: Checker, tbl: dict, where: str, default_pos, dt: float) -> Motion:
     pos = chk.vector(tbl, "position", where, default_pos)
     rot = euler_deg(chk.vector(tbl, "rotation", where, [0.0, 0.0, 0.0]))
     return _motion(chk, tbl.get("motion"), f"{where}.motion", pos, rot, dt)
 
 
-def _robot(chk: _Checker, tbl: Any, dt: float) -> Robot:
+def _robot(chk: Checker, tbl: Any, dt: float) -> Robot:
     chk.table(tbl, "robot", ROBOT_KEYS)
     return Robot(_pose_and_motion(chk, tbl, "robot", [0.0, 0.0, 0.5], dt), dt)
 
 
-def _texture(chk: _Checker, tbl: Any, where: str, seed: int, base: Path) -> NDArray[np.float32]:
+def _texture(chk: Checker, tbl: Any, where: str, seed: int, base: Path) -> NDArray[np.float32]:
     tbl = {} if tbl is None else tbl
     if not isinstance(tbl, dict):
         raise chk.bad(where, tbl, "a table")
@@ -798,7 +644,7 @@ def _texture(chk: _Checker, tbl: Any, where: str, seed: int, base: Path) -> NDAr
         raise chk.error(f"{where}.path", f"{exc}; expected a readable image") from exc
 
 
-def _material(chk: _Checker, tbl: Any, where: str) -> Material:
+def _material(chk: Checker, tbl: Any, where: str) -> Material:
     tbl = {} if tbl is None else tbl
     chk.table(tbl, where, MATERIAL_KEYS)
     kind = chk.string(tbl, "type", where, "diffuse", choices=MATERIAL_TYPES)
@@ -815,7 +661,7 @@ def _material(chk: _Checker, tbl: Any, where: str) -> Material:
 
 
 def _objects(
-    chk: _Checker, items: Any, dt: float, base: Path
+    chk: Checker, items: Any, dt: float, base: Path
 ) -> tuple[list[SceneObject], list[RoomInfo]]:
     if not isinstance(items, list):
         raise chk.bad("objects", items, "a list of tables ([[objects]])")
@@ -875,7 +721,7 @@ def _tile_of(tex_tbl: Any) -> float:
     return 1.0
 
 
-def _mesh(chk: _Checker, tbl: dict, kind: str, where: str, tile: float, base: Path):
+def _mesh(chk: Checker, tbl: dict, kind: str, where: str, tile: float, base: Path):
     if kind == "box":
         return geometry.box(chk.vector(tbl, "size", where, lo=0, lo_open=True), tile=tile)
     if kind == "plane":
@@ -928,10 +774,10 @@ def _room(chk, tbl, index, name, first, size, motion, material, dt, base) -> lis
     return out
 
 
-def _lights(chk: _Checker, items: Any, base: Path) -> list[Light]:
-    if items is _REQUIRED or not isinstance(items, list) or not items:
+def _lights(chk: Checker, items: Any, base: Path) -> list[Light]:
+    if items is REQUIRED or not isinstance(items, list) or not items:
         raise chk.bad(
-            "lights", None if items is _REQUIRED else items, "at least one [[lights]] table"
+            "lights", None if items is REQUIRED else items, "at least one [[lights]] table"
         )
     out: list[Light] = []
     for i, tbl in enumerate(items):
@@ -987,158 +833,3 @@ def _lights(chk: _Checker, items: Any, base: Path) -> list[Light]:
                 )
             )
     return out
-
-
-# ---------------------------------------------------------------------------
-# Is the rig possible in this scene?
-# ---------------------------------------------------------------------------
-
-#: At most this many frames are checked (evenly spaced, always including the ends).
-MAX_CHECKED_FRAMES = 513
-#: Surface samples per object for the rig-collision and common-region checks.
-SURFACE_SAMPLES = 4000
-
-
-def _checked_frames(frames: int) -> NDArray[np.float64]:
-    # Frames 0 .. frames: the last frame's flow needs the poses of frame + 1.
-    if frames + 1 <= MAX_CHECKED_FRAMES:
-        return np.arange(frames + 1, dtype=float)
-    return np.unique(np.round(np.linspace(0, frames, MAX_CHECKED_FRAMES)))
-
-
-def _surface_points(mesh: trimesh.Trimesh) -> NDArray[np.float64]:
-    samples = trimesh.sample.sample_surface(mesh, SURFACE_SAMPLES, seed=0)[0]
-    return np.concatenate([np.asarray(mesh.vertices), samples])
-
-
-def _to_rig(world_from_rig: NDArray, world_from_obj: NDArray, pts: NDArray) -> NDArray:
-    m = np.linalg.solve(world_from_rig, world_from_obj)
-    return pts @ m[:3, :3].T + m[:3, 3]
-
-
-def _check_rig_in_scene(chk: _Checker, scene: Scene) -> None:
-    """Raise SceneError if the rig collides with the scene or cannot see a common region.
-
-    At every checked frame: the rig's body (the cylinder of radius R about the
-    axis from cam2's camera centre, h = -d, to the top of cam1's mirror,
-    h = s + R) must be clear of every object; a room must contain the rig with
-    its walls farther from the axis than ``Rig.min_common_range`` (else the two
-    cameras share no view of them); and some surface must lie in the two
-    cameras' common region (occlusion not considered).
-    """
-    rig = scene.rig
-    d, big_r, s = rig.d, rig.R, rig.s
-    h_lo, h_hi = -d, s + big_r
-    moving_robot = not isinstance(scene.robot.motion, StaticMotion)
-    robot_key = "robot.motion" if moving_robot else "robot.position"
-    frames = _checked_frames(scene.frames)
-    surface = [(obj, _surface_points(obj.mesh)) for obj in scene.objects]
-    others = [(obj, pts) for obj, pts in surface if obj.kind != "room"]
-
-    axis = np.zeros((9, 4))
-    axis[:, 2] = np.linspace(h_lo, h_hi, 9)
-    axis[:, 3] = 1.0
-    for k in frames:
-        w_rig = scene.robot.pose(k)
-        where_k = f"frame {k:g}"
-        # Rooms: the axis inside, walls beyond the common range, floor and ceiling clear.
-        for room in scene.rooms:
-            idx, rname, size = room.index, room.name, room.size
-            m = np.linalg.solve(scene.object_by_id(room.first_id).pose(k), w_rig)  # room from rig
-            a = axis @ m.T
-            wall = np.minimum(size[0] / 2 - np.abs(a[:, 0]), size[1] / 2 - np.abs(a[:, 1]))
-            if wall.min() <= rig.min_common_range:
-                raise chk.error(
-                    robot_key,
-                    f"at {where_k} the rig's axis is {max(wall.min(), 0):.3g} m from a wall of "
-                    f"room {rname!r} (objects[{idx}]); expected more than the rig's "
-                    f"min_common_range = {rig.min_common_range:.3g} m (s (d + R) / R - d), or the "
-                    "two cameras share no view of the walls",
-                )
-            if a[0, 2] <= 0 or a[-1, 2] >= size[2]:
-                raise chk.error(
-                    robot_key,
-                    f"at {where_k} the rig (h = -d .. s + R, z = {a[0, 2]:.3g} .. {a[-1, 2]:.3g} m "
-                    f"in the room) does not fit between the floor and the ceiling (0 .. "
-                    f"{size[2]:g} m) of room {rname!r}; expected it inside",
-                )
-        # Other objects: clear of the rig's body.
-        for obj, pts in others:
-            i = obj.index
-            p = _to_rig(w_rig, obj.pose(k), pts)
-            inside = (np.hypot(p[:, 0], p[:, 1]) < big_r) & (p[:, 2] >= h_lo) & (p[:, 2] <= h_hi)
-            if inside.any():
-                key = f"objects[{i}].motion" if obj.moving else f"objects[{i}].position"
-                raise chk.error(
-                    key if not moving_robot else f"{key} / {robot_key}",
-                    f"object {obj.name!r} enters the rig at {where_k} (within R = {big_r:g} m of "
-                    f"the axis between h = {h_lo:g} and {h_hi:g} m); expected it to stay clear",
-                )
-        # Something to see in stereo.
-        seen = False
-        for obj, pts in surface:
-            p = _to_rig(w_rig, obj.pose(k), pts)
-            if rig.common_region(np.hypot(p[:, 0], p[:, 1]), p[:, 2]).any():
-                seen = True
-                break
-        if not seen:
-            raise chk.error(
-                "objects",
-                f"at {where_k} no surface lies in the region both cameras see (r > "
-                f"{rig.min_common_range:.3g} m, above cam1's tip, below cam2's upper limit); "
-                "expected a room or objects there",
-            )
-
-
-def _winding_numbers(mesh: trimesh.Trimesh, points: NDArray) -> NDArray[np.float64]:
-    """Generalised winding number of a triangle mesh at each point (N, 3): the summed
-    signed solid angle of its triangles over 4 pi (van Oosterom and Strackee's formula).
-    About +-1 inside a closed mesh, 0 outside; between for open surfaces."""
-    tri = np.asarray(mesh.triangles, dtype=np.float64)
-    out = np.zeros(len(points))
-    for i, p in enumerate(points):
-        a, b, c = (tri[:, k] - p for k in range(3))
-        la, lb, lc = (np.linalg.norm(v, axis=1) for v in (a, b, c))
-        num = np.einsum("ij,ij->i", a, np.cross(b, c))
-        den = (
-            la * lb * lc
-            + np.einsum("ij,ij->i", a, b) * lc
-            + np.einsum("ij,ij->i", b, c) * la
-            + np.einsum("ij,ij->i", c, a) * lb
-        )
-        out[i] = 2.0 * np.arctan2(num, den).sum() / (4.0 * np.pi)
-    return out
-
-
-def _check_not_enclosed(chk: _Checker, scene: Scene) -> None:
-    """Raise SceneError when an object (not a room) encloses a camera's mirror tip at a
-    checked frame: the cameras would see nothing but its inside (no stereo).
-
-    Inside means a generalised winding number above 0.5 at the tip (a closed mesh:
-    about 1; an open fence ring around the rig stays well below).
-    """
-    tips = np.array([[0.0, 0.0, 0.0, 1.0], [0.0, 0.0, scene.rig.s, 1.0]])
-    frames = _checked_frames(scene.frames)
-    for obj in scene.objects:
-        if obj.kind == "room":
-            continue
-        lo, hi = obj.mesh.bounds
-        pts, at = [], []
-        for k in frames:
-            m = np.linalg.solve(obj.pose(k), scene.robot.pose(k))  # object from rig
-            p = (tips @ m.T)[:, :3]
-            keep = np.all((p >= lo) & (p <= hi), axis=1)
-            pts.extend(p[keep])
-            at.extend([k] * int(keep.sum()))
-        if not pts:
-            continue
-        w = np.abs(_winding_numbers(obj.mesh, np.asarray(pts)))
-        if (w > 0.5).any():
-            k = at[int(np.argmax(w > 0.5))]
-            key = f"objects[{obj.index}].position"
-            raise chk.error(
-                key,
-                f"object {obj.name!r} encloses the rig at frame {k:g} (winding number "
-                f"{w.max():.2f} at a mirror tip): the cameras would see only its inside; "
-                "expected the rig outside every object but a room",
-            )
