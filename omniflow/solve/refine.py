@@ -26,10 +26,9 @@ neighbours that each moved by their own (noisy) first estimate adds the
 difference between a point's first estimate and its neighbours' to the answer,
 the first step's noise passed through a high-pass filter (on the rendered
 scenes the refined points' error rose by 10-140 % that way; docs/decisions/refinement.md).
-For the same reason a fast point
-pools with the neighbours of its first solve (``pools``, the k-d tree's), slow
-ones included, each linearised about its own flow: pools of the fast points
-alone are thin where few points move fast.
+For the same reason a fast point pools with the neighbours of its first solve
+(``pools``, the k-d tree's), slow ones included, each linearised about its own
+flow: pools of the fast points alone are thin where few points move fast.
 """
 
 from __future__ import annotations
