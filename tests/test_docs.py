@@ -4,7 +4,7 @@ The README's bash blocks are read line by line. Commands that set up a machine o
 minutes (``bash .ci/...``, ``pip install``, the test suite itself, the benchmarks) are
 checked to be the documented entry points (the script exists, the extra and the pytest
 marker are declared, the benchmark module imports) rather than run. The demo's three
-commands run for real on a small render of the same scene (48 px, 2 frames, 4 spp), with
+commands run for real on a small render of the same scene (96 px, 2 frames, 4 spp), with
 their outputs under a temporary folder. Relative links in README.md and docs/**/*.md must
 name files that exist.
 """
@@ -33,8 +33,9 @@ ENTRY = {
     "omniflow": "omniflow.cli",
     "omniflow-stream": "omniflow.cli.stream",
 }
-#: The demo's render made small: 48 px, 2 frames (one pair), 4 spp.
-SMALL_RENDER = ["--resolution", "48x48", "--frames", "2", "--spp", "4"]
+#: The demo's render made small: 96 px (omniflow needs an annulus of h_min 16 px and more),
+#: 2 frames (one pair), 4 spp.
+SMALL_RENDER = ["--resolution", "96x96", "--frames", "2", "--spp", "4"]
 
 
 def fenced_blocks(text: str, language: str) -> list[str]:
