@@ -5,8 +5,10 @@ minutes (``bash .ci/...``, ``pip install``, the test suite itself, the benchmark
 checked to be the documented entry points (the script exists, the extra and the pytest
 marker are declared, the benchmark module imports) rather than run. The demo's three
 commands run for real on a small render of the same scene (96 px, 2 frames, 4 spp), with
-their outputs under a temporary folder. Relative links in README.md and docs/**/*.md must
-name files that exist.
+their outputs under a temporary folder. In the bash blocks of docs/*.md, every option given
+to one of the project's commands must be one its ``--help`` lists, and every
+``python -m MODULE`` must import. Relative links in README.md and docs/**/*.md must name
+files that exist.
 """
 
 from __future__ import annotations
@@ -47,6 +49,27 @@ def commands(block: str) -> list[list[str]]:
     """Each non-empty line of a bash block as argv, its trailing comment removed."""
     out = []
     for line in block.splitlines():
+        argv = shlex.split(line, comments=True)
+        if argv:
+            out.append(argv)
+    return out
+
+
+def shell_lines(block: str) -> list[list[str]]:
+    """The commands of a bash block as argv: continuations joined, here-documents skipped."""
+    out, heredoc, pending = [], None, ""
+    for line in block.splitlines():
+        if heredoc is not None:
+            heredoc = None if line.strip() == heredoc else heredoc
+            continue
+        if line.rstrip().endswith("\\"):
+            pending += line.rstrip()[:-1] + " "
+            continue
+        line, pending = pending + line, ""
+        marker = re.search(r"<<-?'?(\w+)'?", line)
+        if marker:
+            heredoc = marker.group(1)
+            line = line[: marker.start()]
         argv = shlex.split(line, comments=True)
         if argv:
             out.append(argv)
@@ -131,6 +154,39 @@ def test_the_demo_commands_run_on_a_small_render(tmp_path):
     for argv in demo:
         _run(argv, tmp_path)
     assert (tmp_path / "default" / "report" / "report.html").is_file()
+
+
+_HELP: dict[tuple[str, ...], str] = {}
+
+
+def _help(command: tuple[str, ...]) -> str:
+    """The ``--help`` text of a console script (and its subcommand), cached."""
+    if command not in _HELP:
+        code = f"import sys; from {ENTRY[command[0]]} import main; sys.exit(main(sys.argv[1:]))"
+        env = dict(os.environ, PYTHONPATH=str(ROOT))
+        proc = subprocess.run([sys.executable, "-c", code, *command[1:], "--help"], cwd=ROOT,
+                              env=env, capture_output=True, text=True, timeout=120)  # fmt: skip
+        assert proc.returncode == 0, f"{' '.join(command)} --help: exit {proc.returncode}"
+        _HELP[command] = proc.stdout
+    return _HELP[command]
+
+
+@pytest.mark.parametrize("page", sorted((ROOT / "docs").glob("*.md")), ids=lambda p: p.name)
+def test_documented_options_exist(page):
+    for block in fenced_blocks(page.read_text(), "bash"):
+        for argv in shell_lines(block):
+            if argv[0] in ENTRY:
+                command = tuple(argv[:2]) if argv[0] == "omnisim" else (argv[0],)
+                text = _help(command)
+                for opt in (a.split("=")[0] for a in argv if a.startswith("--")):
+                    assert opt in text, f"{page.name}: {' '.join(command)} has no option {opt}"
+            elif argv[0].startswith("python") and argv[1:2] == ["-m"]:
+                assert importlib.util.find_spec(argv[2]) is not None, f"{page.name}: {argv}"
+
+
+def test_shell_lines_join_and_skip():
+    block = "a --x \\\n  --y 1\npython - <<'EOF'\nimport os\nEOF\nb  # c\n"
+    assert shell_lines(block) == [["a", "--x", "--y", "1"], ["python", "-"], ["b"]]
 
 
 def test_the_python_example_imports():
