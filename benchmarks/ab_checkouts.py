@@ -6,9 +6,9 @@ threads), driven in rounds so a change of load on a shared machine hits
 every variant alike; prints the median wall and CPU (process) time per call,
 both camera pairs of the first two frames per call. Run::
 
-    git worktree add --detach /tmp/ref 77434fb
-    python benchmarks/ab_checkouts.py --dataset /work/data/default \\
-        ref=/tmp/ref new=. new1=.:threads=1 dis=dis dis1=dis:threads=1
+    git worktree add --detach ../ref main
+    python benchmarks/ab_checkouts.py --dataset runs/default/dataset \\
+        ref=../ref new=. new1=.:threads=1 dis=dis dis1=dis:threads=1
 
 ``--set NAME=VALUE`` (repeatable) gives every omniflow variant that
 OmniFlowConfig field (parsed as the CLI's ``--set``), e.g. the densified
@@ -17,7 +17,7 @@ A variant's own ``:set=ITEMS`` (omniflow.cli.common.config_from_settings' comma-
 items, presets included) is added after those, so one run can time several
 configurations of one checkout against DIS in the same rounds::
 
-    python benchmarks/ab_checkouts.py --dataset /work/data/approach \
+    python benchmarks/ab_checkouts.py --dataset DATASET \
         default=. dense=.:set=dense dense75=.:set=dense,dense_percentile=75 dis=dis
 ``--stage solve`` (repeatable) adds the median wall time of that stage of estimate().
 """
@@ -91,7 +91,9 @@ def main(argv: list[str] | None = None) -> int:
         "variants", nargs="+", metavar="NAME=CHECKOUT[:threads=N][:set=ITEMS]",
         help="a checkout folder (put on PYTHONPATH), or 'dis' for DIS medium",
     )  # fmt: skip
-    parser.add_argument("--dataset", default="/work/data/default")
+    parser.add_argument(
+        "--dataset", default="runs/default/dataset", help="the demo's dataset by default"
+    )
     parser.add_argument("--rounds", type=int, default=6)
     parser.add_argument("--per-round", type=int, default=3)
     parser.add_argument(

@@ -6,7 +6,7 @@ deviation of the digital numbers measured against the one the parameters predict
 8 bits, with the quantisation step's ``1/12`` DN^2 added), and the median time of
 ``CameraModel.apply`` and of the PNG encoding on a 512 x 512 RGB image. Run::
 
-    python benchmarks/bench_camera.py
+    python3 -m benchmarks.bench_camera
 """
 
 from __future__ import annotations
@@ -33,8 +33,9 @@ CASES: list[tuple[dict, float]] = [
 ]
 
 
-def noise_table(size: int = 256) -> None:
-    print("parameters | mu (e-) | predicted DN | measured DN | ratio")
+def noise_cases(size: int = 256) -> list[dict]:
+    """Measured and predicted noise (DN) of a flat patch for each of :data:`CASES`."""
+    out = []
     for params, mu in CASES:
         m = CameraModel(**params)
         flat = np.full((size, size, 3), mu / (m.exposure * m.full_well), np.float32)
@@ -42,8 +43,16 @@ def noise_table(size: int = 256) -> None:
         sigma = m.noise_electrons(mu) * m.gain * m.max_dn / m.full_well
         if m.bits == 8:
             sigma = math.hypot(sigma, 12**-0.5)
-        got = dn.std()
-        print(f"{params or 'defaults'} | {mu:g} | {sigma:.4f} | {got:.4f} | {got / sigma:.4f}")
+        label = ", ".join(f"{k} {v:g}" for k, v in params.items()) or "defaults"
+        out.append({"label": label, "mu": mu, "predicted": sigma, "measured": dn.std()})
+    return out
+
+
+def noise_table(size: int = 256) -> None:
+    print("parameters | mu (e-) | predicted DN | measured DN | ratio")
+    for c in noise_cases(size):
+        print(f"{c['label']} | {c['mu']:g} | {c['predicted']:.4f} | {c['measured']:.4f} | "
+              f"{c['measured'] / c['predicted']:.4f}")  # fmt: skip
 
 
 def timing(size: int = 512, repeats: int = 7) -> None:

@@ -8,7 +8,7 @@ configuration and at a dense one (more matches, as the accuracy work aims for),
 and prints the medians of wall time, CPU time and the solve stage, and the
 largest difference of the flow columns. Run from the repository root::
 
-    PYTHONPATH=$PWD python benchmarks/bench_kernels.py --dataset /work/data/default --runs 30
+    PYTHONPATH=$PWD python benchmarks/bench_kernels.py --dataset runs/default/dataset --runs 30
 """
 
 from __future__ import annotations

@@ -16,9 +16,9 @@ For each dataset and frame pair, runs the stereo-flow step
 The scored points are the flow step's columns, so the figures agree with
 ``omnivalidate --variants default`` for the default configuration. Run::
 
-    python benchmarks/bench_matching.py /work/data/default /work/data/crossing
-    python benchmarks/bench_matching.py /work/data/default --set dense_percentile=100
-    python benchmarks/bench_matching.py /work/data/default --table "edges only" \\
+    python benchmarks/bench_matching.py runs/default/dataset runs/crossing/dataset
+    python benchmarks/bench_matching.py runs/default/dataset --set dense_percentile=100
+    python benchmarks/bench_matching.py runs/default/dataset --table "edges only" \\
         --set dense_percentile=100 --json out.json
 
 ``--table NAME`` prints one markdown row (all datasets) instead of a block
@@ -29,15 +29,10 @@ from __future__ import annotations
 
 import argparse
 import statistics
-import sys
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from bench_omniflow import parse_set
-
+from benchmarks.bench_omniflow import parse_set
 from omniflow.io.imageio import atomic_write_text
 from omniflow.io.jsonio import json_text
 

@@ -31,9 +31,9 @@ room, the robot turning and driving slowly), or rendered frames with
 
     python benchmarks/bench_omniflow.py                  # 512 x 512 closed-form frames
     python benchmarks/bench_omniflow.py --size 256 --repeats 10 --json bench.json
-    python benchmarks/bench_omniflow.py --dataset /work/data/default --memory-sizes
+    python benchmarks/bench_omniflow.py --dataset runs/default/dataset --memory-sizes
     python benchmarks/bench_omniflow.py --set solver=pooled --set gradients=first
-    python benchmarks/bench_omniflow.py --dataset /work/data/default --profile 20
+    python benchmarks/bench_omniflow.py --dataset runs/default/dataset --profile 20
 """
 
 from __future__ import annotations

@@ -18,8 +18,8 @@ before) the datasets; with ``--table``, a Markdown row per dataset and variant
 radial gain, time-to-contact error, each mover's error). Run from the repository root
 (it imports tests.helpers)::
 
-    PYTHONPATH=$PWD python3 benchmarks/bench_pooling.py /work/data/crossing \\
-        /work/data/independent_movers default: res5:pool_residual_tol=5.0 edge3:pool_edge_tol=3.0
+    PYTHONPATH=$PWD python3 benchmarks/bench_pooling.py runs/crossing/dataset \\
+        runs/independent_movers/dataset default: res5:pool_residual_tol=5.0 edge3:pool_edge_tol=3.0
 """
 
 from __future__ import annotations

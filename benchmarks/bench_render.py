@@ -15,7 +15,7 @@ For a scene (default ``scenes/default.toml``) at its render settings
 - with ``--candidates``, render settings side by side on frame 0 (seconds
   and CPU seconds per stereo frame: render, denoise, ground truth; the
   residual against converged path and direct references, cached in
-  /tmp/omnisim_render_ref, in % of the mean luminance over the common
+  omnisim_render_ref in the temporary folder, in % of the mean luminance over the common
   annulus; the error of the image gradient; with ``--epe`` OpenCV DIS's
   end-point error against gt.flow);
 - with ``--sizes``, the scene's render at other image sizes (time, noise);
@@ -39,21 +39,20 @@ import argparse
 import os
 import platform
 import statistics
-import sys
+import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from omniflow.io.imageio import atomic_write_text, to_grey
+from omniflow.io.jsonio import json_text
+from omnisim import render
+from omnisim.groundtruth import ground_truth_frame
+from omnisim.scene import load_scene, parse_override
+from omnisim.sensor import ensure_mitsuba, make_sensor
 
-from omniflow.io.imageio import atomic_write_text, to_grey  # noqa: E402
-from omniflow.io.jsonio import json_text  # noqa: E402
-from omnisim import render  # noqa: E402
-from omnisim.groundtruth import ground_truth_frame  # noqa: E402
-from omnisim.scene import load_scene, parse_override  # noqa: E402
-from omnisim.sensor import ensure_mitsuba, make_sensor  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 INTEGRATORS = {
     "path, max_depth 3": {"type": "path", "max_depth": 3},
@@ -519,7 +518,10 @@ def main(argv=None) -> int:
         help="spp of the path and the direct reference (two halves of half as many)",
     )
     ap.add_argument(
-        "--ref-cache", type=Path, default=Path("/tmp/omnisim_render_ref"), help="reference cache"
+        "--ref-cache",
+        type=Path,
+        default=Path(tempfile.gettempdir()) / "omnisim_render_ref",
+        help="reference cache",
     )
     ap.add_argument("--epe", action="store_true", help="with --candidates: DIS flow EPE too")
     ap.add_argument(

@@ -4,10 +4,10 @@ a file written by another checkout (same matched samples? largest relative diffe
 For each dataset, the pairs (t, t + 1) for t = 0 .. --pairs - 1. Run once with the
 reference checkout on PYTHONPATH and ``--write``, then with this one and ``--compare``::
 
-    git worktree add --detach /tmp/ref main
-    PYTHONPATH=/tmp/ref python benchmarks/compare_columns.py --write /tmp/ref.npz
-    PYTHONPATH=$PWD python benchmarks/compare_columns.py --compare /tmp/ref.npz
-    PYTHONPATH=$PWD python benchmarks/compare_columns.py --compare /tmp/ref.npz --threads 1
+    git worktree add --detach ../ref main
+    PYTHONPATH=../ref python benchmarks/compare_columns.py --write ref.npz
+    PYTHONPATH=$PWD python benchmarks/compare_columns.py --compare ref.npz
+    PYTHONPATH=$PWD python benchmarks/compare_columns.py --compare ref.npz --threads 1
     # the densified option: the same --set for both runs
     ... --set dense_percentile=60 --set pool_grid=0.125 --set decouple_tol=60
 
@@ -25,9 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from bench_omniflow import parse_set
+from benchmarks.bench_omniflow import parse_set
 
 
 def columns(datasets: list[str], pairs: int, config) -> dict[str, np.ndarray]:
@@ -50,7 +48,7 @@ def columns(datasets: list[str], pairs: int, config) -> dict[str, np.ndarray]:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="compare_columns", description=__doc__.split("\n")[0])
-    parser.add_argument("datasets", nargs="*", default=[f"/work/data/{s}" for s in
+    parser.add_argument("datasets", nargs="*", default=[f"runs/{s}/dataset" for s in
                         ("default", "approach", "crossing")])  # fmt: skip
     parser.add_argument("--pairs", type=int, default=3)
     parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE")

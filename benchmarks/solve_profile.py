@@ -8,7 +8,7 @@ functions below, wrapped where estimate() looks them up (so a checkout that lack
 just leaves it out). ``--set`` as omniflow's (the dense preset: ``--set
 dense_percentile=60 --set dense_smooth=0.95 --set pool_grid=0.125 --set decouple_tol=60``)::
 
-    PYTHONPATH=<checkout> python benchmarks/solve_profile.py /work/data/approach [--set ...]
+    PYTHONPATH=<checkout> python benchmarks/solve_profile.py runs/approach/dataset [--set ...]
 """
 
 from __future__ import annotations

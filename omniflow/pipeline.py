@@ -20,8 +20,7 @@ pixel flow is the displacement of the point's image over one frame,
 with a ground-truth displacement; velocities are per frame interval.
 
 Accuracy of the variants on closed-form scenes (true matches and end to end,
-against OpenCV DIS): docs/measurements.md, "Moved from the omniflow
-docstrings". Eq. (14) assumes no motion along the axis
+against OpenCV DIS): docs/decisions/paper_preset.md. Eq. (14) assumes no motion along the axis
 (tests/omniflow/test_flow.py::test_vertical_motion_bias_matches_prediction).
 
 Where each step lives: the knobs in :mod:`omniflow.config`, the result in

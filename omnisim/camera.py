@@ -17,7 +17,7 @@ in this order:
    electrons for radiance ``L`` (W m^-2 sr^-1, linear). So ``exposure`` is the fraction
    of the full well that a radiance of 1 fills; it is one fixed number per dataset,
    so frames stay independent. The default 2.0 puts the mean radiance of the shipped
-   scenes (0.12-0.26 in the mirror) at 25-51 % of full well (docs/measurements.md).
+   scenes (0.12-0.26 in the mirror) at 25-51 % of full well (docs/decisions/camera_model.md).
 4. **Photon shot noise**: the charge is Poisson distributed with mean ``mu``: drawn
    exactly (``numpy.random.Generator.poisson``) where ``mu`` < 1000 e-, and from a
    Gaussian of the same mean and variance above (its skewness 1/sqrt(mu) is then

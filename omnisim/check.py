@@ -85,8 +85,9 @@ class Tolerances:
     #: static world point consistency, 95th percentile, in pixels of flow error.
     static_p95_px: float = 0.1
     #: photometric residual with gt.flow / residual with zero flow (RMS); 1 for zero flow by
-    #: construction. Measured with the true flow (tests/omnisim/test_check.py, docs/measurements.md
-    #: "Render: converged radiance"): 0.16 on scenes/large_motion.toml at 128 px (direct
+    #: construction. Measured with the true flow (tests/omnisim/test_check.py,
+    #: docs/decisions/render.md):
+    #: 0.16 on scenes/large_motion.toml at 128 px (direct
     #: 64 spp + oidn), 0.69 on scenes/default.toml at 256 px (path 8 spp + oidn, median
     #: flow 0.3 px), 0.75 on the synthetic 64 px dataset with 1 % noise.
     photometric_ratio: float = 0.9

@@ -4,8 +4,8 @@ A path-traced frame at a few samples per pixel carries Monte Carlo noise; the
 ``RT`` filter of Open Image Denoise removes it, guided by the albedo and the
 shading normal of the first hit (Mitsuba's ``aov`` integrator), which carry the
 texture and the geometry noise-free: the filter smooths the illumination and
-keeps the texture the albedo shows. ``docs/measurements.md`` ("Render: converged
-radiance") compares the residual error against a converged reference, the
+keeps the texture the albedo shows. docs/decisions/denoiser.md
+compares the residual error against a converged reference, the
 error of the image gradients and the time with the integrators at several spp.
 
 The colour is linear radiance, so the filter runs in HDR mode. Pixels wholly
@@ -36,11 +36,11 @@ GUIDE_AOVS = "albedo:albedo,normal:sh_normal"
 #: handed to the filter as clean (``clean_aux``), so they need enough samples to carry
 #: the texture averaged over the pixel: with 4 spp guides the residual of direct 64 spp +
 #: oidn rose from 0.81 % to 1.32 %, with 64 spp it fell to 0.79 % at 3.5x the guides'
-#: cost (docs/measurements.md).
+#: cost (docs/decisions/denoiser.md).
 GUIDE_SPP = 16
 #: Open Image Denoise quality: "balanced" gave 0.79 % residual at 0.8 CPU s per 512 px
 #: image, "high" 0.73 % at 2.1 CPU s, "fast" 0.95 % at 0.4 CPU s (direct 64 spp, guides
-#: at 64 spp; docs/measurements.md).
+#: at 64 spp; docs/decisions/denoiser.md).
 QUALITY = "balanced"
 
 

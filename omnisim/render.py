@@ -17,8 +17,8 @@ Integrator, spp, resolution, seed, variant and denoiser come from
 ``path`` and ``direct`` mean here). ``render.denoise = "oidn"`` renders the
 albedo and shading normal of the first hit through the same film samples
 (Mitsuba's ``aov`` integrator, same seed) and denoises the colour with Intel
-Open Image Denoise guided by them (:mod:`omnisim.denoise`); ``docs/measurements.md`` ("Render:
-converged radiance") has the residual error and the time of each choice.
+Open Image Denoise guided by them (:mod:`omnisim.denoise`); docs/decisions/render.md
+has the residual error and the time of each choice.
 
 Determinism: the sampler seed of (frame, camera) is derived from the scene
 seed (:func:`frame_seed`); with the same scene, seed and versions the images

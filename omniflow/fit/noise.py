@@ -49,7 +49,7 @@ __all__ = [
 #: Bands :func:`choose_band` picks from by default (fractions of each axis). At most 1/2:
 #: wider bands cost fit time and measured worse on noise-free closed-form frames as often
 #: as better (tests/omniflow/test_flow.py: band 0.75 0.0019 against 0.0028 px median EPE on the
-#: striped wall, 0.0145 against 0.0112 on the room; docs/measurements.md).
+#: striped wall, 0.0145 against 0.0112 on the room; docs/decisions/flow_band.md).
 BAND_CANDIDATES: tuple[float, ...] = (0.125, 0.1875, 0.25, 0.3125, 0.375, 0.4375, 0.5)
 
 

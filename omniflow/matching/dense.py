@@ -240,8 +240,8 @@ def smooth_profiles(
     low_texture scene) correlates almost as well with image 2 a quarter of the
     profile away as at the truth, so a short search at a seed's disparity places it
     wherever the seed was: on low_texture 48 densified matches at NCC > 0.9 with
-    themselves half a radius away, all 13-15 px off (docs/measurements.md, "Dense
-    preset on low_texture"). A profile neither side of which fits is not smooth.
+    themselves half a radius away, all 13-15 px off (docs/decisions/dense_mode.md).
+    A profile neither side of which fits is not smooth.
     """
     k = np.asarray(k, dtype=np.int64)
     j = np.asarray(j, dtype=np.int64)

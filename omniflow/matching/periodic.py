@@ -9,8 +9,8 @@ confirm a consistent alias.
 A recurrence in image 1 alone is not enough to drop a match: on low texture a
 profile holding one step edge correlates with another lone step of its line,
 and dropping every such match dropped nine in ten good matches on the
-low-texture render (docs/measurements.md, "Periodic aliases that image 2
-confirms"). :func:`not_periodic` therefore looks for the alias itself: where
+low-texture render (docs/decisions/matching.md).
+:func:`not_periodic` therefore looks for the alias itself: where
 image 1's profile recurs at lag L, the match is dropped only when image 2
 holds the same profile at j_2 + L or j_2 - L (one of them is the truth if the
 match is an alias). Where those columns lie in the disparity window but past

@@ -73,7 +73,7 @@ Measured on closed-form scenes (``omnisim.synthetic``, see
 figures and the command.
 
 Outliers on rendered frames, and the three changes that cut them:
-docs/measurements.md, "Moved from the omniflow docstrings".
+docs/decisions/matching.md.
 """
 
 from __future__ import annotations
@@ -253,7 +253,7 @@ def match_radial(
     profile_step : float, optional
         ``robust``: spacing of the profile's samples along the radial line,
         pixels (rounded to a multiple of h_step); default patch_radius / 16,
-        33 samples (at most one per h_step); docs/measurements.md has the
+        33 samples (at most one per h_step); docs/decisions/matching.md has the
         figures (fewer outliers on rendered frames than patch_radius / 8).
     min_score : float
         ``robust``: smallest NCC accepted.
@@ -281,7 +281,7 @@ def match_radial(
         times more coarsely in theta than cam2 at the same point, so the
         same patch looks different in the two units unless both are blurred
         to a common angular resolution. 0 disables it. Default 0.03 (1.7
-        lines of 360); docs/measurements.md has the figures against 0.02,
+        lines of 360); docs/decisions/matching.md has the figures against 0.02,
         0.04 and 0.06.
     consistency : float
         ``robust``: disparity consistency vote, pixels of cam2 (0 disables).
@@ -290,7 +290,7 @@ def match_radial(
         neighbouring matches (within +-0.05 rad in theta and +-r_m / 16 in
         h_1), and at least half of them, have a disparity within
         ``consistency`` of its own. On rendered frames most outliers are
-        1-3 px errors of isolated matches; docs/measurements.md has what the
+        1-3 px errors of isolated matches; docs/decisions/matching.md has what the
         vote removes.
     consistency_support : int
         ``robust``: the agreeing neighbours a match needs.

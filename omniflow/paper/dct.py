@@ -57,7 +57,7 @@ def band_window(Q: int, P: int, taper: float) -> NDArray:
     edge across the image; near the image centre, where the conical mirror
     compresses the scene tangentially and that power is large, it breaks the
     flow equation's balance of f_t against the gradient (radial flow shrunk
-    by 5-10 %; docs/measurements.md, "radial shrink").
+    by 5-10 %; docs/decisions/flow_band.md).
     """
     if not 0.0 <= taper <= 1.0:
         raise ValueError(f"taper = {taper!r}: expected a fraction in [0, 1]")

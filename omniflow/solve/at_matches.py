@@ -73,7 +73,7 @@ def flow_at_matches(
         # the image at the points (omniflow.solve.gain): frame t at the matching band, whose
         # grid the matcher has made already (the gradients' series, the mean of frames t
         # and t + 1 at the flow band, would cost a grid per unit; a regressor of the
-        # brightness either way: docs/measurements.md, "brightness_gate made cheap")
+        # brightness either way: docs/decisions/brightness_model.md)
         brightness = (sample_f(cam1["a"], x1, y1, config.sampling),
                       sample_f(cam2["a"], x2, y2, config.sampling))  # fmt: skip
     solve = make_solver(rig, config, x1, y1, theta, h1, h2, r, noise, edge_map=edge_map,

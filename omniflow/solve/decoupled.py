@@ -36,7 +36,7 @@ radial flow: there the point is reported decoupled (column ``coupled`` =
 0) with the three-unknown solution. ``n_eff`` is the pool's effective
 number of rows, (sum w)^2 / sum w^2 per unit. The threshold is a knob
 (``OmniFlowConfig.decouple_tol``) chosen on the rendered scenes
-(docs/measurements.md, "Movers: decoupled radial flow"): neighbouring
+(docs/decisions/decoupling.md): neighbouring
 residuals are correlated by the DCT fit, so F is not F-distributed and the
 textbook quantile would switch static points.
 
@@ -249,7 +249,7 @@ def _with_gain(cols, rig, config, switch, brightness, a1, a2, b):
 #: A pool lies on a range edge (an object whose range differs from its surroundings)
 #: when the range test (``pool_range_tol``) drops more than this share of the
 #: neighbours within its radius: 64-100 % of independent_movers' movers' points, 7 % of
-#: its static ones, 24 % of approach's (docs/measurements.md, "Ring, spinner, poster").
+#: its static ones, 24 % of approach's (docs/decisions/decoupling.md).
 #: Never with ``pool_range_tol`` None (no neighbour dropped).
 EDGE_SHARE = 0.25
 
@@ -257,8 +257,7 @@ EDGE_SHARE = 0.25
 #: elsewhere. The probe's "chain L/C U edge>10|20" (the ring's cam1 mean-flow error
 #: 64 -> 31 %, static mean error +0-1.5 %); 10 everywhere took the ring to 21 % but
 #: cost 3-4 % static mean error on independent_movers, approach and crossing
-#: (docs/measurements.md, "Ring, spinner, poster" and "decouple_gain_tol: eq. (14)
-#: tested with a linear gain, built").
+#: (docs/decisions/decoupling.md).
 EDGE_GATE = 0.5
 
 
@@ -415,8 +414,7 @@ def _deferred(fn: Callable, *args) -> Task:
 #: :data:`SCREEN_F` it keeps 11 % of the dense preset's points on the five rendered scenes
 #: (15 pairs) and loses 4 of the 487 the tree's test switched there (grid ratio 1.030-1.073),
 #: every omnivalidate figure unchanged; 1.02 keeps 40 % and loses none (the same columns bit
-#: for bit) at about 25 ms more a pair (docs/measurements.md, "The linear-gain test screened
-#: on the grid").
+#: for bit) at about 25 ms more a pair (docs/decisions/decoupling.md).
 SCREEN_RATIO = 1.1
 
 #: :func:`screen`'s least F_U over the grid's window, as a share of the lowest gate.

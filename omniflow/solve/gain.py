@@ -27,9 +27,7 @@ of beta against the plain fit,
 
 exceeds ``OmniFlowConfig.brightness_gate`` (n_eff = 2 (sum w)^2 / sum w^2,
 both units' rows, P the gain fit's unknowns, as the two-model test of
-:mod:`omniflow.solve.decoupled`). Measured in docs/measurements.md, "A
-brightness-change term in the pools: probe" and "brightness_gate: the gated
-gain term built".
+:mod:`omniflow.solve.decoupled`). Measured in docs/decisions/brightness_model.md.
 
 With ``OmniFlowConfig.brightness_model`` "linear" the coupled gain may vary linearly
 across the pool, (beta + beta_u u_j + beta_h dh_j) f_j: texture turning through shading
@@ -37,7 +35,7 @@ that stays put (a body spinning under fixed lights) changes brightness with no l
 across a pool, only a gradient, which one gain cannot take up. The pool keeps one gain
 where that passes the gate and the two slopes add nothing to it (their own F against one
 gain), and takes the linear gain where its three columns' F against the plain fit passes
-(docs/measurements.md, "The spinner's linear gain").
+(docs/decisions/brightness_model.md).
 
 :func:`gain_solution` is the coupled solve (eq. 14 assumed), used by
 :func:`omniflow.solve.at_matches.make_solver` in the first solve and in the refinement;
@@ -66,72 +64,40 @@ __all__ = [
 ]
 
 #: The least brightness change per frame, |beta|, that a pool's gain answer may correct:
-#: a smaller fitted gain is taken for model error, not a change (its F is not tested).
-#: On noise-free closed-form frames without any change the F test alone passed 23 % of
-#: the striped wall's pools, their |beta| median 0.0006 (90th percentile 0.0023), and
-#: those answers doubled the median error (0.0032 -> 0.0040 px); the rendered changes
-#: corrected are 1-2 % per frame (approach's gated pools: |beta| 10th percentile 0.0069).
-#: docs/measurements.md, "brightness_gate made cheap, and the default".
+#: a smaller fitted gain is the linearisation's model error, not a change (its F is not
+#: tested); taking it doubled the median error on noise-free closed-form frames
+#: (docs/decisions/brightness_model.md).
 MIN_CHANGE = 0.002
 
-#: The grid windows' sums (``pool_grid``, :meth:`omniflow.solve.gridpool.GridPools.gain_sums`)
-#: filtered in float32 (True, as the plain grid sums) or float64. float32 took the dense
-#: preset's gain sums from 25 to 19 ms at 8,700 points and changed its answers at float32's
-#: rounding (flow 9e-7 of the largest, F 1.2e-5 relative, no gate decision);
-#: docs/measurements.md, "Solve-stage savings with the gain".
+#: The grid windows' gain sums (``pool_grid``, :meth:`GridPools.gain_sums`) filtered in
+#: float32 (True, as the plain grid sums) or float64: float32 is faster and changes no
+#: gate decision (docs/decisions/speed.md).
 GRID_SINGLE = True
 
-#: The fewest effective residual degrees of freedom, n_eff - 6, from which
-#: :func:`decoupled_linear_gain` estimates the residual variance of its F_U (NaN below).
-#: With 2 (n_eff 8: a pool of 4-5 neighbours for 6 unknowns) the variance rests on almost
-#: nothing and F_U is huge by chance: F(1, 2)'s 1 % point is 98.5 against 6.6 for many
-#: degrees of freedom, and F(1, 4)'s 21.2, about ``decouple_gain_tol``'s 20. On approach
-#: the one cluster of static points the test switched had n_eff 8.0-8.6 at F_U 59-70
-#: (their errors 0.04-0.44 -> 0.13-0.40 px, cam2 up to 1.2 px); the movers it switched
-#: correctly have n_eff 11.0 or more (docs/measurements.md, "decouple_gain_tol gated").
-#: The same floor gates :func:`gain_solution`'s linear gain (``brightness_model``
-#: "linear"): the five static points whose F of the gain's three columns passed 20 had
-#: n_eff - 7 of 2.8-2.9 (independent_movers' wall_xn at the spinner's silhouette, cam1
-#: errors 0.09 -> 1.0 px; approach's wall_yn, unchanged) and 4.9 (approach, 0.08 -> 0.05
-#: px), the spinner's 30-53, approach's face 19-88 (docs/measurements.md, "The spinner's
-#: linear gain").
+#: The fewest effective residual degrees of freedom (n_eff minus the unknowns) from which a
+#: pool's residual variance is estimated for an F test (NaN below): with 2 the variance rests
+#: on almost nothing and F passes any gate by chance (F(1, 2)'s 1 % point is 98.5). It kept
+#: the static points at a spinner's silhouette and small static pools from switching
+#: (docs/decisions/decoupling.md, docs/decisions/brightness_model.md).
 MIN_RESIDUAL_DOF = 4.0
 
 #: The least RSS_coupled / RSS_decoupled for which :func:`decoupled_linear_gain` reports
 #: F_U (NaN below): eq. (14) is rejected only where dropping it at least halves the pool's
-#: residual, whatever the pool's size. F_U = (ratio - 1) (n_eff - 6) grows with the rows
-#: for the same relative misfit, so in large pools (the dense preset's k-d tree pools,
-#: n_eff 100-480 on tests/omniflow/test_cli.py's scene) a small systematic misfit passes
-#: any fixed gate. Measured on independent_movers: the ball's switched points 4.0-20, the
-#: ring's 2.2-4.4; the static points switched without it on approach's walls 1.39-1.54
-#: (F_U 11-15 at n_eff 34-36, range-edge pools) (docs/measurements.md,
-#: "decouple_gain_tol gated").
+#: residual. F_U grows with the pool for the same relative misfit, so without this a small
+#: systematic misfit in a large pool passes any fixed gate (docs/decisions/decoupling.md).
 MIN_RESIDUAL_RATIO = 2.0
 
-#: :func:`decoupled_linear_gain` answers with its gain only where the gain matters: the F
-#: statistic of the gain's three columns within the decoupled fit,
-#: ((RSS_without - RSS) / 3) / (RSS / (n_eff - 6)), above this, or a fitted gain term of at
-#: least :data:`MIN_GAIN_CHANGE`; elsewhere with the decoupled fit without those columns
-#: (the Gram's leading 3 x 3 block, the same pool), whose answer three extra unknowns only
-#: make noisier. On the closed-form synthetic:vertical scene (no brightness change) the
-#: five rising-pillar points the test switched had F 3.3-3.5 (n_eff 12) and their cam1
-#: error doubled with the gain (0.06 -> 0.13 px); the independent_movers points it fixes
-#: with the gain have F 2.7-8.3 (the ring, every term 0.17 or more) or 0.8-61 (the ball,
-#: those below 10 with a term of 0.025 or more). F(3, 6)'s 1 % point is 9.8
-#: (docs/measurements.md, "The linear gain only where it matters").
+#: :func:`decoupled_linear_gain` answers with its gain only where the gain matters: the F of
+#: the gain's three columns within the decoupled fit above this (F(3, 6)'s 1 % point is 9.8)
+#: or a fitted term of at least :data:`MIN_GAIN_CHANGE`; elsewhere with the decoupled fit
+#: without them over the same pool, which three extra unknowns only make noisier
+#: (docs/decisions/decoupling.md).
 MIN_GAIN_F = 10.0
 
-#: The least fitted gain term, |beta| (a change per frame) or |beta_u|, |beta_h| (its
-#: change over one pool radius), for which :func:`decoupled_linear_gain` answers with the
-#: gain whatever its F (:data:`MIN_GAIN_F`): the ball's switched points 0.015-0.064 (the
-#: ones below 0.02 have F 33-61), the ring's 0.17-0.32; the pillar's spurious terms
-#: 0.012-0.013 (docs/measurements.md, "The linear gain only where it matters").
-#: The least term for which :func:`gain_solution`'s coupled linear gain is tested at all:
-#: on the noise-free striped wall of tests/omniflow/test_brightness_gate.py (no brightness
-#: change, the linearisation's model error only) a least term of MIN_CHANGE let it take
-#: pools there and raised the median error 0.0032 -> 0.0040 px (p90 0.024 -> 0.043); at
-#: 0.01 / 0.02 / 0.05: 0.00325 / 0.00322 / 0.00322 (one gain's 0.00322); the spinner's
-#: slopes are 0.09-0.13 (docs/measurements.md, "The linear gain by default").
+#: The least fitted gain term, |beta| per frame or |beta_u|, |beta_h| over one pool radius,
+#: that keeps :func:`decoupled_linear_gain`'s gain whatever its F, and the least term for
+#: which :func:`gain_solution`'s coupled linear gain is tested at all: below it the terms
+#: are model error (docs/decisions/decoupling.md, docs/decisions/brightness_model.md).
 MIN_GAIN_CHANGE = 0.02
 
 

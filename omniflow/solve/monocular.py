@@ -2,8 +2,8 @@
 
 The stereo solve needs a match in cam2. An object that cam2 does not see, or
 sees only at its rim, gets no point: the crossing pillar, 0.85 m from the
-axis, covers 8,684 cam1 pixels and 283 of cam2's (docs/measurements.md, "The
-crossing pillar"). cam1 alone still has eq. (9),
+axis, covers 8,684 cam1 pixels and 283 of cam2's (docs/decisions/monocular.md).
+cam1 alone still has eq. (9),
 
     f1_h dh_1/dt + f1_theta dtheta/dt + f1_t = 0,
 
@@ -18,7 +18,7 @@ block of cam1's annulus whose gradient magnitude (the flow step's series) is
 above the :data:`PERCENTILE`-th percentile of the annulus, and that is
 farther than ``monocular_gap`` px from every stereo match, so the two answers
 do not overlap. Both constants as measured on the crossing scene
-(docs/measurements.md, "cam1-only flow"): 4 px blocks give the pillar about 250
+(docs/decisions/monocular.md): 4 px blocks give the pillar about 250
 points per frame; the 80th percentile left it 170 points and a mean radial
 flow half the truth.
 

@@ -8,7 +8,7 @@ instead of d: too long by about (k d)^2 / 12, a fraction that grows with the
 square of the motion. Below half a pixel it is lost in the noise; an object
 crossing at 0.7 px per frame in cam1 (1.2 px in cam2, whose radial flow is
 h_2 / h_1 times cam1's, eq. 14) comes out 8-9 % too fast in both components
-(docs/measurements.md, "Large motion: refine where it moves").
+(docs/decisions/refinement.md).
 
 :func:`refine_moving` re-linearises eq. (8) at the displaced points, as
 ``OmniFlowConfig.iterations`` always did, but only where the first step's
@@ -18,18 +18,17 @@ the pool radius, so that a lone wrong match whose first step happens to be fast
 is left as it is. At so few points the fitted series are evaluated exactly
 (:meth:`omniflow.paper.dct.DCTFit.evaluate`) rather than read off pixel grids, so the
 step builds no grid. Static points keep the first-order answer, which the extra
-step only makes noisier where the motion is small (the same measurements).
+step only makes noisier where the motion is small (the same page).
 
 Each point's equation is linearised about its own first-step flow and the pools
 are solved for the total flow, not for an increment: an increment pooled over
 neighbours that each moved by their own (noisy) first estimate adds the
 difference between a point's first estimate and its neighbours' to the answer,
 the first step's noise passed through a high-pass filter (on the rendered
-scenes the refined points' error rose by 10-140 % that way; docs/measurements.md,
-"The refinement solved for the total flow"). For the same reason a fast point
-pools with the neighbours of its first solve (``pools``, the k-d tree's), slow
-ones included, each linearised about its own flow: pools of the fast points
-alone are thin where few points move fast.
+scenes the refined points' error rose by 10-140 % that way; docs/decisions/refinement.md).
+For the same reason a fast point pools with the neighbours of its first solve
+(``pools``, the k-d tree's), slow ones included, each linearised about its own
+flow: pools of the fast points alone are thin where few points move fast.
 """
 
 from __future__ import annotations
@@ -128,8 +127,7 @@ def refine_moving(
     sel = moving_far(a, b, h1, h2, config.iterate_min_px)
     # pooled solves only: the direct solution's fast points are mostly its ill-conditioned
     # failures, and a Gauss-Newton step from them diverges (default scene: mean EPE at
-    # those points 5.4 -> 30 px; docs/measurements.md, "The refinement solved for the
-    # total flow")
+    # those points 5.4 -> 30 px; docs/decisions/refinement.md)
     if config.iterations == 0 or config.solver != "pooled" or sel.sum() <= MIN_NEIGHBOURS:
         return a, b, conf, np.zeros_like(sel)
     # only where the fast points form a surface: a point whose first step alone is
@@ -197,7 +195,7 @@ def _unit_rows(
     The products run in float32 (``SINGLE``; about half the float64 time): the residual,
     a difference of two grey levels of ~0.3, comes out within 2e-7 of float64's, over
     four orders below its own spread, and the refined flow within 4e-6 px
-    (docs/measurements.md, "float32 exact evaluation")."""
+    (docs/decisions/refinement.md)."""
     unit = fr["a"].unit  # polar gradients below: eq. (19)-(20)
     xd, yd = unit.pixel_of_polar(h_i + dh, th + db)
     fb, g_x, g_y = fr["b"].fit.value_and_gradient(xd, yd, single=SINGLE)  # t + 1, displaced

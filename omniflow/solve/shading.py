@@ -5,8 +5,8 @@ On a rotating curved body lit from a fixed light (a rolling ball, a pillar
 turning about its own axis) the texture moves but the shading does not: the
 image is S(x) T(x - u t), its gradient S' T + S T', of which only S T' moves,
 so the flow along the shading gradient comes out short (radially on a ball lit
-from above, tangentially on a turning pillar; docs/measurements.md, "Movers:
-decoupled radial flow"). Dividing each frame by its local mean removes a
+from above, tangentially on a turning pillar; docs/decisions/brightness_model.md).
+Dividing each frame by its local mean removes a
 shading that varies slowly against the texture (a ratio image, I / (G * I)).
 The matcher keeps the frames as given (its normalised cross-correlation does
 not need this); only the flow step's series are fitted to the flattened frames.
@@ -34,7 +34,7 @@ __all__ = ["MOVING_MIN_POINTS", "flatten_shading", "flow_units", "moving_points"
 #: Smallest group of odometry outliers :func:`moving_points` takes for a moving object.
 #: 10: the rolling ball of independent_movers has 14-19 points per pair at the
 #: defaults, and the static default scene's outliers form no group this large in
-#: two of three pairs (docs/measurements.md, "Ball, ring and spinner").
+#: two of three pairs (docs/decisions/brightness_model.md).
 MOVING_MIN_POINTS = 10
 
 

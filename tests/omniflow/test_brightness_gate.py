@@ -19,7 +19,7 @@ from omniflow.pipeline import estimate
 from omnisim.synthetic import Motion
 from tests.helpers.scenes import frames, paper_rig, sparse_true_matches, wall_scene
 
-GATE = 20.0  # the probe's gate (docs/measurements.md, "A brightness-change term in the pools")
+GATE = 20.0  # the probe's gate (docs/decisions/brightness_model.md)
 DIM = 0.99
 
 

@@ -6,7 +6,7 @@ exact chords integrated by Gauss-Legendre quadrature, error < 2e-4 px^2).
 A real rig's lit, textured surround is pasted outside the rim with the same
 coverage weights (textured_surround_image). Accuracy figures were measured by
 running these cases and printing the errors; ``python tests/omniflow/test_calibration.py``
-prints the surround table of docs/measurements.md.
+prints the surround table of docs/decisions/rim_calibration.md.
 """
 
 from __future__ import annotations
@@ -158,12 +158,13 @@ def test_rim_with_a_lit_textured_surround(case, seed):
     err = np.array([rim.x_c, rim.y_c, rim.r_m]) - truth
     # Required: 0.1 px. Measured over these cases, seeds 1-2
     # (python tests/omniflow/test_calibration.py):
-    # max |error| 0.049 px (seeds 1-3: also 0.049); the table is in docs/measurements.md.
+    # max |error| 0.049 px (seeds 1-3: also 0.049); the table is in
+    # docs/decisions/rim_calibration.md.
     assert np.abs(err).max() < 0.1, err
     assert rim.inlier_fraction > 0.85  # measured >= 0.91
     # Required: under 1 s per 512 x 512 image. Measured 0.4-0.8 s per image on the shared
     # 2-core machine under load; bounded at 3 s here so that a loaded CI runner does not
-    # fail it (the 1 s figure is checked by the table, docs/measurements.md).
+    # fail it (the 1 s figure is checked by the table, docs/decisions/rim_calibration.md).
     assert seconds < 3.0
 
 
@@ -222,7 +223,7 @@ def test_rim_search_fails_without_smoothing_along_the_circle():
 
 
 def main() -> None:
-    """Print the error and time table of the surround cases (docs/measurements.md)."""
+    """Print the error and time table of the surround cases (docs/decisions/rim_calibration.md)."""
     print("| size | centre offset | r_m | surround mean, texture | noise | seed | "
           "max abs error x_c, y_c, r_m (px) | inliers | time (s) |")  # fmt: skip
     print("|---|---|---|---|---|---|---|---|---|")

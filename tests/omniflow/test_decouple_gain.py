@@ -1,7 +1,7 @@
 """Eq. (14) tested with a linear gain (``OmniFlowConfig.decouple_gain_tol``) against truth.
 
 1. One closed-form pool whose flow breaks eq. (14) (dh_u = U - h_u W) under a gain
-   varying linearly across it (as tests/test_probe_mover_brightness.py): the decoupled
+   varying linearly across it (the pool of the deleted probe test, at 5662375): the decoupled
    model with the linear gain (:func:`omniflow.solve.gain.decoupled_linear_gain`) returns the
    flow exactly, and its sums equal a brute-force numpy design's.
 2. End to end through :func:`omniflow.pipeline.estimate`: the striped wall of

@@ -7,7 +7,7 @@ disparity whatever their own profile. On the rendered low_texture scene the dens
 kept four such matches on a plain wall, 13-14 px off in h_2, whose own profiles were just
 under ``dense_smooth`` (NCC with themselves 0.949-0.950) and whose pools' conditioning was
 0.004-0.0045 (below ``edge_smooth_floor``): they alone moved the cam1 radial gain by -0.022
-(docs/measurements.md, "The dense preset's wrong matches on low_texture"). Flagged, the flow
+(docs/decisions/dense_mode.md). Flagged, the flow
 step drops them like their seeds.
 """
 

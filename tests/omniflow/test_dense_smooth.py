@@ -5,8 +5,8 @@ On the rendered low_texture scene the dense preset's stereo outliers were 2.9 %:
 its 65 wrong densified matches lay on a plain wall, grown from seven edge matches that
 were themselves 13-15 px off, with image-1 profiles that correlate above 0.9 with
 themselves half a profile radius away (a ramp over the profile's length): the 48 were
-all of low_texture's densified matches that smooth (docs/measurements.md, "Dense preset
-on low_texture"). These tests build the mechanism on closed-form tables: a textured
+all of low_texture's densified matches that smooth (docs/decisions/dense_mode.md).
+These tests build the mechanism on closed-form tables: a textured
 section and a linear ramp section, image 2 the same shifted by 4 columns, seeds right on
 the texture and 6 columns off on the ramp.
 """

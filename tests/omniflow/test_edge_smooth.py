@@ -4,7 +4,7 @@ omniflow.matching.radial.match_radial; omniflow.matching.dense.smooth_profiles).
 On the rendered low_texture scene the default configuration's radial gain was 0.66
 (cam1): nine edge matches on a plain wall, 13-15 px off in h_2, whose pools were
 near-singular and gave radial flows 2.1 px below to 1.1 px above the 0.2 px true, set it
-alone (docs/measurements.md, "low_texture's radial gain"). NCC is blind to an affine
+alone (docs/decisions/matching.md). NCC is blind to an affine
 change of brightness, so a profile that is a ramp over its length matches any ramp of
 image 2 as well as the truth. Here the mechanism on closed-form frames: a wall whose
 texture is one slow swell up the wall (wavelength 1 m, contrast 0.06, noise 0.003 on
@@ -58,7 +58,7 @@ def test_edge_smooth_drops_the_ramp_matches(rig):
     more than 1 px); with 0.95 dropping in the matcher (``edge_smooth_floor`` None) none
     is left (the empty result warns). With the default floor (0.015) the flagged matches
     whose pools are conditioned by the white noise stay: 7 of the 11, all wrong (the
-    rendered walls' smooth matches had 0.0022-0.0038, docs/measurements.md): never more
+    rendered walls' smooth matches had 0.0022-0.0038, docs/decisions/matching.md): never more
     than without the test."""
     scene = _smooth_wall(rig)
     f1, f2 = _noisy(scene)

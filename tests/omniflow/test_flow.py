@@ -300,7 +300,7 @@ DEFAULT_MARGIN = 1.7
 DEFAULT_SLACK = 0.0005
 
 
-@pytest.mark.slow  # flow_table fixture 14.0 s (docs/measurements.md, test durations)
+@pytest.mark.slow  # flow_table fixture 14.0 s (docs/decisions/slow_tests.md)
 def test_best_variant_at_most_half_of_dis(flow_table):
     for case, row in flow_table.items():
         best = min(v for k, v in row.items() if k not in ("motion", "DIS"))
@@ -316,7 +316,7 @@ def test_best_variant_at_most_half_of_dis(flow_table):
         assert row["default"] < 0.45 * row["0.5 average difference pooled"], mname
 
 
-@pytest.mark.slow  # shares the 14.0 s flow_table fixture (docs/measurements.md, test durations)
+@pytest.mark.slow  # shares the 14.0 s flow_table fixture (docs/decisions/slow_tests.md)
 def test_paper_direct_solution_figures(flow_table):
     """The paper's choices (band 1/4, first-frame gradients, frame difference,
     direct solution): measured 0.045-0.32 px median for 0.09-0.25 px of

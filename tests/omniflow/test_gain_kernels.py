@@ -8,7 +8,7 @@ LAPACK's LU to 8e-14 relative (x) and 7e-12 (the confidence, a ratio of eigenval
 inverse) on random systems scaled over four decades (tolerance 1e-9).
 On the rendered approach, independent_movers and crossing pairs the whole gain fit agreed
 with the numpy one to 1.8e-8 relative (F) and 1.4e-12 (flow), with the same NaN pattern
-(/tmp/lead/s19/eq_gain.py, stop 19; docs/measurements.md).
+(/tmp/lead/s19/eq_gain.py, stop 19; docs/decisions/brightness_model.md).
 """
 
 from __future__ import annotations

@@ -37,8 +37,7 @@ paper's band 1/4 at most 4.1 % outliers (striped 1.5 m, seed 3); with the NCC
 alone (no left-right check, no uniqueness test, no NCC floor) 15-65 %
 outliers, the left-right check or the uniqueness test alone bringing that to
 <= 5.3 %.
-Figures of the rendered scenes: docs/measurements.md, "Matching: density,
-sharp peaks, periodic aliases, short profiles".
+Figures of the rendered scenes: docs/decisions/matching.md.
 """
 
 from __future__ import annotations

@@ -6,7 +6,7 @@ drop a match when an alias a period away exists in image 2 (or cannot be
 looked at and image 1 shows a period), keep it when image 2 rules the alias
 out. The scene-level figures (striped, periodic and room walls; the rendered
 low-texture scene) are in tests/omniflow/test_matching.py and
-docs/measurements.md, "Periodic aliases that image 2 confirms".
+docs/decisions/matching.md.
 """
 
 from __future__ import annotations

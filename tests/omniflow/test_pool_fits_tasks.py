@@ -1,5 +1,5 @@
 """The two-model test's pool fits as two tasks, and the grid sums' shared bins
-(docs/measurements.md, "Speed: the dense preset's pool fits on both threads").
+(docs/decisions/speed.md).
 
 * :func:`omniflow.solve.decoupled.start_pool_fits` answers as
   :func:`omniflow.solve.decoupled.pool_fits`

@@ -7,8 +7,8 @@ turns about the rig's axis at 0.01 rad per frame in front of a static
 textured wall at r = 2.0 m; the robot stands still. The ranges differ by
 7.5 %, inside the default ``pool_range_tol`` of 10 %, so the range test
 cannot keep the band's pools off the wall: the case the new tests are for
-(on the rendered scenes the range test already does, docs/measurements.md,
-"Pooling that respects objects"). Points: the true stereo matches at 10 % of
+(on the rendered scenes the range test already does, docs/decisions/pooling.md).
+Points: the true stereo matches at 10 % of
 cam1's pixels (seeded): 1,274 points, 2.8 % of the annulus (the robust
 matcher scores 500-800 points per frame at 256 px, validation/thresholds.toml),
 so that a pool of 48 spans its 16 px radius as it does at the matcher's points.

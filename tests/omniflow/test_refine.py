@@ -125,7 +125,7 @@ def test_single_precision_evaluation_moves_the_refined_flow_by_micro_pixels(
     give the flow of float64 ones to a few 1e-6 px at the refined points, and change
     nothing elsewhere. Measured on the turning wall (1,288 refined points): largest
     difference 3.6e-7 px in dh_1, 2.3e-7 px in h_1 dtheta (rendered approach and
-    independent_movers, pairs 0-1: 4.8e-6 px, docs/measurements.md); bound 2e-6 px.
+    independent_movers, pairs 0-1: 4.8e-6 px, docs/decisions/refinement.md); bound 2e-6 px.
     Mutation caught: the coefficients rounded to float16 in
     DCTFit.value_and_gradient (dh_1 differs by 4.3e-4 px)."""
     assert refine.SINGLE
@@ -189,7 +189,7 @@ def test_the_direct_solution_is_not_refined_where_it_moves(turning_wall):
     """``iterate_min_px`` refines pooled solves only: the direct solution's fast points
     are mostly its ill-conditioned failures and the step diverges from them (rendered
     default scene, 3 pairs: mean EPE at those 1,090 points 5.4 px first order, 30 px
-    refined; docs/measurements.md). Mutation caught: the solver test removed (the
+    refined; docs/decisions/refinement.md). Mutation caught: the solver test removed (the
     refined columns then differ from the first step's)."""
     rig, f1, f2, m, _ = turning_wall
     knobs = dict(solver="direct", iterate_min_px=1.0)

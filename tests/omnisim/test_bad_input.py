@@ -648,7 +648,7 @@ if __name__ == "__main__":  # pragma: no cover
     sys.exit(pytest.main([__file__, "-q"]))
 
 
-@pytest.mark.slow  # 5.6 s (docs/measurements.md, test durations)
+@pytest.mark.slow  # 5.6 s (docs/decisions/slow_tests.md)
 def test_two_renders_into_one_directory(tmp_path):
     """The second render is refused with one line while the first runs; the first
     finishes every frame (its temporaries are not touched by the second)."""

@@ -178,7 +178,7 @@ def _wait_for(path: Path, proc: subprocess.Popen, timeout: float = 60.0) -> None
 
 
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM], ids=["SIGKILL", "SIGTERM"])
-@pytest.mark.slow  # 5.9 s and 5.4 s (docs/measurements.md, test durations)
+@pytest.mark.slow  # 5.9 s and 5.4 s (docs/decisions/slow_tests.md)
 def test_killed_render_resumes_byte_identical(tmp_path, sig):
     ref = tmp_path / "ref"
     subprocess.run(_cmd(ref), check=True, env=_env(), timeout=120, capture_output=True)

@@ -194,7 +194,7 @@ def test_gain_se_matches_the_gains_scatter_over_noise_draws():
 
 
 def test_gain_se_flags_a_gain_set_by_a_few_points():
-    """low_texture's mechanism (docs/measurements.md, "low_texture's radial gain"): 391
+    """low_texture's mechanism (docs/decisions/matching.md): 391
     points on the line with true radial flow of rms 0.068 px, and the nine wrong matches'
     estimated flows at their true 0.18-0.22 px as measured in pair 0. The nine take the
     gain from 1.00 to 0.65 and its standard error from 0.004 to 0.33 (measured), so the

@@ -50,7 +50,7 @@ def test_same_camera_same_images_and_read_noise_as_requested(synth):
     assert not np.array_equal(_grey(ds, ["read_noise=0"], k=1), _grey(ds, ["read_noise=0"], k=0))
 
 
-@pytest.mark.slow  # 5.2 s (docs/measurements.md, test durations)
+@pytest.mark.slow  # 5.2 s (docs/decisions/slow_tests.md)
 def test_camera_sweep_writes_a_table_and_a_plot(synth, tmp_path):
     out = tmp_path / "r"
     p = subprocess.run(

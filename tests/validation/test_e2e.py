@@ -67,7 +67,7 @@ def _run(key: str, tmp_path: Path, capsys) -> dict:
 
 
 @pytest.mark.parametrize("key", SYNTHETIC)
-@pytest.mark.slow  # 12.7 s and 10.3 s (docs/measurements.md, test durations)
+@pytest.mark.slow  # 12.7 s and 10.3 s (docs/decisions/slow_tests.md)
 def test_synthetic_end_to_end(key, tmp_path, capsys):
     summary = _run(key, tmp_path, capsys)
     names = [m["name"] for m in summary["methods"]]

@@ -118,7 +118,7 @@ def _one_line_exit_2(p, needle):
     assert needle in lines[0], lines[0]
 
 
-@pytest.mark.slow  # 6.3 s (docs/measurements.md, test durations)
+@pytest.mark.slow  # 6.3 s (docs/decisions/slow_tests.md)
 def test_cli_refuses_bad_out_and_scene_key(synth, tmp_path):
     afile = tmp_path / "afile"
     afile.write_text("x")
@@ -152,7 +152,7 @@ def test_cli_refuses_a_bad_camera_parameter(synth, tmp_path):
     assert not (tmp_path / "o").exists()
 
 
-@pytest.mark.slow  # 9.6 s (docs/measurements.md, test durations)
+@pytest.mark.slow  # 9.6 s (docs/decisions/slow_tests.md)
 def test_cli_refuses_incomplete_dataset_and_nan_radiance(synth, tmp_path):
     from omnisim.dataset import read_exr, write_exr
 

@@ -96,7 +96,7 @@ def test_every_image_is_a_relative_existing_png(report):
         assert img is not None and img.shape[0] > 50 and img.shape[1] > 50, src
 
 
-@pytest.mark.slow  # 11.4 s (docs/measurements.md, test durations)
+@pytest.mark.slow  # 11.4 s (docs/decisions/slow_tests.md)
 def test_report_renders_in_chromium(report, tmp_path):
     shot = _screenshot(report / "report.html", tmp_path / "shot.png", tmp_path / "profile")
     grey = cv2.cvtColor(shot, cv2.COLOR_BGR2GRAY)

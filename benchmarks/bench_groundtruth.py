@@ -1,7 +1,8 @@
 """Seconds per ground_truth_frame (both cameras, 256 px, scenes/default.toml, frames 2..7).
 
-Run from a checkout: ``PYTHONPATH=$PWD nice python3 benchmarks/bench_groundtruth_v2.py LABEL``;
-compare two checkouts by running it in each, interleaved (docs/measurements.md).
+Run from a checkout: ``PYTHONPATH=$PWD nice python3 benchmarks/bench_groundtruth.py LABEL``;
+compare two checkouts by running it in each, interleaved
+(docs/decisions/ground_truth.md).
 """
 
 import statistics
