@@ -167,8 +167,9 @@ def _colors(draw: Draw) -> tuple[list[float], list[float]]:
 
 
 def texture_table(draw: Draw, scale: float, *, allow_solid: bool = False) -> dict[str, Any]:
-    """One texture whose feature sizes are ``scale`` times the library's walls (0.08-0.8 m,
-    for walls about 2.5 m away at 512 px: features of 5 to 100 px).
+    """One texture for a surface about ``scale`` metres away: sizes are ``scale`` times
+    the ranges below, so the finest features stay about 2.5 px wide at 128 px (10 px at
+    512 px; the library's walls are 0.08-0.8 m at 2.5 m, 2.4 times finer).
 
     Types: noise in one of three wavelength bands, grating, checker, the shipped image
     ``library:assets/poster.png`` and (``allow_solid``) a plain colour. ``contrast`` is
@@ -181,7 +182,7 @@ def texture_table(draw: Draw, scale: float, *, allow_solid: bool = False) -> dic
     contrast = draw.log_uniform(0.1, 1.0)
     lo, hi = _colors(draw)
     if kind == "noise":
-        band = draw.choice(((0.05, 0.5), (0.1, 1.0), (0.25, 2.5)))
+        band = draw.choice(((0.08, 0.8), (0.15, 1.5), (0.3, 3.0)))
         wl = [band[0] * scale, band[1] * scale]
         return {
             "type": "noise",
@@ -194,7 +195,7 @@ def texture_table(draw: Draw, scale: float, *, allow_solid: bool = False) -> dic
             "seed": draw.seed(),
         }
     if kind == "grating":
-        wl = draw.log_uniform(0.08, 0.5) * scale
+        wl = draw.log_uniform(0.1, 0.6) * scale
         return {
             "type": "grating",
             "tile": wl * draw.integer(4, 10),
@@ -399,8 +400,7 @@ def movers(
             "position": pos,
             "rotation": [draw.uniform(0.0, 360.0) for _ in range(3)],
         }
-        # features at half the walls' scale for this distance (the library's objects)
-        obj["texture"] = texture_table(draw, max(0.2, 0.2 * dist))
+        obj["texture"] = texture_table(draw, 0.7 * dist)
         obj["material"] = material_table(draw, 0.3)
         obj["motion"] = motion_tbl
         objs.append(obj)
@@ -444,13 +444,13 @@ def clutter(
     draw: Draw,
     count: int,
     box: tuple[float, float, float, float],
-    keep_out: tuple[float, float, float],
+    keep_out: Sequence[tuple[float, float, float]],
     floor: float,
     height: float,
     texture_scale: float,
 ) -> list[dict[str, Any]]:
     """Up to ``count`` static crates, pillars and boulders standing in ``box``, each outside
-    the disc ``keep_out`` = (x, y, radius) about the robot (20 tries each, else left out)."""
+    every disc (x, y, radius) of ``keep_out`` (20 tries each, else left out)."""
     out = []
     for i in range(count):
         kind = draw.choice(("crate", "pillar", "boulder"))
@@ -458,7 +458,7 @@ def clutter(
         for _ in range(20):
             x = draw.uniform(box[0] + size, box[1] - size)
             y = draw.uniform(box[2] + size, box[3] - size)
-            if math.hypot(x - keep_out[0], y - keep_out[1]) > keep_out[2] + size:
+            if all(math.hypot(x - kx, y - ky) > kr + size for kx, ky, kr in keep_out):
                 break
         else:
             continue
@@ -499,28 +499,27 @@ def clutter(
 def ceiling_lights(
     draw: Draw, size: Sequence[float], factor: float, count: int
 ) -> list[dict[str, Any]]:
-    """``count`` area lights under a ceiling at ``size[2]``, facing down.
+    """``count`` point lights below a ceiling at ``size[2]`` (at 0.8 of the height).
 
-    Radiance is the library's 12 times ``factor``, times (height / 3 m)^2 and the room's
-    floor area per light over the library's (15 m^2, two 1.44 m^2 lights), so the floor
-    gets about the library's irradiance times ``factor``.
+    Point lights, not the library's area lights: no camera ray can hit them, so no
+    light's edge (which has no object id for the checks to mask) moves across the image.
+    Intensity is the library's area light (radiance 12 over 1.44 m^2: 17.28 W/sr) times
+    ``factor``, times (height / 3 m)^2 and the floor area per light over the library's
+    15 m^2, so the floor gets about the library's irradiance times ``factor``.
     """
     sx, sy, sz = size
+    share = max(1.0, sx * sy / count / 15.0)
     out = []
     for _ in range(count):
-        w, h = draw.uniform(0.6, 1.6), draw.uniform(0.6, 1.6)
-        area_share = max(1.0, sx * sy / count / 15.0) * (1.44 / (w * h))
         out.append(
             {
-                "type": "area",
+                "type": "point",
                 "position": [
-                    draw.uniform(-sx / 2 + w, sx / 2 - w),
-                    draw.uniform(-sy / 2 + h, sy / 2 - h),
-                    sz - 0.05,
+                    draw.uniform(-0.3 * sx, 0.3 * sx),
+                    draw.uniform(-0.3 * sy, 0.3 * sy),
+                    0.8 * sz,
                 ],
-                "size": [w, h],
-                "normal": [0.0, 0.0, -1.0],
-                "radiance": AREA_RADIANCE * factor * (sz / 3.0) ** 2 * area_share,
+                "intensity": AREA_RADIANCE * 1.44 * factor * (sz / 3.0) ** 2 * share,
             }
         )
     return out

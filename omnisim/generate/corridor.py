@@ -17,5 +17,4 @@ def build(draw: c.Draw) -> tuple[dict[str, Any], list[str]]:
     sx = size[0]
     heading = draw.uniform(-0.2, 0.2)  # down the corridor (+X), within 11 degrees
     start = (-sx / 2 + 0.8, -sx / 2 + sx / 3)
-    lights = max(2, round(sx / 3.0))
-    return furnished_box(draw, size, max_clutter=2, heading=heading, start=start, lights=lights)
+    return furnished_box(draw, size, max_clutter=2, heading=heading, start=start, lights=2)

@@ -17,7 +17,7 @@ def build(draw: c.Draw) -> tuple[dict[str, Any], list[str]]:
     sx, sy = 2 * draw.uniform(8.0, 30.0), 2 * draw.uniform(8.0, 30.0)
     # provisional height; furnished_box draws the rig, so the ceiling is checked after
     size = [sx, sy, 12.0]
-    data, notes = furnished_box(draw, size, max_clutter=3, heading=None, lights=6)
+    data, notes = furnished_box(draw, size, max_clutter=3, heading=None, lights=2)
     rig, z = data["rig"], data["robot"]["position"][2]
     # cam2 sees h <= (d + r) R / (d + R) above its tip: the ceiling enters the common view
     # at r = (H - z) (d + R) / R - d; keep that within 0.8 of the far walls' distance
@@ -30,18 +30,20 @@ def build(draw: c.Draw) -> tuple[dict[str, Any], list[str]]:
             obj["height"] = height
             obj["position"][2] = height / 2
     for light in data["lights"]:
-        light["position"][2] = height - 0.05
-        light["radiance"] *= (height / 12.0) ** 2  # drawn for 12 m
-    data["objects"] += _columns(draw, sx, sy, height, data["robot"]["position"], rig["R"])
+        light["position"][2] = 0.8 * height
+        light["intensity"] *= (height / 12.0) ** 2  # drawn for 12 m
+    lights = [li["position"] for li in data["lights"]]
+    data["objects"] += _columns(draw, sx, sy, height, data["robot"]["position"], rig["R"], lights)
     notes[0] = notes[0].replace("x 12.0 m", f"x {height:.1f} m", 1)
     return data, notes
 
 
-def _columns(draw: c.Draw, sx: float, sy: float, height: float, robot, R: float) -> list:
-    """A grid of columns every 4-8 m, leaving out those within 1.5 m of the robot."""
+def _columns(draw: c.Draw, sx: float, sy: float, height: float, robot, R: float, lights) -> list:
+    """A grid of columns every 4-8 m, leaving out those within 1.5 m of the robot and
+    those within 0.3 m of a light (which they would swallow)."""
     pitch = draw.uniform(4.0, 8.0)
     radius = draw.uniform(0.2, 0.6)
-    tex = c.texture_table(draw, 0.5 * (sx + sy) / 4 / 2.5)  # half the walls' scale
+    tex = c.texture_table(draw, min(sx, sy) / 4)  # half way to the nearer walls
     out = []
     nx, ny = int(sx / pitch) - 1, int(sy / pitch) - 1
     for i in range(nx):
@@ -49,6 +51,8 @@ def _columns(draw: c.Draw, sx: float, sy: float, height: float, robot, R: float)
             x = -sx / 2 + pitch * (i + 1)
             y = -sy / 2 + pitch * (j + 1)
             if math.hypot(x - robot[0], y - robot[1]) < 1.5 + radius + R or len(out) >= 12:
+                continue
+            if any(math.hypot(x - p[0], y - p[1]) < radius + 0.3 for p in lights):
                 continue
             out.append(
                 {

@@ -34,9 +34,10 @@ def build(draw: c.Draw) -> tuple[dict[str, Any], list[str]]:
     }
     objects = [ground, *_far_ring(draw, far)]
     near = 0.6 * far
-    keep = (rx, ry, rig["R"] + travel + 0.4)
+    keep = [(rx, ry, rig["R"] + travel + 0.4)]
     box = (rx - near, rx + near, ry - near, ry + near)
-    objects += c.clutter(draw, draw.integer(1, 6), box, keep, 0.0, draw.uniform(1.5, 4.0), 0.6)
+    height = draw.uniform(1.5, 4.0)
+    objects += c.clutter(draw, draw.integer(1, 6), box, keep, 0.0, height, 0.3 * far)
     moving, mover_notes = c.movers(draw, layout, (rx, ry), near, draw.integer(0, 6))
     objects += moving
     elevation = math.radians(draw.uniform(15.0, 75.0))
@@ -75,7 +76,7 @@ def build(draw: c.Draw) -> tuple[dict[str, Any], list[str]]:
 
 def _far_ring(draw: c.Draw, far: float) -> list[dict[str, Any]]:
     """An open cylinder wall of radius ``far`` (2-8 m high), or 6-12 buildings on that ring."""
-    scale = far / 2.5
+    scale = far
     height = draw.uniform(2.0, 8.0)
     if draw.chance(0.5):
         return [

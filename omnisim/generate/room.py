@@ -34,7 +34,7 @@ def furnished_box(
     half = min(sx, sy) / 2
     rig = c.draw_rig(draw, max_common_range=half - 0.6)
     factor = c.light_factor(draw)
-    layout = c.Layout(width=width, rig=rig, distance=(sx + sy) / 4)
+    layout = c.Layout(width=width, rig=rig, distance=half)  # the nearer walls
     mcr = layout.min_common_range
     z_hi = min(1.2, sz - rig["s"] - rig["R"] - 0.15)
     z = draw.uniform(rig["d"] + 0.2, max(rig["d"] + 0.2, z_hi))
@@ -47,7 +47,7 @@ def furnished_box(
     c.shift_robot(robot, (x_lo, x_hi, -sy / 2 + inset, sy / 2 - inset), draw)
     rx, ry = robot["position"][:2]
     room_box = (-sx / 2, sx / 2, -sy / 2, sy / 2)
-    scale = layout.distance / 2.5
+    scale = half  # the nearer walls' distance
     room: dict[str, Any] = {
         "name": "room",
         "type": "room",
@@ -58,7 +58,11 @@ def furnished_box(
         if draw.chance(0.6):
             room[part] = c.texture_table(draw, scale)
     room["material"] = c.material_table(draw, 0.25)
-    keep = (rx, ry, rig["R"] + travel + 0.4)
+    n_lights = lights if lights is not None else max(1, min(2, round(sx * sy / 15.0)))
+    light_tables = c.ceiling_lights(draw, size, factor, n_lights)
+    # clutter stays off the robot's path and off the lights (a pillar could swallow one)
+    keep = [(rx, ry, rig["R"] + travel + 0.4)]
+    keep += [(li["position"][0], li["position"][1], 0.3) for li in light_tables]
     objects = [
         room,
         *c.clutter(draw, draw.integer(0, max_clutter), room_box, keep, 0.0, sz, 0.5 * scale),
@@ -66,14 +70,13 @@ def furnished_box(
     reach = max(0.5, min(rx - room_box[0], room_box[1] - rx, ry - room_box[2], room_box[3] - ry))
     moving, mover_notes = c.movers(draw, layout, (rx, ry), reach - 0.2, draw.integer(0, 6))
     objects += moving
-    n_lights = lights if lights is not None else max(1, min(4, round(sx * sy / 15.0)))
     data = {
         "render": c.render_table(draw, width),
         "rig": rig,
         "camera": c.camera_table(draw, factor),
         "robot": robot,
         "objects": objects,
-        "lights": c.ceiling_lights(draw, size, factor, n_lights),
+        "lights": light_tables,
     }
     notes = [
         f"room {sx:.1f} x {sy:.1f} x {sz:.1f} m; rig d = {rig['d']}, R = {rig['R']}, "
