@@ -505,10 +505,11 @@ def ceiling_lights(
     light's edge (which has no object id for the checks to mask) moves across the image.
     Intensity is the library's area light (radiance 12 over 1.44 m^2: 17.28 W/sr) times
     ``factor``, times (height / 3 m)^2 and the floor area per light over the library's
-    15 m^2, so the floor gets about the library's irradiance times ``factor``.
+    15 m^2 (at most 4: more saturated the floor near the lights of a hall), so the floor
+    gets about the library's irradiance times ``factor`` (less far from the lights).
     """
     sx, sy, sz = size
-    share = max(1.0, sx * sy / count / 15.0)
+    share = min(4.0, max(1.0, sx * sy / count / 15.0))
     out = []
     for _ in range(count):
         out.append(

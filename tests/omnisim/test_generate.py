@@ -34,7 +34,7 @@ SEEDS = range(20)
 GOLDEN = {
     "room": "758a42bdc2aa2dfa35283b363c00c50e4c384cfcbd1ddecd4af4a7415d4ba955",
     "corridor": "bea4500956603996bc9924bafb1ca135ddeadbf77af0b2c5a69577b25e36f8ae",
-    "hall": "e885addae3b6f7dbe51599b681378dc801bd2bcb83004ee1973fba4b6a656fbe",
+    "hall": "6b2cc4ec791fd8b81482cf60bdefdffa65d128508816380a641162d71c169b5d",
     "outdoor": "9d6866c6456d169c2490ed2de74c8ddc7b6f38927297b672518db2402bafa77a",
 }
 
