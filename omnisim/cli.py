@@ -1,5 +1,6 @@
-"""The ``omnisim`` command: ``omnisim render SCENE --out DIR``, ``omnisim check DIR`` and
-``omnisim export DIR --format sintel|kitti|png --out OUT``.
+"""The ``omnisim`` command: ``omnisim render SCENE --out DIR``, ``omnisim check DIR``,
+``omnisim export DIR --format sintel|kitti|png --out OUT`` and
+``omnisim generate --family F --seed N --out scene.toml`` (:mod:`omnisim.generate.command`).
 
 Exit status: 0 success; 1 a self-check failed (``check``, or ``render --check``),
 or the environment failed (a renderer package not installed, a Dask scheduler that
@@ -204,6 +205,9 @@ def build_parser() -> argparse.ArgumentParser:
     from omnisim.export import add_export_parser
 
     e = add_export_parser(sub)
+    from omnisim.generate.command import add_generate_parser
+
+    add_generate_parser(sub)
     for sp in (r, c, e):
         sp.add_argument(
             "--debug", action="store_true", help="show the Python traceback of an error"
@@ -374,6 +378,10 @@ def main(argv: list[str] | None = None) -> int:
         try:
             if args.command == "render":
                 return _cmd_render(args)
+            if args.command == "generate":
+                from omnisim.generate.command import run_cli as run_generate
+
+                return run_generate(args)
             if args.command == "export":
                 from omnisim.export import run_cli
 

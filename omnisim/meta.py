@@ -32,6 +32,7 @@ from omniflow.io.dataset import (
     FORMAT_VERSION,
 )
 from omniflow.io.jsonio import jsonable
+from omnisim.scene_checker import LIBRARY_PREFIX, resolve_scene_path
 
 __all__ = [
     "DEFAULT_RENDERER",
@@ -93,8 +94,11 @@ def input_files(scene: Any) -> dict[str, dict[str, Any]]:
     files: dict[str, dict[str, Any]] = {}
     for key, value in found:
         p = Path(value)
-        full = p if p.is_absolute() else base / p
-        name = os.path.relpath(full.resolve(), base) if not p.is_absolute() else str(full)
+        full = resolve_scene_path(value, base)
+        if value.startswith(LIBRARY_PREFIX):  # the same name on every machine
+            name = value
+        else:
+            name = os.path.relpath(full.resolve(), base) if not p.is_absolute() else str(full)
         if name in files:
             continue
         digest = hashlib.sha256()

@@ -22,6 +22,20 @@ class SceneError(ValueError):
 
 REQUIRED = object()
 
+#: The scene library (``scenes/`` beside the package). A file path ``"library:P"`` in a
+#: scene means ``LIBRARY_DIR / P``, so a generated scene can use the shipped assets
+#: (``"library:assets/poster.png"``) wherever its file is written.
+LIBRARY_DIR = Path(__file__).resolve().parents[1] / "scenes"
+LIBRARY_PREFIX = "library:"
+
+
+def resolve_scene_path(text: str, base: Path) -> Path:
+    """The file a scene's path string names: ``library:P``, absolute, or relative to ``base``."""
+    if text.startswith(LIBRARY_PREFIX):
+        return LIBRARY_DIR / text[len(LIBRARY_PREFIX) :]
+    p = Path(text)
+    return p if p.is_absolute() else base / p
+
 
 class Checker:
     """Reads typed values out of tables, raising SceneError naming file and key."""
@@ -147,8 +161,7 @@ class Checker:
         full, v = self._get(tbl, key, where, REQUIRED)
         if not isinstance(v, str) or not v:
             raise self.bad(full, v, "a file path (relative to the scene file)")
-        p = Path(v)
-        p = p if p.is_absolute() else base / p
+        p = resolve_scene_path(v, base)
         if suffixes is not None and p.suffix.lower() not in suffixes:
             raise self.bad(full, v, "a file ending in " + ", ".join(suffixes))
         if not p.is_file():

@@ -435,6 +435,15 @@ def test_missing_mesh_and_texture_files(tmp_path):
     expect_error(write(tmp_path, mesh), "objects[1].path")
 
 
+def test_library_prefix_names_the_shipped_assets(tmp_path):
+    # "library:P" resolves against scenes/, wherever the scene file is (generated scenes)
+    tex = BASE.replace("tile = 2.0", 'type = "image"\npath = "library:assets/poster.png"')
+    scene = load_scene(write(tmp_path, tex.replace("wavelength = [0.1, 1.0]\n", "")))
+    assert scene.objects[0].texture.shape == (256, 256, 3)  # poster.png is 256 x 256
+    missing = tex.replace("poster.png", "nothing.png").replace("wavelength = [0.1, 1.0]\n", "")
+    expect_error(write(tmp_path, missing), "objects[0].texture.path", "not found", "nothing.png")
+
+
 # -- meshes from files ----------------------------------------------------------
 
 
