@@ -31,6 +31,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from . import baselines as bl
+from .densify import interpolate_flow
 from .external import ExternalOutput
 from .inputs import CAMERAS, InputError, Inputs, camera_model
 from .metrics import stats
@@ -336,6 +337,9 @@ def _score_pair(run: _Run, t: int) -> None:
             x, y, est = omniflow_points(cols, cam)
             err = score_flow(est, x, y, truth[cam])
             results.flow[(name, "own", cam)].append(err)
+            # The same flow made dense (validation.densify), scored at every valid pixel.
+            field = interpolate_flow(pair.first[cam], x, y, est["dx"], est["dy"])
+            results.flow[(name, "interpolated", cam)].append(score_dense(None, truth[cam], field))
             row = flow_row(t, name, "own", cam, err, seconds)
             # The baselines at exactly these points, for a like-for-like column.
             for b in dense:
