@@ -79,6 +79,20 @@ def _parser() -> argparse.ArgumentParser:
     return ap
 
 
+def _split_names(text: str) -> list[str]:
+    """Split a comma-separated list of method names, keeping the commas inside a row
+    name's brackets (``omniflow[robust,gradavg,diff,pooled]``)."""
+    names, depth, cur = [], 0, ""
+    for ch in text:
+        depth += {"[": 1, "]": -1}.get(ch, 0)
+        if ch == "," and depth == 0:
+            names.append(cur)
+            cur = ""
+        else:
+            cur += ch
+    return [n.strip() for n in [*names, cur] if n.strip()]
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[2:] if argv is None else argv)
     args = _parser().parse_args(argv)
@@ -105,7 +119,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         external[name.strip()] = Path(folder)
     names = None
     if args.methods is not None:
-        names = [n.strip() for text in args.methods for n in text.split(",") if n.strip()]
+        names = [n for text in args.methods for n in _split_names(text)]
     start = time.perf_counter()
     try:
         suite = load_suite(args.suite_file)
