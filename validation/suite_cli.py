@@ -29,7 +29,7 @@ for choosing a default or a threshold (docs/suite.md).
 
 external methods (--method-output NAME=DIR, repeatable): DIR/SCENE/frames/NNNNNN/
 cam1.flo + cam2.flo (dense) or flow.csv (per point), one SCENE folder per scored scene;
-example in validation/examples/submission/.
+example: python -m validation.examples.suite_submission RUN SUBMISSION
 
 examples:
   omnivalidate suite scenes/suite/mini.toml --split test --out runs/mini

@@ -107,7 +107,7 @@ def test_leaderboard_ranks_by_1px_and_counts_a_missing_scene_as_failed():
 @pytest.mark.slow
 def test_omnivalidate_suite_end_to_end(tmp_path, capsys):
     from validation.cli import main as omnivalidate
-    from validation.examples.dis_method_output import write_dis_outputs
+    from validation.examples.suite_submission import write_submission
     from validation.suite_run import method_catalogue
 
     suite = _suite(tmp_path, _file_entry("default", "default.toml")
@@ -144,10 +144,10 @@ def test_omnivalidate_suite_end_to_end(tmp_path, capsys):
     text = capsys.readouterr().out
     assert text.count("scored before") == 2 and "0 frames rendered, 2 already there" in text
 
-    # An external method, one folder per scene in the --method-output layout.
+    # An external method, one folder per scene in the --method-output layout (the
+    # documented example writes DIS flow as a submission).
     ext = tmp_path / "mine"
-    for scene in ("default", "turn"):
-        write_dis_outputs(out / "renders" / scene, ext / scene)
+    assert write_submission(out, ext) == {"default": 1, "turn": 1}
     assert omnivalidate([*argv, "--method-output", f"mine={ext}"]) == 0
     board = json.loads((out / "leaderboard.json").read_text())
     rows = {r["method"]: r for r in board["methods"]}
