@@ -7,7 +7,7 @@ that field itself; a sparse one (omniflow, a per-point external output) gets it 
 matches by edge-aware geodesic distance on the first image; Revaud et al., "EpicFlow",
 CVPR 2015). Its Fast Global Smoother post-pass is off: it moves even an exact affine
 field by 0.04 px on average, so the dense score would measure the smoother, not the
-method (docs/decisions/dense-interpolation.md gives the figures).
+method (docs/decisions/dense_interpolation.md gives the figures).
 """
 
 from __future__ import annotations
