@@ -105,23 +105,15 @@ def leaderboard(
     scenes: Sequence[tuple[str, str, Mapping[str, Any]]], *, suite: Mapping[str, Any]
 ) -> dict[str, Any]:
     """The leaderboard of ``(scene, split, summary)`` triples as a JSON-able dict:
-    ``methods`` (aggregated, ranked) and ``scenes`` (each scene's rows, ranked)."""
+    ``methods`` (aggregated over every scene, ranked), ``splits`` (the same per split,
+    when the scenes come from both) and ``scenes`` (each scene's rows, ranked)."""
     per_scene = {name: _ranked(scene_rows(name, split, s)) for name, split, s in scenes}
-    by_method: dict[str, list[dict[str, Any]]] = {}
-    for rows in per_scene.values():
-        for r in rows:
-            by_method.setdefault(r["method"], []).append(r)
-    agg = []
-    for method, rows in by_method.items():
-        a: dict[str, Any] = {"method": method, "scene": "all", "split": "", "kind": rows[0]["kind"]}
-        for k in PROTOCOL_METRICS:
-            vals = [_FAILED[k] if r["missing"] else r[k] for r in rows]
-            a[k] = math.nan if any(math.isnan(v) for v in vals) else _mean(vals)
-        for k in _MEANS:
-            a[k] = _mean([r[k] for r in rows])
-        a["scenes"] = len(rows)
-        a["missing"] = sum(r["missing"] for r in rows)
-        agg.append(a)
+    splits = sorted({split for _, split, _ in scenes})
+    split_of = {name: split for name, split, _ in scenes}
+    by_split = {
+        sp: _aggregate([rows for n, rows in per_scene.items() if split_of[n] == sp], sp)
+        for sp in splits
+    }
     return {
         "format": FORMAT,
         "suite": dict(suite),
@@ -132,9 +124,31 @@ def leaderboard(
             "fl": "fraction with EPE > 3 px and > 5 % of the true flow (KITTI)",
             "wauc": "weighted area under the accuracy curve, 0.05-5 px (VIPER), higher better",
         },
-        "methods": _ranked(agg),
+        "methods": _aggregate(list(per_scene.values()), ""),
+        "splits": by_split if len(splits) > 1 else {},
         "scenes": per_scene,
     }
+
+
+def _aggregate(scene_lists: Sequence[list[dict[str, Any]]], split: str) -> list[dict[str, Any]]:
+    """Each method's mean over the scenes (module docstring), ranked."""
+    by_method: dict[str, list[dict[str, Any]]] = {}
+    for rows in scene_lists:
+        for r in rows:
+            by_method.setdefault(r["method"], []).append(r)
+    agg = []
+    for method, rows in by_method.items():
+        a: dict[str, Any] = {"method": method, "scene": "all", "split": split,
+                             "kind": rows[0]["kind"]}  # fmt: skip
+        for k in PROTOCOL_METRICS:
+            vals = [_FAILED[k] if r["missing"] else r[k] for r in rows]
+            a[k] = math.nan if any(math.isnan(v) for v in vals) else _mean(vals)
+        for k in _MEANS:
+            a[k] = _mean([r[k] for r in rows])
+        a["scenes"] = len(rows)
+        a["missing"] = sum(r["missing"] for r in rows)
+        agg.append(a)
+    return _ranked(agg)
 
 
 def _table(doc: Doc, rows: Sequence[Mapping[str, Any]], aggregated: bool) -> None:
@@ -172,6 +186,9 @@ def _document(board: Mapping[str, Any], command: str | None) -> Doc:
         doc.code(command)
     doc.h(2, "All scenes (mean over scenes)")
     _table(doc, board["methods"], aggregated=True)
+    for split, rows in board.get("splits", {}).items():
+        doc.h(2, f"Split {split} (mean over its scenes)")
+        _table(doc, rows, aggregated=True)
     for name, rows in board["scenes"].items():
         split = rows[0]["split"] if rows else ""
         doc.h(2, f"Scene {name} ({split})")
@@ -183,7 +200,9 @@ def _csv(board: Mapping[str, Any]) -> str:
     buf = io.StringIO()
     w = csv.DictWriter(buf, fieldnames=list(COLUMNS), extrasaction="ignore", lineterminator="\n")
     w.writeheader()
-    for r in [*board["methods"], *(r for rows in board["scenes"].values() for r in rows)]:
+    splits = [r for rows in board.get("splits", {}).values() for r in rows]
+    scenes = [r for rows in board["scenes"].values() for r in rows]
+    for r in [*board["methods"], *splits, *scenes]:
         w.writerow({k: ("" if isinstance(v, float) and math.isnan(v) else v)
                     for k, v in r.items()})  # fmt: skip
     return buf.getvalue()

@@ -101,6 +101,20 @@ def test_leaderboard_ranks_by_1px_and_counts_a_missing_scene_as_failed():
     assert math.isnan(agg["B"]["epe"])  # undefined, not the mean of the scene it scored
     assert agg["A"]["epe"] == pytest.approx(0.6)
     assert [r["method"] for r in board["scenes"]["s2"]] == ["A", "B"]
+    assert board["splits"] == {}  # one split: its aggregate is the whole board's
+
+
+def test_leaderboard_aggregates_each_split_when_both_are_scored():
+    board = leaderboard(
+        [("s1", "train", _summary([("A", 0.10, 0.5, 10), ("B", 0.20, 0.4, 10)])),
+         ("s2", "test", _summary([("A", 0.30, 0.7, 10), ("B", 0.05, 0.2, 10)]))],
+        suite={"name": "t"},
+    )  # fmt: skip
+    # train: A 0.10 < B 0.20; test: B 0.05 < A 0.30; all: A 0.20 > B 0.125.
+    assert [r["method"] for r in board["splits"]["train"]] == ["A", "B"]
+    assert [r["method"] for r in board["splits"]["test"]] == ["B", "A"]
+    assert [r["method"] for r in board["methods"]] == ["B", "A"]
+    assert board["methods"][0]["1px"] == pytest.approx(0.125)
 
 
 @pytest.mark.render
