@@ -176,7 +176,10 @@ def render_on_cluster(
         lonely_since = None
         while running:
             try:
-                done, _ = wait(list(running), timeout=POLL, return_when="FIRST_COMPLETED")
+                # distributed.wait looks up the default client; with an address and no
+                # Client of the caller's (omnisim render --scheduler) there is none.
+                with client.as_current():
+                    done, _ = wait(list(running), timeout=POLL, return_when="FIRST_COMPLETED")
             except TimeoutError:
                 done = set()
             except OSError as exc:

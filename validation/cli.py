@@ -43,6 +43,8 @@ scoring another method (--method-output DIR, repeatable; format in docs/validati
   python -m validation.examples.dis_method_output runs/default runs/dis-out
   omnivalidate runs/default --out runs/r --method-output runs/dis-out
 
+a benchmark suite (every scene, every method, one leaderboard): omnivalidate suite --help
+
 examples:
   omnisim render scenes/default.toml --out runs/default --resolution 128 --spp 4 --frames 3
   omnivalidate runs/default --out runs/default-report
@@ -217,6 +219,10 @@ def _closing_line(summary: dict, pairs: int, seconds: float, report: Path) -> st
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    if (sys.argv[1:] if argv is None else list(argv))[:1] == ["suite"]:
+        from .suite_cli import main as suite_main  # the subcommand: omnivalidate suite ...
+
+        return suite_main(sys.argv[2:] if argv is None else list(argv)[1:])
     args = _parser().parse_args(argv)
     from omniflow.geometry.rig import RigError
     from omniflow.io.dataset import DatasetError

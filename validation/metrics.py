@@ -22,6 +22,25 @@ Flow metrics follow the optical-flow benchmarks (Middlebury, KITTI, Sintel):
   mean and median signed error. A method that shrinks its answers towards zero
   has a small median EPE at sub-pixel motion but a gain well below 1.
 
+The benchmark protocol (:func:`protocol_metrics`, :func:`protocol_splits`), the
+same four figures for every method on every scene of a suite:
+
+* ``epe``: mean endpoint error (px);
+* ``1px``: the 1 px outlier rate, the fraction of points with EPE > 1 px, the
+  primary metric (Spring, Mehl et al., CVPR 2023); lower is better;
+* ``fl``: the fraction of points whose EPE is > 3 px *and* > 5 % of the true
+  flow magnitude (KITTI 2015 Fl, Menze and Geiger, CVPR 2015);
+* ``wauc``: the weighted area under the accuracy curve (VIPER, Richter et al.,
+  "Playing for Benchmarks", ICCV 2017, used by Spring): with thresholds
+  delta_i = 0.05 i px and weights w_i = 1 - (i - 1) / 100 for i = 1..100,
+  ``sum_i w_i a_i / sum_i w_i`` where a_i is the fraction of points with
+  EPE <= delta_i; 1 = every point within 0.05 px, higher is better;
+
+split by region (``matched``: ``gt.flow.valid`` = 1; ``occluded``; ``outside``:
+the point leaves the mirror, ``gt.flow.outside``), by rigidity (``static``
+scene vs ``moving`` objects), by true speed (:data:`PROTOCOL_SPEED_BINS`) and by
+true range (:data:`PROTOCOL_RANGE_BINS`).
+
 Stereo metrics: matched ``h_2`` more than 1 px from ``gt.stereo.h_other`` is an
 outlier; relative error of ``r`` (``|r - r_gt| / r_gt``) and absolute error of
 ``h`` (metres), split by true range.
@@ -38,23 +57,45 @@ import scipy.stats
 from numpy.typing import ArrayLike, NDArray
 
 __all__ = [
+    "PROTOCOL_METRICS",
+    "PROTOCOL_RANGE_BINS",
+    "PROTOCOL_SPEED_BINS",
     "RANGE_BINS",
     "SPEED_BINS",
     "bin_label",
+    "fl_rate",
     "flow_errors",
     "flow_summary",
     "gain",
+    "outlier_rate",
     "polar_components",
+    "protocol_metrics",
+    "protocol_splits",
     "rate",
     "stats",
     "stereo_errors",
     "stereo_summary",
+    "wauc",
 ]
 
 #: Speed bins in pixels per frame (true displacement magnitude).
 SPEED_BINS: tuple[float, ...] = (0.0, 0.25, 0.5, 1.0, 3.0, math.inf)
 #: Range bins in metres (true distance from the axis).
 RANGE_BINS: tuple[float, ...] = (0.0, 1.0, 2.0, 4.0, math.inf)
+
+#: The protocol's metric names, in the leaderboard's column order.
+PROTOCOL_METRICS: tuple[str, ...] = ("1px", "epe", "fl", "wauc")
+#: Speed bins of the protocol (px per frame, true displacement magnitude): this rig's
+#: motions run from sub-pixel (a slow robot, far surfaces) to several pixels per frame
+#: (fast yaw, near movers); octaves from 0.5 px split where the gradient-based flow
+#: is first order (< 1 px), where it needs its pyramid (1-4 px), and beyond (>= 8 px).
+PROTOCOL_SPEED_BINS: tuple[float, ...] = (0.0, 0.5, 1.0, 2.0, 4.0, 8.0, math.inf)
+#: Range bins of the protocol (m): the library's rooms (< 4 m) and the far surfaces of
+#: halls and open ground (8-30 m), where the stereo baseline gives little disparity.
+PROTOCOL_RANGE_BINS: tuple[float, ...] = (0.0, 1.0, 2.0, 4.0, 8.0, 16.0, math.inf)
+#: WAUC's thresholds delta_i = 0.05 i px and weights w_i = 1 - (i - 1) / 100, i = 1..100.
+WAUC_THRESHOLDS: NDArray = 0.05 * np.arange(1, 101)
+WAUC_WEIGHTS: NDArray = 1.0 - np.arange(100) / 100.0
 
 
 def stats(values: ArrayLike) -> dict[str, float]:
@@ -75,6 +116,116 @@ def rate(flags: ArrayLike) -> float:
     """Fraction of True among the given flags (NaN for none)."""
     f = np.asarray(flags, dtype=bool).ravel()
     return float(f.mean()) if f.size else math.nan
+
+
+def outlier_rate(epe: ArrayLike, threshold: float = 1.0) -> float:
+    """Fraction of the finite EPEs above ``threshold`` px (``1px`` at 1 px; NaN for none)."""
+    e = np.asarray(epe, dtype=np.float64).ravel()
+    e = e[np.isfinite(e)]
+    return float(np.mean(e > threshold)) if e.size else math.nan
+
+
+def fl_rate(epe: ArrayLike, speed: ArrayLike) -> float:
+    """KITTI's Fl: the fraction of points with EPE > 3 px and EPE > 0.05 x true speed.
+
+    Parameters
+    ----------
+    epe, speed : array_like, shape (N,)
+        Endpoint error and true flow magnitude of each point (px); pairs with a
+        non-finite value are left out. NaN for no points.
+    """
+    e = np.asarray(epe, dtype=np.float64).ravel()
+    v = np.asarray(speed, dtype=np.float64).ravel()
+    ok = np.isfinite(e) & np.isfinite(v)
+    if not ok.any():
+        return math.nan
+    e, v = e[ok], v[ok]
+    return float(np.mean((e > 3.0) & (e > 0.05 * v)))
+
+
+def wauc(epe: ArrayLike) -> float:
+    """Weighted area under the accuracy curve (VIPER; Spring), in [0, 1], higher is better.
+
+    ``sum_i w_i a_i / sum_i w_i`` over :data:`WAUC_THRESHOLDS` (0.05, 0.10, ..., 5 px)
+    with :data:`WAUC_WEIGHTS` (1, 0.99, ..., 0.01), a_i the fraction of the finite
+    EPEs <= delta_i (Richter, Hayder and Koltun, "Playing for Benchmarks", ICCV 2017).
+    NaN for no points.
+    """
+    e = np.sort(np.asarray(epe, dtype=np.float64).ravel())
+    e = e[np.isfinite(e)]
+    if not e.size:
+        return math.nan
+    acc = np.searchsorted(e, WAUC_THRESHOLDS, side="right") / e.size
+    return float(np.dot(WAUC_WEIGHTS, acc) / WAUC_WEIGHTS.sum())
+
+
+def protocol_metrics(epe: ArrayLike, speed: ArrayLike) -> dict[str, float]:
+    """The protocol's four figures over one set of points: ``n``, ``epe`` (mean),
+    ``1px``, ``fl``, ``wauc`` (see the module docstring); NaN figures for no points."""
+    e = np.asarray(epe, dtype=np.float64).ravel()
+    v = np.asarray(speed, dtype=np.float64).ravel()
+    ok = np.isfinite(e) & np.isfinite(v)
+    e, v = e[ok], v[ok]
+    return {
+        "n": int(e.size),
+        "epe": float(e.mean()) if e.size else math.nan,
+        "1px": outlier_rate(e, 1.0),
+        "fl": fl_rate(e, v),
+        "wauc": wauc(e),
+    }
+
+
+def protocol_splits(
+    err: Mapping[str, ArrayLike],
+    *,
+    moving: Sequence[int] = (),
+    speed_bins: Sequence[float] = PROTOCOL_SPEED_BINS,
+    range_bins: Sequence[float] = PROTOCOL_RANGE_BINS,
+) -> dict:
+    """:func:`protocol_metrics` over all points and each named split.
+
+    Parameters
+    ----------
+    err : mapping with ``epe``, ``speed`` (px), ``noc`` (bool: ``gt.flow.valid``),
+        ``range`` (m), ``object`` (``gt.object`` id) and optionally ``outside``
+        (bool: ``gt.flow.outside``; absent in format-1 datasets, then none is
+        outside), each shape (N,)
+    moving : ids of the objects that move; every other id is the static scene.
+
+    Returns
+    -------
+    dict with ``all``; ``region``: ``matched``, ``occluded``, ``outside``;
+    ``rigid``: ``static``, ``moving``; ``speed`` and ``range``: one block per bin
+    (labels from :func:`bin_label`), each a :func:`protocol_metrics` dict.
+    """
+    e = np.asarray(err["epe"], dtype=np.float64)
+    v = np.asarray(err["speed"], dtype=np.float64)
+    noc = np.asarray(err["noc"], dtype=bool)
+    out_flag = np.asarray(err.get("outside", np.zeros(e.size)), dtype=bool)
+    ids = np.rint(np.nan_to_num(np.asarray(err["object"], dtype=np.float64))).astype(np.int64)
+    rng = np.asarray(err["range"], dtype=np.float64)
+    is_moving = np.isin(ids, np.asarray(list(moving), dtype=np.int64))
+
+    def block(sel: NDArray) -> dict[str, float]:
+        return protocol_metrics(e[sel], v[sel])
+
+    everything = np.ones(e.size, dtype=bool)
+    out: dict = {
+        "all": block(everything),
+        "region": {
+            "matched": block(noc),
+            "occluded": block(~noc & ~out_flag),
+            "outside": block(~noc & out_flag),
+        },
+        "rigid": {"static": block(~is_moving), "moving": block(is_moving)},
+        "speed": {},
+        "range": {},
+    }
+    for lo, hi in itertools.pairwise(speed_bins):
+        out["speed"][bin_label(lo, hi, "px")] = block((v >= lo) & (v < hi))
+    for lo, hi in itertools.pairwise(range_bins):
+        out["range"][bin_label(lo, hi, "m")] = block((rng >= lo) & (rng < hi))
+    return out
 
 
 def bin_label(lo: float, hi: float, unit: str = "") -> str:

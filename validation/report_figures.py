@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 from omniflow.io.imageio import atomic_output
 
 from .report_doc import num
-from .results import Results
+from .results import FramePair, Results
 from .summary import flat_table, pooled_flow
 
 __all__ = ["DPI", "draw_figures", "sweep_figure"]
@@ -31,144 +31,173 @@ def save(fig: Any, path: Path) -> None:
 
 
 def draw_figures(results: Results, summary: Mapping[str, Any], fig_dir: Path) -> dict[str, str]:
+    """Draw every figure of the report into ``fig_dir``; returns name -> relative path."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from omniflow.io.draw import color_wheel, flow_to_color
-
     out: dict[str, str] = {}
     snap = results.snapshot
     fig_dir.mkdir(parents=True, exist_ok=True)
     if snap is not None:
-        # Inputs.
-        fig, axes = plt.subplots(1, 2, figsize=(9, 4.8), layout="constrained")
-        for ax, cam in zip(axes, ("cam1", "cam2"), strict=True):
-            ax.imshow(snap.images[cam], cmap="gray", vmin=0, vmax=255, interpolation="nearest")
-            ax.set_title(f"{cam}, frame {snap.t} (input to every method)")
-            ax.axis("off")
-        save(fig, fig_dir / "inputs.png")
+        out.update(_input_figures(plt, snap, fig_dir))
+        out.update(_flow_figures(plt, snap, fig_dir))
+        out.update(_error_map_figure(plt, snap, fig_dir))
+    out.update(_range_speed_figures(plt, results, fig_dir))
+    # Accuracy vs time, every row at the default's points (zero flow left out: no time).
+    _accuracy_vs_time(plt, summary, fig_dir / "accuracy_vs_time.png")
+    out["accuracy_vs_time"] = "figures/accuracy_vs_time.png"
+    return out
+
+
+def _input_figures(plt: Any, snap: FramePair, fig_dir: Path) -> dict[str, str]:
+    """The two input images and cam1's panorama."""
+    out: dict[str, str] = {}
+    # Inputs.
+    fig, axes = plt.subplots(1, 2, figsize=(9, 4.8), layout="constrained")
+    for ax, cam in zip(axes, ("cam1", "cam2"), strict=True):
+        ax.imshow(snap.images[cam], cmap="gray", vmin=0, vmax=255, interpolation="nearest")
+        ax.set_title(f"{cam}, frame {snap.t} (input to every method)")
+        ax.axis("off")
+    save(fig, fig_dir / "inputs.png")
+    plt.close(fig)
+    out["inputs"] = "figures/inputs.png"
+
+    if snap.panorama is not None:
+        pan = snap.panorama
+        fig, ax = plt.subplots(figsize=(12, max(2.0, 12 * pan.shape[0] / pan.shape[1] + 0.8)))
+        ax.imshow(pan, cmap="gray", vmin=0, vmax=255, aspect="auto", interpolation="nearest")
+        ax.set_title("cam1 unwarped (eq. 6-7): theta 0..2 pi left to right, rim at the top")
+        ax.set_xlabel("column (theta)")
+        ax.set_ylabel("row (h_i decreasing)")
+        fig.tight_layout()
+        save(fig, fig_dir / "panorama.png")
         plt.close(fig)
-        out["inputs"] = "figures/inputs.png"
+        out["panorama"] = "figures/panorama.png"
 
-        if snap.panorama is not None:
-            pan = snap.panorama
-            fig, ax = plt.subplots(figsize=(12, max(2.0, 12 * pan.shape[0] / pan.shape[1] + 0.8)))
-            ax.imshow(pan, cmap="gray", vmin=0, vmax=255, aspect="auto", interpolation="nearest")
-            ax.set_title("cam1 unwarped (eq. 6-7): theta 0..2 pi left to right, rim at the top")
-            ax.set_xlabel("column (theta)")
-            ax.set_ylabel("row (h_i decreasing)")
-            fig.tight_layout()
-            save(fig, fig_dir / "panorama.png")
-            plt.close(fig)
-            out["panorama"] = "figures/panorama.png"
+    return out
 
-        for cam in ("cam1", "cam2"):
-            tr = snap.truth[cam]
-            valid = tr["gt.valid"] > 0.5
-            gdx, gdy = tr["gt.flow.dx"], tr["gt.flow.dy"]
-            mag = np.hypot(gdx, gdy)[valid]
-            vmax = (
-                float(np.percentile(mag[np.isfinite(mag)], 99)) if np.isfinite(mag).any() else 1.0
-            )
-            vmax = vmax if vmax > 0 else 1.0
-            panels = [("ground truth (dense)", flow_to_color(gdx, gdy, max_flow=vmax, mask=valid))]
-            for b, fields in snap.dense.items():
-                if b == "zero-flow":  # uniformly white: nothing to see
-                    continue
-                f = fields[cam]
-                panels.append(
-                    (f"{b} (dense)", flow_to_color(f[..., 0], f[..., 1], max_flow=vmax, mask=valid))
-                )
-            pts = snap.points.get(cam)
-            if pts is not None:
-                shape = valid.shape
-                panels.append(
-                    (
-                        "omniflow default (at its points)",
-                        _scatter_color(pts["x"], pts["y"], pts["dx"], pts["dy"], shape, vmax),
-                    )
-                )
-                panels.append(
-                    (
-                        "ground truth at the same points",
-                        _scatter_color(pts["x"], pts["y"], pts["gt_dx"], pts["gt_dy"], shape, vmax),
-                    )
-                )
-            ncol = 3
-            nrow = math.ceil((len(panels) + 1) / ncol)  # + 1: the colour key, always shown
-            fig, axes = plt.subplots(
-                nrow, ncol, figsize=(4 * ncol, 4.3 * nrow + 0.4), layout="constrained"
-            )
-            for ax in np.ravel(axes):
-                ax.axis("off")
-            for ax, (title, img) in zip(np.ravel(axes), panels, strict=False):
-                ax.imshow(img, interpolation="nearest")
-                ax.set_title(title, fontsize=10)
-            key = np.ravel(axes)[-1]
-            key.imshow(color_wheel(128))
-            key.set_title(f"colour key: full saturation at {vmax:.2f} px", fontsize=10)
-            fig.suptitle(f"{cam} flow, frame {snap.t} -> {snap.t + 1} (Middlebury colour coding)")
-            save(fig, fig_dir / f"flow_{cam}.png")
-            plt.close(fig)
-            out[f"flow_{cam}"] = f"figures/flow_{cam}.png"
 
-        # Error maps (cam1): dense baselines and omniflow's points, one colour scale.
-        tr = snap.truth["cam1"]
+def _flow_figures(plt: Any, snap: FramePair, fig_dir: Path) -> dict[str, str]:
+    """Per camera: the true flow, each dense baseline and omniflow's points, colour-coded."""
+    from omniflow.io.draw import color_wheel, flow_to_color
+
+    out: dict[str, str] = {}
+    for cam in ("cam1", "cam2"):
+        tr = snap.truth[cam]
         valid = tr["gt.valid"] > 0.5
-        maps = []
+        gdx, gdy = tr["gt.flow.dx"], tr["gt.flow.dy"]
+        mag = np.hypot(gdx, gdy)[valid]
+        vmax = float(np.percentile(mag[np.isfinite(mag)], 99)) if np.isfinite(mag).any() else 1.0
+        vmax = vmax if vmax > 0 else 1.0
+        panels = [("ground truth (dense)", flow_to_color(gdx, gdy, max_flow=vmax, mask=valid))]
         for b, fields in snap.dense.items():
-            if b == "zero-flow":  # its error map is the truth's magnitude
+            if b == "zero-flow":  # uniformly white: nothing to see
                 continue
-            f = fields["cam1"]
-            epe = np.hypot(f[..., 0] - tr["gt.flow.dx"], f[..., 1] - tr["gt.flow.dy"])
-            maps.append((f"{b}: EPE (px)", np.where(valid, epe, np.nan), None))
-        pts = snap.points.get("cam1")
+            f = fields[cam]
+            panels.append(
+                (f"{b} (dense)", flow_to_color(f[..., 0], f[..., 1], max_flow=vmax, mask=valid))
+            )
+        pts = snap.points.get(cam)
         if pts is not None:
-            epe = np.hypot(pts["dx"] - pts["gt_dx"], pts["dy"] - pts["gt_dy"])
-            maps.append(
-                ("omniflow default: EPE at its points (px)", None, (pts["x"], pts["y"], epe))
+            shape = valid.shape
+            panels.append(
+                (
+                    "omniflow default (at its points)",
+                    _scatter_color(pts["x"], pts["y"], pts["dx"], pts["dy"], shape, vmax),
+                )
             )
-        if maps:
-            vals = np.concatenate(
-                [
-                    np.ravel(m[1][np.isfinite(m[1])])
-                    if m[1] is not None
-                    else m[2][2][np.isfinite(m[2][2])]
-                    for m in maps
-                ]
+            panels.append(
+                (
+                    "ground truth at the same points",
+                    _scatter_color(pts["x"], pts["y"], pts["gt_dx"], pts["gt_dy"], shape, vmax),
+                )
             )
-            vmax = float(np.percentile(vals, 95)) if vals.size else 1.0
-            vmax = vmax if vmax > 0 else 1.0
-            cmap = matplotlib.colormaps["magma"].with_extremes(bad="#b8bcc4")
-            fig, axes = plt.subplots(
-                1, len(maps), figsize=(3.6 * len(maps) + 1.2, 4.0), squeeze=False,
-                layout="constrained",
-            )  # fmt: skip
-            im = None
-            for ax, (title, dense, sparse) in zip(axes[0], maps, strict=True):
-                if dense is not None:
-                    im = ax.imshow(dense, cmap=cmap, vmin=0, vmax=vmax, interpolation="nearest")
-                else:
-                    ax.imshow(np.full(valid.shape, np.nan), cmap=cmap, vmin=0, vmax=vmax)
-                    im = ax.scatter(sparse[0] - 0.5, sparse[1] - 0.5, c=sparse[2], s=5,
-                                    cmap=cmap, vmin=0, vmax=vmax)  # fmt: skip
-                    if not np.size(sparse[2]):  # a grey panel alone reads as a broken figure
-                        _no_data(ax, "no points on this frame")
-                ax.set_title(title, fontsize=9)
-                ax.axis("off")
-            if im is not None:
-                fig.colorbar(im, ax=list(axes[0]), shrink=0.8, label="endpoint error, px")
-            fig.suptitle(
-                f"cam1 error maps, frame {snap.t} (colour clipped at the 95th percentile; "
-                "grey: no scene)"
-            )
-            save(fig, fig_dir / "error_maps.png")
-            plt.close(fig)
-            out["error_maps"] = "figures/error_maps.png"
+        ncol = 3
+        nrow = math.ceil((len(panels) + 1) / ncol)  # + 1: the colour key, always shown
+        fig, axes = plt.subplots(
+            nrow, ncol, figsize=(4 * ncol, 4.3 * nrow + 0.4), layout="constrained"
+        )
+        for ax in np.ravel(axes):
+            ax.axis("off")
+        for ax, (title, img) in zip(np.ravel(axes), panels, strict=False):
+            ax.imshow(img, interpolation="nearest")
+            ax.set_title(title, fontsize=10)
+        key = np.ravel(axes)[-1]
+        key.imshow(color_wheel(128))
+        key.set_title(f"colour key: full saturation at {vmax:.2f} px", fontsize=10)
+        fig.suptitle(f"{cam} flow, frame {snap.t} -> {snap.t + 1} (Middlebury colour coding)")
+        save(fig, fig_dir / f"flow_{cam}.png")
+        plt.close(fig)
+        out[f"flow_{cam}"] = f"figures/flow_{cam}.png"
 
-    # Error vs range and vs speed: binned medians from the pooled per-point errors.
+    return out
+
+
+def _error_map_figure(plt: Any, snap: FramePair, fig_dir: Path) -> dict[str, str]:
+    """cam1 error maps: dense baselines and omniflow's points, one colour scale."""
+    import matplotlib
+
+    out: dict[str, str] = {}
+    # Error maps (cam1): dense baselines and omniflow's points, one colour scale.
+    tr = snap.truth["cam1"]
+    valid = tr["gt.valid"] > 0.5
+    maps = []
+    for b, fields in snap.dense.items():
+        if b == "zero-flow":  # its error map is the truth's magnitude
+            continue
+        f = fields["cam1"]
+        epe = np.hypot(f[..., 0] - tr["gt.flow.dx"], f[..., 1] - tr["gt.flow.dy"])
+        maps.append((f"{b}: EPE (px)", np.where(valid, epe, np.nan), None))
+    pts = snap.points.get("cam1")
+    if pts is not None:
+        epe = np.hypot(pts["dx"] - pts["gt_dx"], pts["dy"] - pts["gt_dy"])
+        maps.append(("omniflow default: EPE at its points (px)", None, (pts["x"], pts["y"], epe)))
+    if maps:
+        vals = np.concatenate(
+            [
+                np.ravel(m[1][np.isfinite(m[1])])
+                if m[1] is not None
+                else m[2][2][np.isfinite(m[2][2])]
+                for m in maps
+            ]
+        )
+        vmax = float(np.percentile(vals, 95)) if vals.size else 1.0
+        vmax = vmax if vmax > 0 else 1.0
+        cmap = matplotlib.colormaps["magma"].with_extremes(bad="#b8bcc4")
+        fig, axes = plt.subplots(
+            1, len(maps), figsize=(3.6 * len(maps) + 1.2, 4.0), squeeze=False,
+            layout="constrained",
+        )  # fmt: skip
+        im = None
+        for ax, (title, dense, sparse) in zip(axes[0], maps, strict=True):
+            if dense is not None:
+                im = ax.imshow(dense, cmap=cmap, vmin=0, vmax=vmax, interpolation="nearest")
+            else:
+                ax.imshow(np.full(valid.shape, np.nan), cmap=cmap, vmin=0, vmax=vmax)
+                im = ax.scatter(sparse[0] - 0.5, sparse[1] - 0.5, c=sparse[2], s=5,
+                                cmap=cmap, vmin=0, vmax=vmax)  # fmt: skip
+                if not np.size(sparse[2]):  # a grey panel alone reads as a broken figure
+                    _no_data(ax, "no points on this frame")
+            ax.set_title(title, fontsize=9)
+            ax.axis("off")
+        if im is not None:
+            fig.colorbar(im, ax=list(axes[0]), shrink=0.8, label="endpoint error, px")
+        fig.suptitle(
+            f"cam1 error maps, frame {snap.t} (colour clipped at the 95th percentile; "
+            "grey: no scene)"
+        )
+        save(fig, fig_dir / "error_maps.png")
+        plt.close(fig)
+        out["error_maps"] = "figures/error_maps.png"
+
+    return out
+
+
+def _range_speed_figures(plt: Any, results: Results, fig_dir: Path) -> dict[str, str]:
+    """Error vs range and vs speed: binned medians from the pooled per-point errors."""
+    out: dict[str, str] = {}
     methods = _plot_methods(results)
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.4))
     for name, pts in methods:
@@ -227,9 +256,6 @@ def draw_figures(results: Results, summary: Mapping[str, Any], fig_dir: Path) ->
     plt.close(fig)
     out["error_vs_speed"] = "figures/error_vs_speed.png"
 
-    # Accuracy vs time, every row at the default's points (zero flow left out: no time).
-    _accuracy_vs_time(plt, summary, fig_dir / "accuracy_vs_time.png")
-    out["accuracy_vs_time"] = "figures/accuracy_vs_time.png"
     return out
 
 

@@ -39,11 +39,26 @@ def score_flow(
         {k: tr[f"gt.flow.{k}"][has] for k in ("dx", "dy", "dh", "hdtheta")},
     )
     err["noc"] = tr["gt.flow.valid"][has] > 0.5
+    err["outside"] = _outside(truth, x, y)[has]
     err["range"] = tr["gt.r"][has]
     err["object"] = tr["gt.object"][has]
     err["n_points"] = np.asarray(x).size
     err.update(coverage(truth))
     return err
+
+
+def _outside(truth: dict[str, NDArray], x: NDArray, y: NDArray) -> NDArray:
+    """``gt.flow.outside`` at the pixel holding each point (a flag: nearest, not
+    interpolated); all False for a format-1 dataset, which has no such channel."""
+    x = np.asarray(x, dtype=np.float64)
+    if "gt.flow.outside" not in truth:
+        return np.zeros(x.shape, dtype=bool)
+    ch = truth["gt.flow.outside"]
+    h, w = ch.shape
+    ok = np.isfinite(x) & np.isfinite(y)
+    j = np.clip(np.floor(np.where(ok, x, 0.0)).astype(np.int64), 0, w - 1)
+    i = np.clip(np.floor(np.where(ok, y, 0.0)).astype(np.int64), 0, h - 1)
+    return ok & (ch[i, j] > 0.5)
 
 
 def coverage(truth: dict[str, NDArray]) -> dict[str, Any]:
@@ -84,6 +99,10 @@ def score_dense(
     has = np.all([np.isfinite(v) for v in (*est.values(), *gt.values())], axis=0)
     err = flow_errors({k: v[has] for k, v in est.items()}, {k: v[has] for k, v in gt.items()})
     err["noc"] = truth["gt.flow.valid"][ii, jj][has] > 0.5
+    if "gt.flow.outside" in truth:
+        err["outside"] = truth["gt.flow.outside"][ii, jj][has] > 0.5
+    else:  # a format-1 dataset: no outside split (see metrics.protocol_splits)
+        err["outside"] = np.zeros(int(np.count_nonzero(has)), dtype=bool)
     err["range"] = truth["gt.r"][ii, jj][has].astype(np.float64)
     err["object"] = truth["gt.object"][ii, jj][has].astype(np.float64)
     err["n_points"] = x.size

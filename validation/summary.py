@@ -16,7 +16,7 @@ from numpy.typing import NDArray
 
 from omniflow.io.jsonio import jsonable
 
-from .metrics import flow_summary, stats, stereo_summary
+from .metrics import flow_summary, protocol_splits, stats, stereo_summary
 from .results import Results
 
 __all__ = ["FORMAT", "flat_table", "headline", "summarize", "sweep_rows"]
@@ -43,6 +43,9 @@ def pooled_flow(results: Results, method: str, points: str, cam: str) -> dict[st
         return None
     out = _concat(frames, _FLOW_KEYS)
     out["noc"] = out["noc"].astype(bool)
+    out["outside"] = np.concatenate(
+        [np.asarray(f.get("outside", np.zeros(np.size(f["epe"]), bool))).ravel() for f in frames]
+    ).astype(bool)
     for key in ("n_points", "n_valid_pixels", "n_stereo_pixels"):
         out[key] = int(sum(int(f.get(key, 0)) for f in frames))
     out["n_frames"] = len(frames)
@@ -90,6 +93,19 @@ def _flow_block(results: Results, method: str, points: str) -> dict[str, Any]:
             block["density"] = _share(block["n"], pixels)
             s["objects"][names.get(str(int(oid)), f"id{int(oid)}")] = block
         out[cam] = s
+    return out
+
+
+def protocol_block(results: Results, method: str, points: str) -> dict[str, Any]:
+    """The benchmark protocol (:func:`validation.metrics.protocol_splits`) over both
+    cameras' points pooled, with ``density``: the points scored per valid pixel."""
+    errs = [e for cam in ("cam1", "cam2") if (e := pooled_flow(results, method, points, cam))]
+    if not errs:
+        return {}
+    keys = ("epe", "speed", "noc", "outside", "range", "object")
+    both = {k: np.concatenate([e[k] for e in errs]) for k in keys}
+    out = protocol_splits(both, moving=results.dataset.get("moving_objects", []))
+    out["density"] = _share(out["all"]["n"], sum(e["n_valid_pixels"] for e in errs))
     return out
 
 
@@ -196,6 +212,8 @@ def summarize(results: Results) -> dict[str, Any]:
                     "time_per_frame": _time_block(results.times.get(m.name, [])),
                     "stage_seconds_total": dict(results.stages.get(m.name, {})),
                     "flow": _flow_block(results, m.name, "own"),
+                    "protocol": protocol_block(results, m.name, "own"),
+                    "protocol_interpolated": protocol_block(results, m.name, "interpolated"),
                     "stereo": stereo,
                     "derived": _derived_block(
                         results.derived.get(m.name, []),
@@ -222,6 +240,7 @@ def summarize(results: Results) -> dict[str, Any]:
                         "points_of": default if pts == "omniflow points" else None,
                         "time_per_frame": _time_block(results.times.get(m.name, [])),
                         "flow": flow,
+                        "protocol": protocol_block(results, m.name, pts),
                     }
                 )
     out = {

@@ -105,3 +105,20 @@ def test_cluster_matches_local_mitsuba(tmp_path, cluster):
     assert sorted(a) == sorted(b) and any(k.endswith(".exr") for k in a)
     assert a == b
     assert open_dataset(tmp_path / "dist").complete
+
+
+def test_cli_scheduler_in_a_fresh_process(tmp_path, cluster):
+    """The command line's case: an address and no Client of the caller's in the process
+    (the fixture's default Client hides that distributed.wait looks one up)."""
+    import subprocess
+    import sys
+
+    lc, _ = cluster
+    path = os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])
+    cmd = [sys.executable, "-m", "omnisim.cli", "render", str(DEFAULT), "--out",
+           str(tmp_path / "d"), "--frames", "2", "--resolution", "32", "--renderer", FAKE,
+           "--no-progress", "--scheduler", lc.scheduler_address]  # fmt: skip
+    p = subprocess.run(cmd, capture_output=True, text=True, timeout=300,
+                       env={**os.environ, "PYTHONPATH": path})  # fmt: skip
+    assert p.returncode == 0, p.stderr
+    assert "2 rendered now" in p.stdout
