@@ -54,6 +54,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from omniflow.geometry.rig import Unit, unwarp
 
+from .inputs import InputError
 from .metrics import polar_components
 from .sampling import bilinear
 
@@ -63,6 +64,8 @@ __all__ = [
     "METHODS",
     "PANORAMA_METHODS",
     "PANORAMA_SUFFIX",
+    "PCAFLOW_MIN_ROWS",
+    "RLOF_MIN_SEEDS",
     "ZERO_FLOW",
     "DenseFlow",
     "PanoramaFlow",
@@ -82,6 +85,18 @@ __all__ = [
 ZERO_FLOW = "zero-flow"
 #: Appended to a method's name for its run on the unwarped panoramas.
 PANORAMA_SUFFIX = "-panorama"
+#: The fewest rows OpenCV's PCAFlow takes without writing out of bounds: on
+#: opencv-contrib 5.1.0, 55 x 64 px aborts the process (valgrind: invalid writes
+#: inside cv2), 56 x 64, 60 x 377 and larger run clean (docs/decisions/baselines.md).
+PCAFLOW_MIN_ROWS = 56
+#: Dense RLOF's seed grid step (OpenCV's default ``gridStep``, 6 x 6 px).
+RLOF_GRID_STEP = 6
+#: The fewest grid seeds dense RLOF is run on. On opencv-contrib 5.1.0 its EPIC
+#: interpolation (K = 128 nearest seeds) reads out of bounds (valgrind) at 64 x 64 px
+#: (121 seeds) and gives a different flow on each call of the same pair, up to 71 px
+#: wrong, or crashes, at 56-72 px square (100-144 seeds); with epicK 64 or grid step
+#: 3 the same pairs are repeatable. Twice K, for a margin (docs/decisions/baselines.md).
+RLOF_MIN_SEEDS = 256
 
 #: Columns of circular padding on each side of a panorama, so DIS sees the
 #: seam at theta = 0 as continuous image.
@@ -127,8 +142,19 @@ def dual_tvl1_flow(img0: NDArray, img1: NDArray) -> NDArray:
 
 
 def pcaflow_flow(img0: NDArray, img1: NDArray) -> NDArray:
-    """PCAFlow (``cv2.optflow.createOptFlow_PCAFlow``, OpenCV's defaults), (H, W, 2)."""
-    return cv2.optflow.createOptFlow_PCAFlow().calc(_u8(img0), _u8(img1), None)
+    """PCAFlow (``cv2.optflow.createOptFlow_PCAFlow``, OpenCV's defaults), (H, W, 2).
+
+    Images under :data:`PCAFLOW_MIN_ROWS` rows are refused (:class:`InputError`):
+    OpenCV's PCAFlow writes out of bounds on them and the process aborts.
+    """
+    a, b = _u8(img0), _u8(img1)
+    if a.shape[0] < PCAFLOW_MIN_ROWS:
+        raise InputError(
+            f"PCAFlow: a {a.shape[0]} x {a.shape[1]} px image; OpenCV's PCAFlow corrupts memory "
+            f"on images under {PCAFLOW_MIN_ROWS} rows (a panorama has about half the image "
+            "size in rows): use a larger resolution or leave the row out"
+        )
+    return cv2.optflow.createOptFlow_PCAFlow().calc(a, b, None)
 
 
 def rlof_flow(img0: NDArray, img1: NDArray) -> NDArray:
@@ -136,9 +162,19 @@ def rlof_flow(img0: NDArray, img1: NDArray) -> NDArray:
 
     The default support region (cross-based) needs 8-bit 3-channel images: the
     grey frame is copied into three channels, so RLOF sees the same intensities
-    as every other baseline.
+    as every other baseline. Images giving under :data:`RLOF_MIN_SEEDS` seeds on
+    its 6 px grid are refused (:class:`InputError`): there OpenCV's RLOF reads
+    out of bounds, and its flow changes from call to call or the process crashes.
     """
-    bgr0 = cv2.cvtColor(_u8(img0), cv2.COLOR_GRAY2BGR)
+    a = _u8(img0)
+    seeds = math.ceil(a.shape[0] / RLOF_GRID_STEP) * math.ceil(a.shape[1] / RLOF_GRID_STEP)
+    if seeds < RLOF_MIN_SEEDS:
+        raise InputError(
+            f"RLOF: a {a.shape[0]} x {a.shape[1]} px image gives {seeds} grid seeds; OpenCV's "
+            f"dense RLOF reads out of bounds with under about {RLOF_MIN_SEEDS} (its EPIC "
+            "interpolator takes the 128 nearest): use a larger resolution or leave the row out"
+        )
+    bgr0 = cv2.cvtColor(a, cv2.COLOR_GRAY2BGR)
     bgr1 = cv2.cvtColor(_u8(img1), cv2.COLOR_GRAY2BGR)
     return cv2.optflow.calcOpticalFlowDenseRLOF(bgr0, bgr1, None)
 
