@@ -127,7 +127,8 @@ def _parser() -> argparse.ArgumentParser:
         "--baselines",
         default="DIS-medium,Farneback,DIS-medium-panorama,zero-flow",
         help="comma-separated baselines, or 'none'; zero-flow predicts no motion, the floor "
-        "every method must clearly beat (default: %(default)s)",
+        "every method must clearly beat; slower ones by name: DIS-fine, DeepFlow, DualTVL1, "
+        "PCAFlow, RLOF, each also as NAME-panorama (default: %(default)s)",
     )
     ap.add_argument(
         "--frames",

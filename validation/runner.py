@@ -97,7 +97,7 @@ def run_validation(
     dataset_dir: str | Path,
     *,
     variants: str | Sequence[tuple[str, Any]] = "all",
-    baselines: Iterable[str] = bl.BASELINES,
+    baselines: Iterable[str] = bl.DEFAULT_BASELINES,
     frames: Sequence[int] | None = None,
     progress: bool = True,
     estimate: Callable[..., Any] | None = None,
