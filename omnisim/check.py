@@ -578,7 +578,10 @@ def run_checks(
         # the denoiser correlate 3 x 3 neighbourhoods).
         excess = (s["flow"] - neighbours[best]) / n
         var = max(s["d2:" + best] / n - excess**2, 0.0)
-        z = excess / math.sqrt(var / (n / 9.0)) if var > 0 else math.inf * np.sign(excess)
+        if var > 0:
+            z = excess / math.sqrt(var / (n / 9.0))
+        else:  # identical residuals (e.g. a static frame pair): no excess, or all of it
+            z = math.copysign(math.inf, excess) if excess != 0 else 0.0
         worse = fig > tol.photometric_min_ratio and z > tol.photometric_min_z
         detail = "; ".join(f"{k} {v / s['flow']:.4g}" for k, v in neighbours.items())
         if s.get("pairs"):

@@ -133,9 +133,11 @@ def generate_scene(family: str, seed: int) -> str:
 
 
 def write_scene(family: str, seed: int, path: str | Path) -> Path:
-    """Generate and write the scene to ``path`` (atomically: a temporary name, then rename)."""
+    """Generate and write the scene to ``path`` (atomically: a temporary name, then rename;
+    the folder is created if missing)."""
     text = generate_scene(family, seed)
     path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "w", encoding="utf-8") as fh:
