@@ -34,7 +34,7 @@ exactly the same intensities as the others.
 
 :data:`DEFAULT_BASELINES` are the cheap ones ``omnivalidate`` runs unless told
 otherwise; the rest are chosen by name. Settings, measured accuracy and cost:
-``docs/decisions/baselines.md``.
+``docs/decisions/baselines_contrib.md``.
 
 Each baseline gives a dense field per camera; :class:`DenseFlow` evaluates it
 at arbitrary sub-pixel points (bilinear), so baselines are scored at exactly
@@ -87,7 +87,7 @@ ZERO_FLOW = "zero-flow"
 PANORAMA_SUFFIX = "-panorama"
 #: The fewest rows OpenCV's PCAFlow takes without writing out of bounds: on
 #: opencv-contrib 5.1.0, 55 x 64 px aborts the process (valgrind: invalid writes
-#: inside cv2), 56 x 64, 60 x 377 and larger run clean (docs/decisions/baselines.md).
+#: inside cv2), 56 x 64, 60 x 377 and larger run clean (docs/decisions/baselines_contrib.md).
 PCAFLOW_MIN_ROWS = 56
 #: Dense RLOF's seed grid step (OpenCV's default ``gridStep``, 6 x 6 px).
 RLOF_GRID_STEP = 6
@@ -95,7 +95,7 @@ RLOF_GRID_STEP = 6
 #: interpolation (K = 128 nearest seeds) reads out of bounds (valgrind) at 64 x 64 px
 #: (121 seeds) and gives a different flow on each call of the same pair, up to 71 px
 #: wrong, or crashes, at 56-72 px square (100-144 seeds); with epicK 64 or grid step
-#: 3 the same pairs are repeatable. Twice K, for a margin (docs/decisions/baselines.md).
+#: 3 the same pairs are repeatable. Twice K, for a margin (docs/decisions/baselines_contrib.md).
 RLOF_MIN_SEEDS = 256
 
 #: Columns of circular padding on each side of a panorama, so DIS sees the
@@ -219,7 +219,7 @@ BASELINES = (
     *(m + PANORAMA_SUFFIX for m in PANORAMA_METHODS if m != "DIS-medium"),
 )
 #: The baselines run unless others are named: cheap enough for CI at 512 px
-#: (see ``docs/decisions/baselines.md`` for each method's time per frame).
+#: (see ``docs/decisions/baselines_contrib.md`` for each method's time per frame).
 DEFAULT_BASELINES = ("DIS-medium", "Farneback", "DIS-medium-panorama", ZERO_FLOW)
 
 

@@ -118,7 +118,8 @@ def test_baselines_refuse_images_that_are_not_8_bit_grey():
 
 
 def test_pcaflow_refuses_images_it_would_corrupt_memory_on():
-    # 55 rows: OpenCV's PCAFlow aborts the process (docs/decisions/baselines.md); never call it.
+    # 55 rows: OpenCV's PCAFlow aborts the process (docs/decisions/baselines_contrib.md);
+    # never call it.
     a = np.zeros((bl.PCAFLOW_MIN_ROWS - 1, 64), np.uint8)
     with pytest.raises(InputError, match=r"PCAFlow: a 55 x 64 px image.*under 56 rows"):
         bl.pcaflow_flow(a, a)
