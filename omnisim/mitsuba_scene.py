@@ -252,6 +252,7 @@ class MitsubaScene:
                 pose,
                 spp=spp,
                 sampler=_get(self.scene.render, "sampler", None),
+                optics=getattr(self.scene, "optics", None),
             )
             self.sensors[cam] = sensor
         else:

@@ -58,6 +58,7 @@ from omnisim.motion import (
     StaticMotion,
     euler_deg,
 )
+from omnisim.optics import Optics, optics_from_table
 from omnisim.scene_checker import REQUIRED, Checker, SceneError
 
 __all__ = [
@@ -233,6 +234,7 @@ class Scene:
     rooms: tuple[RoomInfo, ...] = ()
     overrides: dict[str, Any] = field(default_factory=dict)
     camera: CameraModel = field(default_factory=CameraModel)
+    optics: Optics = field(default_factory=Optics)
 
     def object_by_id(self, object_id: int) -> SceneObject:
         for obj in self.objects:
@@ -315,7 +317,7 @@ def apply_overrides(data: dict, overrides: Mapping[str, Any] | None, where: str)
 # ---------------------------------------------------------------------------
 
 TOP_KEYS = frozenset(
-    "name description frames frame_interval render rig robot objects lights camera".split()
+    "name description frames frame_interval render rig robot objects lights camera optics".split()
 )
 RENDER_KEYS = frozenset(
     {"width", "height", "spp", "max_depth", "seed", "integrator", "variant", "denoise"}
@@ -425,6 +427,7 @@ def _build(chk: Checker, path: Path, source: str, data: dict, overrides: dict) -
     objects, rooms = _objects(chk, data.get("objects", []), dt, path.parent)
     lights = _lights(chk, data.get("lights", REQUIRED), path.parent)
     camera = _camera(chk, data.get("camera", {}))
+    optics = optics_from_table(chk, data.get("optics", {}), rig.cam1.v)
 
     scene = Scene(
         name=name,
@@ -442,6 +445,7 @@ def _build(chk: Checker, path: Path, source: str, data: dict, overrides: dict) -
         rooms=tuple(rooms),
         overrides=overrides,
         camera=camera,
+        optics=optics,
     )
     scene_placement.check_rig_in_scene(chk, scene)
     scene_placement.check_not_enclosed(chk, scene)

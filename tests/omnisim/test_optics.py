@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import gc
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -162,3 +163,47 @@ def test_image_distance_is_the_thin_lens_equation():
     assert Optics().pinhole and Optics().aperture_radius == 0.0
     assert Optics(2.0, 4e-3, 1.0).aperture_radius == pytest.approx(1e-3)
     assert math.isinf(Optics().f_number)
+
+
+# ---------------------------------------------------------------------------
+# the [optics] table
+# ---------------------------------------------------------------------------
+DEFAULT_SCENE = Path(__file__).resolve().parents[2] / "scenes" / "default.toml"
+LENS = {"optics.f_number": 2.8, "optics.focal_length": 5.6e-3, "optics.focus_distance": 0.2}
+
+
+def test_optics_table_defaults_to_a_pinhole_and_derives_the_pitch():
+    from omnisim.scene import load_scene
+
+    assert load_scene(DEFAULT_SCENE, {"render.width": 64, "render.height": 64}).optics.pinhole
+    sc = load_scene(DEFAULT_SCENE, LENS)
+    # 512 px, margin 2: v = 3 * 254 = 762 px; pitch = f D / (D - f) / v
+    assert sc.optics.pixel_pitch == pytest.approx(5.6e-3 * 0.2 / (0.2 - 5.6e-3) / 762, rel=1e-12)
+    assert sc.optics.aperture_radius == pytest.approx(1e-3)
+    ok = load_scene(DEFAULT_SCENE, {**LENS, "optics.pixel_pitch": 7.4e-6})  # 3.2 % off
+    assert ok.optics.pixel_pitch == 7.4e-6
+
+
+@pytest.mark.parametrize(
+    ("extra", "fragment"),
+    [
+        ({"optics.pixel_pitch": 7.0e-6}, "optics.pixel_pitch (set by an override): got 7e-06 m"),
+        ({"optics.f_number": 0}, "optics.f_number (set by an override): got 0, expected a number"),
+        ({"optics.focus_distance": 0.005}, "expected more than focal_length (0.0056 m)"),
+        ({"optics.aperture": 2}, "optics.aperture (set by an override): unknown key"),
+    ],
+)
+def test_optics_table_errors_name_the_key(extra, fragment):
+    from omnisim.scene import SceneError, load_scene
+
+    with pytest.raises(SceneError) as err:
+        load_scene(DEFAULT_SCENE, {**LENS, **extra})
+    assert fragment in str(err.value)
+
+
+def test_a_lens_needs_its_focal_length():
+    from omnisim.scene import SceneError, load_scene
+
+    with pytest.raises(SceneError) as err:
+        load_scene(DEFAULT_SCENE, {"optics.f_number": 2.8, "optics.focus_distance": 0.2})
+    assert "optics.focal_length: missing" in str(err.value)
