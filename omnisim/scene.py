@@ -97,6 +97,7 @@ class RenderSettings:
     integrator: str = "direct"
     variant: str = "llvm_ad_rgb"
     denoise: str = "oidn"
+    time_samples: int = 8  # sub-frames of an open shutter (camera.shutter > 0)
 
 
 @dataclass(frozen=True)
@@ -321,6 +322,7 @@ TOP_KEYS = frozenset(
 )
 RENDER_KEYS = frozenset(
     {"width", "height", "spp", "max_depth", "seed", "integrator", "variant", "denoise"}
+    | {"time_samples"}
 )
 RIG_KEYS = frozenset({"d", "R", "s", "x_c", "y_c", "r_m", "margin"})
 ROBOT_KEYS = frozenset({"position", "rotation", "motion"})
@@ -468,6 +470,7 @@ def _render_settings(chk: Checker, tbl: Any) -> RenderSettings:
         integrator=chk.string(tbl, "integrator", w, d.integrator, choices=INTEGRATORS),
         variant=variant,
         denoise=chk.string(tbl, "denoise", w, d.denoise, choices=DENOISERS),
+        time_samples=chk.integer(tbl, "time_samples", w, d.time_samples, lo=1, hi=1024),
     )
 
 
