@@ -49,7 +49,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from omniflow.geometry.rig import Rig, RigError, rig_from_dict
-from omnisim import geometry, scene_placement, textures
+from omnisim import geometry, rig_parts, scene_placement, textures
 from omnisim.camera import CameraError, CameraModel
 from omnisim.motion import (
     ConstantMotion,
@@ -324,7 +324,7 @@ RENDER_KEYS = frozenset(
     {"width", "height", "spp", "max_depth", "seed", "integrator", "variant", "denoise"}
     | {"time_samples"}
 )
-RIG_KEYS = frozenset({"d", "R", "s", "x_c", "y_c", "r_m", "margin"})
+RIG_KEYS = frozenset({"d", "R", "s", "x_c", "y_c", "r_m", "margin", "struts", "mount_radius"})
 ROBOT_KEYS = frozenset({"position", "rotation", "motion"})
 MOTION_KEYS = frozenset({"type", "velocity", "angular_velocity", "interpolation", "keys"})
 KEY_KEYS = frozenset({"time", "frame", "position", "rotation"})
@@ -427,6 +427,7 @@ def _build(chk: Checker, path: Path, source: str, data: dict, overrides: dict) -
     rig = _rig(chk, data.get("rig", REQUIRED), render, path)
     robot = _robot(chk, data.get("robot", {}), dt)
     objects, rooms = _objects(chk, data.get("objects", []), dt, path.parent)
+    objects += _rig_parts(chk, data["rig"], rig, robot, objects)
     lights = _lights(chk, data.get("lights", REQUIRED), path.parent)
     camera = _camera(chk, data.get("camera", {}))
     optics = optics_from_table(chk, data.get("optics", {}), rig.cam1.v)
@@ -518,6 +519,25 @@ def _rig(chk: Checker, tbl: Any, render: RenderSettings, path: Path) -> Rig:
         return rig_from_dict({"rig": {"d": d, "R": big_r, "s": s}, "cameras": cams}, str(path))
     except RigError as exc:
         raise SceneError(str(exc)) from exc
+
+
+def _rig_parts(chk: Checker, tbl: dict, rig: Rig, robot: Robot, objects: list) -> list:
+    """Struts and flanges (:mod:`omnisim.rig_parts`): objects moving with the robot."""
+    first = max((o.id for o in objects), default=0) + 1
+    tex = np.full((2, 2, 3), rig_parts.PART_ALBEDO, dtype=np.float32)
+    return [
+        SceneObject(
+            p["id"],
+            p["name"],
+            p["kind"],
+            p["mesh"],
+            tex,
+            Material(),
+            robot.motion,
+            robot.frame_interval,
+        )
+        for p in rig_parts.rig_parts(chk, tbl, rig, first)
+    ]
 
 
 def _motion(
