@@ -60,6 +60,11 @@ from omnisim.motion import (
 )
 from omnisim.optics import Optics, optics_from_table
 from omnisim.scene_checker import REQUIRED, Checker, SceneError
+from omnisim.scene_textures import (
+    IMAGE_SUFFIXES,
+    texture_from_table,
+    tile_of,
+)
 
 __all__ = [
     "AreaLight",
@@ -338,15 +343,6 @@ OBJECT_KEYS = {
     "plane": frozenset(_OBJ_COMMON | {"size"}),
     "mesh": frozenset(_OBJ_COMMON | {"path", "scale", "uv", "center"}),
 }
-TEXTURE_TYPES = ("noise", "grating", "checker", "solid", "image")
-_TEX_COMMON = {"type", "tile", "resolution", "seed"}
-TEXTURE_KEYS = {
-    "noise": frozenset(_TEX_COMMON | {"wavelength", "colors", "contrast", "exponent"}),
-    "grating": frozenset(_TEX_COMMON | {"wavelength", "angle", "phase", "colors", "contrast"}),
-    "checker": frozenset(_TEX_COMMON | {"size", "colors"}),
-    "solid": frozenset(_TEX_COMMON | {"color"}),
-    "image": frozenset(_TEX_COMMON | {"path", "srgb"}),
-}
 MATERIAL_TYPES = ("diffuse", "plastic", "conductor", "roughconductor")
 MATERIAL_KEYS = frozenset({"type", "roughness", "int_ior", "two_sided"})
 LIGHT_TYPES = ("point", "area", "environment", "directional")
@@ -362,7 +358,6 @@ DENOISERS = ("none", "oidn")
 #: Most frames a scene may have (dataset.json holds a pose per frame and object; 100000
 #: frames of a scene with 8 objects are about 360 MB of it).
 MAX_FRAMES = 100_000
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr", ".hdr", ".tif", ".tiff", ".bmp")
 
 
 # ---------------------------------------------------------------------------
@@ -604,73 +599,6 @@ def _robot(chk: Checker, tbl: Any, dt: float) -> Robot:
     return Robot(_pose_and_motion(chk, tbl, "robot", [0.0, 0.0, 0.5], dt), dt)
 
 
-def _texture(chk: Checker, tbl: Any, where: str, seed: int, base: Path) -> NDArray[np.float32]:
-    tbl = {} if tbl is None else tbl
-    if not isinstance(tbl, dict):
-        raise chk.bad(where, tbl, "a table")
-    kind = chk.string(tbl, "type", where, "noise", choices=TEXTURE_TYPES)
-    chk.table(tbl, where, TEXTURE_KEYS[kind])
-    tile = chk.number(tbl, "tile", where, 1.0, lo=0, lo_open=True)
-    res = chk.integer(tbl, "resolution", where, 512, lo=8, hi=8192)
-    seed = chk.integer(tbl, "seed", where, seed, lo=0)
-    colors = None
-    if kind in ("noise", "grating", "checker"):
-        colors = tbl.get("colors", textures.DEFAULT_COLORS)
-        if not isinstance(colors, list | tuple) or len(colors) != 2:
-            raise chk.bad(f"{where}.colors", colors, "two [r, g, b] colours with values in [0, 1]")
-        colors = [chk.vector({"c": c}, "c", "", n=3, lo=0.0, hi=1.0) for c in colors]
-    if kind == "noise":
-        wl = chk.vector(tbl, "wavelength", where, [0.05, 0.5], n=2, lo=0.0, lo_open=True)
-        if wl[0] > wl[1]:
-            raise chk.bad(f"{where}.wavelength", wl.tolist(), "[shortest, longest] in metres")
-        if tile / wl[0] > res / 2:
-            raise chk.bad(
-                f"{where}.wavelength",
-                wl.tolist(),
-                f"a shortest wavelength of at least 2 texels = {2 * tile / res:.4g} m "
-                f"(tile {tile:g} m over {res} texels); 4 or more texels is better",
-            )
-        if tile / wl[1] < 1:
-            raise chk.bad(
-                f"{where}.wavelength", wl.tolist(), f"a longest wavelength <= tile ({tile:g} m)"
-            )
-        return textures.noise_texture(
-            tile=tile,
-            wavelength=(wl[0], wl[1]),
-            resolution=res,
-            colors=colors,
-            contrast=chk.number(tbl, "contrast", where, 1.0, lo=0.0, hi=1.0),
-            exponent=chk.number(tbl, "exponent", where, 1.0),
-            seed=seed,
-        )
-    if kind == "grating":
-        wl = chk.number(tbl, "wavelength", where, 0.1, lo=0.0, lo_open=True)
-        try:
-            return textures.grating_texture(
-                tile=tile,
-                wavelength=wl,
-                angle=chk.number(tbl, "angle", where, 0.0),
-                phase=chk.number(tbl, "phase", where, 0.0),
-                resolution=res,
-                colors=colors,
-                contrast=chk.number(tbl, "contrast", where, 1.0, lo=0.0, hi=1.0),
-            )
-        except ValueError as exc:
-            raise chk.bad(f"{where}.wavelength", wl, f"a usable wavelength ({exc})") from exc
-    if kind == "checker":
-        size = chk.number(tbl, "size", where, 0.25, lo=0.0, lo_open=True)
-        if tile / size > res / 2:
-            raise chk.bad(f"{where}.size", size, f"at least 2 texels ({2 * tile / res:.4g} m)")
-        return textures.checker_texture(tile=tile, size=size, resolution=res, colors=colors)
-    if kind == "solid":
-        return textures.solid_texture(chk.vector(tbl, "color", where, [0.5, 0.5, 0.5], lo=0, hi=1))
-    img_path = chk.file(tbl, "path", where, base, IMAGE_SUFFIXES)
-    try:
-        return textures.load_image_texture(img_path, srgb=chk.boolean(tbl, "srgb", where, True))
-    except ValueError as exc:
-        raise chk.error(f"{where}.path", f"{exc}; expected a readable image") from exc
-
-
 def _material(chk: Checker, tbl: Any, where: str) -> Material:
     tbl = {} if tbl is None else tbl
     chk.table(tbl, where, MATERIAL_KEYS)
@@ -735,17 +663,11 @@ def _objects(
             objects.extend(_room(chk, tbl, i, name, first, size, motion, material, dt, base))
             continue
         tex_tbl = tbl.get("texture")
-        texture = _texture(chk, tex_tbl, f"{where}.texture", first, base)
-        tile = _tile_of(tex_tbl)
+        texture = texture_from_table(chk, tex_tbl, f"{where}.texture", first, base)
+        tile = tile_of(tex_tbl)
         mesh = _mesh(chk, tbl, kind, where, tile, base)
         objects.append(SceneObject(first, name, kind, mesh, texture, material, motion, dt, i))
     return objects, rooms
-
-
-def _tile_of(tex_tbl: Any) -> float:
-    if isinstance(tex_tbl, dict) and isinstance(tex_tbl.get("tile"), int | float):
-        return float(tex_tbl["tile"])
-    return 1.0
 
 
 def _mesh(chk: Checker, tbl: dict, kind: str, where: str, tile: float, base: Path):
@@ -791,8 +713,8 @@ def _room(chk, tbl, index, name, first, size, motion, material, dt, base) -> lis
         if isinstance(tex_tbl, dict) and "seed" in tex_tbl:
             seed = chk.integer(tex_tbl, "seed", tex_where, lo=0)
             tex_tbl = dict(tex_tbl, seed=seed + k)
-        texture = _texture(chk, tex_tbl, tex_where, first + k, base)
-        mesh = geometry.room(size, tile=_tile_of(tex_tbl))[part]
+        texture = texture_from_table(chk, tex_tbl, tex_where, first + k, base)
+        mesh = geometry.room(size, tile=tile_of(tex_tbl))[part]
         out.append(
             SceneObject(
                 first + k, f"{name}.{part}", "room", mesh, texture, material, motion, dt, index
