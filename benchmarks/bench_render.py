@@ -20,6 +20,10 @@ For a scene (default ``scenes/default.toml``) at its render settings
   end-point error against gt.flow);
 - with ``--sizes``, the scene's render at other image sizes (time, noise);
 - with ``--integrators``, the same render figures for other integrators;
+- with ``--aperture N F D``, a thin lens of f-number N, focal length F and focus
+  distance D (m; ``[optics]``): seconds per stereo frame as a ratio to the pinhole
+  in the same run, and the spp at which the lens image's residual against a
+  converged lens reference falls under 1 % of the mean luminance;
 - with ``--updates``, moving objects re-posed in place through
   ``mi.traverse`` versus a new Mitsuba scene per frame (on a scene with
   moving objects, ``scenes/crossing.toml`` unless ``--scene`` has some).
@@ -31,6 +35,8 @@ wall-clock times grow with the load while CPU times do not. Run::
     python benchmarks/bench_render.py --frames 3 --integrators --updates --json out.json
     python benchmarks/bench_render.py --scene scenes/crossing.toml --set render.spp=4
     python benchmarks/bench_render.py --skip-default --candidates --epe --sizes 128 192 256
+    python benchmarks/bench_render.py --skip-default --aperture 2.8 0.0056 0.2 \
+        --set render.width=256 --set render.height=256
 """
 
 from __future__ import annotations
@@ -488,6 +494,73 @@ def sizes(path: str, overrides: dict, widths, reps: int) -> dict:
     return out
 
 
+def _stereo_seconds(scene, reps: int, **kw) -> float:
+    """Median wall seconds of a stereo render of frame 0 (after one warm-up)."""
+    times = []
+    for k in range(reps + 1):
+        t = _clock()
+        for cam in render.CAMERAS:
+            render.render_camera(scene, 0, cam, **kw)
+        if k:
+            times.append(_since(t)[0])
+    return statistics.median(times)
+
+
+def aperture(path, overrides: dict, lens, reps: int, spps, ref_spp: int) -> dict:
+    """A thin lens against the pinhole: time ratio, and the spp for a 1 % residual.
+
+    The residual of a lens render at each spp (the scene's denoiser) is measured
+    against the mean of two undenoised lens renders of ``ref_spp / 2`` each, the
+    reference's own noise (a quarter of their squared difference) subtracted, in % of
+    the mean luminance inside the rim, cam2, frame 0; the pinhole's the same way.
+    """
+    n, f, focus = lens
+    keys = {"optics.f_number": n, "optics.focal_length": f, "optics.focus_distance": focus}
+    pin = load_scene(path, overrides)
+    lensed = load_scene(path, {**overrides, **keys})
+    t_pin = _stereo_seconds(pin, reps)
+    render.clear_cache()
+    t_lens = _stereo_seconds(lensed, reps)
+    print(
+        f"  f/{n:g}, f = {1e3 * f:g} mm, focus {focus:g} m: {t_lens:.2f} s per stereo frame, "
+        f"{t_lens / t_pin:.2f} x the pinhole's {t_pin:.2f} s  (load {os.getloadavg()[0]:.1f})",
+        flush=True,
+    )
+    unit = lensed.rig.cam2
+    x, y = unit.pixel_centres()
+    inside = np.hypot(x - unit.x_c, y - unit.y_c) < unit.r_m - 1
+    rows, needed = {}, {}
+    for name, sc, extra in (("pinhole", pin, {}), ("lens", lensed, keys)):
+        render.clear_cache()
+        raw = load_scene(path, {**overrides, **extra, "render.denoise": "none"})
+        a = _luma(render.render_camera(raw, 0, "cam2", spp=ref_spp // 2, seed=11))
+        b = _luma(render.render_camera(raw, 0, "cam2", spp=ref_spp // 2, seed=12))
+        ref, ref_var = (a + b) / 2, float(np.mean((a - b)[inside] ** 2)) / 4
+        mean = float(ref[inside].mean())
+        rows[name], needed[name] = {}, None
+        render.clear_cache()
+        for spp in spps:
+            img = _luma(render.render_camera(sc, 0, "cam2", spp=spp, seed=3))
+            mse = max(float(np.mean((img - ref)[inside] ** 2)) - ref_var, 0.0)
+            rel = float(np.sqrt(mse)) / mean
+            rows[name][spp] = rel
+            if needed[name] is None and rel < 0.01:
+                needed[name] = spp
+            print(f"  {name:7s} {spp:5d} spp: residual {100 * rel:.2f} % of the mean", flush=True)
+    render.clear_cache()
+    return {
+        "f_number": n,
+        "focal_length": f,
+        "focus_distance": focus,
+        "pinhole_s": t_pin,
+        "lens_s": t_lens,
+        "ratio": t_lens / t_pin,
+        "residual": rows,
+        "spp_for_1pct": needed,
+        "ref_spp": ref_spp,
+    }
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", default=str(ROOT / "scenes" / "default.toml"))
@@ -529,6 +602,20 @@ def main(argv=None) -> int:
     )
     ap.add_argument(
         "--skip-default", action="store_true", help="skip the scene's own timing and noise"
+    )
+    ap.add_argument(
+        "--aperture",
+        type=float,
+        nargs=3,
+        metavar=("N", "F", "D"),
+        help="thin lens f-number, focal length (m), focus distance (m) vs the pinhole",
+    )
+    ap.add_argument(
+        "--aperture-spp",
+        type=int,
+        nargs="*",
+        default=[4, 16, 64, 256],
+        help="spp to try for the lens's 1 %% residual",
     )
     ap.add_argument("--json", type=Path, help="also write the figures here")
     args = ap.parse_args(argv)
@@ -596,6 +683,11 @@ def main(argv=None) -> int:
             args.ref_cache,
             {"path": args.ref_spp[0] // 2, "direct": args.ref_spp[1] // 2},
             args.epe,
+        )
+    if args.aperture:
+        print("thin lens vs pinhole (frame 0):")
+        res["aperture"] = aperture(
+            args.scene, overrides, args.aperture, args.reps, args.aperture_spp, args.ref_spp[1]
         )
     if args.integrators:
         print("integrators (stereo render at frame 0, best of 2):")

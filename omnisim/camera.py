@@ -131,6 +131,10 @@ class CameraModel:
         default 0, sharp).
     seed : int
         Seed of the noise (``>= 0``; default 0); independent of the render seed.
+    shutter : float
+        Fraction of the frame interval the shutter is open, centred on the frame's
+        instant (``[0, 1]``; default 0, an instant). Not ``exposure``: it is the
+        renderer's motion blur (:mod:`omnisim.exposure`), not a gain.
     """
 
     exposure: float = 2.0
@@ -142,6 +146,7 @@ class CameraModel:
     vignetting: float = 0.0
     defocus: float = 0.0
     seed: int = 0
+    shutter: float = 0.0
 
     # -- construction ------------------------------------------------------------
 
@@ -374,6 +379,7 @@ _NUMBERS: tuple[tuple[str, float, float | None, bool, bool, str], ...] = (
     ("gain", 0.0, None, True, False, "unitless"),
     ("vignetting", 0.0, 1.0, False, True, "fraction of light lost at the rim"),
     ("defocus", 0.0, MAX_DEFOCUS, False, False, "Gaussian sigma in pixels"),
+    ("shutter", 0.0, 1.0, False, False, "fraction of the frame interval"),
 )
 
 

@@ -5,7 +5,8 @@
 
 ``gt.valid``
     1 where the pixel centre is inside the rim and its reflected ray hits a
-    scene object.
+    scene object; 0 where it hits a strut or mount flange of the rig
+    (``omnisim.rig_parts``: not scene content), whose id ``gt.object`` still holds.
 ``gt.r``, ``gt.theta``, ``gt.h``
     The seen point in rig cylindrical coordinates at this frame (metres,
     radians in [-pi, pi), metres; h measured from cam2's tip, eq. 4).
@@ -75,6 +76,7 @@ from numpy.typing import NDArray
 
 from omniflow.io.dataset import GT_CHANNELS
 from omnisim.mitsuba_scene import CAMERAS, MitsubaFrame, camera_unit, get_mitsuba_scene
+from omnisim.rig_parts import RIG_PART_KINDS
 from omnisim.sensor import apply_affine, ensure_mitsuba, mirror_rays, transform_rays
 
 __all__ = [
@@ -289,12 +291,15 @@ def ground_truth_reference(scene, frame: int, cams=CAMERAS) -> dict[str, dict[st
         dirs.append(d)
         sel.append((unit, xs.ravel(), ys.ravel(), rays, idx))
     t_all, obj_all = trace(ms, fr, np.concatenate(origins), np.concatenate(dirs))
+    first_part, parts_seen = first_rig_part_id(scene), {}
     start = 0
     for cam, (unit, xs, ys, rays, idx), o, d in zip(cams, sel, origins, dirs, strict=True):
         sl = slice(start, start + len(o))
         start += len(o)
         t, obj = t_all[sl], obj_all[sl]
-        hit = obj > 0
+        part = obj >= first_part
+        hit = (obj > 0) & ~part
+        parts_seen[cam] = (idx[part], obj[part])
         idx, o, d, t, obj = idx[hit], o[hit], d[hit], t[hit], obj[hit]
         p_world = o + t[:, None] * d
         state[cam] = dict(
@@ -356,6 +361,7 @@ def ground_truth_reference(scene, frame: int, cams=CAMERAS) -> dict[str, dict[st
         p = st["p"]
         out["gt.X"][idx], out["gt.Y"][idx], out["gt.Z"][idx] = p[:, 0], p[:, 1], p[:, 2]
         out["gt.object"][idx] = st["obj"]
+        out["gt.object"][parts_seen[cam][0]] = parts_seen[cam][1]
         for key in ("gt.flow", "gt.bflow"):
             if key in st:
                 for name, values in _reference_flow(st, st[key]).items():
@@ -436,6 +442,13 @@ def _dr_rays(dr, u: _Consts, x, y, pose):
     return o, w, h_i
 
 
+def first_rig_part_id(scene) -> int:
+    """The smallest object id of the rig's struts and flanges (``omnisim.rig_parts``: they
+    come after every scene object); 2^31 when there are none."""
+    ids = [o.id for o in scene.objects if getattr(o, "kind", "") in RIG_PART_KINDS]
+    return int(min(ids, default=2**31))
+
+
 def _dr_trace(mi, dr, fr: MitsubaFrame, tables: dict, o, d, active):
     """First hit (float64 distance refined on the hit triangle's plane, object id)."""
     f64 = mi.Float64
@@ -483,6 +496,7 @@ def _dr_primary(mi, dr, ms, unit, fr):
     y = f64(idx // unit.width) + 0.5
     o, d, h_i = _dr_rays(dr, u, x, y, _mat(mi, fr.robot_pose))
     t, obj, valid = _dr_trace(mi, dr, fr, _tables(ms, fr), o, d, h_i <= u.r_m)
+    valid &= obj < first_rig_part_id(ms.scene)  # a strut or flange: not scene content
     p = [o[k] + t * d[k] for k in range(3)]
     q = _xf(_mat(mi, _inv(fr.robot_pose)), p)
     return u, x, y, h_i, p, q, obj, valid

@@ -142,6 +142,15 @@ def _pose_list(pose_fn: Callable[[int], Any], frames: int) -> list:
     return [np.asarray(pose_fn(k), dtype=float).reshape(4, 4).tolist() for k in range(frames)]
 
 
+def _optics(scene: Any) -> dict[str, Any]:
+    """``{"optics": ...}`` for a lens with a finite aperture; nothing for a pinhole (the
+    default), so a pinhole dataset's metadata is what it was before lenses existed."""
+    optics = _attr(scene, "optics")
+    if optics is None or optics.pinhole:
+        return {}
+    return {"optics": optics.as_dict()}
+
+
 def _attr(obj: Any, name: str, default: Any = None) -> Any:
     if isinstance(obj, Mapping):
         return obj.get(name, default)
@@ -201,6 +210,7 @@ def build_meta(
         "lights": _jsonable(list(_attr(scene, "lights", []) or [])),
         "channels": list(CHANNELS),
         **({"camera": scene.camera.to_dict()} if _attr(scene, "camera") is not None else {}),
+        **_optics(scene),
         "flo": {"unknown_value": FLO_UNKNOWN, "unknown_threshold": FLO_UNKNOWN_THRESH},
         "versions": versions(),
     }

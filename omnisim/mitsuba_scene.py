@@ -147,8 +147,11 @@ class MitsubaScene:
 
     # -- frames -------------------------------------------------------------
     def frame(self, frame: int) -> MitsubaFrame:
-        """The Mitsuba scene posed for ``frame`` (one of ``FRAME_SLOTS`` kept in place)."""
-        frame = int(frame)
+        """The Mitsuba scene posed for ``frame`` (one of ``FRAME_SLOTS`` kept in place).
+
+        A fractional frame (a sub-frame of a motion-blurred exposure) is posed exactly.
+        """
+        frame = float(frame)
         for slot in self.slots:
             if slot.frame == frame:
                 self.slots.remove(slot)
@@ -252,6 +255,7 @@ class MitsubaScene:
                 pose,
                 spp=spp,
                 sampler=_get(self.scene.render, "sampler", None),
+                optics=getattr(self.scene, "optics", None),
             )
             self.sensors[cam] = sensor
         else:

@@ -37,6 +37,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from omnisim.denoise import GUIDE_SPP, oidn_denoise
+from omnisim.exposure import average_subframes, subframe_offsets, subframe_spp
 from omnisim.groundtruth import ground_truth_frame
 from omnisim.mitsuba_scene import (
     CAMERAS,
@@ -58,6 +59,7 @@ __all__ = [
     "get_mitsuba_scene",
     "outside_rim",
     "render_camera",
+    "render_exposure",
     "render_frame",
 ]
 
@@ -125,6 +127,30 @@ def render_camera(
     return img
 
 
+def render_exposure(
+    scene, frame: int, cam: str, *, timings: dict[str, float] | None = None
+) -> NDArray[np.float32]:
+    """:func:`render_camera` over the camera's open shutter (:mod:`omnisim.exposure`).
+
+    With ``camera.shutter`` 0 (the default) this is ``render_camera(scene, frame, cam)``.
+    Otherwise the mean of ``render.time_samples`` sub-frame renders, sub-frame j with
+    the sampler seed of the scene seed's ``frame_seed(seed, j, "subframe")``.
+    """
+    shutter = float(getattr(getattr(scene, "camera", None), "shutter", 0.0))
+    n = int(render_setting(scene, "time_samples", 1))
+    offsets = subframe_offsets(shutter, n)
+    if len(offsets) == 1:
+        return render_camera(scene, frame, cam, timings=timings)
+    spp = subframe_spp(int(render_setting(scene, "spp", 16)), len(offsets))
+    base = int(render_setting(scene, "seed", 0))
+
+    def sub(offset: float, j: int) -> NDArray[np.float32]:
+        seed = frame_seed(base, j, "subframe")
+        return render_camera(scene, frame + offset, cam, spp=spp, seed=seed, timings=timings)
+
+    return average_subframes(sub, offsets)
+
+
 def outside_rim(unit) -> NDArray[np.bool_]:
     """(H, W) pixels whose whole square lies outside the rim: no sample reaches the mirror."""
     x, y = unit.pixel_centres()
@@ -143,7 +169,7 @@ def render_frame(
     ``denoise`` (when the scene asks for a denoiser) and ``groundtruth``
     (summed over both cameras).
     """
-    rgb = {cam: render_camera(scene, frame, cam, timings=timings) for cam in CAMERAS}
+    rgb = {cam: render_exposure(scene, frame, cam, timings=timings) for cam in CAMERAS}
     t1 = time.perf_counter()
     gt = ground_truth_frame(scene, frame, CAMERAS)
     t_gt = time.perf_counter() - t1

@@ -49,7 +49,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from omniflow.geometry.rig import Rig, RigError, rig_from_dict
-from omnisim import geometry, scene_placement, textures
+from omnisim import geometry, rig_parts, scene_placement, textures
 from omnisim.camera import CameraError, CameraModel
 from omnisim.motion import (
     ConstantMotion,
@@ -58,7 +58,13 @@ from omnisim.motion import (
     StaticMotion,
     euler_deg,
 )
+from omnisim.optics import Optics, optics_from_table
 from omnisim.scene_checker import REQUIRED, Checker, SceneError
+from omnisim.scene_textures import (
+    IMAGE_SUFFIXES,
+    texture_from_table,
+    tile_of,
+)
 
 __all__ = [
     "AreaLight",
@@ -96,6 +102,7 @@ class RenderSettings:
     integrator: str = "direct"
     variant: str = "llvm_ad_rgb"
     denoise: str = "oidn"
+    time_samples: int = 8  # sub-frames of an open shutter (camera.shutter > 0)
 
 
 @dataclass(frozen=True)
@@ -233,6 +240,7 @@ class Scene:
     rooms: tuple[RoomInfo, ...] = ()
     overrides: dict[str, Any] = field(default_factory=dict)
     camera: CameraModel = field(default_factory=CameraModel)
+    optics: Optics = field(default_factory=Optics)
 
     def object_by_id(self, object_id: int) -> SceneObject:
         for obj in self.objects:
@@ -315,12 +323,13 @@ def apply_overrides(data: dict, overrides: Mapping[str, Any] | None, where: str)
 # ---------------------------------------------------------------------------
 
 TOP_KEYS = frozenset(
-    "name description frames frame_interval render rig robot objects lights camera".split()
+    "name description frames frame_interval render rig robot objects lights camera optics".split()
 )
 RENDER_KEYS = frozenset(
     {"width", "height", "spp", "max_depth", "seed", "integrator", "variant", "denoise"}
+    | {"time_samples"}
 )
-RIG_KEYS = frozenset({"d", "R", "s", "x_c", "y_c", "r_m", "margin"})
+RIG_KEYS = frozenset({"d", "R", "s", "x_c", "y_c", "r_m", "margin", "struts", "mount_radius"})
 ROBOT_KEYS = frozenset({"position", "rotation", "motion"})
 MOTION_KEYS = frozenset({"type", "velocity", "angular_velocity", "interpolation", "keys"})
 KEY_KEYS = frozenset({"time", "frame", "position", "rotation"})
@@ -333,15 +342,6 @@ OBJECT_KEYS = {
     "sphere": frozenset(_OBJ_COMMON | {"radius", "sections"}),
     "plane": frozenset(_OBJ_COMMON | {"size"}),
     "mesh": frozenset(_OBJ_COMMON | {"path", "scale", "uv", "center"}),
-}
-TEXTURE_TYPES = ("noise", "grating", "checker", "solid", "image")
-_TEX_COMMON = {"type", "tile", "resolution", "seed"}
-TEXTURE_KEYS = {
-    "noise": frozenset(_TEX_COMMON | {"wavelength", "colors", "contrast", "exponent"}),
-    "grating": frozenset(_TEX_COMMON | {"wavelength", "angle", "phase", "colors", "contrast"}),
-    "checker": frozenset(_TEX_COMMON | {"size", "colors"}),
-    "solid": frozenset(_TEX_COMMON | {"color"}),
-    "image": frozenset(_TEX_COMMON | {"path", "srgb"}),
 }
 MATERIAL_TYPES = ("diffuse", "plastic", "conductor", "roughconductor")
 MATERIAL_KEYS = frozenset({"type", "roughness", "int_ior", "two_sided"})
@@ -358,7 +358,6 @@ DENOISERS = ("none", "oidn")
 #: Most frames a scene may have (dataset.json holds a pose per frame and object; 100000
 #: frames of a scene with 8 objects are about 360 MB of it).
 MAX_FRAMES = 100_000
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr", ".hdr", ".tif", ".tiff", ".bmp")
 
 
 # ---------------------------------------------------------------------------
@@ -423,8 +422,10 @@ def _build(chk: Checker, path: Path, source: str, data: dict, overrides: dict) -
     rig = _rig(chk, data.get("rig", REQUIRED), render, path)
     robot = _robot(chk, data.get("robot", {}), dt)
     objects, rooms = _objects(chk, data.get("objects", []), dt, path.parent)
+    objects += _rig_parts(chk, data["rig"], rig, robot, objects)
     lights = _lights(chk, data.get("lights", REQUIRED), path.parent)
     camera = _camera(chk, data.get("camera", {}))
+    optics = optics_from_table(chk, data.get("optics", {}), rig.cam1.v)
 
     scene = Scene(
         name=name,
@@ -442,6 +443,7 @@ def _build(chk: Checker, path: Path, source: str, data: dict, overrides: dict) -
         rooms=tuple(rooms),
         overrides=overrides,
         camera=camera,
+        optics=optics,
     )
     scene_placement.check_rig_in_scene(chk, scene)
     scene_placement.check_not_enclosed(chk, scene)
@@ -464,6 +466,7 @@ def _render_settings(chk: Checker, tbl: Any) -> RenderSettings:
         integrator=chk.string(tbl, "integrator", w, d.integrator, choices=INTEGRATORS),
         variant=variant,
         denoise=chk.string(tbl, "denoise", w, d.denoise, choices=DENOISERS),
+        time_samples=chk.integer(tbl, "time_samples", w, d.time_samples, lo=1, hi=1024),
     )
 
 
@@ -511,6 +514,25 @@ def _rig(chk: Checker, tbl: Any, render: RenderSettings, path: Path) -> Rig:
         return rig_from_dict({"rig": {"d": d, "R": big_r, "s": s}, "cameras": cams}, str(path))
     except RigError as exc:
         raise SceneError(str(exc)) from exc
+
+
+def _rig_parts(chk: Checker, tbl: dict, rig: Rig, robot: Robot, objects: list) -> list:
+    """Struts and flanges (:mod:`omnisim.rig_parts`): objects moving with the robot."""
+    first = max((o.id for o in objects), default=0) + 1
+    tex = np.full((2, 2, 3), rig_parts.PART_ALBEDO, dtype=np.float32)
+    return [
+        SceneObject(
+            p["id"],
+            p["name"],
+            p["kind"],
+            p["mesh"],
+            tex,
+            Material(),
+            robot.motion,
+            robot.frame_interval,
+        )
+        for p in rig_parts.rig_parts(chk, tbl, rig, first)
+    ]
 
 
 def _motion(
@@ -577,73 +599,6 @@ def _robot(chk: Checker, tbl: Any, dt: float) -> Robot:
     return Robot(_pose_and_motion(chk, tbl, "robot", [0.0, 0.0, 0.5], dt), dt)
 
 
-def _texture(chk: Checker, tbl: Any, where: str, seed: int, base: Path) -> NDArray[np.float32]:
-    tbl = {} if tbl is None else tbl
-    if not isinstance(tbl, dict):
-        raise chk.bad(where, tbl, "a table")
-    kind = chk.string(tbl, "type", where, "noise", choices=TEXTURE_TYPES)
-    chk.table(tbl, where, TEXTURE_KEYS[kind])
-    tile = chk.number(tbl, "tile", where, 1.0, lo=0, lo_open=True)
-    res = chk.integer(tbl, "resolution", where, 512, lo=8, hi=8192)
-    seed = chk.integer(tbl, "seed", where, seed, lo=0)
-    colors = None
-    if kind in ("noise", "grating", "checker"):
-        colors = tbl.get("colors", textures.DEFAULT_COLORS)
-        if not isinstance(colors, list | tuple) or len(colors) != 2:
-            raise chk.bad(f"{where}.colors", colors, "two [r, g, b] colours with values in [0, 1]")
-        colors = [chk.vector({"c": c}, "c", "", n=3, lo=0.0, hi=1.0) for c in colors]
-    if kind == "noise":
-        wl = chk.vector(tbl, "wavelength", where, [0.05, 0.5], n=2, lo=0.0, lo_open=True)
-        if wl[0] > wl[1]:
-            raise chk.bad(f"{where}.wavelength", wl.tolist(), "[shortest, longest] in metres")
-        if tile / wl[0] > res / 2:
-            raise chk.bad(
-                f"{where}.wavelength",
-                wl.tolist(),
-                f"a shortest wavelength of at least 2 texels = {2 * tile / res:.4g} m "
-                f"(tile {tile:g} m over {res} texels); 4 or more texels is better",
-            )
-        if tile / wl[1] < 1:
-            raise chk.bad(
-                f"{where}.wavelength", wl.tolist(), f"a longest wavelength <= tile ({tile:g} m)"
-            )
-        return textures.noise_texture(
-            tile=tile,
-            wavelength=(wl[0], wl[1]),
-            resolution=res,
-            colors=colors,
-            contrast=chk.number(tbl, "contrast", where, 1.0, lo=0.0, hi=1.0),
-            exponent=chk.number(tbl, "exponent", where, 1.0),
-            seed=seed,
-        )
-    if kind == "grating":
-        wl = chk.number(tbl, "wavelength", where, 0.1, lo=0.0, lo_open=True)
-        try:
-            return textures.grating_texture(
-                tile=tile,
-                wavelength=wl,
-                angle=chk.number(tbl, "angle", where, 0.0),
-                phase=chk.number(tbl, "phase", where, 0.0),
-                resolution=res,
-                colors=colors,
-                contrast=chk.number(tbl, "contrast", where, 1.0, lo=0.0, hi=1.0),
-            )
-        except ValueError as exc:
-            raise chk.bad(f"{where}.wavelength", wl, f"a usable wavelength ({exc})") from exc
-    if kind == "checker":
-        size = chk.number(tbl, "size", where, 0.25, lo=0.0, lo_open=True)
-        if tile / size > res / 2:
-            raise chk.bad(f"{where}.size", size, f"at least 2 texels ({2 * tile / res:.4g} m)")
-        return textures.checker_texture(tile=tile, size=size, resolution=res, colors=colors)
-    if kind == "solid":
-        return textures.solid_texture(chk.vector(tbl, "color", where, [0.5, 0.5, 0.5], lo=0, hi=1))
-    img_path = chk.file(tbl, "path", where, base, IMAGE_SUFFIXES)
-    try:
-        return textures.load_image_texture(img_path, srgb=chk.boolean(tbl, "srgb", where, True))
-    except ValueError as exc:
-        raise chk.error(f"{where}.path", f"{exc}; expected a readable image") from exc
-
-
 def _material(chk: Checker, tbl: Any, where: str) -> Material:
     tbl = {} if tbl is None else tbl
     chk.table(tbl, where, MATERIAL_KEYS)
@@ -708,17 +663,11 @@ def _objects(
             objects.extend(_room(chk, tbl, i, name, first, size, motion, material, dt, base))
             continue
         tex_tbl = tbl.get("texture")
-        texture = _texture(chk, tex_tbl, f"{where}.texture", first, base)
-        tile = _tile_of(tex_tbl)
+        texture = texture_from_table(chk, tex_tbl, f"{where}.texture", first, base)
+        tile = tile_of(tex_tbl)
         mesh = _mesh(chk, tbl, kind, where, tile, base)
         objects.append(SceneObject(first, name, kind, mesh, texture, material, motion, dt, i))
     return objects, rooms
-
-
-def _tile_of(tex_tbl: Any) -> float:
-    if isinstance(tex_tbl, dict) and isinstance(tex_tbl.get("tile"), int | float):
-        return float(tex_tbl["tile"])
-    return 1.0
 
 
 def _mesh(chk: Checker, tbl: dict, kind: str, where: str, tile: float, base: Path):
@@ -764,8 +713,8 @@ def _room(chk, tbl, index, name, first, size, motion, material, dt, base) -> lis
         if isinstance(tex_tbl, dict) and "seed" in tex_tbl:
             seed = chk.integer(tex_tbl, "seed", tex_where, lo=0)
             tex_tbl = dict(tex_tbl, seed=seed + k)
-        texture = _texture(chk, tex_tbl, tex_where, first + k, base)
-        mesh = geometry.room(size, tile=_tile_of(tex_tbl))[part]
+        texture = texture_from_table(chk, tex_tbl, tex_where, first + k, base)
+        mesh = geometry.room(size, tile=tile_of(tex_tbl))[part]
         out.append(
             SceneObject(
                 first + k, f"{name}.{part}", "room", mesh, texture, material, motion, dt, index

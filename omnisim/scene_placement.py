@@ -15,6 +15,7 @@ import trimesh
 from numpy.typing import NDArray
 
 from omnisim.motion import StaticMotion
+from omnisim.rig_parts import RIG_PART_KINDS
 from omnisim.scene_checker import Checker
 
 #: At most this many frames are checked (evenly spaced, always including the ends).
@@ -56,7 +57,8 @@ def check_rig_in_scene(chk: Checker, scene: Any) -> None:
     moving_robot = not isinstance(scene.robot.motion, StaticMotion)
     robot_key = "robot.motion" if moving_robot else "robot.position"
     frames = _checked_frames(scene.frames)
-    surface = [(obj, _surface_points(obj.mesh)) for obj in scene.objects]
+    content = [obj for obj in scene.objects if obj.kind not in RIG_PART_KINDS]
+    surface = [(obj, _surface_points(obj.mesh)) for obj in content]
     others = [(obj, pts) for obj, pts in surface if obj.kind != "room"]
 
     axis = np.zeros((9, 4))
@@ -144,7 +146,7 @@ def check_not_enclosed(chk: Checker, scene: Any) -> None:
     tips = np.array([[0.0, 0.0, 0.0, 1.0], [0.0, 0.0, scene.rig.s, 1.0]])
     frames = _checked_frames(scene.frames)
     for obj in scene.objects:
-        if obj.kind == "room":
+        if obj.kind == "room" or obj.kind in RIG_PART_KINDS:
             continue
         lo, hi = obj.mesh.bounds
         pts, at = [], []

@@ -56,11 +56,13 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
+from types import SimpleNamespace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from omniflow.geometry.rig import Unit
+from omnisim.optics import Optics, thin_lens_cone_ray
 
 __all__ = [
     "DEFAULT_VARIANT",
@@ -230,12 +232,17 @@ def _define_sensor_class(mi):
             )
             pose = props.get("pose", None)
             self.set_pose(np.eye(4) if pose is None else np.asarray(list(pose)).reshape(4, 4))
+            # A thin lens (omnisim.optics): the aperture sample is sample3.
+            self._lens_radius = float(props.get("lens_radius", 0.0))
+            self._focus = float(props.get("focus_distance", 1.0))
+            self._ops = SimpleNamespace(sqrt=dr.sqrt, select=dr.select, maximum=dr.maximum)
             self.m_needs_sample_2 = True
-            self.m_needs_sample_3 = False
+            self.m_needs_sample_3 = self._lens_radius > 0.0
 
         def set_unit(self, *, d, R, x_c, y_c, r_m, tip_h):
             d, R, r_m = float(d), float(R), float(r_m)
             v = (d / R + 1.0) * r_m  # eq. (2)
+            self._big_r = dr.opaque(mi.Float, R)
             self._k = [
                 dr.opaque(mi.Float, val)
                 for val in (v, 1.0 / v, d, float(x_c), float(y_c), r_m, float(tip_h))
@@ -252,6 +259,8 @@ def _define_sensor_class(mi):
             offset = mi.ScalarVector2f(film.crop_offset())
             px = sample2.x * size.x + offset.x - x_c
             py = sample2.y * size.y + offset.y - y_c
+            if self._lens_radius > 0.0:
+                return self._sample_lens_ray(time, px, py, sample3, active)
             h_i = dr.sqrt(dr.fma(px, px, py * py))
             inside = h_i <= r_m
             has_dir = h_i > 0
@@ -271,6 +280,26 @@ def _define_sensor_class(mi):
             ray = mi.Ray3f(ow, dr.normalize(dw), time)
             # Perfect conductor: reflectance 1 inside the rim, black outside.
             weight = dr.select(active & inside, 1.0, 0.0)
+            return ray, mi.Spectrum(weight)
+
+        def _sample_lens_ray(self, time, px, py, sample3, active):
+            """Thin lens: the film point's ray through an aperture point, off the cone.
+
+            A ray that misses the mirror (beyond its rim) is black, as outside the rim.
+            """
+            v, _, d, _, _, _, tip_h = self._k
+            disk = mi.warp.square_to_uniform_disk_concentric(sample3) * self._lens_radius
+            q, w, ok = thin_lens_cone_ray(
+                self._ops, px, py, disk.x, disk.y, v=v, d=d, focus=self._focus
+            )
+            o = (q[0], q[1], q[2] + tip_h)
+            m = self._m
+            ow = mi.Point3f(
+                *[m[i][0] * o[0] + m[i][1] * o[1] + m[i][2] * o[2] + m[i][3] for i in range(3)]
+            )
+            dw = mi.Vector3f(*[m[i][0] * w[0] + m[i][1] * w[1] + m[i][2] * w[2] for i in range(3)])
+            ray = mi.Ray3f(ow, dr.normalize(dw), time)
+            weight = dr.select(active & ok & (q[2] <= self._big_r), 1.0, 0.0)
             return ray, mi.Spectrum(weight)
 
         def sample_ray_differential(self, time, sample1, sample2, sample3, active=True):
@@ -296,38 +325,55 @@ def sampler_dict(spp: int, kind: str | None = None) -> dict:
     return out
 
 
-def make_sensor(unit: Unit, pose: ArrayLike, *, spp: int = 16, sampler: str | None = None):
+def make_sensor(
+    unit: Unit,
+    pose: ArrayLike,
+    *,
+    spp: int = 16,
+    sampler: str | None = None,
+    optics: Optics | None = None,
+):
     """A Mitsuba sensor for ``unit`` at the world-from-rig ``pose``.
+
+    ``optics`` with a finite f-number renders through a thin lens
+    (:mod:`omnisim.optics`); None or a pinhole keeps the exact pinhole rays.
 
     The film is an RGB ``hdrfilm`` of the unit's size with a box filter
     (each pixel integrates exactly its own square [j, j+1) x [i, i+1)) and no
     sample border, so radiance at a pixel is the mean over its footprint.
     """
     mi = ensure_mitsuba()
-    return _make_sensor(mi, unit, np.asarray(pose, dtype=np.float64), spp, sampler)
+    return _make_sensor(mi, unit, np.asarray(pose, dtype=np.float64), spp, sampler, optics)
 
 
-def _make_sensor(mi, unit: Unit, pose: NDArray, spp: int, sampler: str | None):
-    sensor = mi.load_dict(
-        {
-            "type": PLUGIN_NAME,
-            "d": float(unit.d),
-            "R": float(unit.R),
-            "x_c": float(unit.x_c),
-            "y_c": float(unit.y_c),
-            "r_m": float(unit.r_m),
-            "tip_h": float(unit.tip_h),
-            "film": {
-                "type": "hdrfilm",
-                "width": int(unit.width),
-                "height": int(unit.height),
-                "pixel_format": "rgb",
-                "component_format": "float32",
-                "rfilter": {"type": "box"},
-                "sample_border": False,
-            },
-            "sampler": sampler_dict(spp, sampler),
-        }
-    )
+def sensor_dict(unit: Unit, spp: int, sampler: str | None, optics: Optics | None) -> dict:
+    """The Mitsuba description of the sensor of ``unit`` (film, sampler, lens)."""
+    out = {
+        "type": PLUGIN_NAME,
+        "d": float(unit.d),
+        "R": float(unit.R),
+        "x_c": float(unit.x_c),
+        "y_c": float(unit.y_c),
+        "r_m": float(unit.r_m),
+        "tip_h": float(unit.tip_h),
+        "film": {
+            "type": "hdrfilm",
+            "width": int(unit.width),
+            "height": int(unit.height),
+            "pixel_format": "rgb",
+            "component_format": "float32",
+            "rfilter": {"type": "box"},
+            "sample_border": False,
+        },
+        "sampler": sampler_dict(spp, sampler),
+    }
+    if optics is not None and not optics.pinhole:
+        out["lens_radius"] = optics.aperture_radius
+        out["focus_distance"] = float(optics.focus_distance)
+    return out
+
+
+def _make_sensor(mi, unit: Unit, pose: NDArray, spp: int, sampler: str | None, optics):
+    sensor = mi.load_dict(sensor_dict(unit, spp, sampler, optics))
     sensor.set_pose(pose)
     return sensor
