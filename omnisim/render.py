@@ -26,6 +26,8 @@ are bit-identical, also across Dr.Jit thread counts (checked for 7, 9 and 16
 spp with 1, 2 and 5 threads; ``tests/omnisim/test_render.py`` checks repeat renders).
 The denoiser keeps it: Open Image Denoise on the CPU gave the same bytes in
 two processes and with one Dr.Jit thread (default scene, 96 px, frame 1).
+Also on a busy machine: ``tests/omnisim/test_same_bytes_under_load.py`` renders a
+dataset twice under load and compares every file (docs/decisions/render-same-bytes.md).
 """
 
 from __future__ import annotations
