@@ -81,6 +81,7 @@ def render_camera(
     spp: int | None = None,
     seed: int | None = None,
     timings: dict[str, float] | None = None,
+    guide_spp: int | None = None,
 ) -> NDArray[np.float32]:
     """Linear RGB radiance (H, W, 3) float32 of camera ``cam`` at ``frame``.
 
@@ -90,8 +91,9 @@ def render_camera(
     rendered with the same seed at ``min(spp, GUIDE_SPP)`` (then through the
     same film positions when spp <= GUIDE_SPP: the film sample is the
     sampler's first draw in both integrators) and the image is denoised
-    (:func:`omnisim.denoise.oidn_denoise`). ``timings``, if given, receives
-    the seconds spent in ``render`` and ``denoise`` (guides included).
+    (:func:`omnisim.denoise.oidn_denoise`); ``guide_spp`` overrides that
+    number (benchmarks). ``timings``, if given, receives the seconds spent in
+    ``render`` and ``denoise`` (guides included).
     """
     mi = ensure_mitsuba()
     ms = get_mitsuba_scene(scene)
@@ -115,7 +117,7 @@ def render_camera(
             fr.scene,
             sensor=sensor,
             integrator=ms.guides,
-            spp=min(spp, GUIDE_SPP),
+            spp=min(spp, GUIDE_SPP) if guide_spp is None else int(guide_spp),
             seed=frame_seed(base, frame, cam),
         )
         guides = np.array(guides, dtype=np.float32).reshape(u.height, u.width, 6)
