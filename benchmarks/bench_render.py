@@ -14,13 +14,14 @@ For a scene (default ``scenes/default.toml``) at its render settings
   put through eq. (1), compared with the pixel's h_i (max and RMS, pixels);
 - with ``--candidates``, render settings side by side on frame 0 (seconds
   and CPU seconds per stereo frame: render, denoise, ground truth; the ratio
-  of the total to the first candidate's, the baseline, and that ratio times
-  the baseline's idle-machine time; the residual against a converged
-  path-traced reference (``--ref-depth``, default 8; two independent halves,
-  their noise removed), cached in ``--ref-cache``, in % of the mean luminance
-  over the common annulus; the error of the image gradient; the
-  high-frequency energy kept; the mean luminance over the reference's; with
-  ``--epe`` OpenCV DIS's end-point error against gt.flow);
+  of the total, and of the CPU seconds, to the first candidate's (the
+  baseline), and the total's ratio times the baseline's idle-machine time;
+  the residual against a converged path-traced reference (``--ref-depth``,
+  default 8; two independent halves, their noise removed), cached in
+  ``--ref-cache``, in % of the mean luminance over the common annulus; the
+  error of the image gradient; the high-frequency energy kept; the mean
+  luminance over the reference's; with ``--epe`` OpenCV DIS's end-point
+  error against gt.flow);
 - with ``--sizes``, the scene's render at other image sizes (time, noise);
 - with ``--integrators``, the same render figures for other integrators;
 - with ``--updates``, moving objects re-posed in place through
@@ -505,25 +506,33 @@ def candidates(
         )
     print(
         f"  {'candidate':20s} {'render':>7s} {'denoise':>7s} {'gt':>6s} {'total':>6s} "
-        f"{'cpu':>6s} {'ratio':>6s} {'est. s':>6s} | {'vs path':>7s} {'grad':>6s} "
+        f"{'cpu':>6s} {'ratio':>6s} {'cpu r.':>6s} {'est. s':>6s} | {'vs path':>7s} {'grad':>6s} "
         f"{'texture':>7s} {'mean':>6s}"
         + (f" | {'vs direct':>9s}" if "direct" in refs else "")
         + ("  | DIS EPE cam1/cam2" if epe else ""),
         flush=True,
     )
-    base_total = None
+    base_total = base_cpu = None
     for spec in specs:
         cand = _spec(spec)
         sc = load_scene(path, {**overrides, **cand["overrides"]})
         med, imgs = _render_candidate(sc, cand, reps)
         if base_total is None:
-            base_total = med["total"]
+            base_total, base_cpu = med["total"], med["cpu"]
         ratio = med["total"] / base_total
+        cpu_ratio = med["cpu"] / base_cpu
         rp = residual(imgs, refs["path"], masks)
-        row = {**med, "ratio": ratio, "estimate_idle_s": ratio * BASELINE_IDLE_S, "vs_path": rp}
+        row = {
+            **med,
+            "ratio": ratio,
+            "cpu_ratio": cpu_ratio,
+            "estimate_idle_s": ratio * BASELINE_IDLE_S,
+            "vs_path": rp,
+        }
         line = (
             f"  {spec:20s} {med['render']:7.2f} {med['denoise']:7.2f} "
             f"{med['groundtruth']:6.2f} {med['total']:6.2f} {med['cpu']:6.2f} {ratio:6.2f} "
+            f"{cpu_ratio:6.2f} "
             f"{ratio * BASELINE_IDLE_S:6.2f} | {rp['rms_pct']:6.2f}% {rp['grad_pct']:5.1f}% "
             f"{rp['texture_pct']:6.1f}% {rp['mean_ratio']:6.3f}"
         )
