@@ -262,7 +262,7 @@ CANDIDATES = (
     "path/d8/rr3:4+oidn",
     "path/d8/rr3/g16:4+oidn",
     "path/d8/rr3:8+oidn",
-    "path/d8/rr2:8+oidn",
+    "path/d8/rr3:16+oidn",
 )
 #: Samples per pixel of one reference pass (the reference is a mean of passes).
 REF_PASS_SPP = 16
