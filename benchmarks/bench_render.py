@@ -13,11 +13,15 @@ For a scene (default ``scenes/default.toml``) at its render settings
   float32 sensor ray traced through the Mitsuba scene, its hit's (r, h)
   put through eq. (1), compared with the pixel's h_i (max and RMS, pixels);
 - with ``--candidates``, render settings side by side on frame 0 (seconds
-  and CPU seconds per stereo frame: render, denoise, ground truth; the
-  residual against converged path and direct references, cached in
-  omnisim_render_ref in the temporary folder, in % of the mean luminance over the common
-  annulus; the error of the image gradient; with ``--epe`` OpenCV DIS's
-  end-point error against gt.flow);
+  and CPU seconds per stereo frame: render, denoise, ground truth; the ratio
+  of the total, and of the CPU seconds, to the first candidate's (the
+  baseline), and the total's ratio times the baseline's idle-machine time;
+  the residual against a converged path-traced reference (``--ref-depth``,
+  default 8; two independent halves, their noise removed), cached in
+  ``--ref-cache``, in % of the mean luminance over the common annulus; the
+  error of the image gradient; the high-frequency energy kept; the mean
+  luminance over the reference's; with ``--epe`` OpenCV DIS's end-point
+  error against gt.flow);
 - with ``--sizes``, the scene's render at other image sizes (time, noise);
 - with ``--integrators``, the same render figures for other integrators;
 - with ``--aperture N F D``, a thin lens of f-number N, focal length F and focus
@@ -37,6 +41,10 @@ wall-clock times grow with the load while CPU times do not. Run::
     python benchmarks/bench_render.py --skip-default --candidates --epe --sizes 128 192 256
     python benchmarks/bench_render.py --skip-default --aperture 2.8 0.0056 0.2 \
         --set render.width=256 --set render.height=256
+    python benchmarks/bench_render.py --variant cuda_ad_rgb --candidates   # with a GPU
+
+``--variant cuda_ad_rgb`` on a machine without a CUDA device stops with one line
+(exit 2).
 """
 
 from __future__ import annotations
@@ -45,7 +53,7 @@ import argparse
 import os
 import platform
 import statistics
-import tempfile
+import sys
 import time
 from pathlib import Path
 
@@ -249,36 +257,58 @@ def updates(scene, frames: int) -> dict:
 # ----------------------------------------------------------------------------
 # Candidates against a converged reference
 # ----------------------------------------------------------------------------
-#: Render settings compared by ``--candidates``: "integrator:spp" or "integrator:spp+oidn".
+#: Render settings compared by ``--candidates``: ``INTEGRATOR[/dN][/rrN][/gN]:SPP[+oidn]``
+#: (``dN``: max_depth N; ``rrN``: Russian roulette from depth N; ``gN``: the denoiser's
+#: guides at N spp). The first is the baseline the times are divided by.
 CANDIDATES = (
-    "path:16",
-    "path:4+oidn",
-    "path:8+oidn",
-    "path:16+oidn",
-    "direct:16",
-    "direct:64",
-    "direct:4+oidn",
-    "direct:16+oidn",
+    "direct:64+oidn",
+    "path/d5:8+oidn",
+    "path/d6/rr3:8+oidn",
+    "path/d8/rr3:4+oidn",
+    "path/d8/rr3/g16:4+oidn",
+    "path/d8/rr3:8+oidn",
+    "path/d8/rr3:16+oidn",
 )
 #: Samples per pixel of one reference pass (the reference is a mean of passes).
 REF_PASS_SPP = 16
+#: Seconds per stereo frame of the baseline (direct, 64 spp, Open Image Denoise) on the
+#: idle 2-core machine (render, denoise and ground truth; docs/decisions/render_light.md):
+#: a candidate's estimate is its time ratio to the baseline, measured in the same run,
+#: times this.
+BASELINE_IDLE_S = 3.9
 
 
 def _spec(spec: str) -> dict:
-    integrator, rest = spec.split(":")
+    """Scene overrides and integrator extras of a candidate spec (see CANDIDATES)."""
+    head, rest = spec.split(":")
+    integrator, *opts = head.split("/")
     spp, _, den = rest.partition("+")
-    return {
-        "render.integrator": integrator,
-        "render.spp": int(spp),
-        "render.denoise": den or "none",
+    out = {
+        "overrides": {
+            "render.integrator": integrator,
+            "render.spp": int(spp),
+            "render.denoise": den or "none",
+        },
+        "rr_depth": None,
+        "guide_spp": None,
     }
+    for opt in opts:
+        if opt.startswith("rr"):
+            out["rr_depth"] = int(opt[2:])
+        elif opt.startswith("d"):
+            out["overrides"]["render.max_depth"] = int(opt[1:])
+        elif opt.startswith("g"):
+            out["guide_spp"] = int(opt[1:])
+        else:
+            raise SystemExit(f"bench_render.py: candidate {spec!r}: unknown option {opt!r}")
+    return out
 
 
-def reference(scene, kind: str, half_spp: int, cache: Path, frame: int = 0) -> dict:
+def reference(scene, kind: str, half_spp: int, cache: Path, frame: int = 0, depth: int = 8) -> dict:
     """Two independent half references per camera, (H, W, 3) each, cached as .npy.
 
-    ``kind`` "path" is the scene's path tracer (its max_depth: direct and
-    indirect light); "direct" samples the emitters only (direct light). Each
+    ``kind`` "path" is the path tracer to ``depth`` (direct and indirect light);
+    "direct" samples the emitters only (direct light). Each
     half is the mean of ``half_spp / REF_PASS_SPP`` renders of
     ``REF_PASS_SPP`` spp with their own seeds; the difference of the halves
     measures the noise left in their mean, which :func:`residual` removes.
@@ -288,7 +318,7 @@ def reference(scene, kind: str, half_spp: int, cache: Path, frame: int = 0) -> d
     fr = ms.frame(frame)
     integ = mi.load_dict(
         {
-            "path": {"type": "path", "max_depth": scene.render.max_depth, "hide_emitters": False},
+            "path": {"type": "path", "max_depth": int(depth), "hide_emitters": False},
             "direct": {"type": "direct", "emitter_samples": 1, "bsdf_samples": 0},
         }[kind]
     )
@@ -297,7 +327,8 @@ def reference(scene, kind: str, half_spp: int, cache: Path, frame: int = 0) -> d
     for cam in render.CAMERAS:
         sensor = make_sensor(getattr(scene.rig, cam), fr.robot_pose, spp=REF_PASS_SPP)
         for half, base in (("A", 100000), ("B", 200000)):
-            name = f"{scene.name}_f{frame}_{r.width}_{kind}_{half_spp}_{cam}_{half}.npy"
+            tag = f"path{depth}" if kind == "path" else kind
+            name = f"{scene.name}_f{frame}_{r.width}_{tag}_{half_spp}_{cam}_{half}.npy"
             path = cache / name
             if not path.exists():
                 t = time.perf_counter()
@@ -332,9 +363,14 @@ def residual(imgs: dict, ref: dict, masks: dict) -> dict:
     cameras, with the reference's own remaining noise removed in quadrature
     (E|x - (A+B)/2|^2 = E|x - truth|^2 + E|(A-B)/2|^2 for independent seeds).
     ``grad``: the same for the image gradient (np.gradient, both axes), as a
-    % of the RMS reference gradient: texture lost or added.
+    % of the RMS reference gradient (its noise removed the same way): texture
+    lost or added. ``texture``: the high-frequency energy kept, E|lap(x)|^2 over
+    E|lap(truth)|^2 (``scipy.ndimage.laplace``; the truth's from the reference
+    less its noise), in %: 100 keeps the texture, below blurs it, above adds noise.
     """
-    se = sg = nr = ng = gref = mean = 0.0
+    from scipy import ndimage
+
+    se = sg = nr = ng = gref = mean = hx = hr = hn = ysum = 0.0
     n = 0
     for cam, x in imgs.items():
         m = masks[cam]
@@ -351,14 +387,21 @@ def residual(imgs: dict, ref: dict, masks: dict) -> dict:
         sg += float((gx**2).sum())
         ng += float((gh**2).sum())
         gref += float((gr**2).sum())
+        hx += float((ndimage.laplace(y)[m] ** 2).sum())
+        hr += float((ndimage.laplace(r)[m] ** 2).sum())
+        hn += float((ndimage.laplace(half)[m] ** 2).sum())
         mean += float(r[m].sum())
+        ysum += float(y[m].sum())
         n += int(m.sum())
+    mean_ratio = ysum / mean
     mean /= n
     return {
         "rms_pct": 100 * np.sqrt(max(se - nr, 0.0) / n) / mean,
-        "grad_pct": 100 * np.sqrt(max(sg - ng, 0.0) / gref),
+        "grad_pct": 100 * np.sqrt(max(sg - ng, 0.0) / max(gref - ng, 1e-30)),
+        "texture_pct": 100 * hx / max(hr - hn, 1e-30),
         "ref_noise_pct": 100 * np.sqrt(nr / n) / mean,
         "mean": mean,
+        "mean_ratio": mean_ratio,
         "pixels": n,
     }
 
@@ -387,67 +430,121 @@ def dis_epe(scene, imgs0: dict, gts: dict, frame: int = 0) -> dict:
     return out
 
 
+def _render_candidate(sc, cand: dict, reps: int) -> tuple[dict, dict]:
+    """Median seconds (render, denoise, ground truth, cpu) and the images of frame 0."""
+    mi = ensure_mitsuba()
+    render.clear_cache()
+    ms = render.get_mitsuba_scene(sc)
+    if cand["rr_depth"] is not None:
+        ms.integrator = mi.load_dict(
+            {
+                "type": "path",
+                "max_depth": int(sc.render.max_depth),
+                "rr_depth": cand["rr_depth"],
+                "hide_emitters": False,
+            }
+        )
+    rows = []
+    for k in range(reps + 1):  # the first is the warm-up (JIT compilation)
+        tm: dict = {}
+        c0 = time.process_time()
+        imgs = {
+            cam: render.render_camera(sc, 0, cam, timings=tm, guide_spp=cand["guide_spp"])
+            for cam in render.CAMERAS
+        }
+        t = time.perf_counter()
+        ground_truth_frame(sc, 0)
+        tm["groundtruth"] = time.perf_counter() - t
+        tm["cpu"] = time.process_time() - c0
+        if k:
+            rows.append(tm)
+    med = {
+        key: statistics.median(r.get(key, 0.0) for r in rows)
+        for key in ("render", "denoise", "groundtruth", "cpu")
+    }
+    med["total"] = med["render"] + med["denoise"] + med["groundtruth"]
+    return med, imgs
+
+
 def candidates(
-    path: str, overrides: dict, specs, reps: int, cache: Path, half_spp: dict, epe: bool
+    path: str,
+    overrides: dict,
+    specs,
+    reps: int,
+    cache: Path,
+    half_spp: dict,
+    epe: bool,
+    ref_depth: int = 8,
 ) -> dict:
-    """Time and residual of each candidate render on frame 0 (see ``--candidates``)."""
+    """Time and residual of each candidate render on frame 0 (see ``--candidates``).
+
+    The first spec is the baseline: every time is also printed as a ratio to its
+    time in the same run, and as an estimate on the idle machine (ratio x
+    :data:`BASELINE_IDLE_S`). A ``half_spp`` of 0 skips that reference.
+    """
     base = load_scene(path, overrides)
     print(f"  references (cached in {cache}):", flush=True)
-    refs = {k: reference(base, k, n, cache) for k, n in half_spp.items()}
+    refs = {k: reference(base, k, n, cache, depth=ref_depth) for k, n in half_spp.items() if n > 0}
     gts = ground_truth_frame(base, 0)
     masks = {cam: _common(gts[cam]) for cam in render.CAMERAS}
     for k, ref in refs.items():
         res = residual({c: (ref[c, "A"] + ref[c, "B"]) / 2 for c in render.CAMERAS}, ref, masks)
         print(
-            f"  reference {k}: {2 * half_spp[k]} spp, remaining noise "
+            f"  reference {k}"
+            + (f" (max_depth {ref_depth})" if k == "path" else "")
+            + f": {2 * half_spp[k]} spp, remaining noise "
             f"{res['ref_noise_pct']:.2f} % of the mean {res['mean']:.4f} "
             f"({res['pixels']} pixels)",
             flush=True,
         )
-    res = residual(
-        {c: (refs["direct"][c, "A"] + refs["direct"][c, "B"]) / 2 for c in render.CAMERAS},
-        refs["path"],
-        masks,
-    )
+    out: dict = {"ref_depth": ref_depth, "baseline": specs[0], "baseline_idle_s": BASELINE_IDLE_S}
+    if "direct" in refs:
+        res = residual(
+            {c: (refs["direct"][c, "A"] + refs["direct"][c, "B"]) / 2 for c in render.CAMERAS},
+            refs["path"],
+            masks,
+        )
+        out["indirect_pct"] = res["rms_pct"]
+        print(
+            f"  converged direct vs converged path (the indirect light): {res['rms_pct']:.2f} %",
+            flush=True,
+        )
     print(
-        f"  converged direct vs converged path (the indirect light): {res['rms_pct']:.2f} %",
-        flush=True,
-    )
-    out = {"indirect_pct": res["rms_pct"]}
-    print(
-        f"  {'candidate':16s} {'render':>7s} {'denoise':>7s} {'gt':>6s} {'total':>6s} "
-        f"{'cpu':>6s} | {'vs path':>7s} {'grad':>6s} | {'vs direct':>9s} {'grad':>6s}"
+        f"  {'candidate':20s} {'render':>7s} {'denoise':>7s} {'gt':>6s} {'total':>6s} "
+        f"{'cpu':>6s} {'ratio':>6s} {'cpu r.':>6s} {'est. s':>6s} | {'vs path':>7s} {'grad':>6s} "
+        f"{'texture':>7s} {'mean':>6s}"
+        + (f" | {'vs direct':>9s}" if "direct" in refs else "")
         + ("  | DIS EPE cam1/cam2" if epe else ""),
         flush=True,
     )
+    base_total = base_cpu = None
     for spec in specs:
-        render.clear_cache()
-        sc = load_scene(path, {**overrides, **_spec(spec)})
-        rows = []
-        for k in range(reps + 1):  # the first is the warm-up (JIT compilation)
-            tm: dict = {}
-            c0 = time.process_time()
-            imgs = {cam: render.render_camera(sc, 0, cam, timings=tm) for cam in render.CAMERAS}
-            t = time.perf_counter()
-            ground_truth_frame(sc, 0)
-            tm["groundtruth"] = time.perf_counter() - t
-            tm["cpu"] = time.process_time() - c0
-            if k:
-                rows.append(tm)
-        med = {
-            key: statistics.median(r.get(key, 0.0) for r in rows)
-            for key in ("render", "denoise", "groundtruth", "cpu")
-        }
-        med["total"] = med["render"] + med["denoise"] + med["groundtruth"]
+        cand = _spec(spec)
+        sc = load_scene(path, {**overrides, **cand["overrides"]})
+        med, imgs = _render_candidate(sc, cand, reps)
+        if base_total is None:
+            base_total, base_cpu = med["total"], med["cpu"]
+        ratio = med["total"] / base_total
+        cpu_ratio = med["cpu"] / base_cpu
         rp = residual(imgs, refs["path"], masks)
-        rd = residual(imgs, refs["direct"], masks)
-        row = {**med, "vs_path": rp, "vs_direct": rd}
+        row = {
+            **med,
+            "ratio": ratio,
+            "cpu_ratio": cpu_ratio,
+            "estimate_idle_s": ratio * BASELINE_IDLE_S,
+            "vs_path": rp,
+        }
         line = (
-            f"  {spec:16s} {med['render']:7.2f} {med['denoise']:7.2f} "
-            f"{med['groundtruth']:6.2f} {med['total']:6.2f} {med['cpu']:6.2f} | "
-            f"{rp['rms_pct']:6.2f}% {rp['grad_pct']:5.1f}% | {rd['rms_pct']:8.2f}% "
-            f"{rd['grad_pct']:5.1f}%"
+            f"  {spec:20s} {med['render']:7.2f} {med['denoise']:7.2f} "
+            f"{med['groundtruth']:6.2f} {med['total']:6.2f} {med['cpu']:6.2f} {ratio:6.2f} "
+            f"{cpu_ratio:6.2f} "
+            f"{ratio * BASELINE_IDLE_S:6.2f} | {rp['rms_pct']:6.2f}% {rp['grad_pct']:5.1f}% "
+            f"{rp['texture_pct']:6.1f}% {rp['mean_ratio']:6.3f}"
         )
+        if "direct" in refs:
+            rd = residual(imgs, refs["direct"], masks)
+            row["vs_direct"] = rd
+            line += f" | {rd['rms_pct']:8.2f}%"
         if epe:
             row["dis_epe"] = dis_epe(sc, imgs, gts)
             line += f"  | {row['dis_epe']['cam1']:.3f} / {row['dis_epe']['cam2']:.3f}"
@@ -586,15 +683,23 @@ def main(argv=None) -> int:
         "--ref-spp",
         type=int,
         nargs=2,
-        default=[1024, 2048],
+        default=[512, 0],
         metavar=("PATH", "DIRECT"),
-        help="spp of the path and the direct reference (two halves of half as many)",
+        help="spp of the path and the direct reference (two halves of half as many; "
+        "0: no direct reference)",
+    )
+    ap.add_argument(
+        "--ref-depth", type=int, default=8, help="max_depth of the path-traced reference"
     )
     ap.add_argument(
         "--ref-cache",
         type=Path,
-        default=Path(tempfile.gettempdir()) / "omnisim_render_ref",
+        default=Path.home() / ".cache" / "omnisim_render_ref",
         help="reference cache",
+    )
+    ap.add_argument(
+        "--variant",
+        help="Mitsuba variant, e.g. cuda_ad_rgb (default: the scene's render.variant)",
     )
     ap.add_argument("--epe", action="store_true", help="with --candidates: DIS flow EPE too")
     ap.add_argument(
@@ -621,8 +726,19 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
 
     overrides = dict(parse_override(s) for s in args.set)
+    if args.variant:
+        overrides["render.variant"] = args.variant
     scene = load_scene(args.scene, overrides)
-    mi = ensure_mitsuba(scene.render.variant)
+    try:
+        mi = ensure_mitsuba(scene.render.variant)
+    except ImportError as exc:  # Dr.Jit cannot start this backend here (no CUDA device)
+        msg = " ".join(str(exc).split())[:160]
+        print(
+            f"bench_render.py: variant {scene.render.variant!r}: Mitsuba cannot use it on "
+            f"this machine ({msg}); expected a variant that works here, e.g. llvm_ad_rgb",
+            file=sys.stderr,
+        )
+        return 2
     r = scene.render
     print(
         f"scene {scene.name}: {r.width}x{r.height}, {r.spp} spp, integrator {r.integrator} "
@@ -683,6 +799,7 @@ def main(argv=None) -> int:
             args.ref_cache,
             {"path": args.ref_spp[0] // 2, "direct": args.ref_spp[1] // 2},
             args.epe,
+            ref_depth=args.ref_depth,
         )
     if args.aperture:
         print("thin lens vs pinhole (frame 0):")

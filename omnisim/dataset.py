@@ -90,6 +90,7 @@ __all__ = [
     "GT_CHANNELS_V1",
     "MASK_FILES",
     "READ_VERSIONS",
+    "TIMING_KEY",
     "Dataset",
     "DatasetError",
     "DatasetLockedError",
@@ -110,11 +111,14 @@ __all__ = [
     "read_exr",
     "read_flo",
     "read_mask_png",
+    "timing_section",
     "write_exr",
     "write_flo",
 ]
 
 LOCK_NAME = ".omnisim.lock"
+#: dataset.json's section of seconds per frame (:meth:`DatasetWriter.record_timing`).
+TIMING_KEY = "timing"
 _TMP_RE = re.compile(r"^\.(\d{6}|dataset\.json|exr)\.tmp\.")
 #: Scratch directories of the EXR encoder before it used ``.exr.tmp.`` names
 #: (``tempfile``'s default ``tmpXXXXXXXX``), removed when they hold nothing but ``x.exr``.
@@ -401,8 +405,9 @@ def _canonical(meta: Mapping[str, Any]) -> Any:
     return json.loads(_json_text(meta))
 
 
-#: Keys of dataset.json that do not make a directory a different dataset.
-_IGNORED_FOR_RESUME = {("scene", "path")}
+#: Keys of dataset.json that do not make a directory a different dataset: the scene
+#: file's path, and the seconds each frame took (``timing``, machine-dependent).
+_IGNORED_FOR_RESUME = {("scene", "path"), (TIMING_KEY,)}
 
 
 def _diff_paths(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[tuple[str, ...]]:
@@ -414,7 +419,8 @@ def _diff_paths(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[tuple[st
         if isinstance(a, dict) and isinstance(b, dict):
             for name in list(a) + [n for n in b if n not in a]:
                 if name not in a or name not in b:
-                    diffs.append((*key, name))
+                    if (*key, name) not in _IGNORED_FOR_RESUME:
+                        diffs.append((*key, name))
                 else:
                     walk(a[name], b[name], (*key, name))
         elif a != b:
@@ -431,6 +437,47 @@ def compare_meta(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[str]:
     Empty when a render with ``new`` may resume into a directory holding ``old``.
     """
     return [".".join(k) or "<root>" for k in _diff_paths(old, new)]
+
+
+def _frame_timings(meta: Mapping[str, Any]) -> dict[str, dict[str, float]]:
+    """The per-frame seconds of an existing dataset.json (empty when it has none)."""
+    frames = (meta.get(TIMING_KEY) or {}).get("frames") if isinstance(meta, Mapping) else None
+    if not isinstance(frames, Mapping):
+        return {}
+    return {
+        str(k): {n: float(v) for n, v in rec.items() if isinstance(v, int | float)}
+        for k, rec in frames.items()
+        if isinstance(rec, Mapping)
+    }
+
+
+def timing_section(
+    meta: Mapping[str, Any],
+    frames: Mapping[str, Mapping[str, float]],
+    context: Mapping[str, Any] | None = None,
+) -> dict[str, Any]:
+    """The ``timing`` section of dataset.json: seconds per frame and their medians.
+
+    ``frames`` maps a frame index (as text) to its seconds; ``context`` adds what the
+    seconds depend on (CPU and Dr.Jit thread counts, the load average). The render
+    settings that set the cost (integrator, spp, denoiser, variant) are repeated from
+    ``meta["render"]`` so the section reads on its own.
+    """
+    r = meta.get("render") or {}
+    keys = sorted({n for rec in frames.values() for n in rec})
+    order = sorted(frames, key=int)
+    return {
+        "integrator": r.get("integrator"),
+        "spp": r.get("spp"),
+        "max_depth": r.get("max_depth"),
+        "denoise": r.get("denoise"),
+        "variant": r.get("variant"),
+        **dict(context or {}),
+        "median_s": {
+            n: float(np.median([frames[k][n] for k in order if n in frames[k]])) for n in keys
+        },
+        "frames": {k: dict(frames[k]) for k in order},
+    }
 
 
 class DatasetWriter:
@@ -466,6 +513,8 @@ class DatasetWriter:
         self.frame_count = int(self.meta["frames"])
         self._lock_key: str | None = None
         self._made: list[Path] = []  # what this writer created, newest last (see abandon)
+        self._timing: dict[str, dict[str, float]] = {}  # frame index -> seconds (record_timing)
+        self._timing_context: dict[str, Any] = {}  # what the seconds depend on (the last given)
         existed = self.dir.exists()
         if existed and not self.dir.is_dir():
             raise DatasetError(f"{self.dir}: exists and is not a directory; expected a directory")
@@ -485,6 +534,7 @@ class DatasetWriter:
             if meta_path.exists():
                 old = load_meta(meta_path)
                 self._check_resume(old)
+                self._timing = _frame_timings(old)
             else:
                 self._refuse_foreign()
                 atomic_write_json(meta_path, self.meta)
@@ -608,6 +658,23 @@ class DatasetWriter:
 
     def todo_frames(self) -> list[int]:
         return [k for k in range(self.frame_count) if not self.is_done(k)]
+
+    def record_timing(
+        self, k: int, seconds: Mapping[str, float], context: Mapping[str, Any] | None = None
+    ) -> None:
+        """Add frame ``k``'s seconds (``render``, ``denoise``, ``groundtruth``, ``total``)
+        to the ``timing`` section of ``dataset.json``, rewritten atomically.
+
+        The section (:func:`timing_section`) is the one part of ``dataset.json`` that
+        differs between two renders of the same scene: it is ignored when resuming, and
+        the records of frames rendered by an earlier run are kept. ``context`` (CPU and
+        thread counts, load) is kept until the next call that gives one.
+        """
+        self._timing[str(int(k))] = {key: float(v) for key, v in seconds.items()}
+        if context is not None:
+            self._timing_context = dict(context)
+        section = timing_section(self.meta, self._timing, self._timing_context)
+        atomic_write_json(self.dir / META_NAME, {**self.meta, TIMING_KEY: section})
 
     def write_frame(self, k: int, frame: Mapping[str, Mapping[str, NDArray]]) -> Path:
         """Encode and write frame ``k`` (camera -> channels) atomically; returns its directory."""

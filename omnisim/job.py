@@ -26,6 +26,7 @@ Dask workers and test doubles resolve it by import.
 
 from __future__ import annotations
 
+import inspect
 import os
 import shutil
 import time
@@ -271,6 +272,28 @@ def render_dataset(
         writer.close()
 
 
+def _takes_timings(render_fn: Callable) -> bool:
+    """Whether the renderer accepts ``timings=`` (the Mitsuba one does; test doubles may not)."""
+    try:
+        return "timings" in inspect.signature(render_fn).parameters
+    except (TypeError, ValueError):  # a builtin or C callable without a signature
+        return False
+
+
+def _timing_context() -> dict[str, Any]:
+    """What the seconds in dataset.json's ``timing`` depend on: CPUs, threads, load."""
+    ctx: dict[str, Any] = {"cpus": os.cpu_count()}
+    try:
+        import drjit as dr
+
+        ctx["drjit_threads"] = int(dr.thread_count())
+    except ImportError:  # a test renderer without Mitsuba: no Dr.Jit thread pool
+        pass
+    if hasattr(os, "getloadavg"):
+        ctx["load_average_start"] = round(os.getloadavg()[0], 2)
+    return ctx
+
+
 def _render_frames(
     writer,
     scene,
@@ -298,9 +321,14 @@ def _render_frames(
     try:
         if scheduler is None:
             assert render_fn is not None
+            timed = _takes_timings(render_fn)
+            context = _timing_context()
             for k in todo:
-                frame = render_fn(scene, k)
+                tm: dict[str, float] = {}
+                t_frame = time.perf_counter()
+                frame = render_fn(scene, k, timings=tm) if timed else render_fn(scene, k)
                 writer.write_frame(k, frame)
+                writer.record_timing(k, {**tm, "total": time.perf_counter() - t_frame}, context)
                 rendered.append(k)
                 bar.update(1)
                 if on_frame is not None:

@@ -26,6 +26,8 @@ are bit-identical, also across Dr.Jit thread counts (checked for 7, 9 and 16
 spp with 1, 2 and 5 threads; ``tests/omnisim/test_render.py`` checks repeat renders).
 The denoiser keeps it: Open Image Denoise on the CPU gave the same bytes in
 two processes and with one Dr.Jit thread (default scene, 96 px, frame 1).
+Also on a busy machine: ``tests/omnisim/test_same_bytes_under_load.py`` renders a
+dataset twice under load and compares every file (docs/decisions/render_same_bytes.md).
 """
 
 from __future__ import annotations
@@ -81,6 +83,7 @@ def render_camera(
     spp: int | None = None,
     seed: int | None = None,
     timings: dict[str, float] | None = None,
+    guide_spp: int | None = None,
 ) -> NDArray[np.float32]:
     """Linear RGB radiance (H, W, 3) float32 of camera ``cam`` at ``frame``.
 
@@ -90,8 +93,9 @@ def render_camera(
     rendered with the same seed at ``min(spp, GUIDE_SPP)`` (then through the
     same film positions when spp <= GUIDE_SPP: the film sample is the
     sampler's first draw in both integrators) and the image is denoised
-    (:func:`omnisim.denoise.oidn_denoise`). ``timings``, if given, receives
-    the seconds spent in ``render`` and ``denoise`` (guides included).
+    (:func:`omnisim.denoise.oidn_denoise`); ``guide_spp`` overrides that
+    number (benchmarks). ``timings``, if given, receives the seconds spent in
+    ``render`` and ``denoise`` (guides included).
     """
     mi = ensure_mitsuba()
     ms = get_mitsuba_scene(scene)
@@ -115,7 +119,7 @@ def render_camera(
             fr.scene,
             sensor=sensor,
             integrator=ms.guides,
-            spp=min(spp, GUIDE_SPP),
+            spp=min(spp, GUIDE_SPP) if guide_spp is None else int(guide_spp),
             seed=frame_seed(base, frame, cam),
         )
         guides = np.array(guides, dtype=np.float32).reshape(u.height, u.width, 6)

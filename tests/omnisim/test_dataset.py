@@ -235,6 +235,30 @@ def test_resume_refuses_mismatch(tmp_path):
         DatasetWriter(tmp_path / "d", other)
 
 
+def test_timing_is_recorded_kept_on_resume_and_ignored_by_it(tmp_path):
+    w = DatasetWriter(tmp_path / "d", make_meta(frames=3))
+    w.record_timing(0, {"render": 1.0, "groundtruth": 0.5}, {"cpus": 2})
+    w.record_timing(1, {"render": 3.0, "groundtruth": 0.25})
+    w.close()
+    meta = json.loads((tmp_path / "d" / "dataset.json").read_text())
+    t = meta["timing"]
+    assert t["frames"] == {
+        "0": {"render": 1.0, "groundtruth": 0.5},
+        "1": {"render": 3.0, "groundtruth": 0.25},
+    }
+    assert t["median_s"] == {"render": 2.0, "groundtruth": 0.375}  # (1 + 3) / 2, (0.5 + 0.25) / 2
+    assert t["spp"] == 2  # repeated from render
+    assert t["cpus"] == 2  # the context given with frame 0 is kept
+    assert {k: v for k, v in meta.items() if k != "timing"} == ds._canonical(make_meta(frames=3))
+    # a resume with the same settings is not refused by the timing section, and keeps it
+    w2 = DatasetWriter(tmp_path / "d", make_meta(frames=3))
+    w2.record_timing(2, {"render": 2.0, "groundtruth": 0.5})
+    w2.close()
+    t2 = json.loads((tmp_path / "d" / "dataset.json").read_text())["timing"]
+    assert sorted(t2["frames"]) == ["0", "1", "2"]
+    assert t2["median_s"]["render"] == 2.0  # median of 1, 3, 2
+
+
 def test_refuses_non_dataset_dir(tmp_path):
     (tmp_path / "d").mkdir()
     (tmp_path / "d" / "notes.txt").write_text("mine")
