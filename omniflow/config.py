@@ -1,8 +1,9 @@
 """The knobs of the stereo omni flow step: :class:`OmniFlowConfig`.
 
 Every choice :func:`omniflow.pipeline.estimate` makes is a field here, checked
-when the config is made; :meth:`OmniFlowConfig.paper` gives the paper's own
-choices.
+when the config is made. Start from a preset (:data:`PRESETS`,
+``OmniFlowConfig.preset("dense", pool_k=64)``) and change one or two things; a
+combination of knobs that cannot work together is an error naming both.
 """
 
 from __future__ import annotations
@@ -27,13 +28,50 @@ BRIGHTNESS_MODELS = ("linear", "gain")
 UNIT_WEIGHTINGS = ("equal", "global", "local")
 
 
-#: The fields :meth:`OmniFlowConfig.dense` changes from the defaults.
+#: The fields :meth:`OmniFlowConfig.dense` changes from the defaults. Grid pools fit one
+#: gain per pool (``brightness_model="gain"``; the linear gain needs the k-d tree's pools).
 DENSE = {
     "dense_percentile": 60.0,
     "dense_smooth": 0.95,
     "pool_grid": 0.125,
     "decouple_tol": 60.0,
     "decouple_gain_tol": 60.0,
+    "brightness_model": "gain",
+}
+
+#: The fields :meth:`OmniFlowConfig.paper` changes from the defaults: the paper's choices.
+PAPER = {
+    "band": 0.25,
+    "flow_band": 0.25,
+    "flow_taper": 0.0,
+    "eiv": "none",
+    "match_method": "paper",
+    "gradients": "first",
+    "temporal": "difference",
+    "solver": "direct",
+    "rim_fill": "none",
+    "sampling": "exact",
+    "iterations": 0,
+    "iterate_min_px": 0.0,
+    "brightness_gate": None,
+    "decouple_gain_tol": None,
+}
+
+#: The presets of :meth:`OmniFlowConfig.preset`: each one's fields changed from the
+#: defaults. "default": the robust edges-only step (docs/decisions/defaults.md);
+#: "dense": more matches and grid pools, about three times the time
+#: (docs/decisions/dense-preset.md); "paper": the paper as written
+#: (docs/decisions/paper-preset.md).
+PRESETS: dict[str, dict] = {"default": {}, "dense": DENSE, "paper": PAPER}
+
+#: The knobs that thin each pool by its neighbours: they need the k-d tree's pools, so
+#: they cannot be combined with ``pool_grid`` (the value each has when off).
+TREE_ONLY = {
+    "pool_unit_weighting": "equal",
+    "pool_edge_tol": None,
+    "pool_residual_tol": None,
+    "pool_flow_tol": None,
+    "pool_min_info": None,
 }
 
 
@@ -242,9 +280,8 @@ class OmniFlowConfig:
         every match within the radius (not the ``pool_k`` nearest) at a cost
         that does not grow with the number of matches; points whose window
         mixes ranges (``pool_range_tol``) keep the k-d tree's pools. Only for
-        the one-pass equal-weight solver (``pool_edge_tol``,
-        ``pool_residual_tol``, ``pool_flow_tol``, ``pool_min_info`` all None,
-        ``pool_unit_weighting="equal"``); otherwise the tree pools. The
+        the one-pass equal-weight solver: an error with any knob of
+        :data:`TREE_ONLY` set, or with ``brightness_model="linear"``. The
         decoupling test (``decouple_tol``) pools over the same grid windows.
         None: the k-d tree everywhere.
     pool_range_tol : float or None
@@ -370,8 +407,8 @@ class OmniFlowConfig:
         cam2; tangential gain 0.89 -> 0.96), every other mover and every static
         figure of the five rendered scenes unchanged to the printed digits, for about
         1.5-2.5 ms more solve a pair (its 7 x 7 sums). The k-d tree pools only: with
-        grid pools (``pool_grid``, the dense preset) the gain is one per pool whatever
-        this says, as ``pool_grid`` itself is ignored where a knob needs the tree.
+        grid pools (``pool_grid``, the dense preset) "linear" is an error (they fit
+        one gain per pool).
         docs/measurements.md, "The spinner's linear gain".
     decouple_gain_tol : float or None
         Pooled solver, with ``decouple_tol``: after the two-model test and the
@@ -626,6 +663,33 @@ class OmniFlowConfig:
             )
         if self.pool_k < 1 or (self.pool_radius is not None and self.pool_radius <= 0):
             raise ValueError("OmniFlowConfig.pool_k must be >= 1 and pool_radius > 0")
+        self._check_combinations()
+
+    def _check_combinations(self) -> None:
+        """Raise naming both knobs where one would silently cancel the other."""
+        if self.pool_grid is None:
+            return
+        for name, off in TREE_ONLY.items():
+            if getattr(self, name) != off:
+                raise ValueError(
+                    f"OmniFlowConfig.pool_grid = {self.pool_grid!r} with {name} = "
+                    f"{getattr(self, name)!r}: {name} needs the k-d tree's pools; set "
+                    f"pool_grid=None or {name}={off!r}"
+                )
+        if self.brightness_gate is not None and self.brightness_model != "gain":
+            raise ValueError(
+                f"OmniFlowConfig.pool_grid = {self.pool_grid!r} with brightness_model = "
+                f"{self.brightness_model!r}: grid pools fit one gain per pool; set "
+                "brightness_model='gain' or pool_grid=None"
+            )
+
+    @classmethod
+    def preset(cls, name: str, **overrides) -> OmniFlowConfig:
+        """The named preset of :data:`PRESETS` ("default", "dense", "paper") with
+        ``overrides`` changed."""
+        if name not in PRESETS:
+            raise ValueError(f"preset {name!r}: expected one of {tuple(PRESETS)}")
+        return cls(**{**PRESETS[name], **overrides})
 
     @classmethod
     def paper(cls, **overrides) -> OmniFlowConfig:
@@ -650,24 +714,7 @@ class OmniFlowConfig:
         2x2 solve is ill-conditioned, and its error grows as its conditioning
         falls (tests/omniflow/test_flow.py measures this on noisy closed-form frames).
         """
-        base = dict(
-            band=0.25,
-            flow_band=0.25,
-            flow_taper=0.0,
-            eiv="none",
-            match_method="paper",
-            gradients="first",
-            temporal="difference",
-            solver="direct",
-            rim_fill="none",
-            sampling="exact",
-            iterations=0,
-            iterate_min_px=0.0,
-            brightness_gate=None,
-            decouple_gain_tol=None,
-        )
-        base.update(overrides)
-        return cls(**base)
+        return cls.preset("paper", **overrides)
 
     @classmethod
     def dense(cls, **overrides) -> OmniFlowConfig:
@@ -692,23 +739,14 @@ class OmniFlowConfig:
         because of that time: the default answers within about DIS medium's time
         (issue 10).
         """
-        base = dict(DENSE)
-        base.update(overrides)
-        return cls(**base)
+        return cls.preset("dense", **overrides)
 
     @property
     def grid_pools(self) -> bool:
-        """Whether the pools are grid filters (``pool_grid``, omniflow.solve.gridpool): only for
-        the one-pass, equal-weight solver; the knobs that thin each pool by its neighbours
-        need the k-d tree's."""
-        return (
-            self.pool_grid is not None
-            and self.pool_unit_weighting == "equal"
-            and self.pool_edge_tol is None
-            and self.pool_residual_tol is None
-            and self.pool_flow_tol is None
-            and self.pool_min_info is None
-        )
+        """Whether the pools are grid filters (``pool_grid``, omniflow.solve.gridpool); the
+        knobs that thin each pool by its neighbours (:data:`TREE_ONLY`) cannot be set with
+        it."""
+        return self.pool_grid is not None
 
     def replace(self, **changes) -> OmniFlowConfig:
         """A copy with some fields changed."""

@@ -35,10 +35,17 @@ DIGESTED = ("room",)
 
 
 def preset(name: str) -> OmniFlowConfig:
-    """The named preset as the config module spells it."""
-    if name == "default":
-        return OmniFlowConfig()
-    return getattr(OmniFlowConfig, name)()
+    """The named preset (main spelt them ``OmniFlowConfig()``, ``.dense()``, ``.paper()``)."""
+    return OmniFlowConfig.preset(name)
+
+
+def test_preset_spellings_agree():
+    assert OmniFlowConfig.preset("default") == OmniFlowConfig()
+    assert OmniFlowConfig.preset("dense") == OmniFlowConfig.dense()
+    assert OmniFlowConfig.preset("paper") == OmniFlowConfig.paper()
+    assert OmniFlowConfig.preset("dense", pool_k=64).pool_k == 64
+    with pytest.raises(ValueError, match="preset 'fastest': expected one of"):
+        OmniFlowConfig.preset("fastest")
 
 
 def compute(scene_name: str, preset_name: str) -> dict[str, np.ndarray]:
