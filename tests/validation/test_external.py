@@ -202,7 +202,8 @@ def test_row_scores_a_configuration_the_variants_do_not_list(tmp_path):
     b = json.loads((tmp_path / "b" / "summary.json").read_text())["methods"]
     assert len(a) == 1 and len(b) == 2
     assert b[0]["name"] == a[0]["name"]
-    assert b[1]["name"].endswith(";flow_taper=0.0]"), b[1]["name"]
+    assert b[1]["name"] == "omniflow:default+flow_taper=0.0", b[1]["name"]
+    assert b[1]["config"]["flow_taper"] == 0.0  # the full config is in summary.json
     assert a[0]["flow"]["cam1"]["all"]["n"] > 0
     assert b[0]["flow"]["cam1"]["all"]["epe"] == a[0]["flow"]["cam1"]["all"]["epe"]
     assert b[1]["flow"]["cam1"]["all"]["epe"] != a[0]["flow"]["cam1"]["all"]["epe"]
