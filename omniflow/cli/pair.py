@@ -32,12 +32,15 @@ from omniflow.cli.common import (
     Formatter,
     Parser,
     add_config_options,
+    add_expert_options,
     check_rig_size,
     column_units,
+    expand_settings,
     explain_error,
     flag,
     make_config,
     one_line,
+    shorten_help,
     size_text,
 )
 from omniflow.cli.regions import (
@@ -47,6 +50,7 @@ from omniflow.cli.regions import (
     region_masks,
     region_rows,
 )
+from omniflow.config import PUBLIC_FIELDS
 from omniflow.geometry.rig import Rig, Unit, load_rig, unwarp
 from omniflow.io.imageio import (
     OutputSet,
@@ -132,20 +136,50 @@ EPILOG = textwrap.dedent(
 )
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The ``omniflow`` argument parser (options for every OmniFlowConfig knob included)."""
+#: The options ``omniflow pair --help`` shows (their dests); --help-expert shows all.
+SHORT_HELP = {
+    "images", "rig", "dataset", "frame", "out", "odometry", "paper", "dense", "set_items",
+    "help_expert",
+    *(f"cfg_{name}" for name in PUBLIC_FIELDS),
+}  # fmt: skip
+
+#: The usage line of ``omniflow pair --help``.
+SHORT_USAGE = "%(prog)s (CAM1_T0 CAM2_T0 CAM1_T1 CAM2_T1 --rig FILE | --dataset DIR) --out DIR ..."
+#: The description of ``omniflow pair --help``.
+SHORT_DESCRIPTION = (
+    "The omni flow of one pair of time steps, cam1 then cam2 per step (PNG, JPEG, TIFF or\n"
+    "OpenEXR), or of an omnisim dataset's frame K to K + 1: flow.csv, flow.json, pictures."
+)
+
+#: The epilog of ``omniflow pair --help``.
+SHORT_EPILOG = textwrap.dedent(
+    """\
+    example: omniflow pair --dataset renders/room --frame 3 --out result --set pool_k=64
+    --help-expert: every option (regions, steering, position fix, calibration, every
+    knob), the outputs and the rig file. Exit status: 0 success, 2 bad input, 1 refused.
+    """
+)
+
+
+def build_parser(prog: str = PROG, *, short: bool = False) -> argparse.ArgumentParser:
+    """The ``omniflow`` argument parser (options for every OmniFlowConfig knob included);
+    ``short``: ``--help`` shows only :data:`SHORT_HELP` (``omniflow pair``)."""
     parser = Parser(
-        prog=PROG,
+        prog=prog,
+        usage=SHORT_USAGE if short else None,
         allow_abbrev=False,
         formatter_class=Formatter,
-        description=DESCRIPTION,
-        epilog=EPILOG,
+        description=SHORT_DESCRIPTION if short else DESCRIPTION,
+        epilog=SHORT_EPILOG if short else EPILOG,
     )
     _add_input_options(parser)
     _add_output_options(parser)
     _add_region_options(parser)
     _add_preset_options(parser)
     parser._config_fields = add_config_options(parser)  # type: ignore[attr-defined]
+    add_expert_options(parser, lambda: build_parser(prog))
+    if short:
+        shorten_help(parser, SHORT_HELP)
     return parser
 
 
@@ -605,11 +639,12 @@ def _one_line_warning(message, category, filename, lineno, file=None, line=None)
     print(f"{PROG}: warning: {one_line(message)}", file=sys.stderr if file is None else file)
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Entry point of the ``omniflow`` command; returns the exit status."""
+def main(argv: list[str] | None = None, *, prog: str = PROG, short: bool = False) -> int:
+    """Entry point of ``omniflow pair`` (``short``: its short help) and of the older
+    ``omniflow IMAGE...`` / ``omniflow --dataset DIR``; returns the exit status."""
     argv = list(sys.argv[1:] if argv is None else argv)
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    parser = build_parser(prog, short=short)
+    args = parser.parse_args(expand_settings(argv, parser))
     with warnings.catch_warnings():
         warnings.simplefilter("default")  # shown, once per place, as one line each
         warnings.showwarning = _one_line_warning

@@ -214,7 +214,7 @@ def test_cli_refuses_a_bad_row(synth, tmp_path):
     out = ["--out", str(tmp_path / "o")]
     _one_line_exit_2(_cli(*base, *out, "--row", "flow_taper=2"), "--flow-taper 2: expected")
     _one_line_exit_2(_cli(*base, *out, "--row", "nosuch=1"), "an OmniFlowConfig field")
-    _one_line_exit_2(_cli(*base, *out, "--row", "eiv=bogus"), "eiv = 'bogus'")
+    _one_line_exit_2(_cli(*base, *out, "--row", "eiv=bogus"), "--eiv: invalid choice: 'bogus'")
     # the default configuration again: already the first row
     _one_line_exit_2(_cli(*base, *out, "--row", "flow_taper=0.5"), "already scored")
     assert not (tmp_path / "o").exists()
