@@ -120,8 +120,8 @@ def _parser() -> argparse.ArgumentParser:
         metavar="NAME=VALUE[,NAME=VALUE...]",
         help="one more omniflow row: the default configuration with these OmniFlowConfig "
         "fields changed (e.g. --row flow_taper=0 --row eiv=none,sampling=exact), or a preset "
-        "and changes (--row dense, --row dense,pool_k=64); the row is named after the fields "
-        "that differ; repeatable",
+        "and changes (--row dense, --row dense,pool_k=64); the row is named after the nearest "
+        "preset and the fields that differ (omniflow:dense+pool_k=64); repeatable",
     )
     ap.add_argument(
         "--baselines",

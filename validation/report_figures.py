@@ -299,10 +299,10 @@ def sweep_figure(sweep: Sequence[Mapping[str, Any]], fig_dir: Path) -> dict[str,
 
 def _wrap_at_commas(text: str, width: int) -> str:
     """``text`` in lines of at most ``width`` characters where it can be, broken after a
-    comma (a row's name is one word of comma-separated settings: kept whole, not split
-    inside a setting), the later lines indented."""
+    comma or a plus (a row's name is one word of settings joined by "+", a preset row's
+    by ","; kept whole, not split inside a setting), the later lines indented."""
     lines = [""]
-    for piece in re.split(r"(?<=,)", text):
+    for piece in re.split(r"(?<=[,+])", text):
         if lines[-1].strip() and len(lines[-1]) + len(piece) > width:
             lines.append("    ")
             piece = piece.lstrip()

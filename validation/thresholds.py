@@ -6,8 +6,8 @@ File layout (TOML)::
     dataset = "how the dataset was made (command, size, spp, frames, seed)"
 
     [[scenes.KEY.check]]
-    method = "omniflow[robust,grad1,diff,direct]"   # a row of summary.json; "default" = the
-                                                    # default omniflow variant
+    method = "omniflow:default"       # a row of summary.json (validation.variants
+                                      # .variant_name); "default": the default row too
     points = "own"                    # optional: "own" | "omniflow points" | "dense"
     metric = "flow.cam1.noc.epe.median"   # dotted path inside that row
     max = 0.20                        # and/or min = ...

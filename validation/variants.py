@@ -33,18 +33,6 @@ VARIANT_CHOICES: dict[str, tuple[str, ...]] = {
 }
 
 
-_SHORT = {
-    "robust": "robust",
-    "paper": "paper",
-    "first": "grad1",
-    "average": "gradavg",
-    "difference": "diff",
-    "dct3d": "dct3d",
-    "direct": "direct",
-    "pooled": "pooled",
-}
-
-
 @dataclass(frozen=True)
 class TrueMatches:
     """A variant that skips matching: omniflow's flow step on the TRUE stereo matches.
@@ -66,27 +54,42 @@ class TrueMatches:
 
 
 def variant_name(config: Any) -> str:
-    """Row name of an OmniFlowConfig, e.g. ``omniflow[robust,grad1,diff,direct]``;
-    ``omniflow[truth,...]`` for :class:`TrueMatches`. Other fields that differ from
-    ``OmniFlowConfig()`` follow a semicolon: ``omniflow[paper,grad1,diff,direct;band=0.25]``."""
+    """Short, stable row name of an OmniFlowConfig: ``omniflow:PRESET`` for a preset
+    (``omniflow:default``, ``omniflow:dense``, ``omniflow:paper``), else the preset it
+    differs from in the fewest fields (the earlier of :data:`omniflow.config.PRESETS` on a
+    tie) and those fields: ``omniflow:default+brightness_model=gain+solver=direct``.
+    :class:`TrueMatches` adds ``+matches=truth``. The full config is in summary.json
+    (:func:`config_dict`), so a name never needs to list it."""
     inner = config.config if isinstance(config, TrueMatches) else config
-    parts = [_SHORT.get(str(getattr(inner, k)), str(getattr(inner, k)))
-             for k in VARIANT_CHOICES if hasattr(inner, k)]  # fmt: skip
-    if isinstance(config, TrueMatches) and parts:
-        parts[0] = "truth"
-    extra = ""
-    if dataclasses.is_dataclass(inner):
+    base, changes = _nearest_preset(inner)
+    parts = [f"{k}={v!r}".replace("'", "") for k, v in changes]
+    if isinstance(config, TrueMatches):
+        parts.append("matches=truth")
+    return "+".join([f"omniflow:{base}", *parts])
+
+
+def _nearest_preset(config: Any) -> tuple[str, list[tuple[str, Any]]]:
+    """(preset name, [(field, value) changed from it]) with the fewest changes; a stand-in
+    config (not a dataclass with presets) is compared with its own class's defaults."""
+    from omniflow.config import PRESETS
+
+    if not dataclasses.is_dataclass(config):
+        return "default", []
+    cls = type(config)
+    presets = getattr(cls, "preset", None)
+    names = list(PRESETS) if presets is not None else ["default"]
+    best: tuple[str, list[tuple[str, Any]]] | None = None
+    for name in names:
         try:
-            base = type(inner)()
+            base = presets(name) if presets is not None else cls()
         except TypeError:
-            base = None
-        if base is not None:
-            diffs = [f"{f.name}={getattr(inner, f.name)!r}".replace("'", "")
-                     for f in dataclasses.fields(inner)
-                     if f.name not in VARIANT_CHOICES
-                     and getattr(inner, f.name) != getattr(base, f.name)]  # fmt: skip
-            extra = ";" + ",".join(diffs) if diffs else ""
-    return f"omniflow[{','.join(parts)}{extra}]"
+            return "default", []
+        changes = [(f.name, getattr(config, f.name)) for f in dataclasses.fields(config)
+                   if getattr(config, f.name) != getattr(base, f.name)]  # fmt: skip
+        if best is None or len(changes) < len(best[1]):
+            best = (name, changes)
+    assert best is not None
+    return best
 
 
 def omniflow_variants(mode: str = "all", *, true_matches: bool = True) -> list[tuple[str, Any]]:

@@ -11,10 +11,7 @@ import argparse
 import dataclasses
 import errno
 import json
-import math
-import re
 import sys
-import textwrap
 import types
 import typing
 from collections.abc import Sequence
@@ -24,19 +21,22 @@ from omniflow.geometry.rig import Rig, RigError
 from omniflow.io.imageio import ImageError, OutputError
 
 __all__ = [
-    "KNOB_LIMITS",
     "CLIError",
     "Formatter",
     "Parser",
     "add_config_options",
+    "add_expert_options",
     "check_knobs",
     "check_rig_size",
     "column_units",
     "config_from_settings",
+    "expand_settings",
     "explain_error",
     "flag",
     "make_config",
     "one_line",
+    "setting_flags",
+    "shorten_help",
     "size_text",
 ]
 
@@ -66,62 +66,6 @@ def _config_class():
     return OmniFlowConfig
 
 
-def _field_docs(cls: type) -> dict[str, tuple[str, str]]:
-    """Per-field (type text, description) from a numpydoc ``Attributes`` section.
-
-    Handles ``a, b : float`` (shared entries) and ``a, b : description`` one-liners.
-    """
-    docs: dict[str, tuple[str, str]] = {}
-    doc = textwrap.dedent((cls.__doc__ or "").split("\n", 1)[-1])
-    current: list[str] = []
-    for line in doc.splitlines():
-        m = re.match(r"^(\w+(?:\s*,\s*\w+)*)\s+:\s*(.*)$", line)
-        if m:
-            current = [n.strip() for n in m.group(1).split(",")]
-            for name in current:
-                docs[name] = (m.group(2).strip(), "")
-        elif current and line.startswith((" ", "\t")) and line.strip():
-            for name in current:
-                kind, desc = docs[name]
-                docs[name] = (kind, (desc + " " + line.strip()).strip())
-        elif line.strip():
-            current = []
-    return docs
-
-
-_TYPE_WORDS = {
-    "float",
-    "int",
-    "str",
-    "bool",
-    "tuple",
-    "list",
-    "dict",
-    "none",
-    "or",
-    "of",
-    "optional",
-    "ndarray",
-    "path",
-    "sequence",
-    "callable",
-    "any",
-}
-
-
-def _is_type(kind: str) -> bool:
-    """True if a numpydoc type line holds a type (``float or None``), not prose."""
-    if kind.startswith("{"):
-        return True
-    return all(w.lower() in _TYPE_WORDS for w in re.findall(r"[A-Za-z_]+", kind))
-
-
-def _doc_choices(kind: str) -> list[str] | None:
-    """``{"a", "b"}`` in a numpydoc type line -> ["a", "b"]."""
-    m = re.match(r"^\{(.*)\}", kind.strip())
-    return re.findall(r"[\"']([^\"']+)[\"']", m.group(1)) if m else None
-
-
 def _unwrap_optional(tp: Any) -> tuple[Any, bool]:
     origin = typing.get_origin(tp)
     if origin in (typing.Union, types.UnionType):
@@ -141,104 +85,29 @@ def _none_or(conv):
     return parse
 
 
-#: Allowed range of every numeric OmniFlowConfig knob: (low, high, low included,
-#: high included); None is always allowed where the field's default is None. A new
-#: numeric knob needs an entry (tests/omniflow/test_bad_input.py checks the table).
-KNOB_LIMITS: dict[str, tuple[float, float, bool, bool]] = {
-    "band": (0.0, 1.0, False, True),
-    "match_band": (0.0, 1.0, False, True),
-    "threshold_percentile": (0.0, 100.0, True, False),
-    "min_gradient": (0.0, math.inf, True, False),
-    "r_min": (0.0, math.inf, True, False),
-    "r_max": (0.0, math.inf, False, False),
-    "n_theta": (8, math.inf, True, False),
-    "h_step": (0.0, math.inf, False, False),
-    "h_min": (0.0, math.inf, True, False),
-    "rim_margin": (0.0, math.inf, True, False),
-    "patch_radius": (0.0, math.inf, False, False),
-    "patch_lines": (0, math.inf, True, False),
-    "profile_step": (0.0, math.inf, False, False),
-    "min_score": (-1.0, 1.0, True, True),  # a normalised cross-correlation
-    "uniqueness": (0.0, 1.0, False, True),
-    "candidate_fraction": (0.0, 1.0, False, True),
-    # radians of Gaussian blur across the radial lines; 1 rad already averages a third of
-    # the circle, and above ~3 rad the matcher's table is empty (measured: 1.6 runs, 3.2 fails)
-    "tangential_blur": (0.0, 1.0, True, True),
-    "consistency": (0.0, math.inf, True, False),
-    "consistency_support": (1, math.inf, True, False),
-    "temporal_frames": (3, math.inf, True, False),
-    "pool_radius": (0.0, math.inf, False, False),
-    "pool_k": (1, math.inf, True, False),
-    "pool_grid": (0.0, 1.0, False, True),  # grid cell / pool radius
-    "pool_range_tol": (0.0, math.inf, False, False),
-    "min_conditioning": (0.0, 1.0, True, True),  # lambda_min / lambda_max
-    "pool_min_conditioning": (0.0, 1.0, True, True),  # lambda_min / lambda_max
-    "iterations": (0, math.inf, True, False),
-    "iterate_min_px": (0.0, math.inf, True, False),  # px of first-step flow
-    "monocular_gap": (0.0, math.inf, True, False),  # px from the nearest stereo match
-    "flow_band": (0.0, 1.0, False, True),
-    "flow_taper": (0.0, 1.0, True, True),  # fraction of the flow band rolled off
-    "flow_band_tolerance": (1.0, math.inf, True, False),
-    "flow_band_gain": (0.0, 1.0, False, False),
-    "noise_sigma": (0.0, math.inf, True, False),  # grey levels of the [0, 1] image
-    "self_similarity": (0.0, 1.0, False, True),  # a factor on 1 - NCC; 1 = off
-    "alias_score": (-1.0, 1.0, True, True),  # an NCC; 1 = off
-    "alias_image2": (-1.0, 1.0, True, True),  # an NCC
-    "alias_period": (-1.0, 1.0, True, True),  # an NCC
-    "flatness": (0.0, math.inf, True, False),  # (1 - NCC) per unit of peak curvature; 0 = off
-    "dense_percentile": (0.0, 100.0, True, True),  # a percentile of |df/dh|; 100 = off
-    "dense_reach": (0.0, math.inf, False, False),  # patch radii
-    "dense_smooth": (-1.0, 1.0, True, True),  # an NCC; 1 = off
-    "edge_smooth": (-1.0, 1.0, True, True),  # an NCC; 1 = off
-    "edge_smooth_floor": (0.0, 1.0, True, True),  # lambda_min / lambda_max
-    "short_patch": (0.0, 1.0, True, False),  # a fraction of patch_radius; 0 = off
-    "pool_flow_tol": (0.0, math.inf, False, False),
-    "decouple_tol": (0.0, math.inf, False, False),  # an F statistic (omniflow.solve.decoupled)
-    "brightness_gate": (0.0, math.inf, False, False),  # an F statistic (omniflow.solve.gain)
-    "decouple_gain_tol": (0.0, math.inf, False, False),  # an F statistic (omniflow.solve.gain)
-    "flow_shading": (0.0, math.inf, False, False),  # px, Gaussian sigma (omniflow.solve.shading)
-    "pool_edge_tol": (0.0, math.inf, False, False),  # a factor on the median edge at the matches
-    "pool_residual_tol": (0.0, math.inf, False, False),  # robust standard deviations
-    "pool_min_info": (0.0, math.inf, False, False),  # in typical single points' information
-    "static_test": (0.0, math.inf, False, False),  # a Wald statistic (omniflow.paper.flow)
-    "static_max_px": (0.0, math.inf, False, False),  # px per frame (cam1)
-}
-
-
 def flag(name: str) -> str:
     return "--" + name.replace("_", "-")
 
 
-def _range_text(lo: float, hi: float, lo_in: bool, hi_in: bool) -> str:
-    if math.isinf(hi):
-        return f"{'>=' if lo_in else '>'} {lo:g}"
-    return f"in {'[' if lo_in else '('}{lo:g}, {hi:g}{']' if hi_in else ')'}"
-
-
 def check_knobs(values: Any) -> None:
-    """Raise :class:`CLIError` naming the option if a numeric knob is out of its range.
+    """Raise :class:`CLIError` naming the option if a knob's value is not allowed.
 
-    ``values`` is an OmniFlowConfig or a mapping of field name to value. Each
-    float knob must be finite; the ranges are :data:`KNOB_LIMITS`.
+    ``values`` is an OmniFlowConfig or a mapping of field name to value; each is
+    checked by its field's metadata (:func:`omniflow.config.knob_problem`), the one
+    place that knows the knob's type, range and choices.
     """
+    from omniflow.config import knob_problem
+
+    known = {f.name: f for f in dataclasses.fields(_config_class())}
     if dataclasses.is_dataclass(values):
         values = {f.name: getattr(values, f.name) for f in dataclasses.fields(values)}
     for name, value in values.items():
-        if value is None or isinstance(value, bool) or not isinstance(value, int | float):
+        if name not in known:
             continue
-        limits = KNOB_LIMITS.get(name)
-        kind = "an integer" if isinstance(value, int) else "a number"
-        if not math.isfinite(value):
-            expected = _range_text(*limits) if limits else ""
-            raise CLIError(f"{flag(name)} {value}: expected a finite number {expected}".strip())
-        if limits is None:
-            continue
-        lo, hi, lo_in, hi_in = limits
-        inside = (lo < value or (lo_in and value == lo)) and (value < hi or (hi_in and value == hi))
-        if not inside:
-            raise CLIError(
-                f"{flag(name)} {value:g}: expected {kind} {_range_text(lo, hi, lo_in, hi_in)}"
-            )
+        problem = knob_problem(known[name], value)
+        if problem:
+            shown = f"{value:g}" if isinstance(value, float) else str(value)
+            raise CLIError(f"{flag(name)} {shown}: {problem}")
 
 
 def add_config_options(parser: argparse.ArgumentParser) -> list[str]:
@@ -251,7 +120,6 @@ def add_config_options(parser: argparse.ArgumentParser) -> list[str]:
         hints = typing.get_type_hints(cls)
     except Exception:  # unresolvable annotations: fall back to the defaults' types
         hints = {}
-    docs = _field_docs(cls)
     names = []
     for f in dataclasses.fields(cls):
         if not f.init or f.name.startswith("_"):
@@ -264,14 +132,9 @@ def add_config_options(parser: argparse.ArgumentParser) -> list[str]:
             continue
         tp, optional = _unwrap_optional(hints.get(f.name, type(default)))
         flag = "--" + f.name.replace("_", "-")
-        kind, desc = docs.get(f.name, ("", ""))
-        if kind and not _is_type(kind):
-            desc = f"{kind} {desc}".strip()  # a one-line entry: "a, b : what they are"
-        desc = re.sub(r":\w+:`~?([^`]+)`", r"\1", desc).replace("``", "").rstrip(".")
+        desc = f.metadata.get("help", "")
         kwargs: dict[str, Any] = {"dest": f"cfg_{f.name}", "default": argparse.SUPPRESS}
-        choices = _doc_choices(kind)
-        if choices and default not in choices:
-            choices = None
+        choices = list(f.metadata["choices"]) if f.metadata.get("choices") else None
         if typing.get_origin(tp) is typing.Literal:
             choices = list(typing.get_args(tp))
             conv = type(choices[0]) if choices else str
@@ -353,6 +216,87 @@ class _SettingsParser(argparse.ArgumentParser):
         raise CLIError(message)
 
 
+def setting_flags(
+    item: str, parser: argparse.ArgumentParser, fields: list[str], *, presets: bool = False
+) -> list[str]:
+    """The options one ``NAME=VALUE`` setting stands for (``pool_k=64`` -> ``--pool-k=64``,
+    ``left_right=false`` -> ``--no-left-right``), so that the field's own option parses
+    and checks it; a :class:`CLIError` naming the setting where NAME is no field."""
+    name, sep, value = item.partition("=")
+    name = name.strip().replace("-", "_")
+    if not sep or name not in fields:
+        raise CLIError(
+            f"{item!r}: expected NAME=VALUE with NAME an OmniFlowConfig field, e.g. "
+            "flow_taper=0 (omniflow pair --help-expert lists them)"
+            + (", or a preset: paper, dense" if presets else "")
+        )
+    action = next(a for a in parser._actions if a.dest == f"cfg_{name}")
+    if isinstance(action, argparse.BooleanOptionalAction):
+        if value.strip().lower() not in ("true", "false", "1", "0", "yes", "no"):
+            raise CLIError(f"{item!r}: expected {name}=true or {name}=false")
+        on = value.strip().lower() in ("true", "1", "yes")
+        return [flag(name) if on else "--no-" + name.replace("_", "-")]
+    if action.nargs is None:
+        return [f"{flag(name)}={value.strip()}"]
+    return [flag(name), *value.split()]
+
+
+def expand_settings(argv: list[str], parser: argparse.ArgumentParser) -> list[str]:
+    """``argv`` with every ``--set NAME=VALUE`` replaced by the option it stands for
+    (:func:`setting_flags`); a bad setting is the parser's one-line usage error."""
+    fields = parser._config_fields  # type: ignore[attr-defined]
+    out: list[str] = []
+    i = 0
+    while i < len(argv):
+        arg = argv[i]
+        if arg != "--set" and not arg.startswith("--set="):
+            out.append(arg)
+            i += 1
+            continue
+        if arg == "--set" and i + 1 >= len(argv):
+            parser.error("--set: expected NAME=VALUE")
+        item = argv[i + 1] if arg == "--set" else arg[len("--set=") :]
+        i += 2 if arg == "--set" else 1
+        try:
+            out += setting_flags(item, parser, fields)
+        except CLIError as exc:
+            parser.error(f"--set {exc}")
+    return out
+
+
+class ExpertHelp(argparse.Action):
+    """``--help-expert``: print the parser's help with every option (``full()``) and exit."""
+
+    def __init__(self, option_strings, dest, full=None, **kwargs) -> None:
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, **kwargs)
+        self.full = full
+
+    def __call__(self, parser, namespace, values, option_string=None) -> None:
+        self.full().print_help()
+        parser.exit()
+
+
+def add_expert_options(parser: argparse.ArgumentParser, full) -> None:
+    """``--set NAME=VALUE`` (any OmniFlowConfig field, checked by its metadata) and
+    ``--help-expert`` (``full()``: the parser with every option shown)."""
+    group = parser.add_argument_group("expert options")
+    group.add_argument(
+        "--set", action="append", metavar="NAME=VALUE", dest="set_items", default=[],
+        help="set any OmniFlowConfig field, repeatable (--set pool_k=64 --set eiv=none; "
+        "none for None); --help-expert lists them",
+    )  # fmt: skip
+    group.add_argument("--help-expert", action=ExpertHelp, full=full,
+                       help="show every option, with its default, and exit")  # fmt: skip
+
+
+def shorten_help(parser: argparse.ArgumentParser, keep: set[str]) -> None:
+    """Hide from ``--help`` every option whose dest is not in ``keep`` (each is still
+    accepted; ``--help-expert`` shows them all)."""
+    for action in parser._actions:
+        if action.option_strings and action.dest not in keep and action.dest != "help":
+            action.help = argparse.SUPPRESS
+
+
 def config_from_settings(settings: str | Sequence[str], *, paper: bool = False) -> Any:
     """An OmniFlowConfig from ``NAME=VALUE`` settings, checked as the CLI's options are.
 
@@ -376,22 +320,7 @@ def config_from_settings(settings: str | Sequence[str], *, paper: bool = False) 
         if item in ("paper", "dense"):  # a preset, as the CLI's --paper / --dense
             paper, dense = paper or item == "paper", dense or item == "dense"
             continue
-        name, sep, value = item.partition("=")
-        name = name.strip().replace("-", "_")
-        if not sep or name not in fields:
-            raise CLIError(
-                f"{item!r}: expected NAME=VALUE with NAME an OmniFlowConfig field, e.g. "
-                "flow_taper=0 (omniflow --help lists them), or a preset: paper, dense"
-            )
-        action = next(a for a in parser._actions if a.dest == f"cfg_{name}")
-        if isinstance(action, argparse.BooleanOptionalAction):
-            if value.strip().lower() not in ("true", "false", "1", "0", "yes", "no"):
-                raise CLIError(f"{item!r}: expected {name}=true or {name}=false")
-            on = value.strip().lower() in ("true", "1", "yes")
-            argv.append(flag(name) if on else "--no-" + name.replace("_", "-"))
-        else:
-            argv += [f"{flag(name)}={value.strip()}"] if action.nargs is None else [
-                flag(name), *value.split()]  # fmt: skip
+        argv += setting_flags(item, parser, fields, presets=True)
     try:
         args = parser.parse_args(argv)
     except CLIError as exc:

@@ -32,12 +32,15 @@ from omniflow.cli.common import (
     Formatter,
     Parser,
     add_config_options,
+    add_expert_options,
     check_rig_size,
     column_units,
+    expand_settings,
     explain_error,
     flag,
     make_config,
     one_line,
+    shorten_help,
     size_text,
 )
 from omniflow.cli.regions import (
@@ -47,6 +50,7 @@ from omniflow.cli.regions import (
     region_masks,
     region_rows,
 )
+from omniflow.config import PUBLIC_FIELDS
 from omniflow.geometry.rig import Rig, Unit, load_rig, unwarp
 from omniflow.io.imageio import (
     OutputSet,
@@ -73,67 +77,114 @@ OUTPUTS = (
 PICTURES = ("flow_arrows.png", "flow_color.png", "unwarp_cam1.png")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The ``omniflow`` argument parser (options for every OmniFlowConfig knob included)."""
+#: The description of ``omniflow --help``.
+DESCRIPTION = textwrap.dedent(
+    """\
+    Omni flow (Spacek) of a coaxial conical-mirror stereo rig: match the two
+    cameras along radial lines, solve the direct 2x2 flow equations at every
+    match, and write per-point results (CSV + JSON sidecar) and pictures.
+
+    Frames are given as image files in time order, cam1 then cam2 for each
+    time step: CAM1_T0 CAM2_T0 CAM1_T1 CAM2_T1 [CAM1_T2 CAM2_T2 ...]
+    (PNG 8/16-bit, JPEG, TIFF or OpenEXR; colour is reduced to Rec. 709
+    luminance). The flow is from time step --t (default 0) to the next;
+    more time steps are used by --temporal dct3d. Or read the frames from an
+    omnisim dataset: --dataset DIR --frame K (flow from frame K to K + 1).
+    """
+)
+
+#: The epilog of ``omniflow --help``: outputs, rig file, examples, exit status.
+EPILOG = textwrap.dedent(
+    """\
+    outputs (in --out DIR, each written atomically):
+      flow.csv         one row per matched point, after a '#' line of units; columns
+                       x, y (cam1 px), theta (rad),
+                       h1, h2 (px), r, h (m), dh1_dt (px/frame), dtheta_dt (rad/frame),
+                       dr_dt (m/frame), dx, dy (cam1 px/frame), cam2 columns x2, y2,
+                       dh2_dt, dx2, dy2, confidence, D, coupled (1: eq. 14 holds,
+                       0: each camera's radial flow solved on its own),
+                       time_to_contact (frames)
+      flow.json        units of every column, the config, the rig, the inputs and timings
+      regions.csv      with --region / --auto-regions: per region its point count,
+                       mean flow, dr/dt, time to contact and steering headings (with
+                       --monocular-gap also its cam1-only points' bearing and rate)
+      monocular.csv    with --monocular-gap PX: cam1's flow alone at significant points
+                       farther than PX from every match (no range): x, y, theta, h1,
+                       dh1_dt, dtheta_dt, dx, dy, confidence
+      flow_arrows.png  cam1 frame t with the flow drawn as arrows (magnified; see legend)
+                       and the regions outlined
+      flow_color.png   cam1 frame t with each point in the Middlebury flow colour
+      unwarp_cam1.png  cam1 as a panorama (eq. 6-7) with the flow drawn on it
+    Velocities are per frame interval: divide by the frame interval for per-second units.
+
+    rig file (TOML or JSON, or an omnisim dataset.json):
+      [rig]           d = 0.10  R = 0.05  s = 0.30        (metres)
+      [[cameras]]     name = "cam1"  x_c = 256.0  y_c = 256.0  r_m = 250.0
+                      width = 512  height = 512           (pixels; pixel centres j + 0.5)
+      [[cameras]]     name = "cam2"  ...
+
+    examples:
+      omniflow c1_0.png c2_0.png c1_1.png c2_1.png --rig rig.toml --out result
+      omniflow --dataset renders/room --frame 3 --out result --solver pooled
+      omniflow c1_0.exr c2_0.exr c1_1.exr c2_1.exr --calibrate --d 0.1 --R 0.05 --s 0.3 \\
+          --out result
+
+    exit status: 0 success (no matched point is a success: empty outputs, one warning);
+      2 bad input; 1 the machine refused (permission, read-only or full disk) or an
+      internal error. One line on stderr names the path, option or value.
+    """
+)
+
+
+#: The options ``omniflow pair --help`` shows (their dests); --help-expert shows all.
+SHORT_HELP = {
+    "images", "rig", "dataset", "frame", "out", "odometry", "paper", "dense", "set_items",
+    "help_expert",
+    *(f"cfg_{name}" for name in PUBLIC_FIELDS),
+}  # fmt: skip
+
+#: The usage line of ``omniflow pair --help``.
+SHORT_USAGE = "%(prog)s (CAM1_T0 CAM2_T0 CAM1_T1 CAM2_T1 --rig FILE | --dataset DIR) --out DIR ..."
+#: The description of ``omniflow pair --help``.
+SHORT_DESCRIPTION = (
+    "The omni flow of one pair of time steps, cam1 then cam2 per step (PNG, JPEG, TIFF or\n"
+    "OpenEXR), or of an omnisim dataset's frame K to K + 1: flow.csv, flow.json, pictures."
+)
+
+#: The epilog of ``omniflow pair --help``.
+SHORT_EPILOG = textwrap.dedent(
+    """\
+    example: omniflow pair --dataset renders/room --frame 3 --out result --set pool_k=64
+    --help-expert: every option (regions, steering, position fix, calibration, every
+    knob), the outputs and the rig file. Exit status: 0 success, 2 bad input, 1 refused.
+    """
+)
+
+
+def build_parser(prog: str = PROG, *, short: bool = False) -> argparse.ArgumentParser:
+    """The ``omniflow`` argument parser (options for every OmniFlowConfig knob included);
+    ``short``: ``--help`` shows only :data:`SHORT_HELP` (``omniflow pair``)."""
     parser = Parser(
-        prog=PROG,
+        prog=prog,
+        usage=SHORT_USAGE if short else None,
         allow_abbrev=False,
         formatter_class=Formatter,
-        description=textwrap.dedent(
-            """\
-            Omni flow (Spacek) of a coaxial conical-mirror stereo rig: match the two
-            cameras along radial lines, solve the direct 2x2 flow equations at every
-            match, and write per-point results (CSV + JSON sidecar) and pictures.
-
-            Frames are given as image files in time order, cam1 then cam2 for each
-            time step: CAM1_T0 CAM2_T0 CAM1_T1 CAM2_T1 [CAM1_T2 CAM2_T2 ...]
-            (PNG 8/16-bit, JPEG, TIFF or OpenEXR; colour is reduced to Rec. 709
-            luminance). The flow is from time step --t (default 0) to the next;
-            more time steps are used by --temporal dct3d. Or read the frames from an
-            omnisim dataset: --dataset DIR --frame K (flow from frame K to K + 1).
-            """
-        ),
-        epilog=textwrap.dedent(
-            """\
-            outputs (in --out DIR, each written atomically):
-              flow.csv         one row per matched point, after a '#' line of units; columns
-                               x, y (cam1 px), theta (rad),
-                               h1, h2 (px), r, h (m), dh1_dt (px/frame), dtheta_dt (rad/frame),
-                               dr_dt (m/frame), dx, dy (cam1 px/frame), cam2 columns x2, y2,
-                               dh2_dt, dx2, dy2, confidence, D, coupled (1: eq. 14 holds,
-                               0: each camera's radial flow solved on its own),
-                               time_to_contact (frames)
-              flow.json        units of every column, the config, the rig, the inputs and timings
-              regions.csv      with --region / --auto-regions: per region its point count,
-                               mean flow, dr/dt, time to contact and steering headings (with
-                               --monocular-gap also its cam1-only points' bearing and rate)
-              monocular.csv    with --monocular-gap PX: cam1's flow alone at significant points
-                               farther than PX from every match (no range): x, y, theta, h1,
-                               dh1_dt, dtheta_dt, dx, dy, confidence
-              flow_arrows.png  cam1 frame t with the flow drawn as arrows (magnified; see legend)
-                               and the regions outlined
-              flow_color.png   cam1 frame t with each point in the Middlebury flow colour
-              unwarp_cam1.png  cam1 as a panorama (eq. 6-7) with the flow drawn on it
-            Velocities are per frame interval: divide by the frame interval for per-second units.
-
-            rig file (TOML or JSON, or an omnisim dataset.json):
-              [rig]           d = 0.10  R = 0.05  s = 0.30        (metres)
-              [[cameras]]     name = "cam1"  x_c = 256.0  y_c = 256.0  r_m = 250.0
-                              width = 512  height = 512           (pixels; pixel centres j + 0.5)
-              [[cameras]]     name = "cam2"  ...
-
-            examples:
-              omniflow c1_0.png c2_0.png c1_1.png c2_1.png --rig rig.toml --out result
-              omniflow --dataset renders/room --frame 3 --out result --solver pooled
-              omniflow c1_0.exr c2_0.exr c1_1.exr c2_1.exr --calibrate --d 0.1 --R 0.05 --s 0.3 \\
-                  --out result
-
-            exit status: 0 success (no matched point is a success: empty outputs, one warning);
-              2 bad input; 1 the machine refused (permission, read-only or full disk) or an
-              internal error. One line on stderr names the path, option or value.
-            """
-        ),
+        description=SHORT_DESCRIPTION if short else DESCRIPTION,
+        epilog=SHORT_EPILOG if short else EPILOG,
     )
+    _add_input_options(parser)
+    _add_output_options(parser)
+    _add_region_options(parser)
+    _add_preset_options(parser)
+    parser._config_fields = add_config_options(parser)  # type: ignore[attr-defined]
+    add_expert_options(parser, lambda: build_parser(prog))
+    if short:
+        shorten_help(parser, SHORT_HELP)
+    return parser
+
+
+def _add_input_options(parser: argparse.ArgumentParser) -> None:
+    """The input and calibration options of ``omniflow``."""
     inputs = parser.add_argument_group("input")
     inputs.add_argument(
         "images",
@@ -176,6 +227,10 @@ def build_parser() -> argparse.ArgumentParser:
     calib.add_argument(
         "--s", type=float, metavar="M", help="baseline between the cone tips, metres"
     )
+
+
+def _add_output_options(parser: argparse.ArgumentParser) -> None:
+    """The output and odometry options of ``omniflow``."""
     output = parser.add_argument_group("output")
     output.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
     output.add_argument(
@@ -207,6 +262,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="weight of the dr/dt rows against the r dtheta/dt rows in the odometry fit; "
         "0 fits the bearing rates only (default: 1.0)",
     )
+
+
+def _add_region_options(parser: argparse.ArgumentParser) -> None:
+    """The regions, steering and position-fix options of ``omniflow``."""
     regions = parser.add_argument_group(
         "regions (time to contact, steering and position fix per object; regions.csv)"
     )
@@ -290,6 +349,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="the world position (m) of region NAME's centroid, repeatable: with two or more, "
         "flow.json gets the robot's pose (omniflow.applications.navigation.position_fix)",
     )
+
+
+def _add_preset_options(parser: argparse.ArgumentParser) -> None:
+    """The presets the config options start from."""
     algo = parser.add_argument_group("algorithm preset")
     algo.add_argument(
         "--paper",
@@ -305,8 +368,6 @@ def build_parser() -> argparse.ArgumentParser:
         "the edges, grid pools; about ten times the points and a smaller error, at about "
         "twice the time); options below still override",
     )
-    parser._config_fields = add_config_options(parser)  # type: ignore[attr-defined]
-    return parser
 
 
 # -- inputs ------------------------------------------------------------------------------
@@ -578,11 +639,12 @@ def _one_line_warning(message, category, filename, lineno, file=None, line=None)
     print(f"{PROG}: warning: {one_line(message)}", file=sys.stderr if file is None else file)
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Entry point of the ``omniflow`` command; returns the exit status."""
+def main(argv: list[str] | None = None, *, prog: str = PROG, short: bool = False) -> int:
+    """Entry point of ``omniflow pair`` (``short``: its short help) and of the older
+    ``omniflow IMAGE...`` / ``omniflow --dataset DIR``; returns the exit status."""
     argv = list(sys.argv[1:] if argv is None else argv)
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    parser = build_parser(prog, short=short)
+    args = parser.parse_args(expand_settings(argv, parser))
     with warnings.catch_warnings():
         warnings.simplefilter("default")  # shown, once per place, as one line each
         warnings.showwarning = _one_line_warning

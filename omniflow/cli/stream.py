@@ -32,12 +32,16 @@ from omniflow.cli.common import (
     Formatter,
     Parser,
     add_config_options,
+    add_expert_options,
     check_rig_size,
     column_units,
+    expand_settings,
     explain_error,
     make_config,
     one_line,
+    shorten_help,
 )
+from omniflow.config import PUBLIC_FIELDS
 from omniflow.geometry.rig import Rig, load_rig
 from omniflow.io.imageio import atomic_write_text, read_image, to_grey
 from omniflow.io.jsonio import json_text, jsonable
@@ -47,10 +51,35 @@ MANIFEST = "stream.json"
 IMAGE_SUFFIXES = (".png", ".exr", ".tif", ".tiff", ".jpg", ".jpeg")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The ``omniflow stream`` argument parser (every OmniFlowConfig knob included)."""
+#: The epilog of ``omniflow stream --help-expert``: outputs, resuming, examples.
+EPILOG = textwrap.dedent(
+    """\
+    outputs (in --out DIR, each written under a temporary name, then renamed):
+      flow_K0_K1.csv  the flow from frame K0 to K1 (six digits each), the columns of
+                      omniflow's flow.csv (see omniflow --help), time_to_contact last
+      monocular_K0_K1.csv  with --monocular-gap PX: cam1's flow alone away from the
+                      matches (see omniflow --help)
+      stream.json     input, rig, config; pairs present; this run's pairs, points, time
+    Run the same command again to resume after the last pair written.
+
+    examples:
+      omniflow-stream renders/room --out room_flow
+      omniflow-stream frames/ --rig rig.toml --out flow --start 100 --stop 200
+      python -m omniflow.cli.stream renders/room --out room_flow  (the same)
+    """
+)
+#: The epilog of ``omniflow stream --help``.
+SHORT_EPILOG = (
+    "outputs: flow_K0_K1.csv per pair and stream.json in --out; run again to resume.\n"
+    "--help-expert: every option and the outputs in full. Exit status: 0, 2 bad input, 1."
+)
+
+
+def build_parser(prog: str = PROG, *, short: bool = False) -> argparse.ArgumentParser:
+    """The ``omniflow stream`` argument parser (every OmniFlowConfig knob included);
+    ``short``: ``--help`` shows the stream's own options and the public knobs only."""
     parser = Parser(
-        prog=PROG,
+        prog=prog,
         allow_abbrev=False,
         formatter_class=Formatter,
         description=textwrap.dedent(
@@ -63,22 +92,7 @@ def build_parser() -> argparse.ArgumentParser:
             names, e.g. cam1_0.png, cam1_1.png, ..., cam1_10.png), with --rig.
             """
         ),
-        epilog=textwrap.dedent(
-            """\
-            outputs (in --out DIR, each written under a temporary name, then renamed):
-              flow_K0_K1.csv  the flow from frame K0 to K1 (six digits each), the columns of
-                              omniflow's flow.csv (see omniflow --help), time_to_contact last
-              monocular_K0_K1.csv  with --monocular-gap PX: cam1's flow alone away from the
-                              matches (see omniflow --help)
-              stream.json     input, rig, config; pairs present; this run's pairs, points, time
-            Run the same command again to resume after the last pair written.
-
-            examples:
-              omniflow-stream renders/room --out room_flow
-              omniflow-stream frames/ --rig rig.toml --out flow --start 100 --stop 200
-              python -m omniflow.cli.stream renders/room --out room_flow  (the same)
-            """
-        ),
+        epilog=SHORT_EPILOG if short else EPILOG,
     )
     parser.add_argument("input", metavar="INPUT", help="omnisim dataset folder or image folder")
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
@@ -100,6 +114,10 @@ def build_parser() -> argparse.ArgumentParser:
         "--dense", action="store_true", help="start from OmniFlowConfig.dense() (see omniflow)"
     )
     parser._config_fields = add_config_options(parser)  # type: ignore[attr-defined]
+    add_expert_options(parser, lambda: build_parser(prog))
+    if short:
+        own = {a.dest for a in parser._actions if not a.dest.startswith("cfg_")}
+        shorten_help(parser, own | {f"cfg_{name}" for name in PUBLIC_FIELDS})
     return parser
 
 
@@ -309,11 +327,12 @@ def _one_line_warning(message, category, filename, lineno, file=None, line=None)
     print(f"{PROG}: warning: {one_line(message)}", file=sys.stderr if file is None else file)
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Entry point of ``omniflow-stream``; returns the exit status."""
+def main(argv: list[str] | None = None, *, prog: str = PROG, short: bool = False) -> int:
+    """Entry point of ``omniflow stream`` (``short``: its short help) and
+    ``omniflow-stream``; returns the exit status."""
     argv = list(sys.argv[1:] if argv is None else argv)
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    parser = build_parser(prog, short=short)
+    args = parser.parse_args(expand_settings(argv, parser))
     with warnings.catch_warnings():
         warnings.simplefilter("default")
         warnings.showwarning = _one_line_warning

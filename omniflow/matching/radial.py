@@ -223,141 +223,20 @@ def match_radial(
         The coaxial pair (v_1, v_2, s, d, image centres, rims).
     method : {"robust", "paper"}
         See the module docstring.
-    threshold_percentile : float
-        Significant points have |df1/dh_1| above this percentile of
-        |df1/dh_1| over the annulus h_min <= h_1 <= r_m - rim_margin.
-    min_gradient : float
-        ... and at least this, grey levels per pixel (for images scaled to
-        [0, 1]), so a textureless image has no significant point.
-    r_min, r_max : float
-        Range interval searched, metres; gives the disparity window
-        (:meth:`Rig.disparity_window`). r_max sets the paper's minimum
-        disparity. r_min defaults to :attr:`Rig.min_common_range`, the
-        nearest range both units can see.
-    n_theta : int
-        Number of radial lines, evenly spaced in theta (360: one per degree,
-        about the angular resolution left by ``tangential_blur``).
-    h_step : float
-        Sample spacing along cam1's radial lines, pixels.
-    h_min, rim_margin : float
-        Radii searched: h_min <= h_i <= r_m - rim_margin, pixels. Near the
-        centre cam1 resolves much less of the scene tangentially than cam2
-        (h_2 / h_1 times less), so its patches look different there.
-    patch_radius : float, optional
-        ``robust``: half-length of the radial profile compared, pixels;
-        default r_m / 8 (16 px at 256 x 256), so the profile covers the same
-        part of the scene at every image size. Longer profiles are less
-        ambiguous on periodic texture and match fewer points.
-    patch_lines : int
-        ``robust``: neighbouring radial lines on each side in the patch.
-    profile_step : float, optional
-        ``robust``: spacing of the profile's samples along the radial line,
-        pixels (rounded to a multiple of h_step); default patch_radius / 16,
-        33 samples (at most one per h_step); docs/decisions/matching.md has the
-        figures (fewer outliers on rendered frames than patch_radius / 8).
-    min_score : float
-        ``robust``: smallest NCC accepted.
-    uniqueness : float
-        ``robust``: accept when (1 - NCC_best) <= uniqueness (1 - NCC_second);
-        1 disables the test.
-    left_right : bool
-        ``robust``: require the left-right consistency check.
-    candidate_fraction : float
-        ``robust``: edges of either image count as candidates down to this
-        fraction of the significance threshold.
-    self_similarity : float
-        ``robust``: uniqueness against image 1's own line: accept a match
-        only when (1 - NCC_best) <= self_similarity (1 - NCC_self), NCC_self
-        being the best NCC of the edge's radial profile with another edge of
-        its own line at a lag between the profile's length and the disparity
-        window's width. On a periodic texture the profile recurs a period
-        away, and so does an alias in image 2 that can score as well as the
-        truth (the uniqueness test, the left-right check and the consistency
-        vote then all confirm a consistent alias); the stereo match must be
-        clearly better than the texture's own recurrence. 1 disables it.
-    tangential_blur : float
-        ``robust``: Gaussian blur (sigma, radians) across the radial lines of
-        both polar tables before matching. cam1 resolves the scene h_2 / h_1
-        times more coarsely in theta than cam2 at the same point, so the
-        same patch looks different in the two units unless both are blurred
-        to a common angular resolution. 0 disables it. Default 0.03 (1.7
-        lines of 360); docs/decisions/matching.md has the figures against 0.02,
-        0.04 and 0.06.
-    consistency : float
-        ``robust``: disparity consistency vote, pixels of cam2 (0 disables).
-        A surface's disparity h_2 - (v_2 / v_1) h_1 varies smoothly, so a
-        match is kept only when at least ``consistency_support`` of its
-        neighbouring matches (within +-0.05 rad in theta and +-r_m / 16 in
-        h_1), and at least half of them, have a disparity within
-        ``consistency`` of its own. On rendered frames most outliers are
-        1-3 px errors of isolated matches; docs/decisions/matching.md has what the
-        vote removes.
-    consistency_support : int
-        ``robust``: the agreeing neighbours a match needs.
-    flatness : float
-        ``robust``: keep a match only when its NCC peak is sharp enough to
-        place to sub-pixel: (1 - NCC_peak) <= flatness (2 NCC_0 - NCC_-1 -
-        NCC_+1), the NCC at the best column and its neighbours (about the
-        noise over the curvature, i.e. how far the noise can move the
-        vertex). Most of the matches off by 1-2 px on rendered frames have
-        flat peaks. 0 disables it.
-    alias_score : float
-        ``robust``: periodic-alias test, cheaper than ``self_similarity``
-        (only the matches that passed the other tests are compared): drop a
-        match whose image-1 profile recurs on its own line, i.e. its NCC with
-        another edge at a lag between half the profile and the disparity
-        window's width exceeds ``alias_score`` after falling below 0 at a
-        smaller lag. On a periodic wall an alias a period away in image 2 can
-        score better than the truth, so the uniqueness test, the left-right
-        check and the vote all confirm it; a smooth ramp (recurring without
-        falling) is left to them. 1 disables it.
-        (:func:`omniflow.matching.periodic.not_periodic`.)
-    alias_image2 : float
-        ``robust``: the alias test drops a match whose profile recurs at lag
-        L only when image 2 holds the alias, i.e. the NCC of the image-1
-        profile with image 2's at h_2 +- L (inside the window) exceeds this.
-        A lone recurrence on low texture has no alias in image 2. <= -1:
-        any recurrence drops the match (the rule before).
-    alias_period : float
-        ``robust``: where image 2's columns a recurrence away are in the
-        window but past its rim (the alias cannot be looked at), the match
-        is dropped only when its profile recurs at two lags at least, one
-        above ``alias_score`` and another above this (a period).
-    dense_percentile : float
-        ``robust``: after the vote, also match every sample of image 1 whose
-        |df1/dh_1| is above this percentile (same annulus as
-        ``threshold_percentile``) and that lies within ``dense_reach``
-        patch radii of a match on its line, at that match's disparity +- 2
-        columns (:func:`omniflow.matching.dense.densify`). 100 disables it.
-    dense_reach : float
-        ``robust``: how far from a match its disparity is tried, in patch
-        radii.
-    dense_smooth : float
-        ``robust``: drop a densified match whose image-1 profile has an NCC
-        above this with itself half a profile radius away (a profile smooth
-        over its own length cannot be placed;
-        :func:`omniflow.matching.dense.smooth_profiles`). 1 disables it.
-    edge_smooth : float
-        ``robust``: the same test on the search's own matches (before the
-        consistency vote, so that a dropped match supports none): NCC is
-        blind to an affine change of brightness, so a profile that is a ramp
-        over its length matches every ramp of image 2 as well as the truth.
-        1 disables it.
-    edge_smooth_floor : float, optional
-        With ``edge_smooth``: keep the smooth matches, flagged in
-        ``Matches.ramp``, for the flow step, which drops those whose pooled
-        system's conditioning is below this (a ramp in two dimensions: every
-        gradient of the pool parallel), with the densified matches grown from
-        them (flagged too: they sit at the smooth match's disparity); None:
-        drop them here (they then seed nothing).
-    short_patch : float
-        ``robust``: match a second time with profiles of ``short_patch``
-        times ``patch_radius`` (all else the same) and add the matches at
-        points the first pass left unmatched. A short profile stays on a
-        small or inclined object (whose radial scale differs between the
-        units) where the long one reaches the background. 0 disables it;
-        the pass is skipped when the short profile would be shorter than
-        ``MIN_SHORT_RADIUS`` samples either side (small images).
+    threshold_percentile, min_gradient, r_min, r_max, n_theta, h_step, h_min, rim_margin
+        The significant points and the search's geometry: the same-named fields of
+        :class:`omniflow.config.OmniFlowConfig`. r_min defaults to
+        :attr:`Rig.min_common_range`, the nearest range both units can see.
+    patch_radius, patch_lines, profile_step, min_score, uniqueness, left_right,\
+    candidate_fraction, tangential_blur, consistency, consistency_support,\
+    self_similarity, flatness, alias_score, alias_image2, alias_period,\
+    dense_percentile, dense_reach, dense_smooth, edge_smooth, edge_smooth_floor,\
+    short_patch
+        ``robust`` only: the robust matcher's tests, documented once on the
+        same-named fields of :class:`omniflow.config.OmniFlowConfig` (the defaults
+        here are the function's own: ``edge_smooth`` 1 and ``edge_smooth_floor``
+        None switch the smooth-profile test off). The short pass is skipped when
+        its profile would be shorter than ``MIN_SHORT_RADIUS`` samples either side.
     grids : (PolarGrids, PolarGrids), optional
         Precomputed grids of the two fits (saves re-evaluating them).
 
@@ -365,40 +244,66 @@ def match_radial(
     -------
     Matches
     """
-    if method not in MATCH_METHODS:
-        raise ValueError(f"method = {method!r}: expected one of {MATCH_METHODS}")
+    kw = {k: v for k, v in locals().items() if k in _PASS_ARGS}
     if not (0.0 <= short_patch < 1.0):
         raise ValueError(f"short_patch = {short_patch!r}: expected [0, 1)")
+    kw, short_step = _checked_args(rig, kw)
+    if grids is None:
+        if fit1 is None or fit2 is None:
+            raise ValueError("match_radial needs fit1 and fit2, or grids")
+        grids = (
+            polar_grids(fit1, rig.cam1, gradient=method == "paper"),
+            polar_grids(fit2, rig.cam2, gradient=method == "paper"),
+        )
+    return _run_passes(grids, rig, kw, short_patch, short_step)
+
+
+def _checked_args(rig: Rig, kw: dict) -> tuple[dict, float | None]:
+    """match_radial's pass arguments checked, with the defaults that depend on the rig
+    resolved (patch_radius, profile_step, r_min); also the profile step as given, from
+    which the short pass derives its own."""
+    o = dict(kw)
+    method = o["method"]
+    if method not in MATCH_METHODS:
+        raise ValueError(f"method = {method!r}: expected one of {MATCH_METHODS}")
+    threshold_percentile = o["threshold_percentile"]
     if not (0.0 <= threshold_percentile < 100.0):
         raise ValueError(f"threshold_percentile = {threshold_percentile!r}: expected [0, 100)")
+    dense_percentile, dense_reach, flatness = o["dense_percentile"], o["dense_reach"], o["flatness"]
     if not (0.0 <= dense_percentile <= 100.0 and dense_reach > 0 and flatness >= 0):
         raise ValueError(
             f"dense_percentile = {dense_percentile!r}, dense_reach = {dense_reach!r}, "
             f"flatness = {flatness!r}: expected [0, 100], > 0 and >= 0"
         )
-    if not (-1.0 <= dense_smooth <= 1.0):
-        raise ValueError(f"dense_smooth = {dense_smooth!r}: expected an NCC in [-1, 1]")
-    if not (-1.0 <= edge_smooth <= 1.0):
-        raise ValueError(f"edge_smooth = {edge_smooth!r}: expected an NCC in [-1, 1]")
-    cam1, cam2 = rig.cam1, rig.cam2
-    short_step = profile_step  # the short pass's profile step derives from the one given
-    if patch_radius is None:
-        patch_radius = cam1.r_m / 8.0
-    if profile_step is None:
-        profile_step = patch_radius / 16.0
-    if not (h_step > 0 and n_theta >= 8 and patch_radius > 0 and patch_lines >= 0):
+    for name in ("dense_smooth", "edge_smooth"):
+        if not (-1.0 <= o[name] <= 1.0):
+            raise ValueError(f"{name} = {o[name]!r}: expected an NCC in [-1, 1]")
+    short_step = o["profile_step"]  # the short pass's profile step derives from the one given
+    if o["patch_radius"] is None:
+        o["patch_radius"] = rig.cam1.r_m / 8.0
+    if o["profile_step"] is None:
+        o["profile_step"] = o["patch_radius"] / 16.0
+    if not (o["h_step"] > 0 and o["n_theta"] >= 8 and o["patch_radius"] > 0
+            and o["patch_lines"] >= 0):  # fmt: skip
         raise ValueError("expected h_step > 0, n_theta >= 8, patch_radius > 0, patch_lines >= 0")
-    r_min = rig.min_common_range if r_min is None else float(r_min)
+    r_min, r_max = o["r_min"], o["r_max"]
+    r_min = o["r_min"] = rig.min_common_range if r_min is None else float(r_min)
     if not (0 <= r_min < r_max):
         raise ValueError(f"r_min = {r_min!r}, r_max = {r_max!r}: expected 0 <= r_min < r_max")
-    if grids is None:
-        if fit1 is None or fit2 is None:
-            raise ValueError("match_radial needs fit1 and fit2, or grids")
-        grids = (
-            polar_grids(fit1, cam1, gradient=method == "paper"),
-            polar_grids(fit2, cam2, gradient=method == "paper"),
-        )
-    kw = {k: v for k, v in locals().items() if k in _PASS_ARGS}
+    return o, short_step
+
+
+def _run_passes(
+    grids: tuple[PolarGrids, PolarGrids],
+    rig: Rig,
+    kw: dict,
+    short_patch: float,
+    short_step: float | None,
+) -> Matches:
+    """The long pass, and the short one where its profiles are long enough, searched on
+    the threads; their matches united (the short pass's only where the long has none)."""
+    method, patch_radius, h_step = kw["method"], kw["patch_radius"], kw["h_step"]
+    kw = dict(kw)
     passes = [_prepare(grids, rig, **kw)]
     if method == "robust" and short_patch * patch_radius >= MIN_SHORT_RADIUS * h_step:
         # the second pass, with short profiles: its matches are added where the
@@ -421,7 +326,7 @@ def match_radial(
             task.cancel()  # no task outlives the call
         raise
     for task in later:
-        out = _union(out, task.result(), n_theta, h_step)
+        out = _union(out, task.result(), kw["n_theta"], h_step)
     return out
 
 

@@ -272,27 +272,38 @@ def _gain_sums(idx, w, rows, f1_h, f1_th, f1_t, f2_h, f2_th, f2_t, f1, f2, h1, h
                 w1 += ww * u
                 w2 += ww * u * u
         powers[m, 0], powers[m, 1], powers[m, 2] = w0, w1, w2
-        if model >= 2:
-            for c in range(p):
-                v[m, c] = vacc[c]
-                for d in range(c, p):
-                    M[m, c, d] = acc[c, d]
-            yy[m] = s_yy
-        else:
-            g = p - 1
-            M[m, 0, 0], M[m, 0, 1], M[m, 1, 1] = s_pp0, s_pq0, s_qq0
-            M[m, 0, g], M[m, 1, g], M[m, g, g] = s_pg0, s_qg0, s_gg
-            v[m, 0], v[m, 1], v[m, g] = s_py0, s_qy0, s_gy
-            yy[m] = s_yy
-            if model == 1:  # unknowns (a, c, u a, u c, beta)
-                M[m, 0, 2], M[m, 0, 3], M[m, 1, 2], M[m, 1, 3] = s_pp1, s_pq1, s_pq1, s_qq1
-                M[m, 2, 2], M[m, 2, 3], M[m, 3, 3] = s_pp2, s_pq2, s_qq2
-                M[m, 2, g], M[m, 3, g] = s_pg1, s_qg1
-                v[m, 2], v[m, 3] = s_py1, s_qy1
-        for c in range(p):
-            for d in range(c):
-                M[m, c, d] = M[m, d, c]
+        yy[m] = s_yy
+        sums = (s_pp0, s_pq0, s_qq0, s_pg0, s_qg0, s_gg, s_py0, s_qy0, s_gy,
+                s_pp1, s_pq1, s_qq1, s_pp2, s_pq2, s_qq2, s_pg1, s_qg1, s_py1, s_qy1)  # fmt: skip
+        _store_pool(M[m], v[m], model, p, acc, vacc, sums)
     return M, v, yy, powers, x0, y0
+
+
+@numba.njit(cache=True, nogil=True)
+def _store_pool(Mm, vm, model, p, acc, vacc, sums):  # pragma: no cover - compiled
+    """One pool's normal matrix ``Mm`` (both triangles) and right side ``vm`` from
+    :func:`_gain_sums`'s accumulators: the pool's own (``acc``, ``vacc``; the decoupled
+    and linear-gain models) or the coupled models' sums of products (``sums``)."""
+    if model >= 2:
+        for c in range(p):
+            vm[c] = vacc[c]
+            for d in range(c, p):
+                Mm[c, d] = acc[c, d]
+    else:
+        (s_pp0, s_pq0, s_qq0, s_pg0, s_qg0, s_gg, s_py0, s_qy0, s_gy,
+         s_pp1, s_pq1, s_qq1, s_pp2, s_pq2, s_qq2, s_pg1, s_qg1, s_py1, s_qy1) = sums  # fmt: skip
+        g = p - 1
+        Mm[0, 0], Mm[0, 1], Mm[1, 1] = s_pp0, s_pq0, s_qq0
+        Mm[0, g], Mm[1, g], Mm[g, g] = s_pg0, s_qg0, s_gg
+        vm[0], vm[1], vm[g] = s_py0, s_qy0, s_gy
+        if model == 1:  # unknowns (a, c, u a, u c, beta)
+            Mm[0, 2], Mm[0, 3], Mm[1, 2], Mm[1, 3] = s_pp1, s_pq1, s_pq1, s_qq1
+            Mm[2, 2], Mm[2, 3], Mm[3, 3] = s_pp2, s_pq2, s_qq2
+            Mm[2, g], Mm[3, g] = s_pg1, s_qg1
+            vm[2], vm[3] = s_py1, s_qy1
+    for c in range(p):
+        for d in range(c):
+            Mm[c, d] = Mm[d, c]
 
 
 def gain_sums(

@@ -389,23 +389,8 @@ def pooled_solution(
       the first order (needs ``theta``).
 
     Unknowns are scaled to pixels per frame, (a, h_1,i b, ...). Solved per
-    point from the small normal equations.
-
-    Errors in the variables. Noise in the gradients adds its variance to the
-    diagonal of the normal matrix A^T A (but, being uncorrelated with the
-    temporal derivative at the same point, nothing to A^T b on average), so
-    plain least squares shrinks the flow towards zero by roughly
-    signal / (signal + noise) power. With ``noise1``, ``noise2`` (the
-    variance of each unit's gradient components f_h and f_theta / h_i) that
-    expected contribution is subtracted (bias-compensated least squares):
-    row j of unit 1 adds noise1 rel_j^2 to the (a, a) entry and
-    noise1 (h_1,j / h_1,i)^2 to the (h_1 b, h_1 b) entry, unit 2 likewise
-    with k_j^2 rel_j^2 and (h_2,j / h_1,i)^2; the neighbours' ratios are
-    taken as the point's own (1, 1, k_i), the pool being small against h_1.
-    Where a diagonal entry is less than twice its noise share (the texture's
-    gradient power does not outweigh the noise's) the plain solution is
-    kept: there the corrected one divides small noisy quantities and is
-    heavy-tailed.
+    point from the small normal equations. With ``noise1``, ``noise2`` the
+    errors in the variables are corrected (:func:`_eiv_corrected`).
 
     Parameters
     ----------
@@ -448,23 +433,9 @@ def pooled_solution(
         ``idx``, ``w`` (``relative`` model, ``"equal"`` weighting only); the
         tangential offset u is then the tangential component of the pixel
         offset, equal to h_1,i (theta_j - theta_i) to first order.
-    static_test : float, optional
-        Report no motion (a = b = 0) where the pool's equations do not show
-        any: where the squared residual that the flow (a, h_1 b) explains,
-        s = x^T S x over the pool (S the normal matrix of (a, h_1 b), its
-        Schur complement for ``"linear"``), is below ``static_test`` times
-        the pool's remaining residual variance per row (its sum of squared
-        f_t less s, over twice the pool's weight: both units' rows). A Wald
-        test of zero flow with the noise measured in the pool itself; with
-        independent rows s / variance is chi-squared with 2 degrees of
-        freedom where nothing moves. None (the default): no test.
-    static_max_px : float, optional
-        With ``static_test``: call a pool still only where the smallest flow
-        it would have detected, sqrt(static_test) times the standard error
-        of (a, h_1 b) along its weakest direction, is at most this (px per
-        frame): a pool too poor in texture to see a small motion keeps its
-        flow, so no flow larger than this is set to zero by the test. None:
-        no such guard.
+    static_test, static_max_px : float, optional
+        Report no motion where the pool's equations show none
+        (:func:`_zero_where_still`); None (the default): no test, no guard.
 
     Returns
     -------
@@ -474,14 +445,7 @@ def pooled_solution(
         ``"linear"``, of its Schur complement: the information left on
         (a, h_1 b) once the slopes are free), in [0, 1].
     """
-    if model not in ("constant", "linear"):
-        raise ValueError(f"model = {model!r}: expected 'constant' or 'linear'")
-    if unit_weighting not in UNIT_WEIGHTINGS:
-        raise ValueError(f"unit_weighting = {unit_weighting!r}: expected one of {UNIT_WEIGHTINGS}")
-    if model == "linear" and theta is None:
-        raise ValueError("model='linear' needs theta")
-    if grid is not None and (unit_weighting != "equal" or not relative):
-        raise ValueError("grid pools need unit_weighting='equal' and relative=True")
+    _check_pool_args(model, unit_weighting, theta, grid, relative)
     f1_h, f1_theta, f1_t, f2_h, f2_theta, f2_t, h1, h2 = (
         np.append(np.asarray(v, dtype=np.float64).ravel(), 0.0)
         for v in (f1_h, f1_theta, f1_t, f2_h, f2_theta, f2_t, h1, h2)
@@ -521,37 +485,89 @@ def pooled_solution(
     if unit_weighting != "equal":
         v1, v2 = _unit_variances(derivs, k, a, c / h1[:n], n, idx, w, unit_weighting)
         if v1 is not None:
-            # neighbour j's rows of unit u weighted by 1 / v_u(j): its derivatives
-            # scaled by sqrt(1 / v_u(j)), so the same compiled sums apply
-            r1, r2 = (np.append(1.0 / np.sqrt(v), 0.0) for v in (v1, v2))
-            scaled = tuple(d * r for d, r in zip(derivs6, (r1, r1, r1, r2, r2, r2), strict=True))
-            sums, _ = pooled_sums(idx, w, scaled, h1, th, **kw)
-            a, c, conf = _solve_sums(sums, model, min_conditioning)
-            wsum1, wsum2 = (_weight_sums(w, s[idx], idx, th, h1[:n], model, scale)
-                            for s in (r1 * r1, r2 * r2))  # fmt: skip
+            sums, a, c, conf, wsum1, wsum2 = _unit_weighted(
+                (v1, v2), derivs6, idx, w, h1, th, kw, model, scale, min_conditioning
+            )
     if noise1 > 0 or noise2 > 0:
-        # expected gradient-noise power on the pp and qq entries, with the
-        # neighbours' rel, h_1,j / h_1,i and k_j taken as the point's own
-        # (1, 1, k_i): the pool is small against h_1; each row's noise carries
-        # its unit's weight
         per_row = noise1 * wsum1 + (noise2 * k[:n] ** 2)[:, None] * wsum2  # (N, m)
-        noise = np.zeros_like(sums)
-        noise[..., 0] = per_row
-        noise[..., 2] = per_row
-        ac, cc, confc = _solve_sums(sums - noise, model, min_conditioning, positive=True)
-        # only where the signal outweighs the noise on both components (each
-        # diagonal entry at least twice its noise share): elsewhere the
-        # corrected solution is a ratio of small noisy quantities, heavy-tailed
-        strong = (sums[:, 0, 0] > 2.0 * per_row[:, 0]) & (sums[:, 0, 2] > 2.0 * per_row[:, 0])
-        use = strong & np.isfinite(ac) & np.isfinite(cc)
-        a, c, conf = np.where(use, ac, a), np.where(use, cc, c), np.where(use, confc, conf)
+        a, c, conf = _eiv_corrected(sums, per_row, (a, c, conf), model, min_conditioning)
     if static_test is not None:  # the equal-weight pools' Wald test of no motion
         stat, sd = motion_statistic(pool, derivs6, sums0, wsum0, model, h1[:n])
-        still = stat < static_test
-        if static_max_px is not None:  # only where the test would have seen that much motion
-            still &= np.sqrt(static_test) * sd <= static_max_px
-        a, c = np.where(still, 0.0, a), np.where(still, 0.0, c)
+        a, c = _zero_where_still(stat, sd, static_test, static_max_px, a, c)
     return a, c / h1[:n], conf
+
+
+def _zero_where_still(stat: NDArray, sd: NDArray, static_test: float,
+                      static_max_px: float | None, a: NDArray, c: NDArray):  # fmt: skip
+    """(a, c) set to 0 where the pool shows no motion.
+
+    ``stat`` (:func:`motion_statistic`): the squared residual that the flow
+    (a, h_1 b) explains, s = x^T S x over the pool (S the normal matrix of
+    (a, h_1 b), its Schur complement for ``"linear"``), over the pool's remaining
+    residual variance per row (its sum of squared f_t less s, over twice the pool's
+    weight: both units' rows). A Wald test of zero flow with the noise measured in
+    the pool itself; with independent rows it is chi-squared with 2 degrees of
+    freedom where nothing moves: still where below ``static_test``. With
+    ``static_max_px``, only where the smallest flow the pool would have detected,
+    sqrt(static_test) times the standard error ``sd`` of (a, h_1 b) along its
+    weakest direction, is at most this (px per frame): a pool too poor in texture
+    to see a small motion keeps its flow.
+    """
+    still = stat < static_test
+    if static_max_px is not None:  # only where the test would have seen that much motion
+        still &= np.sqrt(static_test) * sd <= static_max_px
+    return np.where(still, 0.0, a), np.where(still, 0.0, c)
+
+
+def _check_pool_args(model: str, unit_weighting: str, theta, grid, relative: bool) -> None:
+    """pooled_solution's choices checked against each other."""
+    if model not in ("constant", "linear"):
+        raise ValueError(f"model = {model!r}: expected 'constant' or 'linear'")
+    if unit_weighting not in UNIT_WEIGHTINGS:
+        raise ValueError(f"unit_weighting = {unit_weighting!r}: expected one of {UNIT_WEIGHTINGS}")
+    if model == "linear" and theta is None:
+        raise ValueError("model='linear' needs theta")
+    if grid is not None and (unit_weighting != "equal" or not relative):
+        raise ValueError("grid pools need unit_weighting='equal' and relative=True")
+
+
+def _unit_weighted(variances, derivs6, idx, w, h1, th, kw, model, scale, min_conditioning):
+    """The pooled sums and solution with neighbour j's rows of unit u weighted by
+    1 / v_u(j) (``variances`` = (v1, v2)): its derivatives scaled by sqrt(1 / v_u(j)),
+    so the same compiled sums apply; also each unit's weighted sums of w u^m."""
+    r1, r2 = (np.append(1.0 / np.sqrt(v), 0.0) for v in variances)
+    scaled = tuple(d * r for d, r in zip(derivs6, (r1, r1, r1, r2, r2, r2), strict=True))
+    sums, _ = pooled_sums(idx, w, scaled, h1, th, **kw)
+    a, c, conf = _solve_sums(sums, model, min_conditioning)
+    n = h1.size - 1
+    wsum1, wsum2 = (_weight_sums(w, s[idx], idx, th, h1[:n], model, scale)
+                    for s in (r1 * r1, r2 * r2))  # fmt: skip
+    return sums, a, c, conf, wsum1, wsum2
+
+
+def _eiv_corrected(sums: NDArray, per_row: NDArray, plain: tuple, model: str,
+                   min_conditioning: float) -> tuple[NDArray, NDArray, NDArray]:  # fmt: skip
+    """The errors-in-variables correction of the pooled solve.
+
+    Noise in the gradients adds its variance to the diagonal of the normal matrix
+    A^T A (but, being uncorrelated with the temporal derivative at the same point,
+    nothing to A^T b on average), so plain least squares shrinks the flow towards
+    zero by roughly signal / (signal + noise) power. That expected contribution
+    (``per_row``, (N, m): each unit's gradient-noise variance times its weighted
+    sums of w u^m, the neighbours' rel, h_1,j / h_1,i and k_j taken as the point's
+    own (1, 1, k_i), the pool being small against h_1) is subtracted from the pp
+    and qq entries (bias-compensated least squares). Where a diagonal entry is less
+    than twice its noise share the ``plain`` (a, c, conf) is kept: there the
+    corrected one divides small noisy quantities and is heavy-tailed.
+    """
+    a, c, conf = plain
+    noise = np.zeros_like(sums)
+    noise[..., 0] = per_row
+    noise[..., 2] = per_row
+    ac, cc, confc = _solve_sums(sums - noise, model, min_conditioning, positive=True)
+    strong = (sums[:, 0, 0] > 2.0 * per_row[:, 0]) & (sums[:, 0, 2] > 2.0 * per_row[:, 0])
+    use = strong & np.isfinite(ac) & np.isfinite(cc)
+    return np.where(use, ac, a), np.where(use, cc, c), np.where(use, confc, conf)
 
 
 def motion_statistic(

@@ -520,26 +520,28 @@ def test_bad_input_is_one_line_and_changes_nothing(base, tmp_path, name):
     assert snapshot(tmp_path, base["dir"]) == before  # old outputs untouched, nothing left
 
 
-def test_knob_limits_cover_every_numeric_knob():
-    # A numeric OmniFlowConfig field without a range would reach the pipeline unchecked.
-    from omniflow.cli.common import KNOB_LIMITS
-    from omniflow.pipeline import OmniFlowConfig
+def test_every_knob_carries_its_check():
+    """Each OmniFlowConfig field's metadata (omniflow.config.knob) is the one place its
+    check lives: a help line for every field, a range for every numeric one, choices for
+    every word; every preset lies inside. Mutation caught: a numeric knob without limits
+    would reach the pipeline unchecked."""
+    from omniflow.config import PRESETS, OmniFlowConfig
 
-    config = OmniFlowConfig()
     hints = typing.get_type_hints(OmniFlowConfig)
-    numeric = {
-        f.name
-        for f in dataclasses.fields(config)
-        if {int, float} & set(typing.get_args(hints[f.name]) or [hints[f.name]])
-    }
-    assert len(numeric) >= 20  # 25 today; a change of annotation style would empty the set
-    assert numeric - set(KNOB_LIMITS) == set()
-    assert set(KNOB_LIMITS) - {f.name for f in dataclasses.fields(config)} == set()
-    for name in KNOB_LIMITS:  # every default lies in its range
-        from omniflow.cli.common import check_knobs
-
-        check_knobs({name: getattr(config, name)})
-        check_knobs({name: getattr(OmniFlowConfig.paper(), name)})
+    numeric = []
+    for f in dataclasses.fields(OmniFlowConfig):
+        assert f.metadata.get("help"), f.name
+        kinds = set(typing.get_args(hints[f.name]) or [hints[f.name]])
+        if {int, float} & kinds:
+            numeric.append(f.name)
+            assert f.metadata.get("limits") is not None, f.name
+        if str in kinds:
+            assert f.metadata.get("choices"), f.name
+    assert len(numeric) >= 20  # 52 today; a change of annotation style would empty the list
+    for name in PRESETS:  # every preset's values lie in their ranges (made without error)
+        OmniFlowConfig.preset(name)
+    with pytest.raises(ValueError, match=r"OmniFlowConfig.pool_k = 0: expected an integer >= 1"):
+        OmniFlowConfig(pool_k=0)
 
 
 def test_debug_shows_the_traceback(base, tmp_path):

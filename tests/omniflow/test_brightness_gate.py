@@ -148,13 +148,13 @@ def test_gain_with_grid_pools(monkeypatch):
     plain 0.0933, gate 20 0.0181 (0.0157 with the gain on k-d tree pools, stop 18).
     Mutation caught: the gain never taken (``gated`` always False in the solver) stays at
     the plain 0.0933."""
-    _, plain, _ = _run(robot=SLOW, dim=DIM, pool_grid=0.125)
-    _, gated, _ = _run(robot=SLOW, dim=DIM, gate=GATE, pool_grid=0.125)
-    _, clean, _ = _run(robot=SLOW, pool_grid=0.125)
+    _, plain, _ = _run(robot=SLOW, dim=DIM, pool_grid=0.125, brightness_model="gain")
+    _, gated, _ = _run(robot=SLOW, dim=DIM, gate=GATE, pool_grid=0.125, brightness_model="gain")
+    _, clean, _ = _run(robot=SLOW, pool_grid=0.125, brightness_model="gain")
     assert gated.mean() < 0.25 * plain.mean()  # measured 0.19
     assert gated.mean() < 1.5 * clean.mean()  # measured 1.30
     monkeypatch.setattr(solve_mod, "gated", lambda F, gate, *v: np.zeros(F.shape, bool))
-    _, mutated, _ = _run(robot=SLOW, dim=DIM, gate=GATE, pool_grid=0.125)
+    _, mutated, _ = _run(robot=SLOW, dim=DIM, gate=GATE, pool_grid=0.125, brightness_model="gain")
     assert not mutated.mean() < 0.25 * plain.mean()
 
 

@@ -18,6 +18,7 @@ Each check has a mutation that it catches (the tests named ``..._catches_...``).
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -228,7 +229,7 @@ def test_grid_pools_at_a_motion_boundary_no_worse_than_the_tree(boundary):
     """Closed-form motion boundary, true matches at 10 % of the pixels: the band keeps 0.758
     of its flow with the grid (0.750 with the tree), the wall's mean EPE 0.0179 px (0.0193)."""
     tree_ratio, tree_wall = _band(boundary)
-    ratio, wall = _band(boundary, pool_grid=0.125)
+    ratio, wall = _band(boundary, pool_grid=0.125, brightness_model="gain")
     print(
         f"grid: band ratio {ratio:.3f} (tree {tree_ratio:.3f}); wall {wall:.4f} ({tree_wall:.4f})"
     )
@@ -243,23 +244,32 @@ def test_boundary_check_catches_grid_pools_without_the_range_test(boundary):
     and wall EPE 0.0211 px, both outside the check's bounds (the tree's 0.750 - 0.02 and
     1.05 x 0.0193)."""
     tree_ratio, tree_wall = _band(boundary)
-    ratio, wall = _band(boundary, pool_grid=0.125, pool_range_tol=None)
+    ratio, wall = _band(boundary, pool_grid=0.125, brightness_model="gain", pool_range_tol=None)
     assert ratio < tree_ratio - 0.02  # measured 0.659
     assert wall > 1.05 * tree_wall  # measured 1.09x
 
 
-def test_knobs_that_thin_each_pool_keep_the_tree(boundary):
-    """pool_residual_tol needs each pool's neighbours: with it, pool_grid is ignored and the
-    result is the tree's, bit for bit; the check can tell the two apart (the grid's own
-    result differs from the tree's, by 0.0057 px at the median point)."""
-    rig, f1, f2, m, _ = boundary
-    run = lambda **kw: estimate(f1, f2, rig, OmniFlowConfig(**kw), matches=m)  # noqa: E731
-    tree = run(pool_residual_tol=3.0)
-    both = run(pool_residual_tol=3.0, pool_grid=0.125)
-    grid = run(pool_grid=0.125)
-    np.testing.assert_array_equal(both["dh1_dt"], tree["dh1_dt"])
-    np.testing.assert_array_equal(both["dtheta_dt"], tree["dtheta_dt"])
-    assert np.median(np.abs(grid["dh1_dt"] - tree["dh1_dt"])) > 1e-4  # measured 0.0057
+@pytest.mark.parametrize(
+    ("name", "value"),
+    [("pool_residual_tol", 3.0), ("pool_flow_tol", 0.5), ("pool_edge_tol", 2.0),
+     ("pool_min_info", 4.0), ("pool_unit_weighting", "local")],
+)  # fmt: skip
+def test_knobs_that_thin_each_pool_reject_grid_pools(name, value):
+    """A knob that needs each pool's neighbours (the k-d tree's) with ``pool_grid`` is an
+    error naming both (main ignored pool_grid there, silently)."""
+    with pytest.raises(ValueError, match=re.escape(f"pool_grid = 0.125 with {name} = ")):
+        OmniFlowConfig(pool_grid=0.125, brightness_model="gain", **{name: value})
+    OmniFlowConfig(pool_grid=None, **{name: value})  # the tree's pools: fine
+
+
+def test_grid_pools_reject_the_linear_gain():
+    """Grid pools fit one gain per pool: ``brightness_model="linear"`` with them is an error
+    (main fell back to one gain, silently); without the gain fit there is no conflict."""
+    message = re.escape("pool_grid = 0.125 with brightness_model = 'linear'")
+    with pytest.raises(ValueError, match=message):
+        OmniFlowConfig(pool_grid=0.125)
+    OmniFlowConfig(pool_grid=0.125, brightness_gate=None)
+    OmniFlowConfig(pool_grid=0.125, brightness_model="gain")
 
 
 def _brute_force_gain(x, y, tangent, derivs, f, h1, h2, r, tol, scale):

@@ -74,10 +74,12 @@ def test_synthetic_end_to_end(key, tmp_path, capsys):
     # Every selectable variant is its own row: all 2 x 2 x 2 x 2 combinations of the
     # matching rule, gradients, temporal derivative and solver; plus the paper's exact
     # configuration and the flow step on true matches (default and paper configurations).
-    combos = {n[len("omniflow["):].split(";")[0].rstrip("]") for n in names
-              if n.startswith("omniflow[") and ";" not in n and "truth" not in n}  # fmt: skip
+    combos = {n for n in names
+              if n.startswith("omniflow:default") and "matches=truth" not in n}  # fmt: skip
     assert len(combos) == 16, combos
-    assert sum(n.startswith("omniflow[truth,") for n in names) == 2
+    assert "omniflow:paper" in names
+    assert {n for n in names if n.endswith("+matches=truth")} == {
+        "omniflow:default+matches=truth", "omniflow:paper+matches=truth"}  # fmt: skip
     for b in ("DIS-medium", "Farneback", "DIS-medium-panorama"):
         assert b in names
     assert all(m["time_per_frame"]["median_s"] > 0 for m in summary["methods"])

@@ -202,7 +202,8 @@ def test_row_scores_a_configuration_the_variants_do_not_list(tmp_path):
     b = json.loads((tmp_path / "b" / "summary.json").read_text())["methods"]
     assert len(a) == 1 and len(b) == 2
     assert b[0]["name"] == a[0]["name"]
-    assert b[1]["name"].endswith(";flow_taper=0.0]"), b[1]["name"]
+    assert b[1]["name"] == "omniflow:default+flow_taper=0.0", b[1]["name"]
+    assert b[1]["config"]["flow_taper"] == 0.0  # the full config is in summary.json
     assert a[0]["flow"]["cam1"]["all"]["n"] > 0
     assert b[0]["flow"]["cam1"]["all"]["epe"] == a[0]["flow"]["cam1"]["all"]["epe"]
     assert b[1]["flow"]["cam1"]["all"]["epe"] != a[0]["flow"]["cam1"]["all"]["epe"]
@@ -213,7 +214,7 @@ def test_cli_refuses_a_bad_row(synth, tmp_path):
     out = ["--out", str(tmp_path / "o")]
     _one_line_exit_2(_cli(*base, *out, "--row", "flow_taper=2"), "--flow-taper 2: expected")
     _one_line_exit_2(_cli(*base, *out, "--row", "nosuch=1"), "an OmniFlowConfig field")
-    _one_line_exit_2(_cli(*base, *out, "--row", "eiv=bogus"), "eiv = 'bogus'")
+    _one_line_exit_2(_cli(*base, *out, "--row", "eiv=bogus"), "--eiv: invalid choice: 'bogus'")
     # the default configuration again: already the first row
     _one_line_exit_2(_cli(*base, *out, "--row", "flow_taper=0.5"), "already scored")
     assert not (tmp_path / "o").exists()

@@ -369,6 +369,12 @@ def test_legend_labels_wrap_between_settings_not_inside_one():
     for setting in name.split(","):
         assert any(setting in s for s in lines), setting
     assert _wrap_at_commas("1: omniflow[robust] (0.017 px, 82 ms)", 110).count("\n") == 0
+    # the short row names (validation.variants.variant_name) break after a "+"
+    plus = "omniflow:default+match_method=paper+gradients=first+temporal=dct3d+solver=direct"
+    lines = _wrap_at_commas(f"6: {plus} (1.289 px, 312 ms)", 60).split("\n")
+    assert len(lines) == 2 and all(len(s) <= 60 for s in lines), lines
+    for setting in plus.split("+"):
+        assert any(setting in s for s in lines), setting
 
 
 def test_closing_line_counts_methods_not_their_rows():
