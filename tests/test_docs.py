@@ -159,16 +159,32 @@ def test_the_demo_commands_run_on_a_small_render(tmp_path):
 _HELP: dict[tuple[str, ...], str] = {}
 
 
-def _help(command: tuple[str, ...]) -> str:
-    """The ``--help`` text of a console script (and its subcommand), cached."""
-    if command not in _HELP:
+#: Subcommands of the console scripts; ``omniflow`` with none is ``omniflow pair``,
+#: ``omnivalidate`` with none scores one dataset.
+SUBCOMMANDS = {"omnisim": None, "omniflow": ("pair", "stream"), "omnivalidate": ("suite",)}
+
+
+def _command_of(argv: list[str]) -> tuple[str, ...]:
+    """The console script and subcommand a documented command line runs."""
+    subs = SUBCOMMANDS.get(argv[0], ())
+    if subs is None:
+        return tuple(argv[:2])
+    if len(argv) > 1 and argv[1] in subs:
+        return tuple(argv[:2])
+    return ("omniflow", "pair") if argv[0] == "omniflow" else (argv[0],)
+
+
+def _help(command: tuple[str, ...], flag: str = "--help") -> str:
+    """The ``--help`` (or ``--help-expert``) text of a console script and subcommand, cached."""
+    key = (*command, flag)
+    if key not in _HELP:
         code = f"import sys; from {ENTRY[command[0]]} import main; sys.exit(main(sys.argv[1:]))"
         env = dict(os.environ, PYTHONPATH=str(ROOT))
-        proc = subprocess.run([sys.executable, "-c", code, *command[1:], "--help"], cwd=ROOT,
+        proc = subprocess.run([sys.executable, "-c", code, *command[1:], flag], cwd=ROOT,
                               env=env, capture_output=True, text=True, timeout=120)  # fmt: skip
-        assert proc.returncode == 0, f"{' '.join(command)} --help: exit {proc.returncode}"
-        _HELP[command] = proc.stdout
-    return _HELP[command]
+        assert proc.returncode == 0, f"{' '.join(command)} {flag}: exit {proc.returncode}"
+        _HELP[key] = proc.stdout
+    return _HELP[key]
 
 
 @pytest.mark.parametrize("page", sorted((ROOT / "docs").glob("*.md")), ids=lambda p: p.name)
@@ -176,8 +192,10 @@ def test_documented_options_exist(page):
     for block in fenced_blocks(page.read_text(), "bash"):
         for argv in shell_lines(block):
             if argv[0] in ENTRY:
-                command = tuple(argv[:2]) if argv[0] == "omnisim" else (argv[0],)
+                command = _command_of(argv)
                 text = _help(command)
+                if argv[0] == "omniflow":  # expert options are listed by --help-expert
+                    text += _help(command, "--help-expert")
                 for opt in (a.split("=")[0] for a in argv if a.startswith("--")):
                     assert opt in text, f"{page.name}: {' '.join(command)} has no option {opt}"
             elif argv[0].startswith("python") and argv[1:2] == ["-m"]:
