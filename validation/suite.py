@@ -26,6 +26,7 @@ the generator only then, so a suite of files needs none).
 
 from __future__ import annotations
 
+import importlib
 import re
 import tomllib
 from dataclasses import dataclass
@@ -173,8 +174,8 @@ def scene_text(scene: SuiteScene) -> str:
             return scene.file.read_text(encoding="utf-8")
         except (OSError, UnicodeDecodeError) as exc:
             raise SuiteError(f"{scene.where}: key 'file': cannot read {scene.file}: {exc}") from exc
-    try:
-        from omnisim import generate
+    try:  # import_module consults sys.modules, so a blocked generator is seen as missing
+        generate = importlib.import_module("omnisim.generate")
     except ImportError as exc:
         raise SuiteError(
             f"{scene.where}: key 'family': generated scenes need omnisim.generate (the scene "

@@ -35,7 +35,7 @@ def setup(tmp_path_factory):
     ds = make_dataset(spec, tmp_path_factory.mktemp("mut") / "ds", int(spec.get("seed", 0)))
     # Only the default variant runs here: keep its checks (and the baselines', which the
     # mutations do not touch).
-    spec = dict(spec, check=[c for c in spec["check"] if c["method"] == "default"])
+    spec = dict(spec, check=[c for c in spec["check"] if c["method"] == "omniflow:default"])
     assert len(spec["check"]) >= 6
     return {"scenes": {SCENE: spec}}, ds, tmp_path_factory
 
