@@ -1,7 +1,8 @@
 """``omnivalidate suite SUITE_FILE --split test --out DIR``: score every method on a suite.
 
-Exit status: 0 done; 2 bad input (one line naming the file, entry or option); 130
-interrupted (what is finished is kept: run the same command again to resume).
+Exit status: 0 done; 1 a figure outside its --check bound; 2 bad input (one line naming the
+file, entry or option); 130 interrupted (what is finished is kept: run the same command
+again to resume).
 """
 
 from __future__ import annotations
@@ -75,6 +76,9 @@ def _parser() -> argparse.ArgumentParser:
     )
     ap.add_argument("--scheduler", default=None, metavar="ADDR",
                     help="render the frames on this Dask scheduler (tcp://host:8786)")  # fmt: skip
+    ap.add_argument("--check", default=None, metavar="BOUNDS",
+                    help="compare the leaderboard with a bounds file (scenes/suite/mini_bounds."
+                    "toml) and exit 1 if a figure is outside its bound")  # fmt: skip
     ap.add_argument("--no-progress", action="store_true", help="no progress bars")
     return ap
 
@@ -103,6 +107,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     from .inputs import InputError
     from .suite import SuiteError, load_suite
+    from .suite_bounds import BoundsError, check_bounds, load_bounds
     from .suite_run import resolve_methods, run_suite
 
     def fail(msg: str) -> int:
@@ -122,6 +127,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         names = [n for text in args.methods for n in _split_names(text)]
     start = time.perf_counter()
     try:
+        bounds = None if args.check is None else load_bounds(args.check)
+    except BoundsError as exc:
+        return fail(f"--check: {exc}")
+    try:
         suite = load_suite(args.suite_file)
         methods = resolve_methods(names, external)
         command = "omnivalidate suite " + " ".join(shlex.quote(a) for a in argv)
@@ -140,8 +149,16 @@ def main(argv: Sequence[str] | None = None) -> int:
               "the same command again to resume", file=sys.stderr)  # fmt: skip
         return 130
     top = board["methods"][0] if board["methods"] else None
-    best = f"; first: {top['method']} (1px {top['1px']})" if top else ""
+    best = f"; first: {top['method']} (1px {100 * top['1px']:.1f} %)" if top else ""
     print(f"omnivalidate suite: {len(board['scenes'])} scenes, {len(board['methods'])} methods "
           f"in {time.perf_counter() - start:.1f} s{best}; leaderboard: "
           f"{Path(args.out) / 'leaderboard.html'}")  # fmt: skip
-    return 0
+    if bounds is None:
+        return 0
+    verdicts = check_bounds(board, bounds)
+    failed = [line for ok, line in verdicts if not ok]
+    for line in failed:
+        print(f"omnivalidate suite: FAIL {line}")
+    print(f"omnivalidate suite: --check {args.check}: {len(verdicts) - len(failed)} of "
+          f"{len(verdicts)} bounds met")  # fmt: skip
+    return 1 if failed else 0
