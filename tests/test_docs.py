@@ -161,7 +161,7 @@ _HELP: dict[tuple[str, ...], str] = {}
 
 #: Subcommands of the console scripts; ``omniflow`` with none is ``omniflow pair``,
 #: ``omnivalidate`` with none scores one dataset.
-SUBCOMMANDS = {"omnisim": None, "omniflow": ("pair", "stream"), "omnivalidate": ("suite",)}
+SUBCOMMANDS = {"omnisim": None, "omniflow": ("pair", "stream"), "omnivalidate": ("suite", "sweep")}
 
 
 def _command_of(argv: list[str]) -> tuple[str, ...]:

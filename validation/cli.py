@@ -44,6 +44,7 @@ scoring another method (--method-output DIR, repeatable; format in docs/validati
   omnivalidate runs/default --out runs/r --method-output runs/dis-out
 
 a benchmark suite (every scene, every method, one leaderboard): omnivalidate suite --help
+accuracy against one scene key, a render per value: omnivalidate sweep --help
 
 examples:
   omnisim render scenes/default.toml --out runs/default --resolution 128 --spp 4 --frames 3
@@ -224,6 +225,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         from .suite_cli import main as suite_main  # the subcommand: omnivalidate suite ...
 
         return suite_main(sys.argv[2:] if argv is None else list(argv)[1:])
+    if (sys.argv[1:] if argv is None else list(argv))[:1] == ["sweep"]:
+        from .sweep_cli import main as sweep_main  # omnivalidate sweep SCENE --key ...
+
+        return sweep_main(sys.argv[2:] if argv is None else list(argv)[1:])
     args = _parser().parse_args(argv)
     from omniflow.geometry.rig import RigError
     from omniflow.io.dataset import DatasetError

@@ -28,7 +28,7 @@ from omniflow.io.imageio import atomic_write_text
 from .inputs import InputError
 from .suite import Suite, SuiteError, SuiteScene, scene_text
 
-__all__ = ["SuiteMethods", "method_catalogue", "resolve_methods", "run_suite"]
+__all__ = ["SuiteMethods", "method_catalogue", "resolve_methods", "run_suite", "score_dataset"]
 
 
 @dataclass
@@ -129,18 +129,7 @@ def _score(scene: SuiteScene, dataset: Path, report: Path, state: Path, methods:
            progress: bool) -> tuple[dict, str]:  # fmt: skip
     """Score the scene (or reuse its report when the same methods scored it)."""
     from .external import ExternalOutput
-    from .report import check_out_dir, write_report
-    from .runner import run_validation
 
-    key = methods.key()
-    summary_path = report / "summary.json"
-    if state.is_file() and summary_path.is_file():
-        try:
-            same = json.loads(state.read_text(encoding="utf-8")) == key
-            if same:
-                return json.loads(summary_path.read_text(encoding="utf-8")), "scored before"
-        except ValueError:  # a damaged file: score again
-            pass
     external = []
     for name, folder in methods.external.items():
         sub = Path(folder) / scene.name
@@ -150,13 +139,34 @@ def _score(scene: SuiteScene, dataset: Path, report: Path, state: Path, methods:
                 f"{scene.name!r}; expected one folder per scene (docs/suite.md)"
             )
         external.append(ExternalOutput(sub, name))
+    return score_dataset(dataset, report, state, methods, progress, external=external)
+
+
+def score_dataset(dataset: Path, report: Path, state: Path, methods: SuiteMethods,
+                  progress: bool, key: Mapping[str, Any] | None = None,
+                  external: Sequence[Any] = ()) -> tuple[dict, str]:  # fmt: skip
+    """Score ``dataset`` into ``report`` (its summary and how: "scored" or "scored
+    before"); the report is reused when ``state`` records the same ``key`` (default:
+    the methods), so an interrupted run resumes."""
+    from .report import check_out_dir, write_report
+    from .runner import run_validation
+
+    key = dict(key) if key is not None else methods.key()
+    summary_path = report / "summary.json"
+    if state.is_file() and summary_path.is_file():
+        try:
+            same = json.loads(state.read_text(encoding="utf-8")) == key
+            if same:
+                return json.loads(summary_path.read_text(encoding="utf-8")), "scored before"
+        except ValueError:  # a damaged file: score again
+            pass
     check_out_dir(report)
     results = run_validation(
         dataset,
         variants=methods.rows,
         baselines=methods.baselines,
         progress=progress,
-        external=external,
+        external=list(external),
     )
     summary = write_report(results, report, command=None)
     atomic_write_text(state, json.dumps(key, indent=1) + "\n")

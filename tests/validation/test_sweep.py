@@ -1,0 +1,76 @@
+"""omnivalidate sweep: one render per value, every method scored, a figure, resumable;
+bad input is one line with exit status 2."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from validation.sweep import parse_values, value_label
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _sweep(*args: str, timeout: int = 600) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "validation.cli", "sweep", *args], cwd=ROOT,
+                          capture_output=True, text=True, timeout=timeout)  # fmt: skip
+
+
+def test_values_are_toml_values_and_label_as_written():
+    assert parse_values("2.8,4,inf") == [2.8, 4, float("inf")]
+    assert parse_values("[[0, 0], [0.1, 0]]") == [[0, 0], [0.1, 0]]
+    assert [value_label(v) for v in parse_values("2.8,4,inf,[0.1, 0]")] == [
+        "2.8", "4", "inf", "[0.1, 0]"]  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("args", "fragment"),
+    [(["--key", "camera.exposure", "--values", "1"], "--values '1': expected at least two"),
+     (["--key", "camera.exposure", "--values", "1,,2"], "--values '1,,2': expected V1,V2"),
+     (["--key", "camera.exposure", "--values", "1,2", "--set", "camera.exposure=3"],
+      "--set camera.exposure: that is the swept --key"),
+     (["--key", "camera.exposure", "--values", "1,2", "--methods", "nope"],
+      "unknown method 'nope'"),
+     (["--key", "camera.colour", "--values", "1,2"], "colour"),
+     (["--key", "camera.exposure", "--values", "1,-2"], "exposure")],
+)  # fmt: skip
+def test_bad_input_is_one_line_exit_2(tmp_path, args, fragment):
+    run = _sweep("scenes/default.toml", "--out", str(tmp_path / "o"), "--resolution", "32",
+                 "--frames", "2", "--no-progress", "--methods", "zero-flow", *args)  # fmt: skip
+    err = [ln for ln in run.stderr.splitlines() if ln.strip()]
+    assert run.returncode == 2, run.stderr
+    assert len(err) == 1 and fragment in err[0] and "Traceback" not in run.stderr
+
+
+@pytest.mark.render
+def test_a_sweep_scores_every_value_draws_it_and_resumes(tmp_path):
+    pytest.importorskip("mitsuba")
+    out = tmp_path / "sw"
+    args = ["scenes/default.toml", "--key", "camera.exposure", "--values", "0.25,2",
+            "--out", str(out), "--resolution", "48", "--frames", "2", "--no-progress",
+            "--methods", "omniflow:default,zero-flow"]  # fmt: skip
+    run = _sweep(*args)
+    assert run.returncode == 0, run.stderr
+    sweep = json.loads((out / "sweep.json").read_text())
+    assert sweep["values"] == ["0.25", "2"]
+    assert {(r["value"], r["method"]) for r in sweep["rows"]} == {
+        (v, m) for v in ("0.25", "2") for m in ("omniflow:default", "zero-flow")}  # fmt: skip
+    for f in ("sweep.md", "sweep.csv", "sweep.png"):
+        assert (out / f).stat().st_size > 0
+    # each row is the point's own report (the suite protocol), and the two renders differ
+    for i in (0, 1):
+        summary = json.loads((out / "points" / f"0{i}" / "report" / "summary.json").read_text())
+        zero = next(
+            m for m in summary["methods"] if m["name"] == "zero-flow" and m.get("points") == "dense"
+        )
+        row = next(r for r in sweep["rows"] if r["index"] == i and r["method"] == "zero-flow")
+        assert row["epe"] == pytest.approx(zero["protocol"]["all"]["epe"], rel=1e-12)
+    png = [(out / "points" / f"0{i}" / "render" / "frames" / "000000" / "cam1.png").read_bytes()
+           for i in (0, 1)]  # fmt: skip
+    assert png[0] != png[1]  # the exposure reached the camera images
+    again = _sweep(*args)
+    assert again.returncode == 0 and again.stdout.count("scored before") == 2, again.stdout

@@ -1,0 +1,71 @@
+"""sweep.png: each metric of ``omnivalidate sweep`` against the swept value, a line per method."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from .report_figures import save
+
+__all__ = ["sweep_plot"]
+
+#: Units of the keys a rig builder sweeps, for the x-axis label (docs/scene_format.md).
+UNITS = {
+    "optics.f_number": "inf = pinhole",
+    "optics.focus_distance": "m from the lens",
+    "camera.exposure": "fraction of full well per unit radiance",
+    "camera.shutter": "fraction of the frame interval",
+}
+#: Units by the key's last part (the rig errors of [rig.errors.camN]).
+UNITS_BY_NAME = {"mirror_tilt": "deg", "camera_tilt": "deg", "cone_angle": "deg, 90 ideal",
+                 "mirror_offset": "m", "camera_offset": "m"}  # fmt: skip
+
+
+def _unit(key: str) -> str:
+    unit = UNITS.get(key) or UNITS_BY_NAME.get(key.rsplit(".", 1)[-1])
+    return f" ({unit})" if unit else ""
+
+
+def _num(v: Any) -> float:
+    return math.nan if v is None else float(v)
+
+
+def sweep_plot(sweep: Mapping[str, Any], path: Path) -> None:
+    """Draw the sweep's metrics (validation.sweep.METRICS) against its values.
+
+    The values sit at even steps with their labels (a pinhole's inf and an error's
+    vector have no place on a numeric axis); a point where a method gave no value is
+    left out of its line."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .sweep import METRICS
+
+    key, labels = sweep["parameter"], list(sweep["values"])
+    names = list(dict.fromkeys(r["method"] for r in sweep["rows"]))
+    fig, axes = plt.subplots(2, 3, figsize=(14, 7.5), sharex=True, layout="constrained")
+    for ax, (metric, label) in zip(axes.flat, METRICS.items(), strict=True):
+        for name in names:
+            by_value = {r["index"]: _num(r.get(metric)) for r in sweep["rows"]
+                        if r["method"] == name}  # fmt: skip
+            xs = [i for i in range(len(labels)) if not math.isnan(by_value.get(i, math.nan))]
+            scale = 100.0 if metric not in ("epe", "radial_gain") else 1.0
+            ax.plot(xs, [scale * by_value[i] for i in xs], marker="o", label=name)
+        unit = {"epe": " (px)", "radial_gain": ""}.get(metric, " (%)")
+        ax.set_title(label, fontsize=10)
+        ax.set_ylabel(f"{metric}{unit}")
+        if metric == "radial_gain":
+            ax.axhline(1.0, color="k", lw=0.8)
+        ax.grid(alpha=0.3)
+    for ax in axes[1]:
+        ax.set_xticks(range(len(labels)), labels, rotation=30 if len(labels) > 5 else 0)
+        ax.set_xlabel(key + _unit(key))
+    axes[0, 0].legend(fontsize=8, loc="best")
+    fig.suptitle(f"Accuracy against {key}: {Path(sweep['scene']).name}, one render per value, "
+                 f"{sweep['resolution']} px, {sweep['frames']} frames")  # fmt: skip
+    save(fig, path)
+    plt.close(fig)
