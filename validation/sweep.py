@@ -35,18 +35,9 @@ from omniflow.io.imageio import atomic_write_text
 
 from .inputs import InputError
 from .suite_run import SuiteMethods, score_dataset
+from .sweep_figure import METRICS, sweep_plot
 
 __all__ = ["METRICS", "parse_values", "run_sweep", "value_label"]
-
-#: What sweep.png draws, with its axis label (suite protocol names, docs/suite.md).
-METRICS = {
-    "1px": "1px: pixels with EPE > 1 px (dense)",
-    "epe": "mean EPE, px (dense)",
-    "sparse_1px": "sparse 1px: at the method's own points",
-    "stereo_outliers": "stereo outliers (> 1 px)",
-    "density": "density: points per valid pixel",
-    "radial_gain": "radial gain (1 = unbiased)",
-}
 
 
 def parse_values(text: str) -> list[Any]:
@@ -167,8 +158,6 @@ def _markdown(sweep: Mapping[str, Any]) -> str:
 
 def write_sweep(sweep: Mapping[str, Any], out: Path) -> None:
     """sweep.json, .csv, .md and .png in ``out``, each written to a temporary name."""
-    from .sweep_figure import sweep_plot
-
     atomic_write_text(out / "sweep.json", json.dumps(sweep, indent=1) + "\n")
     atomic_write_text(out / "sweep.csv", _csv(sweep))
     sweep_plot(sweep, out / "sweep.png")

@@ -9,7 +9,17 @@ from typing import Any
 
 from .report_figures import save
 
-__all__ = ["sweep_plot"]
+__all__ = ["METRICS", "sweep_plot"]
+
+#: What sweep.png draws, with its axis label (suite protocol names, docs/suite.md).
+METRICS = {
+    "1px": "1px: pixels with EPE > 1 px (dense)",
+    "epe": "mean EPE, px (dense)",
+    "sparse_1px": "sparse 1px: at the method's own points",
+    "stereo_outliers": "stereo outliers (> 1 px)",
+    "density": "density: points per valid pixel",
+    "radial_gain": "radial gain (1 = unbiased)",
+}
 
 #: Units of the keys a rig builder sweeps, for the x-axis label (docs/scene_format.md).
 UNITS = {
@@ -42,8 +52,6 @@ def sweep_plot(sweep: Mapping[str, Any], path: Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from .sweep import METRICS
 
     key, labels = sweep["parameter"], list(sweep["values"])
     names = list(dict.fromkeys(r["method"] for r in sweep["rows"]))
