@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from omniflow.io.dataset import grey_of
+from omniflow.io.dataset import camera_grey, grey_of
 from omnisim.camera import CameraError, CameraModel
 
 __all__ = ["CAMERAS", "Inputs", "camera_model"]
@@ -128,10 +128,8 @@ class Inputs:
             return u8, u8.astype(np.float32) / 255.0
         unit = self.ds.rig.cam1 if cam == "cam1" else self.ds.rig.cam2
         dn = self.camera.apply(rgb, frame=k, cam=cam, centre=(unit.x_c, unit.y_c), r_m=unit.r_m)
-        grey = self.camera.grey(dn).astype(np.float32)
+        grey = camera_grey(dn, self.camera.bits)  # what omniflow --dataset reads from camN.png
         u8 = np.clip(np.rint(grey * 255.0), 0, 255).astype(np.uint8)
-        if self.camera.bits <= 8:
-            grey = u8.astype(np.float32) / 255.0
         return u8, grey
 
     def frame(

@@ -138,8 +138,8 @@ EPILOG = textwrap.dedent(
 
 #: The options ``omniflow pair --help`` shows (their dests); --help-expert shows all.
 SHORT_HELP = {
-    "images", "rig", "dataset", "frame", "out", "odometry", "paper", "dense", "set_items",
-    "help_expert",
+    "images", "rig", "dataset", "frame", "radiance", "out", "odometry", "paper", "dense",
+    "set_items", "help_expert",
     *(f"cfg_{name}" for name in PUBLIC_FIELDS),
 }  # fmt: skip
 
@@ -206,6 +206,12 @@ def _add_input_options(parser: argparse.ArgumentParser) -> None:
         default=0,
         metavar="K",
         help="--dataset only: flow from frame K to K + 1 (default: 0)",
+    )
+    inputs.add_argument(
+        "--radiance",
+        action="store_true",
+        help="--dataset only: read the clean EXR radiance instead of the camera images "
+        "camN.png (the default, which the harness scores)",
     )
     inputs.add_argument(
         "--t",
@@ -390,11 +396,13 @@ def _read_files(paths: list[str]) -> tuple[list[np.ndarray], list[np.ndarray]]:
     return images[0::2], images[1::2]
 
 
-def _read_dataset(directory: str, k: int, window: int):
+def _read_dataset(directory: str, k: int, window: int, radiance: bool = False):
     """Frames around K of an omnisim dataset: (frames1, frames2, t, rig, info).
 
     ``window`` time steps are read, placed so that K .. K + 1 sits in the middle
-    where the dataset allows; ``t`` is K's index in the returned lists.
+    where the dataset allows; ``t`` is K's index in the returned lists. The frames are
+    the camera images (``Dataset.read_image``, what the harness scores), or with
+    ``radiance`` (or a dataset without camera images) the EXR radiance's luminance.
     """
     from omniflow.io.dataset import DatasetError, open_dataset
 
@@ -411,8 +419,11 @@ def _read_dataset(directory: str, k: int, window: int):
             raise CLIError(f"{directory}: {window} frames needed but the dataset has {n}")
         start = min(max(0, k - (window - 2) // 2), n - window)
         frames = range(start, start + window)
-        f1 = [ds.read_grey(j, "cam1") for j in frames]
-        f2 = [ds.read_grey(j, "cam2") for j in frames]
+        bits = ds.camera_bits
+        camera = not radiance and bits is not None
+        read = ds.read_image if camera else ds.read_grey
+        f1 = [read(j, "cam1") for j in frames]
+        f2 = [read(j, "cam2") for j in frames]
     except DatasetError as exc:
         raise CLIError(str(exc)) from exc
     except UnicodeDecodeError as exc:  # omnisim reads dataset.json as UTF-8 text
@@ -422,8 +433,11 @@ def _read_dataset(directory: str, k: int, window: int):
             bad = ~np.isfinite(img)
             if bad.any():
                 raise CLIError(f"{ds.path(j, cam)}: {int(bad.sum())} pixel(s) are NaN or infinite")
+    images = (f"camera images camN.png ({bits} bits)" if camera else
+              "EXR radiance (luminance)" + ("" if radiance else ": the dataset has no camera "
+                                            "images"))  # fmt: skip
     info = {"dataset": str(directory), "frames_read": list(frames), "frame": k,
-            "frame_interval_s": ds.frame_interval}  # fmt: skip
+            "frame_interval_s": ds.frame_interval, "images": images}  # fmt: skip
     return f1, f2, k - start, ds.rig, info
 
 
@@ -473,7 +487,7 @@ def _load_inputs(args, config):
             raise CLIError("give either IMAGE files or --dataset, not both")
         if args.t is not None:
             raise CLIError("--t applies to IMAGE files; with --dataset use --frame K")
-        f1, f2, t, rig, info = _read_dataset(args.dataset, args.frame, window)
+        f1, f2, t, rig, info = _read_dataset(args.dataset, args.frame, window, args.radiance)
         rig_source = str(Path(args.dataset) / "dataset.json")
         if args.rig:
             rig, rig_source = load_rig(args.rig), args.rig
@@ -482,6 +496,8 @@ def _load_inputs(args, config):
             raise CLIError("no input: give IMAGE files (CAM1_T0 CAM2_T0 CAM1_T1 ...) or --dataset")
         if args.frame != 0:
             raise CLIError("--frame applies to --dataset; with IMAGE files use --t")
+        if args.radiance:
+            raise CLIError("--radiance applies to --dataset; IMAGE files are read as they are")
         if args.rig is None and not args.calibrate:
             raise CLIError("--rig FILE is required (or --calibrate with --d, --R, --s)")
         rig = load_rig(args.rig) if args.rig else None

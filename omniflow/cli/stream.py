@@ -97,6 +97,11 @@ def build_parser(prog: str = PROG, *, short: bool = False) -> argparse.ArgumentP
     parser.add_argument("input", metavar="INPUT", help="omnisim dataset folder or image folder")
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
     parser.add_argument("--rig", metavar="FILE", help="rig file (required for an image folder)")
+    parser.add_argument(
+        "--radiance",
+        action="store_true",
+        help="a dataset: read the EXR radiance instead of the camera images",
+    )
     parser.add_argument("--start", type=int, default=0, metavar="K", help="first frame (0)")
     parser.add_argument(
         "--stop", type=int, metavar="K", help="stop before this frame (default: the last + 1)"
@@ -147,8 +152,9 @@ def _natural_key(name: str) -> list:
     return [int(p) if p.isdigit() else p for p in re.split(r"(\d+)", name)]
 
 
-def open_source(path: str, rig_file: str | None) -> _Source:
-    """The sequence at ``path``: an omnisim dataset, or a folder of cam1 / cam2 images."""
+def open_source(path: str, rig_file: str | None, radiance: bool = False) -> _Source:
+    """The sequence at ``path``: an omnisim dataset (its camera images camN.png, or with
+    ``radiance`` or no camera images the EXR radiance), or a folder of cam1 / cam2 images."""
     folder = Path(path)
     if not folder.is_dir():
         raise CLIError(f"{path}: not a folder; expected an omnisim dataset or an image folder")
@@ -161,14 +167,20 @@ def open_source(path: str, rig_file: str | None) -> _Source:
         except DatasetError as exc:
             raise CLIError(str(exc)) from exc
         rig = load_rig(rig_file) if rig_file else ds.rig
+        try:
+            camera = not radiance and ds.camera_bits is not None
+        except DatasetError as exc:
+            raise CLIError(str(exc)) from exc
+        grey = ds.read_image if camera else ds.read_grey
 
         def read(k):
             try:
-                return ds.read_grey(k, "cam1"), ds.read_grey(k, "cam2")
+                return grey(k, "cam1"), grey(k, "cam2")
             except DatasetError as exc:
                 raise CLIError(str(exc)) from exc
 
-        describe = {"dataset": str(folder), "frames": count}
+        images = "camera images camN.png" if camera else "EXR radiance (luminance)"
+        describe = {"dataset": str(folder), "frames": count, "images": images}
         return _Source(rig, count, read, describe, lambda k, cam: str(ds.path(k, cam)))
     files = sorted(
         (p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file()),
@@ -228,7 +240,10 @@ def run(args: argparse.Namespace, config_fields: list[str], argv: list[str]) -> 
     from omniflow.stream import OmniFlowStream
 
     config = make_config(args, config_fields)
-    source = open_source(args.input, args.rig)
+    if args.radiance and not (Path(args.input) / "dataset.json").exists():
+        raise CLIError("--radiance applies to an omnisim dataset; image folders are read as "
+                       "they are")  # fmt: skip
+    source = open_source(args.input, args.rig, args.radiance)
     stop = source.count if args.stop is None else args.stop
     need = config.temporal_frames if config.temporal == "dct3d" else 2
     if not (0 <= args.start and args.start + need <= stop <= source.count):

@@ -281,6 +281,18 @@ def grey_of(channels: Mapping[str, NDArray]) -> NDArray[np.float32]:
 # -- dataset.json ------------------------------------------------------------------
 
 
+def camera_grey(dn: NDArray, bits: int) -> NDArray[np.float32]:
+    """omniflow's grey input from a camera image's digital numbers (H, W) or (H, W, 3):
+    the Rec. 709 luma of ``DN / (2^bits - 1)``, and for 8 bits or fewer that luma
+    rounded to 8 bits again (an 8-bit grey image, as an ordinary image reader gives
+    it). The one definition: ``omniflow --dataset`` and the harness use it."""
+    f = (np.asarray(dn, dtype=np.float32) / np.float32((1 << bits) - 1)).astype(np.float32)
+    grey = to_grey(f).astype(np.float32)
+    if bits <= 8:
+        grey = np.clip(np.rint(grey * 255.0), 0, 255).astype(np.uint8).astype(np.float32) / 255.0
+    return grey
+
+
 def expected_files(
     cameras: Iterable[str], images: bool = False, version: int = FORMAT_VERSION
 ) -> list[str]:
@@ -468,6 +480,49 @@ class Dataset:
     def read_grey(self, k: int, cam: str) -> NDArray[np.float32]:
         """Rec. 709 luminance (H, W) of frame ``k``, camera ``cam`` (:func:`grey_of`)."""
         return grey_of(self.read_frame(k, cam))
+
+    @property
+    def camera_bits(self) -> int | None:
+        """Bits per sample of the recorded camera (its images are ``camN.png``); None
+        for a dataset without a camera section (no camera images)."""
+        cam = self.meta.get("camera")
+        if not isinstance(cam, Mapping):
+            return None
+        bits = cam.get("bits", 8)
+        if isinstance(bits, bool) or not isinstance(bits, int) or not 1 <= bits <= 16:
+            raise DatasetError(f"{self.dir / 'dataset.json'}: camera.bits = {bits!r}: "
+                               "expected an integer 1..16")  # fmt: skip
+        return bits
+
+    def read_image(self, k: int, cam: str) -> NDArray[np.float32]:
+        """The camera image ``camN.png`` of frame ``k`` as omniflow's grey input
+        (:func:`camera_grey`): what the harness scores every method on. DatasetError
+        (one line) for a dataset without camera images or an unreadable file."""
+        import cv2
+
+        self.check_frame(k, cam)
+        bits = self.camera_bits
+        path = self.path(k, cam, "png")
+        if bits is None:
+            raise DatasetError(f"{self.dir / 'dataset.json'}: no camera section, so no "
+                               "camera images; read the radiance instead")  # fmt: skip
+        with native_output_captured():
+            pixels = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if pixels is None:
+            raise DatasetError(f"{path}: cannot read the camera image (missing or not a PNG)")
+        unit = self.unit(cam)
+        if pixels.shape[:2] != (unit.height, unit.width):
+            raise DatasetError(f"{path}: image is {pixels.shape[1]}x{pixels.shape[0]}, "
+                               f"dataset.json says {unit.width}x{unit.height}")  # fmt: skip
+        want = np.uint8 if bits <= 8 else np.uint16
+        if pixels.dtype != want:
+            raise DatasetError(f"{path}: {pixels.dtype} pixels; expected {np.dtype(want).name} "
+                               f"for a {bits}-bit camera")  # fmt: skip
+        if pixels.ndim == 3:
+            pixels = pixels[..., 2::-1]  # OpenCV's BGR(A) -> RGB
+        max_dn = (1 << bits) - 1
+        dn = pixels if bits <= 8 else np.rint(pixels * (max_dn / 65535.0)).astype(np.uint16)
+        return camera_grey(dn, bits)
 
     def read_flo(self, k: int, cam: str) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
         """The .flo of frame ``k``, camera ``cam``: (flow (H, W, 2), valid (H, W))."""
