@@ -22,12 +22,13 @@ import argparse
 import math
 import os
 import sys
-import tempfile
 import tomllib
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+from omniflow.io.imageio import atomic_write_text
 
 __all__ = ["Bound", "BoundsError", "check_bounds", "derive_bounds", "load_bounds", "main"]
 
@@ -193,18 +194,6 @@ def _render(bounds: Sequence[Bound], unguarded: Sequence[str], source: str, comm
     return "\n".join(lines)
 
 
-def _write(path: Path, text: str) -> None:
-    """Write to a temporary name beside ``path``, then rename."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     """``python -m validation.suite_bounds LEADERBOARD.json --write BOUNDS.toml``."""
     import json
@@ -227,7 +216,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     names = ",".join([*m.get("omniflow", []), *m.get("baselines", [])])
     command = (f"omnivalidate suite {suite.get('path', '?')} --split {suite.get('split', '?')} "
                f"--out OUT --methods {names}")  # fmt: skip
-    _write(Path(args.write), _render(bounds, unguarded, suite.get("path", "a suite"), command))
+    text = _render(bounds, unguarded, suite.get("path", "a suite"), command)
+    atomic_write_text(Path(args.write), text)
     print(f"suite_bounds: {len(bounds)} bounds, {len(unguarded)} unguarded figures: {args.write}")
     return 0
 

@@ -11,9 +11,10 @@ import argparse
 import shlex
 import sys
 import time
-import typing
 from collections.abc import Sequence
 from pathlib import Path
+
+from .suite_cli import _Parser, _split_names
 
 __all__ = ["main"]
 
@@ -31,13 +32,6 @@ examples:
   omnivalidate sweep scenes/default.toml --key camera.exposure --values 0.25,0.5,1,2 \\
       --out runs/sweep-exposure --set optics.focal_length=0.006
 """
-
-
-class _Parser(argparse.ArgumentParser):
-    """Usage errors as one line, like the rest of omnivalidate."""
-
-    def error(self, message: str) -> typing.NoReturn:
-        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -73,7 +67,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     from omnisim.scene_checker import SceneError
 
     from .inputs import InputError
-    from .suite_cli import _split_names
     from .suite_run import resolve_methods
     from .sweep import parse_values, run_sweep
 
