@@ -70,6 +70,25 @@ def camera_table(cases: Sequence[Mapping[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+#: The mini suite's methods, as CI scores them (.ci/run).
+MINI_METHODS = "omniflow:default,omniflow:dense,omniflow:paper,DIS-medium,zero-flow"
+
+
+def suite_tables(leaderboard_md: str) -> str:
+    """The aggregated tables of a leaderboard.md (all scenes, each split), headings one
+    level down; the per-scene tables stay in the leaderboard."""
+    out, keep = [], False
+    for line in leaderboard_md.splitlines():
+        if line.startswith("## "):
+            keep = not line.startswith("## Scene ")
+            if keep:
+                out.append("#" + line)
+            continue
+        if keep:
+            out.append(line)
+    return "\n".join(out).strip()
+
+
 def page(
     *,
     scorecard: str,
@@ -77,6 +96,7 @@ def page(
     camera: str,
     source: Mapping[str, Any],
     commands: Sequence[str],
+    suites: Sequence[tuple[str, str]] = (),
 ) -> str:
     """The whole page: what generated it, then the scorecard, the speed and the camera tables."""
     env = ", ".join(f"{k} {v}" for k, v in source.items() if k != "loaded")
@@ -116,6 +136,7 @@ def page(
         "",
         camera,
         "",
+        *[part for title, tables in suites for part in (f"## {title}", "", tables, "")],
     ])  # fmt: skip
 
 
@@ -153,6 +174,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--size", type=int, default=256, help="render size, px (default 256)")
     ap.add_argument("--frames", type=int, default=4, help="frames rendered (default 4)")
     ap.add_argument("--repeats", type=int, default=11, help="timed runs of the speed benchmark")
+    ap.add_argument("--full-suite", type=Path, metavar="DIR",
+                    help="also show the leaderboard of this omnivalidate suite run of "
+                    "scenes/suite/suite.toml (its tables and command)")  # fmt: skip
     args = ap.parse_args(argv)
 
     from benchmarks import bench_omniflow
@@ -187,6 +211,28 @@ def main(argv: Sequence[str] | None = None) -> int:
     speed = json.loads(bench_json.read_text())
     commands.append("python3 -m benchmarks.bench_camera")
     camera = _camera_cases()
+    from validation import suite_cli
+
+    mini = ["scenes/suite/mini.toml", "--split", "all", "--out", str(work / "mini"),
+            "--no-progress", "--methods", MINI_METHODS]  # fmt: skip
+    commands.append("omnivalidate suite " + " ".join(mini))
+    print("scoring the mini suite ...", file=sys.stderr)
+    if _quiet(suite_cli.main, mini):
+        return 1
+    suites = [("Benchmark suite: the mini suite (CI)",
+               "Three generated scenes at 256 px (docs/suite.md; CI guards these figures with "
+               "`--check scenes/suite/mini_bounds.toml`). Quote the test split, tune on train.\n\n"
+               + suite_tables((work / "mini" / "leaderboard.md").read_text()))]  # fmt: skip
+    if args.full_suite is not None:
+        board = args.full_suite / "leaderboard.md"
+        if not board.is_file():
+            print(f"benchmarks.results: error: {board}: no leaderboard", file=sys.stderr)
+            return 2
+        text = board.read_text()
+        ran = next((ln for ln in text.splitlines() if ln.startswith("omnivalidate suite")), "")
+        suites.append(("Benchmark suite: the full suite",
+                       f"From the run `{ran}` (scenes/suite/suite.toml; not re-run by this "
+                       "command: it takes about an hour).\n\n" + suite_tables(text)))  # fmt: skip
 
     load = os.getloadavg() if hasattr(os, "getloadavg") else None
     source = {
@@ -197,7 +243,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         "image size": "x".join(str(n) for n in speed["image_size"]),
     }
     text = page(scorecard=table(rows(summary)), speed=speed_table(speed),
-                camera=camera_table(camera), source=source, commands=commands)  # fmt: skip
+                camera=camera_table(camera), source=source, commands=commands,
+                suites=suites)  # fmt: skip
     if args.write:
         from omniflow.io.imageio import atomic_write_text
 
