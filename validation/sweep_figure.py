@@ -68,6 +68,8 @@ def sweep_plot(sweep: Mapping[str, Any], path: Path) -> None:
         ax.set_ylabel(f"{metric}{unit}")
         if metric == "radial_gain":
             ax.axhline(1.0, color="k", lw=0.8)
+        if metric == "density":  # a sparse method's 0.3-7 % beside a dense one's 100 %
+            ax.set_yscale("log")
         ax.grid(alpha=0.3)
     for ax in axes[1]:
         ax.set_xticks(range(len(labels)), labels, rotation=30 if len(labels) > 5 else 0)
