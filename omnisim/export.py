@@ -56,6 +56,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import errno
 import io
 import os
 import re
@@ -292,6 +293,17 @@ def _readme(ds: Dataset, fmt: str, scale: float, bits: int, notes: list[str]) ->
     return "\n".join(text)
 
 
+#: errno values of a machine that refused the export (exit 1), not of a bad --out (exit 2).
+_MACHINE_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EIO}
+
+
+def _refused(exc: OSError, out: Path, doing: str) -> OSError:
+    """``exc`` naming ``out`` (a write to a full disk names no file) and what was written;
+    the export is removed, so OUT is not there afterwards."""
+    reason = exc.strerror or str(exc)
+    return OSError(exc.errno, f"{reason} while {doing}; nothing of the export was kept", str(out))
+
+
 def export_dataset(dataset: str | Path, out: str | Path, fmt: str, *, bits: int = 8) -> Path:
     """Export the complete dataset ``dataset`` to the new directory ``out`` as ``fmt``.
 
@@ -324,12 +336,17 @@ def export_dataset(dataset: str | Path, out: str | Path, fmt: str, *, bits: int 
         out.parent.mkdir(parents=True, exist_ok=True)
         tmp.mkdir()
     except OSError as exc:
+        if exc.errno in _MACHINE_ERRNOS:
+            raise _refused(exc, out, "creating it") from exc
         raise ExportError(f"{out}: cannot create the output directory: {exc}") from exc
 
     def put(rel: str, data: bytes) -> None:
         p = tmp / rel
-        p.parent.mkdir(parents=True, exist_ok=True)
-        p.write_bytes(data)
+        try:
+            p.parent.mkdir(parents=True, exist_ok=True)
+            p.write_bytes(data)
+        except OSError as exc:
+            raise _refused(exc, out, f"writing {rel}") from exc
 
     try:
         scale = _exposure(ds)
