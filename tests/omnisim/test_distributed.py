@@ -2,8 +2,14 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -124,3 +130,80 @@ def test_cli_scheduler_in_a_fresh_process(tmp_path, cluster):
                        env={**os.environ, "PYTHONPATH": path})  # fmt: skip
     assert p.returncode == 0, p.stderr
     assert "2 rendered now" in p.stdout
+
+
+# -- a cluster of `dask scheduler` and `dask worker` commands (issue 25 item 3) ------------
+
+DASK = shutil.which("dask")
+
+
+def _env() -> dict[str, str]:
+    return {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
+    }
+
+
+def _start(argv: list[str], log: Path) -> subprocess.Popen:
+    """A process in its own session (so it and its children are stopped together)."""
+    with log.open("w") as err:  # the child keeps its own descriptor
+        return subprocess.Popen(argv, cwd=ROOT, env=_env(), stdout=subprocess.DEVNULL,
+                                stderr=err, start_new_session=True)  # fmt: skip
+
+
+def _stop(procs: list[subprocess.Popen]) -> None:
+    """SIGTERM each process group, then SIGKILL what is left after 20 s."""
+    for sig in (signal.SIGTERM, signal.SIGKILL):
+        for p in procs:
+            if p.poll() is None:
+                with contextlib.suppress(ProcessLookupError):
+                    os.killpg(p.pid, sig)
+        for p in procs:
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                p.wait(timeout=20)
+        if all(p.poll() is not None for p in procs):
+            return
+
+
+def _render_cli(out: Path, *more: str) -> subprocess.CompletedProcess:
+    """``omnisim render`` of the default scene, 2 frames of 32 px, in a fresh process."""
+    cmd = [sys.executable, "-m", "omnisim.cli", "render", str(DEFAULT), "--out", str(out),
+           "--frames", "2", "--resolution", "32", "--spp", "1", "--renderer", FAKE,
+           "--no-progress", *more]  # fmt: skip
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=ROOT, env=_env())
+
+
+@pytest.mark.skipif(DASK is None, reason="the dask command is not installed")
+def test_cli_scheduler_on_dask_scheduler_and_dask_worker(tmp_path):
+    """``omnisim render --scheduler tcp://...`` as a user runs it: a scheduler and two
+    one-thread workers started by the ``dask`` command on 127.0.0.1, the render a fresh
+    process with no Client of its own (item 3: "No clients found" before the fix)."""
+    info = tmp_path / "scheduler.json"
+    procs: list[subprocess.Popen] = []
+    # each exits by itself should this test die: the scheduler when idle for 300 s, a
+    # worker 60 s after its scheduler is gone
+    procs.append(_start([DASK, "scheduler", "--host", "127.0.0.1", "--port", "0",
+                         "--no-dashboard", "--idle-timeout", "300", "--scheduler-file",
+                         str(info)], tmp_path / "scheduler.log"))  # fmt: skip
+    try:
+        deadline = time.monotonic() + 60
+        while not info.is_file() and time.monotonic() < deadline:
+            assert procs[0].poll() is None, (tmp_path / "scheduler.log").read_text()
+            time.sleep(0.2)
+        address = json.loads(info.read_text())["address"]
+        assert address.startswith("tcp://127.0.0.1:")
+        for i in range(2):
+            procs.append(_start([DASK, "worker", "--scheduler-file", str(info), "--nthreads",
+                                 "1", "--no-dashboard", "--death-timeout", "60",
+                                 "--local-directory", str(tmp_path / f"w{i}")],
+                                tmp_path / f"worker{i}.log"))  # fmt: skip
+        dist = _render_cli(tmp_path / "dist", "--scheduler", address, "--scheduler-timeout", "120")
+        local = _render_cli(tmp_path / "local")
+    finally:
+        _stop(procs)
+    assert dist.returncode == 0, dist.stderr
+    assert "2 rendered now" in dist.stdout and local.returncode == 0, local.stderr
+    assert frame_bytes(tmp_path / "dist") == frame_bytes(tmp_path / "local")
+    local_meta = json.loads((tmp_path / "local/dataset.json").read_text())
+    local_meta.pop("timing")  # the local run's seconds per frame (not recorded on Dask)
+    assert json.loads((tmp_path / "dist/dataset.json").read_text()) == local_meta
