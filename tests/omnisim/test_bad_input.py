@@ -827,6 +827,7 @@ def test_render_on_a_full_disk(tmp_path, leave_kib):
         _refused_by_the_disk(res, out)
 
 
+@pytest.mark.slow  # 5.5 s (docs/decisions/slow_tests.md)
 def test_export_on_a_full_disk(tmp_path):
     """Nothing of the export is left (no OUT, no temporary folder) and OUT is named."""
     from tests.helpers.small_disk import fill, small_tmpfs
