@@ -27,6 +27,7 @@ import numpy as np
 
 from omniflow.io.dataset import MASK_FILES, Dataset, DatasetError, read_flo
 from omniflow.io.imageio import native_output_captured
+from omnisim.camera import dataset_camera
 
 __all__ = ["camera_png_problem", "dataset_file_problems", "flo_problem", "png_problem"]
 
@@ -88,8 +89,6 @@ def flo_problem(path: Path, width: int, height: int) -> str | None:
 
 
 def _camera_dtype(ds: Dataset):
-    from omnisim.camera import dataset_camera
-
     model = dataset_camera(ds)
     return None if model is None else model.dtype
 
