@@ -1,8 +1,7 @@
 """``omnivalidate suite SUITE_FILE --split test --out DIR``: score every method on a suite.
 
-Exit status: 0 done; 1 the machine refused (a full disk: the message names the path);
-2 bad input (one line naming the file, entry or option); 130 interrupted (what is
-finished is kept: run the same command again to resume).
+Exit status: 0 done; 2 bad input (one line naming the file, entry or option); 130
+interrupted (what is finished is kept: run the same command again to resume).
 """
 
 from __future__ import annotations
