@@ -27,6 +27,11 @@ Checks (names as printed):
     gt.flow.valid; version 2: where the next position is defined, gt.flow.valid +
     occluded + outside) and the unknown value elsewhere: max |difference|, px, and no
     validity disagreement; version 2's mask PNGs must equal gt.flow.occluded, outside.
+``files``
+    every camera image (``camK.png``), mask PNG and ``.flo`` file of the checked
+    frames decodes, has the image size and bit depth, and (``.flo``) holds only finite
+    values (:mod:`omnisim.check_files`). Figure: files that do not (threshold 0); the
+    detail names them. A broken ``.flo`` or mask is left out of ``flo_file``.
 ``flow_masks``
     format version 2: gt.flow.valid, .occluded, .outside (and the gt.bflow ones) are
     0/1, disjoint and 0 where gt.valid is 0; frame 0's backward flow is all 0. Figure:
@@ -52,6 +57,9 @@ Checks (names as printed):
     shifted by -/+ 0.1 px in x and in y. Fails when the figure is > 1 and the excess
     is significant (mean per-pixel excess > ``Tolerances.photometric_min_z`` standard
     errors). Catches a flow that is slightly wrong (scaled by 0.9, shifted by 0.3 px).
+    Skipped (nothing to compare) when gt.flow and its best neighbour both reproduce frame
+    t exactly (identical frames and zero flow); fails when a neighbour reproduces it
+    exactly and gt.flow does not.
     Also printed: the residual over the render noise expected in a difference of two
     frames, sqrt(2) x sigma (Immerkaer's Laplacian estimator on the same surfaces; it
     also counts fine texture, so it errs high).
@@ -66,7 +74,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from omniflow.io.dataset import Dataset, DatasetError, grey_of
+from omniflow.io.dataset import MASK_FILES, Dataset, DatasetError, grey_of
+from omnisim.check_files import dataset_file_problems
 
 __all__ = ["CheckResult", "Tolerances", "format_results", "run_checks"]
 
@@ -245,6 +254,26 @@ def _mask_consistency(ch: dict[str, NDArray], k: int) -> tuple[int, int]:
     return int(bad.sum()), bad.size
 
 
+#: Broken files the ``files`` check names in its detail (the count says how many in all).
+_FILES_SHOWN = 5
+
+
+def _files_result(broken: dict, n: int) -> CheckResult:
+    """The ``files`` check: every camera PNG, mask PNG and .flo decodes (check_files.py)."""
+    shown = "; ".join(f"{p}: {why}" for p, why in list(broken.items())[:_FILES_SHOWN])
+    more = f"; and {len(broken) - _FILES_SHOWN} more" if len(broken) > _FILES_SHOWN else ""
+    return CheckResult(
+        "files",
+        "camera PNGs, mask PNGs, .flo files decode at the image size (.flo finite)",
+        float(len(broken)),
+        0.0,
+        "files",
+        n,
+        not broken,
+        shown + more,
+    )
+
+
 def run_checks(
     ds: Dataset,
     *,
@@ -272,6 +301,8 @@ def run_checks(
     n_valid = 0
     mask_bad, mask_n = 0, 0  # version 2: flow mask consistency
 
+    # camera PNGs, mask PNGs and .flo files that do not decode (the ``files`` check)
+    broken, n_files = dataset_file_problems(ds, frames)
     cache: dict[tuple[int, str], dict[str, NDArray]] = {}
 
     def load(k: int, cam: str) -> dict[str, NDArray]:
@@ -333,19 +364,21 @@ def run_checks(
                 e_ht = np.abs(h_i * _wrap(th2 - th_i) - ch["gt.bflow.hdtheta"])
                 acc["flow_polar"].add(np.maximum(e_dh, e_ht)[bv])
 
-            # the .flo file
-            flow, flo_ok = ds.read_flo(k, cam)
-            known = ds.flo_known(ch)  # version 1: gt.flow.valid; 2: every defined flow
-            flo_mismatch += int((flo_ok != known).sum())
-            for name, mask in ds.read_flow_masks(k, cam).items():  # version 2's PNGs
-                flo_mismatch += int((mask != (ch[name] > 0.5)).sum())
-            both = flo_ok & known
             if ds.version >= 2:
                 bad, n = _mask_consistency(ch, k)
                 mask_bad += bad
                 mask_n += n
-            e = np.maximum(np.abs(flow[..., 0] - ch["gt.flow.dx"]), np.abs(flow[..., 1] - dy))
-            acc["flo_file"].add(e[both])
+            # the .flo file and the mask PNGs, unless the files check found them broken
+            masks = MASK_FILES if ds.version >= 2 else ()
+            if not any(ds.path(k, cam, x) in broken for x in ("flo", *masks)):
+                flow, flo_ok = ds.read_flo(k, cam)
+                known = ds.flo_known(ch)  # version 1: gt.flow.valid; 2: every defined flow
+                flo_mismatch += int((flo_ok != known).sum())
+                for name, mask in ds.read_flow_masks(k, cam).items():  # version 2's PNGs
+                    flo_mismatch += int((mask != (ch[name] > 0.5)).sum())
+                both = flo_ok & known
+                e = np.maximum(np.abs(flow[..., 0] - ch["gt.flow.dx"]), np.abs(flow[..., 1] - dy))
+                acc["flo_file"].add(e[both])
 
             # temporal checks need frame k + 1
             if k + 1 not in frames:
@@ -493,6 +526,7 @@ def run_checks(
             f"{flo_mismatch} validity disagreements",
         )
     )
+    results.append(_files_result(broken, n_files))
     if unknown_ids:
         results.append(
             CheckResult(
@@ -572,7 +606,12 @@ def run_checks(
         )
         neighbours = {k: v for k, v in s.items() if k[:1] in ("x", "d") and ":" not in k}
         best = min(neighbours, key=neighbours.get)
-        fig = s["flow"] / neighbours[best] if neighbours[best] > 0 else math.inf
+        # Nothing to compare when gt.flow and its best neighbour both reproduce frame t
+        # exactly (identical frames and zero flow, which scaled by 1 -/+ 10 % is itself):
+        # skipped. A neighbour that does while gt.flow does not: gt.flow is worse.
+        exact = neighbours[best] == 0
+        untestable = exact and s["flow"] == 0
+        fig = math.nan if untestable else (math.inf if exact else s["flow"] / neighbours[best])
         # is gt.flow significantly worse than its best neighbour? The mean per-pixel excess
         # against its standard error, with n / 9 independent pixels (the bicubic warp and
         # the denoiser correlate 3 x 3 neighbourhoods).
@@ -582,9 +621,12 @@ def run_checks(
             z = excess / math.sqrt(var / (n / 9.0))
         else:  # identical residuals (e.g. a static frame pair): no excess, or all of it
             z = math.copysign(math.inf, excess) if excess != 0 else 0.0
-        worse = fig > tol.photometric_min_ratio and z > tol.photometric_min_z
-        detail = "; ".join(f"{k} {v / s['flow']:.4g}" for k, v in neighbours.items())
-        if s.get("pairs"):
+        worse = exact or (fig > tol.photometric_min_ratio and z > tol.photometric_min_z)
+        detail = "; ".join(
+            f"{k} {v / s['flow']:.4g}" if s["flow"] > 0 else f"{k} n/a"
+            for k, v in neighbours.items()
+        )
+        if s.get("pairs") and sigma > 0:
             detail += f"; residual / (sqrt(2) sigma_noise) {rms / (math.sqrt(2) * sigma):.3g}"
         results.append(
             CheckResult(
@@ -595,8 +637,14 @@ def run_checks(
                 tol.photometric_min_ratio,
                 "",
                 int(n),
-                not worse,
-                f"best neighbour {best} (excess z = {z:.3g}; fails when > "
+                None if untestable else not worse,
+                (
+                    f"gt.flow and {best} both reproduce frame t exactly (residual 0): "
+                    "nothing to compare, skipped; "
+                    if untestable
+                    else ""
+                )
+                + f"best neighbour {best} (excess z = {z:.3g}; fails when > "
                 f"{tol.photometric_min_z:g}); neighbour / gt.flow: {detail}",
             )
         )

@@ -17,12 +17,14 @@ value or address and what was expected; ``--debug`` adds the Python traceback.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import errno
 import re
 import signal
 import sys
 import tomllib
 import traceback
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -291,21 +293,33 @@ def _cmd_check(args: argparse.Namespace) -> int:
     return 1 if any(r.passed is False for r in results) else 0
 
 
+@contextlib.contextmanager
+def _writes_to(path: Path) -> Iterator[None]:
+    """An OSError that names no file (a write to a full disk) names ``path`` instead."""
+    try:
+        yield
+    except OSError as exc:
+        if exc.filename is not None:
+            raise
+        raise OSError(exc.errno, exc.strerror or str(exc), str(path)) from exc
+
+
 def _cmd_render(args: argparse.Namespace) -> int:
     from omnisim.job import DEFAULT_RENDERER, render_dataset
 
     overrides = _overrides(args)
-    res = render_dataset(
-        args.scene,
-        args.out,
-        overrides,
-        renderer=args.renderer or DEFAULT_RENDERER,
-        scheduler=args.scheduler,
-        write_on=args.write_on,
-        progress=not args.no_progress,
-        resource_check=not args.no_resource_check,
-        scheduler_timeout=args.scheduler_timeout,
-    )
+    with _writes_to(args.out):
+        res = render_dataset(
+            args.scene,
+            args.out,
+            overrides,
+            renderer=args.renderer or DEFAULT_RENDERER,
+            scheduler=args.scheduler,
+            write_on=args.write_on,
+            progress=not args.no_progress,
+            resource_check=not args.no_resource_check,
+            scheduler_timeout=args.scheduler_timeout,
+        )
     print(
         f"{args.out}: {res.frames} frames ({len(res.rendered)} rendered now, "
         f"{len(res.skipped)} already done) in {res.seconds:.1f} s"
@@ -353,6 +367,8 @@ def _describe_exception(exc: BaseException) -> tuple[str, int] | None:
             return f"{what} (errno {exc.errno})", 1
         if exc.errno in _BAD_PATH_ERRNOS:
             return f"{path}: {what}; expected a path this user can read and write", 2
+        if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+            return f"{path}: {what} (the disk is full: free some space, then run again)", 1
         return f"{path}: {what}", 1
     return None
 

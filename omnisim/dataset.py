@@ -27,6 +27,7 @@ This module imports neither Mitsuba nor the scene model.
 from __future__ import annotations
 
 import contextlib
+import errno
 import fcntl
 import json
 import os
@@ -247,8 +248,16 @@ def write_exr(
     for key, value in (attributes or {}).items():
         header[key] = str(value)
     path = Path(path)
-    with OpenEXR.File(header, chans) as exr:
-        exr.write(str(path))
+    try:
+        with OpenEXR.File(header, chans) as exr:
+            exr.write(str(path))
+    except RuntimeError as exc:  # how OpenEXR reports a failed write (a full disk)
+        full = "No space left on device" in str(exc)
+        raise OSError(
+            errno.ENOSPC if full else errno.EIO,
+            os.strerror(errno.ENOSPC) if full else f"cannot write the EXR ({exc})",
+            str(path),
+        ) from exc
     with open(path, "rb+") as fh:
         os.fsync(fh.fileno())
 

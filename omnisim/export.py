@@ -44,15 +44,19 @@ KITTI flow PNG: 16-bit RGB, R = dx * 64 + 2^15, G = dy * 64 + 2^15, B = 1 where 
 does not fit and is marked invalid.
 
 Everything is written into a hidden temporary directory beside OUT and renamed to OUT
-at the end; OUT must not exist (or be an empty directory). The export needs a complete
-dataset of format version 2 for ``sintel`` and ``kitti`` (version 1 has no occlusion
-masks); ``png`` reads either version.
+at the end; OUT must not exist (or be an empty directory). Refused as bad input (one
+line naming the file, exit 2, no OUT): radiance holding NaN or infinity (the tone map
+and the integer cast would turn it into garbage), a camera image ``camK.png`` that does
+not decode to the dataset's size and bit depth (:mod:`omnisim.check_files`).
+The export needs a complete dataset of format version 2 for ``sintel`` and ``kitti``
+(version 1 has no occlusion masks); ``png`` reads either version.
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import errno
 import io
 import os
 import re
@@ -64,7 +68,8 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from omniflow.io.dataset import Dataset, DatasetError, open_dataset
+from omniflow.io.dataset import Dataset, DatasetError, grey_of, open_dataset
+from omnisim.check_files import camera_png_problem
 from omnisim.dataset import flo_bytes
 
 __all__ = [
@@ -162,28 +167,48 @@ def segmentation_png(obj: NDArray) -> bytes:
 # -- the export -------------------------------------------------------------------------------
 
 
+def _radiance(ds: Dataset, k: int, cam: str) -> dict[str, NDArray]:
+    """Frame ``k``'s channels; :class:`ExportError` naming the EXR when its radiance holds
+    NaN or infinity (the tone map and the 8/16-bit cast would turn it into garbage)."""
+    ch = ds.read_frame(k, cam)
+    rgb = np.stack([ch["R"], ch["G"], ch["B"]])
+    nan, inf = int(np.isnan(rgb).sum()), int(np.isinf(rgb).sum())
+    if nan or inf:
+        raise ExportError(
+            f"{ds.path(k, cam)}: the radiance R, G, B holds {nan} NaN and {inf} infinite "
+            "values; expected finite linear radiance (render the frame again)"
+        )
+    return ch
+
+
 def _exposure(ds: Dataset) -> float:
     """Scale that maps :data:`EXPOSURE_PERCENTILE` of frame 0's luminance on the mirror to 1."""
     lum = []
     for cam in ds.cameras:
-        ch = ds.read_frame(0, cam)
-        grey = ds.read_grey(0, cam)
-        lum.append(grey[ch["gt.valid"] > 0.5])
+        ch = _radiance(ds, 0, cam)
+        lum.append(grey_of(ch)[ch["gt.valid"] > 0.5])
     values = np.concatenate(lum)
     white = float(np.percentile(values, EXPOSURE_PERCENTILE)) if values.size else 0.0
     return 1.0 / white if white > 0 else 1.0
 
 
 def _image(ds: Dataset, k: int, cam: str, scale: float, bits: int) -> bytes:
-    rgb = ds.read_rgb(k, cam) * scale
+    ch = _radiance(ds, k, cam)
+    rgb = np.stack([ch["R"], ch["G"], ch["B"]], axis=-1) * scale
     top = 2**bits - 1
     return _png(np.rint(linear_to_srgb(rgb) * top).astype(np.uint8 if bits == 8 else np.uint16))
 
 
-def _camera_png(ds: Dataset, k: int, cam: str) -> Path | None:
-    """The camera model's image of the frame (``camK.png``), when the dataset has one."""
+def _camera_png(ds: Dataset, k: int, cam: str) -> bytes | None:
+    """The camera model's image of the frame (``camK.png``), when the dataset has one;
+    :class:`ExportError` naming it when it does not decode (:mod:`omnisim.check_files`)."""
     p = ds.path(k, cam, "png")
-    return p if p.is_file() else None
+    if not p.is_file():
+        return None
+    problem = camera_png_problem(ds, k, cam)
+    if problem is not None:
+        raise ExportError(f"{p}: {problem}; expected the camera model's image of the frame")
+    return p.read_bytes()
 
 
 def _scene_name(ds: Dataset) -> str:
@@ -202,7 +227,7 @@ def _sintel(ds: Dataset, put: Callable[[str, bytes], None], scale: float) -> Non
             put(f"training/clean/{folder}/{name}.png", _image(ds, k, cam, scale, 8))
             cam_png = _camera_png(ds, k, cam)
             if cam_png is not None:
-                put(f"training/final/{folder}/{name}.png", cam_png.read_bytes())
+                put(f"training/final/{folder}/{name}.png", cam_png)
             depth = np.where(ch["gt.valid"] > 0.5, ch["gt.r"], 0.0)
             put(f"training/depth/{folder}/{name}.dpt", dpt_bytes(depth))
             put(f"training/segmentation/{folder}/{name}.png", segmentation_png(ch["gt.object"]))
@@ -244,7 +269,7 @@ def _png_layout(ds: Dataset, put: Callable[[str, bytes], None], scale: float, bi
             put(f"{cam}/image/{k:06d}.png", _image(ds, k, cam, scale, bits))
             cam_png = _camera_png(ds, k, cam)
             if cam_png is not None:
-                put(f"{cam}/camera/{k:06d}.png", cam_png.read_bytes())
+                put(f"{cam}/camera/{k:06d}.png", cam_png)
             ch = ds.read_frame(k, cam)
             put(f"{cam}/segmentation/{k:06d}.png", segmentation_png(ch["gt.object"]))
 
@@ -266,6 +291,17 @@ def _readme(ds: Dataset, fmt: str, scale: float, bits: int, notes: list[str]) ->
     if layout is not None:
         text += [doc[layout], doc[layout + 1], ""]
     return "\n".join(text)
+
+
+#: errno values of a machine that refused the export (exit 1), not of a bad --out (exit 2).
+_MACHINE_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EIO}
+
+
+def _refused(exc: OSError, out: Path, doing: str) -> OSError:
+    """``exc`` naming ``out`` (a write to a full disk names no file) and what was written;
+    the export is removed, so OUT is not there afterwards."""
+    reason = exc.strerror or str(exc)
+    return OSError(exc.errno, f"{reason} while {doing}; nothing of the export was kept", str(out))
 
 
 def export_dataset(dataset: str | Path, out: str | Path, fmt: str, *, bits: int = 8) -> Path:
@@ -300,12 +336,17 @@ def export_dataset(dataset: str | Path, out: str | Path, fmt: str, *, bits: int 
         out.parent.mkdir(parents=True, exist_ok=True)
         tmp.mkdir()
     except OSError as exc:
+        if exc.errno in _MACHINE_ERRNOS:
+            raise _refused(exc, out, "creating it") from exc
         raise ExportError(f"{out}: cannot create the output directory: {exc}") from exc
 
     def put(rel: str, data: bytes) -> None:
         p = tmp / rel
-        p.parent.mkdir(parents=True, exist_ok=True)
-        p.write_bytes(data)
+        try:
+            p.parent.mkdir(parents=True, exist_ok=True)
+            p.write_bytes(data)
+        except OSError as exc:
+            raise _refused(exc, out, f"writing {rel}") from exc
 
     try:
         scale = _exposure(ds)

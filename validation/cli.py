@@ -1,7 +1,8 @@
 """``omnivalidate DATASET --out REPORT_DIR``: score omniflow and the baselines on a dataset.
 
 Exit status: 0 done (and every threshold met when ``--check`` is given);
-1 a threshold failed; 2 bad input (the one-line message names the problem).
+1 a threshold failed, or the machine refused (a full disk: the message names the path);
+2 bad input (the one-line message names the problem).
 """
 
 from __future__ import annotations
@@ -230,6 +231,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         return sweep_main(sys.argv[2:] if argv is None else list(argv)[1:])
     args = _parser().parse_args(argv)
+    from omniflow.cli.common import MACHINE_ERRNOS
     from omniflow.geometry.rig import RigError
     from omniflow.io.dataset import DatasetError
 
@@ -240,9 +242,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     from .summary import sweep_rows
     from .thresholds import ThresholdError, check_summary, format_checks, load_thresholds
 
-    def fail(msg: str) -> int:
+    def fail(msg: str, status: int = 2) -> int:
         print(f"omnivalidate: error: {msg}", file=sys.stderr)
-        return 2
+        return status
 
     try:
         frames = _frames(args.frames)
@@ -337,6 +339,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (DatasetError, RigError, InputError) as exc:
         return fail(str(exc).splitlines()[0])
     except OSError as exc:
+        if exc.errno in MACHINE_ERRNOS:  # a full disk: the machine refused (1), named by --out
+            return fail(f"--out {args.out}: {exc.strerror or exc}; nothing was written", 1)
         return fail(f"{exc.filename or args.out}: {exc.strerror or exc}")
     print("\n".join(summary.get("headline", [])))
     print(_closing_line(summary, len(results.dataset["pairs"]), time.perf_counter() - start,

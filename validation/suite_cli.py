@@ -100,6 +100,7 @@ def _split_names(text: str) -> list[str]:
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[2:] if argv is None else argv)
     args = _parser().parse_args(argv)
+    from omniflow.cli.common import MACHINE_ERRNOS
     from omniflow.io.dataset import DatasetError
     from omnisim.distributed import ClusterError
     from omnisim.job import ResourceError
@@ -110,9 +111,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     from .suite_bounds import BoundsError, check_bounds, load_bounds
     from .suite_run import resolve_methods, run_suite
 
-    def fail(msg: str) -> int:
+    def fail(msg: str, status: int = 2) -> int:
         print(f"omnivalidate suite: error: {msg}", file=sys.stderr)
-        return 2
+        return status
 
     external: dict[str, Path] = {}
     for item in args.method_output:
@@ -143,6 +144,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"omnivalidate suite: error: {str(exc).splitlines()[0]}", file=sys.stderr)
         return exc.exit_status
     except OSError as exc:
+        if exc.errno in MACHINE_ERRNOS:  # a full disk: the machine refused (1), named by --out
+            kept = "what is finished is kept: free some space, then run the same command again"
+            return fail(f"--out {args.out}: {exc.strerror or exc}; {kept}", 1)
         return fail(f"{exc.filename or args.out}: {exc.strerror or exc}")
     except KeyboardInterrupt:
         print("omnivalidate suite: interrupted; finished scenes and frames are kept, run "

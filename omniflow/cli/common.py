@@ -21,6 +21,7 @@ from omniflow.geometry.rig import Rig, RigError
 from omniflow.io.imageio import ImageError, OutputError
 
 __all__ = [
+    "MACHINE_ERRNOS",
     "CLIError",
     "Formatter",
     "Parser",
@@ -347,6 +348,10 @@ def column_units() -> dict[str, str]:
 def one_line(exc: BaseException) -> str:
     return " ".join(str(exc).split()) or type(exc).__name__
 
+
+#: errno values of a machine that refused to write (a full disk or quota, an I/O error):
+#: exit 1 in every command, never 2 (bad input), whatever else a command maps to 2.
+MACHINE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EIO})
 
 #: errno values that mean the path given is wrong (exit 2), not that the machine refused.
 _BAD_PATH_ERRNOS = {

@@ -116,6 +116,11 @@ def atomic_output(path: str | os.PathLike) -> Iterator[Path]:
         yield tmp
         _fsync_file(tmp)
         os.replace(tmp, path)
+    except OSError as exc:
+        if exc.filename is not None:
+            raise
+        # a write to a full disk names no file: name the one the caller asked for
+        raise OSError(exc.errno, exc.strerror or str(exc), str(path)) from exc
     finally:
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()

@@ -381,6 +381,40 @@ def _check_frames(text: str):
     return setup
 
 
+def _export_with(change: Callable[[Path], None], fmt: str = "sintel"):
+    """A complete 2-frame dataset, ``change(frames dir)``, then ``omnisim export``."""
+
+    def setup(d):
+        data = _dataset(d)
+        change(data / "frames")
+        return ["export", str(data), "--format", fmt, "--out", str(d / "out")]
+
+    return setup
+
+
+def _radiance_set(k: int, cam: str, value: float):
+    """Put ``value`` (NaN, inf) into a few R pixels of frame k's EXR."""
+
+    def change(frames: Path) -> None:
+        from omnisim.dataset import read_exr, write_exr
+
+        p = frames / f"{k:06d}" / f"{cam}.exr"
+        ch = read_exr(p)
+        ch["R"][10:12, 10:13] = value
+        write_exr(p, ch)
+
+    return change
+
+
+def _truncate(rel: str, keep: float = 0.5):
+    def change(frames: Path) -> None:
+        p = frames / rel
+        data = p.read_bytes()
+        p.write_bytes(data[: int(len(data) * keep)])
+
+    return change
+
+
 def _short_poses(meta):
     meta["robot"]["poses"] = meta["robot"]["poses"][:1]
 
@@ -543,6 +577,31 @@ CASES = [
     ),
     Case("check: corrupt EXR", _check_corrupt_exr, 2, ["cam1.exr"], None),
     Case("check: --frames 5:2", _check_frames("5:2"), 2, ["--frames", "5:2"], None),
+    # export (issue 25): bad data is refused, not written
+    Case(
+        "export: NaN radiance",
+        _export_with(_radiance_set(1, "cam2", float("nan"))),
+        2,
+        ["{d}/data/frames/000001/cam2.exr", "6 NaN", "finite"],
+    ),
+    Case(
+        "export: infinite radiance",
+        _export_with(_radiance_set(0, "cam1", float("inf")), fmt="png"),
+        2,
+        ["{d}/data/frames/000000/cam1.exr", "6 infinite", "finite"],
+    ),
+    Case(
+        "export: truncated camera PNG",
+        _export_with(_truncate("000001/cam1.png")),
+        2,
+        ["{d}/data/frames/000001/cam1.png", "truncated"],
+    ),
+    Case(
+        "export: camera PNG of another size",
+        _export_with(lambda f: _png(f / "000000" / "cam2.png", size=16), fmt="png"),
+        2,
+        ["{d}/data/frames/000000/cam2.png", "is 16x16; expected 32x32"],
+    ),
     Case("check: --frames abc", _check_frames("abc"), 2, ["--frames", "abc"], None),
     Case(
         "check: --json under a file",

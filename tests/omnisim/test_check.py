@@ -320,3 +320,108 @@ def test_flow_masks_check_catches_overlapping_masks(real, tmp_path):
 def test_flow_masks_check_skipped_on_version_1(synth):
     res = _by_name(run_checks(open_dataset(synth)))
     assert res["flow_masks"].passed is None and "version 1" in res["flow_masks"].detail
+
+
+# -- the files check and an untestable photometric_min (issue 25) ---------------------------
+
+
+@pytest.fixture(scope="module")
+def with_images(tmp_path_factory):
+    """A version 2 dataset with camera images (the fake renderer: 2 frames, 32 px)."""
+    from pathlib import Path
+
+    from omnisim.job import render_dataset
+
+    out = tmp_path_factory.mktemp("images") / "ds"
+    scene = Path(__file__).resolve().parents[2] / "scenes" / "default.toml"
+    ov = {"frames": 2, "render.width": 32, "render.height": 32, "render.spp": 1}
+    render_dataset(scene, out, ov, renderer="tests.helpers.fakes:render_frame", progress=False)
+    return out
+
+
+def test_files_check_passes_and_counts_every_file(synth, with_images):
+    res = _by_name(run_checks(open_dataset(synth)))
+    assert res["files"].passed and res["files"].n == 3 * 2  # version 1: one .flo per camera
+    assert open_dataset(with_images).meta.get("camera") is not None
+    res = _by_name(run_checks(open_dataset(with_images)))
+    # 2 frames x 2 cameras x (.flo, camK.png, occluded.png, outside.png)
+    assert res["files"].passed and res["files"].n == 2 * 2 * 4 and res["files"].figure == 0
+
+
+def test_files_check_names_each_broken_file(with_images, tmp_path, capsys):
+    """A truncated .flo, a .flo holding NaN, a truncated camera image and a mask PNG that
+    is not a PNG: one failing check naming each, also in --json; exit 1 (not 2)."""
+    import json
+    import shutil
+
+    d = tmp_path / "ds"
+    shutil.copytree(with_images, d)
+    f0, f1 = d / "frames/000000", d / "frames/000001"
+    raw = (f0 / "cam2.flo").read_bytes()
+    (f0 / "cam2.flo").write_bytes(raw[: len(raw) // 2])
+    nan = np.frombuffer((f1 / "cam1.flo").read_bytes(), np.uint8).copy()
+    nan[12:16] = np.frombuffer(np.array([np.nan], "<f4").tobytes(), np.uint8)  # dx of (0, 0)
+    (f1 / "cam1.flo").write_bytes(nan.tobytes())
+    raw = (f1 / "cam2.png").read_bytes()
+    (f1 / "cam2.png").write_bytes(raw[: len(raw) // 2])
+    (f0 / "cam1.occluded.png").write_bytes(b"junk" * 20)
+    assert main(["check", str(d), "--json", str(tmp_path / "r.json")]) == 1
+    captured = capsys.readouterr()
+    assert "Traceback" not in captured.err and captured.err == ""
+    line = next(x for x in captured.out.splitlines() if " files " in x)
+    assert line.startswith("FAIL  files        4 files")
+    for name, why in [
+        (f0 / "cam2.flo", ".flo header says 32x32 but the file has 4102 bytes"),
+        (f1 / "cam1.flo", "holds 1 non-finite values"),
+        (f1 / "cam2.png", "truncated"),
+        (f0 / "cam1.occluded.png", "not a PNG"),
+    ]:
+        assert f"{name}: {why}" in line, (name, line)
+    entry = next(r for r in json.loads((tmp_path / "r.json").read_text()) if r["name"] == "files")
+    assert entry["status"] == "FAIL" and entry["figure"] == 4
+    assert str(f1 / "cam2.png") in entry["detail"]
+
+
+def _static_pair(tmp_path, dx: float = 0.0):
+    """Two identical noise-free frames with gt.flow.dx = ``dx`` everywhere (0: the truth)."""
+    import json
+    import shutil
+
+    from omnisim.dataset import write_flo
+
+    d = write_synthetic_dataset(tmp_path / "static", frames=2, size=64, noise=0.0,
+                                moving_pillar=False)  # fmt: skip
+    f0 = d / "frames/000000"
+    for cam in ("cam1", "cam2"):
+        ch = read_exr(f0 / f"{cam}.exr")
+        for c in ("dy", "dh", "hdtheta"):
+            ch[f"gt.flow.{c}"][:] = 0
+        ch["gt.flow.dx"][:] = dx
+        write_exr(f0 / f"{cam}.exr", ch)
+        write_flo(f0 / f"{cam}.flo", ch["gt.flow.dx"], ch["gt.flow.dy"], ch["gt.flow.valid"] > 0.5)
+    shutil.rmtree(d / "frames/000001")
+    shutil.copytree(f0, d / "frames/000001")
+    meta = json.loads((d / "dataset.json").read_text())
+    meta["robot"]["poses"][1] = meta["robot"]["poses"][0]  # nothing moves
+    (d / "dataset.json").write_text(json.dumps(meta))
+    return d
+
+
+def test_photometric_min_with_nothing_to_compare_is_skipped(tmp_path, capsys):
+    """Identical frames, zero flow: gt.flow and its scaled neighbours (the same zero flow)
+    all have residual 0, a ratio 0 / 0. Not a PASS with the figure inf: skipped."""
+    d = _static_pair(tmp_path)
+    res = _by_name(run_checks(open_dataset(d)))
+    r = res["photometric_min"]
+    assert r.passed is None and r.status == "SKIP" and np.isnan(r.figure)
+    assert "nothing to compare" in r.detail
+    assert main(["check", str(d)]) == 0
+    assert "SKIP  photometric_min n/a" in capsys.readouterr().out
+
+
+def test_photometric_min_fails_when_a_neighbour_is_exact(tmp_path):
+    """Identical frames and gt.flow.dx = 0.1 px: the neighbour shifted by -0.1 px (zero
+    flow) reproduces frame t exactly, gt.flow does not: it is not the minimum."""
+    res = _by_name(run_checks(open_dataset(_static_pair(tmp_path, dx=0.1))))
+    r = res["photometric_min"]
+    assert r.passed is False and r.figure == np.inf and "best neighbour dx-0.1" in r.detail

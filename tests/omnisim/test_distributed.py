@@ -2,8 +2,14 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -124,3 +130,145 @@ def test_cli_scheduler_in_a_fresh_process(tmp_path, cluster):
                        env={**os.environ, "PYTHONPATH": path})  # fmt: skip
     assert p.returncode == 0, p.stderr
     assert "2 rendered now" in p.stdout
+
+
+# -- a cluster of `dask scheduler` and `dask worker` commands (issue 25 item 3) ------------
+
+DASK = shutil.which("dask")
+
+
+def _env() -> dict[str, str]:
+    return {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
+    }
+
+
+def _start(argv: list[str], log: Path, **env: str) -> subprocess.Popen:
+    """A process in its own session (so it and its children are stopped together)."""
+    with log.open("w") as err:  # the child keeps its own descriptor
+        return subprocess.Popen(argv, cwd=ROOT, env={**_env(), **env},
+                                stdout=subprocess.DEVNULL, stderr=err,
+                                start_new_session=True)  # fmt: skip
+
+
+def _stop(procs: list[subprocess.Popen]) -> None:
+    """SIGTERM each process group, then SIGKILL what is left after 20 s."""
+    for sig in (signal.SIGTERM, signal.SIGKILL):
+        for p in procs:
+            if p.poll() is None:
+                with contextlib.suppress(ProcessLookupError):
+                    os.killpg(p.pid, sig)
+        for p in procs:
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                p.wait(timeout=20)
+        if all(p.poll() is not None for p in procs):
+            return
+
+
+def _render_cli(out: Path, *more: str, frames: int = 2) -> list[str]:
+    """``omnisim render`` of the default scene, 32 px frames, as a fresh process's argv."""
+    return [sys.executable, "-m", "omnisim.cli", "render", str(DEFAULT), "--out", str(out),
+            "--frames", str(frames), "--resolution", "32", "--spp", "1", "--renderer", FAKE,
+            "--no-progress", *more]  # fmt: skip
+
+
+def _run(argv: list[str]) -> subprocess.CompletedProcess:
+    return subprocess.run(argv, capture_output=True, text=True, timeout=300, cwd=ROOT, env=_env())
+
+
+def _wait_for(done, what: str, seconds: float = 60.0) -> None:
+    deadline = time.monotonic() + seconds
+    while not done():
+        assert time.monotonic() < deadline, f"{what}: not within {seconds:g} s"
+        time.sleep(0.05)
+
+
+def _address(info: Path) -> str | None:
+    """The address in a scheduler file, None while it is not (completely) written."""
+    try:
+        return json.loads(info.read_text())["address"]
+    except (OSError, ValueError, KeyError):
+        return None
+
+
+@contextlib.contextmanager
+def _dask_commands(tmp_path: Path, workers: int = 2, **env: str):
+    """``dask scheduler`` on 127.0.0.1 and ``workers`` one-thread ``dask worker`` processes
+    (``env`` added to theirs), each registered; yields (address, worker processes) and
+    stops every process afterwards. Each also exits by itself should the test die: the
+    scheduler when idle for 300 s, a worker 60 s after its scheduler is gone."""
+    info = tmp_path / "scheduler.json"
+    # the dashboards on a free port of 127.0.0.1 (--no-dashboard still binds 0.0.0.0:8787)
+    local = ["--dashboard-address", "127.0.0.1:0"]
+    procs = [_start([DASK, "scheduler", "--host", "127.0.0.1", "--port", "0", *local,
+                     "--idle-timeout", "300", "--scheduler-file", str(info)],
+                    tmp_path / "scheduler.log")]  # fmt: skip
+    try:
+        _wait_for(lambda: _address(info) or procs[0].poll() is not None, "the scheduler file")
+        assert procs[0].poll() is None, (tmp_path / "scheduler.log").read_text()
+        address = _address(info)
+        assert address.startswith("tcp://127.0.0.1:")
+        logs = [tmp_path / f"worker{i}.log" for i in range(workers)]
+        for i, log in enumerate(logs):
+            procs.append(_start([DASK, "worker", "--scheduler-file", str(info), "--nthreads",
+                                 "1", *local, "--death-timeout", "60", "--local-directory",
+                                 str(tmp_path / f"w{i}")], log, **env))  # fmt: skip
+        for log in logs:
+            _wait_for(lambda log=log: "Registered to" in log.read_text(), f"{log.name}")
+        yield address, procs[1:]
+    finally:
+        _stop(procs)
+
+
+def _same_dataset(dist: Path, local: Path) -> None:
+    """The same frame files and dataset.json, less the local run's timing section (the
+    seconds per frame, not recorded on Dask)."""
+    assert frame_bytes(dist) == frame_bytes(local)
+    local_meta = json.loads((local / "dataset.json").read_text())
+    local_meta.pop("timing")
+    assert json.loads((dist / "dataset.json").read_text()) == local_meta
+
+
+@pytest.mark.slow  # 14-18 s (docs/decisions/slow_tests.md)
+@pytest.mark.skipif(DASK is None, reason="the dask command is not installed")
+def test_cli_scheduler_on_dask_scheduler_and_dask_worker(tmp_path):
+    """``omnisim render --scheduler tcp://...`` as a user runs it: a scheduler and two
+    one-thread workers started by the ``dask`` command, the render a fresh process with
+    no Client of its own (item 3 of issue 25: "No clients found" before the fix)."""
+    with _dask_commands(tmp_path) as (address, _):
+        dist = _run(_render_cli(tmp_path / "dist", "--scheduler", address))
+    assert dist.returncode == 0 and "2 rendered now" in dist.stdout, dist.stderr
+    local = _run(_render_cli(tmp_path / "local"))
+    assert local.returncode == 0, local.stderr
+    _same_dataset(tmp_path / "dist", tmp_path / "local")
+
+
+@pytest.mark.slow  # 18 s (docs/decisions/slow_tests.md)
+@pytest.mark.skipif(DASK is None, reason="the dask command is not installed")
+def test_cli_scheduler_survives_a_worker_killed_mid_run(tmp_path):
+    """One of two workers is killed (SIGKILL, with its nanny) once frame 0 is on disk,
+    frames 0.5 s each: the scheduler gives its frames to the other; the same bytes."""
+    with _dask_commands(tmp_path, OMNISIM_FAKE_DELAY="0.5") as (address, workers):
+        argv = _render_cli(tmp_path / "dist", "--scheduler", address, frames=8)
+        render = subprocess.Popen(argv, cwd=ROOT, env=_env(), text=True,
+                                  stdout=subprocess.PIPE, stderr=subprocess.PIPE)  # fmt: skip
+        try:
+            first = tmp_path / "dist" / "frames" / "000000"
+            _wait_for(lambda: first.is_dir() or render.poll() is not None, "frame 0", 120)
+            assert render.poll() is None, render.communicate(timeout=60)  # still running
+            os.killpg(workers[0].pid, signal.SIGKILL)
+            workers[0].wait(timeout=20)
+            out, err = render.communicate(timeout=240)
+        finally:
+            if render.poll() is None:
+                render.kill()
+                render.wait(timeout=20)
+        done_after_kill = sorted(p.name for p in (tmp_path / "dist" / "frames").iterdir())
+    log = (tmp_path / "scheduler.log").read_text()  # the worker left while the render ran
+    assert "Remove worker" in log and log.index("Remove worker") < log.index("Remove client")
+    assert render.returncode == 0 and "8 rendered now" in out, err
+    assert len(done_after_kill) == 8
+    local = _run(_render_cli(tmp_path / "local", frames=8))
+    assert local.returncode == 0, local.stderr
+    _same_dataset(tmp_path / "dist", tmp_path / "local")

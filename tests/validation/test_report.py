@@ -330,6 +330,21 @@ def test_cli_bad_input_exits_2_with_one_line(synth, tmp_path, args, needle):
     assert needle in lines[0]
 
 
+def test_cli_on_a_full_disk_exits_1_naming_the_path(synth, tmp_path):
+    """A full disk is the machine refusing (exit 1), not bad input (2, before issue 25)."""
+    from tests.helpers.small_disk import fill, small_tmpfs
+
+    with small_tmpfs(tmp_path / "small") as mnt:
+        fill(mnt)
+        out = mnt / "report"
+        p = _cli(str(synth), "--out", str(out), "--variants", "default", "--baselines", "none",
+                 "--no-progress")  # fmt: skip
+    lines = p.stderr.strip().splitlines()
+    assert p.returncode == 1 and len(lines) == 1, (p.returncode, p.stderr)
+    assert lines[0].startswith(f"omnivalidate: error: --out {out}: No space left"), lines[0]
+    assert "Traceback" not in p.stderr
+
+
 def test_calibrate_rounds_bounds_outward():
     from validation.calibrate import _round_out
 

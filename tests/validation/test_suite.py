@@ -184,3 +184,24 @@ def test_omnivalidate_suite_bad_input_is_one_line(tmp_path, capsys):
     assert "--methods: unknown method 'nope'" in capsys.readouterr().err
     assert omnivalidate(["suite", str(good), "--split", "train", "--out", str(tmp_path / "o")]) == 2
     assert "no scene in split 'train'" in capsys.readouterr().err
+
+
+def test_omnivalidate_suite_on_a_full_disk_exits_1(tmp_path, capsys, monkeypatch):
+    """A full disk is the machine refusing (1), not bad input (2), naming --out. Simulated:
+    run_suite raises the OSError a write to a full disk raises (no file name)."""
+    import errno
+    import os
+
+    import validation.suite_run as suite_run
+    from validation.cli import main as omnivalidate
+
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(suite_run, "run_suite", full)
+    good = _suite(tmp_path, _file_entry("a", "default.toml"))
+    out = tmp_path / "o"
+    assert omnivalidate(["suite", str(good), "--split", "test", "--out", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith(f"omnivalidate suite: error: --out {out}: No space left on device")
+    assert err.count("\n") == 1
