@@ -27,7 +27,6 @@ SAMPLINGS = ("cubic", "linear", "exact")
 RIM_FILLS = ("reflect", "none")
 POOL_MODELS = ("linear", "constant")
 EIVS = ("correct", "residual", "none")
-BAND_RULES = ("gain", "variance")
 SHADING_WHERE = ("everywhere", "moving")
 BRIGHTNESS_MODELS = ("linear", "gain")
 #: Weightings of the two units' equations in :func:`omniflow.solve.pooled.pooled_solution`.
@@ -160,9 +159,6 @@ class OmniFlowConfig:
         "DCT band matched on, P = band W (eq. 17)",
         limits=(0.0, 1.0, False, True),
     )
-    match_band: float | None = knob(
-        None, "narrower band for the matched image; None: band", limits=(0.0, 1.0, False, True)
-    )
     flow_band: float | None = knob(
         0.5,
         "DCT band of the flow step; None: per pair",
@@ -172,26 +168,6 @@ class OmniFlowConfig:
         0.5,
         "fraction of the flow band rolled off to 0 (cos^2); 0: the sharp truncation of eq. (18)",
         limits=(0.0, 1.0, True, True),
-    )
-    flow_band_rule: str = knob(
-        "gain",
-        "with flow_band None: keep flow_band_gain of the gradient power, or least variance",
-        choices=BAND_RULES,
-    )
-    flow_band_tolerance: float = knob(
-        1.35,
-        "flow_band_rule 'variance': the factor over the least variance allowed",
-        limits=(1.0, INF, True, False),
-    )
-    flow_band_gain: float = knob(
-        0.99,
-        "flow_band_rule 'gain': the least signal share of the gradient power kept",
-        limits=(0.0, 1.0, False, False),
-    )
-    noise_sigma: float | None = knob(
-        None,
-        "image noise, grey levels of [0, 1] images; None: Immerkaer's estimate per unit",
-        limits=(0.0, INF, True, False),
     )
     eiv: str = knob(
         "residual",

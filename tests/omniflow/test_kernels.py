@@ -120,9 +120,7 @@ FLOW_TOL = 1e-10
 
 CONFIGS = {
     "default": OmniFlowConfig(),
-    "eiv correct, constant model": OmniFlowConfig(
-        eiv="correct", pool_model="constant", noise_sigma=0.01
-    ),
+    "eiv correct, constant model": OmniFlowConfig(eiv="correct", pool_model="constant"),
     "two-pass pool": OmniFlowConfig(pool_flow_tol=0.3),
 }
 

@@ -28,7 +28,6 @@ CONFIGS = {
     "first-frame gradients": OmniFlowConfig(gradients="first"),
     "band from the images, eiv correct": OmniFlowConfig(flow_band=None, eiv="correct"),
     "paper": OmniFlowConfig.paper(),
-    "iterations, narrower match band": OmniFlowConfig(iterations=1, match_band=0.25),
     "linear sampling, two-pass pool": OmniFlowConfig(sampling="linear", pool_flow_tol=0.5),
     "dct3d window": OmniFlowConfig(temporal="dct3d"),
     "object-aware pools": OmniFlowConfig(
