@@ -29,8 +29,6 @@ POOL_MODELS = ("linear", "constant")
 EIVS = ("correct", "residual", "none")
 SHADING_WHERE = ("everywhere", "moving")
 BRIGHTNESS_MODELS = ("linear", "gain")
-#: Weightings of the two units' equations in :func:`omniflow.solve.pooled.pooled_solution`.
-UNIT_WEIGHTINGS = ("equal", "global", "local")
 
 
 def knob(default: Any, help: str, *, limits: Limits | None = None,
@@ -119,16 +117,6 @@ PUBLIC_FIELDS = (
     "n_theta", "patch_radius", "dense_percentile", "solver", "pool_radius", "iterations",
     "decouple_tol", "brightness_gate", "monocular_gap",
 )  # fmt: skip
-
-#: The knobs that thin each pool by its neighbours: they need the k-d tree's pools, so
-#: they cannot be combined with ``pool_grid`` (the value each has when off).
-TREE_ONLY = {
-    "pool_unit_weighting": "equal",
-    "pool_edge_tol": None,
-    "pool_residual_tol": None,
-    "pool_flow_tol": None,
-    "pool_min_info": None,
-}
 
 
 @dataclass(frozen=True)
@@ -349,31 +337,6 @@ class OmniFlowConfig:
         "pooled solver: local flow model, linear in theta or constant",
         choices=POOL_MODELS,
     )
-    pool_flow_tol: float | None = knob(
-        None,
-        "pooled solver: second pass without neighbours whose flow differs by more, px/frame",
-        limits=(0.0, INF, False, False),
-    )
-    pool_unit_weighting: str = knob(
-        "equal",
-        "pooled solver: weight of each unit's equations, alike or by residual variance",
-        choices=UNIT_WEIGHTINGS,
-    )
-    pool_edge_tol: float | None = knob(
-        None,
-        "pooled solver: leave out neighbours behind an edge this many times the typical one",
-        limits=(0.0, INF, False, False),
-    )
-    pool_residual_tol: float | None = knob(
-        None,
-        "pooled solver: second pass without neighbours missing the flow by more robust sigmas",
-        limits=(0.0, INF, False, False),
-    )
-    pool_min_info: float | None = knob(
-        None,
-        "pooled solver: grow each pool until it holds this many typical points' information",
-        limits=(0.0, INF, False, False),
-    )
     static_test: float | None = knob(
         None,
         "pooled solver: zero flow where the pool's Wald statistic of motion is below this",
@@ -456,13 +419,6 @@ class OmniFlowConfig:
         """Raise naming both knobs where one would silently cancel the other."""
         if self.pool_grid is None:
             return
-        for name, off in TREE_ONLY.items():
-            if getattr(self, name) != off:
-                raise ValueError(
-                    f"OmniFlowConfig.pool_grid = {self.pool_grid!r} with {name} = "
-                    f"{getattr(self, name)!r}: {name} needs the k-d tree's pools; set "
-                    f"pool_grid=None or {name}={off!r}"
-                )
         if self.brightness_gate is not None and self.brightness_model != "gain":
             raise ValueError(
                 f"OmniFlowConfig.pool_grid = {self.pool_grid!r} with brightness_model = "
@@ -523,9 +479,7 @@ class OmniFlowConfig:
 
     @property
     def grid_pools(self) -> bool:
-        """Whether the pools are grid filters (``pool_grid``, omniflow.solve.gridpool); the
-        knobs that thin each pool by its neighbours (:data:`TREE_ONLY`) cannot be set with
-        it."""
+        """Whether the pools are grid filters (``pool_grid``, omniflow.solve.gridpool)."""
         return self.pool_grid is not None
 
     def replace(self, **changes) -> OmniFlowConfig:
