@@ -347,12 +347,9 @@ class OmniFlowConfig:
         "with static_test: only where the pool would have seen this much flow, px/frame",
         limits=(0.0, INF, False, False),
     )
-    min_conditioning: float = knob(
-        0.0, "drop points whose confidence is below this", limits=(0.0, 1.0, True, True)
-    )
     pool_min_conditioning: float = knob(
         1e-3,
-        "pooled solver: the floor of min_conditioning for the pooled system",
+        "pooled solver: drop points whose pooled system's confidence is below this",
         limits=(0.0, 1.0, True, True),
     )
     decouple_tol: float | None = knob(

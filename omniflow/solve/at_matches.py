@@ -249,17 +249,7 @@ def make_solver(
     if config.solver == "direct":
 
         def solve(f1_h, f1_th, f1_t, f2_h, f2_th, f2_t):
-            a, b, _ = direct_solution(
-                f1_h,
-                f1_th,
-                f1_t,
-                f2_h,
-                f2_th,
-                f2_t,
-                h1,
-                h2,
-                min_conditioning=config.min_conditioning,
-            )
+            a, b, _ = direct_solution(f1_h, f1_th, f1_t, f2_h, f2_th, f2_t, h1, h2)
             return a, b, direct_conditioning(f1_h, f1_th, f2_h, f2_th, h1, h2)
 
         solve.pools = None
@@ -282,7 +272,7 @@ def make_solver(
     else:
         idx, w = neighbourhoods(x1, y1, **tree)
 
-    floor = max(config.min_conditioning, config.pool_min_conditioning)
+    floor = config.pool_min_conditioning
     kw = dict(theta=theta, model=config.pool_model, scale=pool_radius,
               min_conditioning=floor)  # fmt: skip
 
