@@ -202,11 +202,6 @@ class OmniFlowConfig:
         "matched profile half-length, px; None: r_m/8",
         limits=(0.0, INF, False, False),
     )
-    patch_lines: int = knob(
-        0,
-        "robust matcher: neighbouring radial lines on each side in the patch",
-        limits=(0, INF, True, False),
-    )
     profile_step: float | None = knob(
         None,
         "robust matcher: spacing of the profile's samples, pixels; None: patch_radius / 16",
@@ -240,11 +235,6 @@ class OmniFlowConfig:
     )
     consistency_support: int = knob(
         2, "robust matcher: agreeing neighbours the vote needs", limits=(1, INF, True, False)
-    )
-    self_similarity: float = knob(
-        1.0,
-        "robust matcher: beat the line's own recurrence, factor on 1 - NCC; 1: off",
-        limits=(0.0, 1.0, False, True),
     )
     alias_score: float = knob(
         0.9,

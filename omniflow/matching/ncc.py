@@ -4,7 +4,7 @@
 line by line: the edges of both polar tables, the NCC of each significant
 edge of image 1 with the edges of image 2 inside its disparity window only,
 the best and second-best candidates, the polarity, uniqueness,
-self-similarity, periodic-alias and left-right tests, and the NCC at the
+periodic-alias and left-right tests, and the NCC at the
 neighbouring columns for the sub-pixel step. In numpy the same rule formed
 a dense (lines, edges, edges) NCC array by batched products and then masked
 everything outside the window; here nothing outside the window is scored.
@@ -119,14 +119,14 @@ def _all_edges(fh1, fh2, low, pad, n_h, cols1, n1, cols2, n2):  # pragma: no cov
 
 @numba.njit(cache=True, nogil=True)
 def _robust_lines(t1, t2, fh1, fh2, cols1, n1, cols2, n2, k0, k1, thr, lo, hi, w, stride,
-                  lines, floor, uniqueness, self_similarity, alias_score, tests, left_right,
+                  lines, floor, uniqueness, alias_score, tests, left_right,
                   ok, j2_out, s_out, n_sig, d1, have1, post, min_score, flatness, pad,
                   periodic, a_score, use2, a_score2, a_confirm, a_lo, a_hi, fin, c2_out,
                   score_out):  # pragma: no cover - compiled  # fmt: skip
     n_cols = t1.shape[1]
     length = (2 * lines + 1) * (2 * w + 1)
     do_uniqueness = tests[0]
-    lag_lo = (w * stride) // 2  # the self-similarity and alias tests' shortest lag
+    lag_lo = (w * stride) // 2  # the alias test's shortest lag
     lag_hi = hi - lo
     lo_col = w * stride
     hi_col = n_cols - 1 - w * stride
@@ -189,19 +189,6 @@ def _robust_lines(t1, t2, fh1, fh2, cols1, n1, cols2, n2, k0, k1, thr, lo, hi, w
                 if not (one - best) <= uniqueness * (one - second):
                     continue
             if tests[1]:
-                self_best = np.float32(-1.0)
-                for m in range(c1.size):
-                    lag = abs(c1[m] - j1)
-                    if lag >= lag_lo and lag <= lag_hi:
-                        if not have1[base + m]:  # made once, when first read
-                            _profile(t1, k, c1[m], w, stride, lines, d1, base + m)
-                            have1[base + m] = True
-                        a = _dot(d1, base + i, d1, base + m)
-                        if a > self_best:
-                            self_best = a
-                if not (one - best) <= self_similarity * (one - self_best):
-                    continue
-            if tests[2]:
                 # walk outward from j1 on each side: the profile recurs when its NCC
                 # exceeds alias_score at a lag >= lag_lo after falling below 0 nearer in
                 recurs = False
@@ -351,7 +338,7 @@ class LineSearch:
     def __init__(
         self, t1: NDArray, t2: NDArray, fh1: NDArray, fh2: NDArray, *, low: float, thr: float,
         pad: int, n_h: int, win: tuple[int, int], w: int, stride: int, lines: int,
-        floor: float, uniqueness: float, self_similarity: float, alias_score: float,
+        floor: float, uniqueness: float, alias_score: float,
         left_right: bool, min_score: float | None = None, flatness: float = 0.0,
         periodic: dict | None = None,
     ):  # fmt: skip
@@ -370,7 +357,7 @@ class LineSearch:
         n2 = np.zeros(n_theta, dtype=np.int64)
         _all_edges(fh1, fh2, f32(low), int(pad), int(n_h), cols1, n1, cols2, n2)
         # numpy's rule took the uniqueness test only when some line has two edges in image 2
-        tests = (uniqueness < 1.0 and int(n2.max()) > 1, self_similarity < 1.0, alias_score < 1.0)
+        tests = (uniqueness < 1.0 and int(n2.max()) > 1, alias_score < 1.0)
         # image 1's edges and their profiles, those the search made (kept for the alias test)
         per_line = max(int(n1.max()), 1)
         self.edges1 = EdgeProfiles(
@@ -391,8 +378,8 @@ class LineSearch:
             a_lo, a_hi = max(a_lo, a["columns2"][0]), min(a_hi, a["columns2"][1])
         self._args = (
             t1, t2, fh1, fh2, cols1, n1, cols2, n2, f32(thr), int(win[0]), int(win[1]), int(w),
-            int(stride), int(lines), f32(floor), f32(uniqueness), f32(self_similarity),
-            f32(alias_score), tests, bool(left_right), self.ok, self.j2, self.s, self.n_sig,
+            int(stride), int(lines), f32(floor), f32(uniqueness), f32(alias_score), tests,
+            bool(left_right), self.ok, self.j2, self.s, self.n_sig,
             self.edges1.d, self.edges1.have, post,
             # numpy compares a float32 array with a Python float in float32
             f32(min_score if post else 0.0), f32(flatness), self.pad,
@@ -431,7 +418,7 @@ class LineSearch:
 def robust_lines(
     t1: NDArray, t2: NDArray, fh1: NDArray, fh2: NDArray, *, low: float, thr: float,
     pad: int, n_h: int, win: tuple[int, int], w: int, stride: int, lines: int,
-    floor: float, uniqueness: float, self_similarity: float, alias_score: float,
+    floor: float, uniqueness: float, alias_score: float,
     left_right: bool, threads: int = 1, per_range=None,
 ) -> tuple[NDArray, NDArray, NDArray, int]:  # fmt: skip
     """The matches of :func:`~omniflow.matching.robust.match_robust` before its sub-pixel step.
@@ -454,8 +441,8 @@ def robust_lines(
     """
     search = LineSearch(
         t1, t2, fh1, fh2, low=low, thr=thr, pad=pad, n_h=n_h, win=win, w=w, stride=stride,
-        lines=lines, floor=floor, uniqueness=uniqueness, self_similarity=self_similarity,
-        alias_score=alias_score, left_right=left_right,
+        lines=lines, floor=floor, uniqueness=uniqueness, alias_score=alias_score,
+        left_right=left_right,
     )  # fmt: skip
     ranges = search.ranges(threads)
     if len(ranges) > 1:

@@ -36,7 +36,7 @@ Two methods:
     differences of the blurred table) above the threshold; candidates are the
     edges of image 2 inside the disparity window. The score is the normalised
     cross-correlation (NCC) of the radial intensity profiles, +-
-    ``patch_radius`` px around each edge (on 2 ``patch_lines`` + 1 lines). A
+    ``patch_radius`` px around each edge, on its own line. A
     match must have the same edge polarity, score at least ``min_score``, be
     unique ((1 - NCC) of the best at most ``uniqueness`` times that of the
     second best edge) and pass a left-right check (matching image 2's edge
@@ -86,7 +86,7 @@ from numpy.typing import NDArray
 from omniflow import parallel
 from omniflow.geometry.rig import Rig
 from omniflow.matching.dense import densify, grown_from, smooth_profiles
-from omniflow.matching.robust import RobustSearch
+from omniflow.matching.robust import PATCH_LINES, RobustSearch
 from omniflow.matching.tables import (
     PolarGrids,
     abs_percentile,
@@ -190,7 +190,6 @@ def match_radial(
     h_min: float = 16.0,
     rim_margin: float = 4.0,
     patch_radius: float | None = None,
-    patch_lines: int = 0,
     profile_step: float | None = None,
     min_score: float = 0.95,
     uniqueness: float = 0.5,
@@ -199,7 +198,6 @@ def match_radial(
     tangential_blur: float = 0.02,
     consistency: float = 1.0,
     consistency_support: int = 2,
-    self_similarity: float = 1.0,
     flatness: float = 0.5,
     alias_score: float = 0.9,
     alias_image2: float = 0.9,
@@ -227,9 +225,9 @@ def match_radial(
         The significant points and the search's geometry: the same-named fields of
         :class:`omniflow.config.OmniFlowConfig`. r_min defaults to
         :attr:`Rig.min_common_range`, the nearest range both units can see.
-    patch_radius, patch_lines, profile_step, min_score, uniqueness, left_right,\
+    patch_radius, profile_step, min_score, uniqueness, left_right,\
     candidate_fraction, tangential_blur, consistency, consistency_support,\
-    self_similarity, flatness, alias_score, alias_image2, alias_period,\
+    flatness, alias_score, alias_image2, alias_period,\
     dense_percentile, dense_reach, dense_smooth, edge_smooth, edge_smooth_floor,\
     short_patch
         ``robust`` only: the robust matcher's tests, documented once on the
@@ -283,9 +281,8 @@ def _checked_args(rig: Rig, kw: dict) -> tuple[dict, float | None]:
         o["patch_radius"] = rig.cam1.r_m / 8.0
     if o["profile_step"] is None:
         o["profile_step"] = o["patch_radius"] / 16.0
-    if not (o["h_step"] > 0 and o["n_theta"] >= 8 and o["patch_radius"] > 0
-            and o["patch_lines"] >= 0):  # fmt: skip
-        raise ValueError("expected h_step > 0, n_theta >= 8, patch_radius > 0, patch_lines >= 0")
+    if not (o["h_step"] > 0 and o["n_theta"] >= 8 and o["patch_radius"] > 0):
+        raise ValueError("expected h_step > 0, n_theta >= 8, patch_radius > 0")
     r_min, r_max = o["r_min"], o["r_max"]
     r_min = o["r_min"] = rig.min_common_range if r_min is None else float(r_min)
     if not (0 <= r_min < r_max):
@@ -333,9 +330,9 @@ def _run_passes(
 #: match_radial's arguments that one pass (:func:`_prepare`) reads
 _PASS_ARGS = (
     "method", "threshold_percentile", "min_gradient", "r_min", "r_max", "n_theta", "h_step",
-    "h_min", "rim_margin", "patch_radius", "patch_lines", "profile_step", "min_score",
+    "h_min", "rim_margin", "patch_radius", "profile_step", "min_score",
     "uniqueness", "left_right", "candidate_fraction", "tangential_blur", "consistency",
-    "consistency_support", "self_similarity", "flatness", "alias_score", "alias_image2",
+    "consistency_support", "flatness", "alias_score", "alias_image2",
     "alias_period", "dense_percentile", "dense_reach", "dense_smooth", "edge_smooth",
     "edge_smooth_floor",
 )  # fmt: skip
@@ -444,9 +441,9 @@ def _prepare(
         p.paper = match_paper(tab, fh1, fh2, ft1, ft2, thr)
     else:
         p.search = RobustSearch(
-            tab, fh1, fh2, t1, t2, thr, w=w, stride=stride, patch_lines=o["patch_lines"],
-            min_score=o["min_score"], uniqueness=o["uniqueness"], left_right=o["left_right"],
-            candidate_fraction=o["candidate_fraction"], self_similarity=o["self_similarity"],
+            tab, fh1, fh2, t1, t2, thr, w=w, stride=stride, min_score=o["min_score"],
+            uniqueness=o["uniqueness"], left_right=o["left_right"],
+            candidate_fraction=o["candidate_fraction"],
             # the periodic-alias test (omniflow.matching.periodic.not_periodic) on the
             # matches that passed the sub-pixel step, not on every candidate
             flatness=o["flatness"], alias_score=1.0,
@@ -479,7 +476,7 @@ def _finish(p: _Pass) -> Matches:
     if method == "robust" and o["edge_smooth"] < 1.0 and np.any(ok):
         idx = np.nonzero(ok)[0]  # a ramp's match is not placed by its NCC
         ramp = smooth_profiles(t1, k1[idx], j1[idx] + pad, w=w, stride=stride,
-                               lines=o["patch_lines"], smooth=o["edge_smooth"])  # fmt: skip
+                               lines=PATCH_LINES, smooth=o["edge_smooth"])  # fmt: skip
         if o["edge_smooth_floor"] is None:
             ok[idx[ramp]] = False
         else:
@@ -499,7 +496,7 @@ def _finish(p: _Pass) -> Matches:
         reach = max(1, round(o["dense_reach"] * o["patch_radius"] / h_step))
         dk, dj, dc, ds, n_tried = densify(
             tab, fh1, t1, t2, (k1[ok], j1[ok], c2[ok]), max(thr_d, float(o["min_gradient"])),
-            w=w, stride=stride, lines=o["patch_lines"], min_score=o["min_score"],
+            w=w, stride=stride, lines=PATCH_LINES, min_score=o["min_score"],
             reach=reach, flatness=o["flatness"], smooth=o["dense_smooth"],
         )  # fmt: skip
         n_sig += n_tried

@@ -17,6 +17,11 @@ from omniflow.paper.matching import TableGeometry
 
 __all__ = ["Descriptors", "RobustSearch", "match_robust"]
 
+#: Neighbouring radial lines on each side in the matched profile: none, the profile is one
+#: line's (1 or 2 lost the movers their points, docs/decisions/matching.md; the profile
+#: kernels keep the general case, which tests/omniflow/test_preset_equivalence.py checks).
+PATCH_LINES = 0
+
 
 class Descriptors:
     """Zero-mean, unit-norm polar patches of one table (the robust rule's profiles).
@@ -132,9 +137,9 @@ class RobustSearch:
     """
 
     def __init__(
-        self, tab: TableGeometry, fh1, fh2, t1, t2, thr, *, w, stride, patch_lines, min_score,
-        uniqueness, left_right, candidate_fraction, self_similarity=1.0, flatness=0.0,
-        alias_score=1.0, periodic: dict | None = None, threads: int = 1,
+        self, tab: TableGeometry, fh1, fh2, t1, t2, thr, *, w, stride, min_score, uniqueness,
+        left_right, candidate_fraction, flatness=0.0, alias_score=1.0,
+        periodic: dict | None = None, threads: int = 1,
     ):  # fmt: skip
         # the NCC at whole columns can sit below its peak between them by up to
         # ~(1 - peak) (h_step / correlation length)^2; take a looser floor here
@@ -142,8 +147,8 @@ class RobustSearch:
         floor = min_score - 0.5 * (1.0 - min_score)
         self.search = LineSearch(
             t1, t2, fh1, fh2, low=candidate_fraction * thr, thr=thr, pad=tab.pad, n_h=tab.n_h,
-            win=tab.win, w=w, stride=stride, lines=patch_lines, floor=floor,
-            uniqueness=uniqueness, self_similarity=self_similarity, alias_score=alias_score,
+            win=tab.win, w=w, stride=stride, lines=PATCH_LINES, floor=floor,
+            uniqueness=uniqueness, alias_score=alias_score,
             left_right=left_right, min_score=min_score, flatness=flatness, periodic=periodic,
         )  # fmt: skip
         self.ranges = self.search.ranges(threads)
@@ -172,12 +177,10 @@ def match_robust(
     *,
     w,
     stride,
-    patch_lines,
     min_score,
     uniqueness,
     left_right,
     candidate_fraction,
-    self_similarity=1.0,
     flatness=0.0,
     alias_score=1.0,
 ):
@@ -186,7 +189,7 @@ def match_robust(
     The edges are the local maxima of |f_h| along a line above
     candidate_fraction * thr; each significant edge of image 1 (above thr)
     is scored against the edges of image 2 inside its disparity window, and
-    the best kept when it passes the polarity, uniqueness, self-similarity,
+    the best kept when it passes the polarity, uniqueness,
     periodic-alias (:func:`~omniflow.matching.ncc.robust_lines`, a compiled
     loop over the lines that scores nothing outside the windows) and
     left-right tests. Last, h_2 is refined to sub-pixel and the match kept
@@ -196,9 +199,8 @@ def match_robust(
     (:class:`RobustSearch` is the same in steps).
     """
     search = RobustSearch(
-        tab, fh1, fh2, t1, t2, thr, w=w, stride=stride, patch_lines=patch_lines,
-        min_score=min_score, uniqueness=uniqueness, left_right=left_right,
-        candidate_fraction=candidate_fraction, self_similarity=self_similarity,
+        tab, fh1, fh2, t1, t2, thr, w=w, stride=stride, min_score=min_score,
+        uniqueness=uniqueness, left_right=left_right, candidate_fraction=candidate_fraction,
         flatness=flatness, alias_score=alias_score, threads=parallel.THREADS,
     )  # fmt: skip
     if len(search.ranges) > 1:

@@ -401,24 +401,6 @@ def test_periodic_walls_at_most_2_percent_outliers():
         assert _outlier_rate(scene, on) <= 0.005
 
 
-def test_self_similarity_rejects_most_periodic_aliases():
-    """The older, costlier periodic-alias test (self_similarity, off by default),
-    measured with the newer test off (alias_score = 1): a 0.1 m striped wall at
-    3 m (disparity 36 px, image period 12 px, every alias as good as the truth)
-    2201 matches all wrong without it, 100 all wrong with 0.5; 0.15 m at 2 m:
-    178 of 853 wrong -> 46 of 669. Bounds: 10x fewer wrong matches at 3 m,
-    2x at 2 m."""
-    rig = paper_rig()
-    for (period, radius), factor in (((0.1, 3.0), 10.0), ((0.15, 2.0), 2.0)):
-        scene = _periodic_wall(rig, period, radius)
-        f1, f2 = _fits(scene)
-        wrong = []
-        for ss in (1.0, 0.5):
-            m = match_radial(f1, f2, rig, self_similarity=ss, alias_score=1.0)
-            wrong.append(_outlier_rate(scene, m) * len(m))
-        assert wrong[1] * factor <= wrong[0], (period, radius, wrong)
-
-
 def test_densify_grows_matches_without_outliers():
     """The densification (dense_percentile 60; off by default) matches the
     textured samples near each edge match at its disparity: measured on the

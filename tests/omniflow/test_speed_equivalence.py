@@ -13,9 +13,9 @@ checkout of it::
 (run from this repository's root; the script imports omniflow and the test
 helpers from /tmp/speed_ref, so the figures are that commit's). The cases
 cover the default matcher (long and short pass, left-right check, alias
-test), a thin textured pole in front of the wall (the short pass's job), and
-a configuration that also takes the self-similarity test, multi-line patches
-and a sharper uniqueness test.
+test) and a thin textured pole in front of the wall (the short pass's job). (A third
+case, with the self-similarity test and multi-line patches, went with those knobs:
+docs/decisions/retired_knobs.md.)
 """
 
 from __future__ import annotations
@@ -67,10 +67,6 @@ def cases() -> dict[str, tuple[bool, OmniFlowConfig]]:
     return {
         "room": (False, OmniFlowConfig()),
         "room_pole": (True, OmniFlowConfig()),
-        "room_pole_lines": (
-            True,
-            OmniFlowConfig(patch_lines=1, self_similarity=0.8, uniqueness=0.3),
-        ),
     }
 
 
