@@ -86,7 +86,7 @@ from numpy.typing import NDArray
 from omniflow import parallel
 from omniflow.geometry.rig import Rig
 from omniflow.matching.dense import densify, grown_from, smooth_profiles
-from omniflow.matching.robust import PATCH_LINES, RobustSearch
+from omniflow.matching.robust import RobustSearch
 from omniflow.matching.tables import (
     PolarGrids,
     abs_percentile,
@@ -476,7 +476,7 @@ def _finish(p: _Pass) -> Matches:
     if method == "robust" and o["edge_smooth"] < 1.0 and np.any(ok):
         idx = np.nonzero(ok)[0]  # a ramp's match is not placed by its NCC
         ramp = smooth_profiles(t1, k1[idx], j1[idx] + pad, w=w, stride=stride,
-                               lines=PATCH_LINES, smooth=o["edge_smooth"])  # fmt: skip
+                               smooth=o["edge_smooth"])  # fmt: skip
         if o["edge_smooth_floor"] is None:
             ok[idx[ramp]] = False
         else:
@@ -496,7 +496,7 @@ def _finish(p: _Pass) -> Matches:
         reach = max(1, round(o["dense_reach"] * o["patch_radius"] / h_step))
         dk, dj, dc, ds, n_tried = densify(
             tab, fh1, t1, t2, (k1[ok], j1[ok], c2[ok]), max(thr_d, float(o["min_gradient"])),
-            w=w, stride=stride, lines=PATCH_LINES, min_score=o["min_score"],
+            w=w, stride=stride, min_score=o["min_score"],
             reach=reach, flatness=o["flatness"], smooth=o["dense_smooth"],
         )  # fmt: skip
         n_sig += n_tried

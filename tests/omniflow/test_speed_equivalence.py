@@ -161,8 +161,8 @@ def test_rim_fill_equals_whole_image_remap(rig_name):
         np.testing.assert_array_equal(out, ref)
 
 
-@pytest.mark.parametrize(("w", "stride", "lines"), [(16, 1, 0), (16, 2, 0), (8, 3, 2)])
-def test_kernel_profiles_equal_descriptors(w, stride, lines):
+@pytest.mark.parametrize(("w", "stride"), [(16, 1), (16, 2), (8, 3)])
+def test_kernel_profiles_equal_descriptors(w, stride):
     """The compiled profiles (the matcher's, and Descriptors') are main's whole-table
     Descriptors' (now TableDescriptors), bit for bit; so are indices off the table's
     profile range (Descriptors hands them to TableDescriptors)."""
@@ -176,16 +176,16 @@ def test_kernel_profiles_equal_descriptors(w, stride, lines):
     table = cv2.GaussianBlur(table, (1, 9), 0)
     k = rng.integers(0, 90, 3000)
     j = rng.integers(w * stride, 200 - w * stride, 3000)
-    ref = TableDescriptors(table, w, stride, lines)(k, j)
+    ref = TableDescriptors(table, w, stride)(k, j)
     out = np.empty_like(ref)
     for i in range(k.size):
-        _profile(table, k[i], j[i], w, stride, lines, out, i)
+        _profile(table, k[i], j[i], w, stride, out, i)
     np.testing.assert_array_equal(out, ref)
-    desc = Descriptors(table, w, stride, lines)
+    desc = Descriptors(table, w, stride)
     np.testing.assert_array_equal(
         desc(k.reshape(50, 60), j.reshape(50, 60)), ref.reshape(50, 60, -1)
     )
     edge = np.array([0, w * stride - 1, 200 - w * stride])  # windows leaving the table
     np.testing.assert_array_equal(
-        desc(k[:3], edge), TableDescriptors(table, w, stride, lines)(k[:3], edge)
+        desc(k[:3], edge), TableDescriptors(table, w, stride)(k[:3], edge)
     )
