@@ -210,10 +210,10 @@ class OmniFlowConfig:
     min_score: float = knob(
         0.95, "robust matcher: smallest NCC accepted", limits=(-1.0, 1.0, True, True)
     )
-    uniqueness: float = knob(
+    uniqueness: float | None = knob(
         0.5,
-        "robust matcher: accept when 1 - NCC_best <= this x (1 - NCC_second); 1: off",
-        limits=(0.0, 1.0, False, True),
+        "robust matcher: accept when 1 - NCC_best <= this x (1 - NCC_second); None: off",
+        limits=(0.0, 1.0, False, False),
     )
     left_right: bool = knob(True, "robust matcher: require the left-right consistency check")
     candidate_fraction: float = knob(
@@ -223,23 +223,23 @@ class OmniFlowConfig:
     )
     # 1 rad already averages a third of the circle; above ~3 rad the matcher's table is
     # empty (measured: 1.6 runs, 3.2 fails)
-    tangential_blur: float = knob(
+    tangential_blur: float | None = knob(
         0.02,
-        "robust matcher: Gaussian blur across the radial lines, radians; 0: off",
-        limits=(0.0, 1.0, True, True),
+        "robust matcher: Gaussian blur across the radial lines, radians; None: off",
+        limits=(0.0, 1.0, False, True),
     )
-    consistency: float = knob(
+    consistency: float | None = knob(
         1.0,
-        "robust matcher: disparity consistency vote, pixels; 0: off",
-        limits=(0.0, INF, True, False),
+        "robust matcher: disparity consistency vote, pixels; None: off",
+        limits=(0.0, INF, False, False),
     )
     consistency_support: int = knob(
         2, "robust matcher: agreeing neighbours the vote needs", limits=(1, INF, True, False)
     )
-    alias_score: float = knob(
+    alias_score: float | None = knob(
         0.9,
-        "robust matcher: drop a match whose profile recurs on its line above this NCC; 1: off",
-        limits=(-1.0, 1.0, True, True),
+        "robust matcher: drop a match whose profile recurs on its line above this NCC; None: off",
+        limits=(-1.0, 1.0, True, False),
     )
     alias_image2: float = knob(
         0.9,
@@ -251,40 +251,41 @@ class OmniFlowConfig:
         "robust matcher: past image 2's rim, drop only on a second recurrence above this NCC",
         limits=(-1.0, 1.0, True, True),
     )
-    flatness: float = knob(
+    flatness: float | None = knob(
         0.5,
-        "robust matcher: keep a match whose NCC peak is sharp, 1 - NCC <= this x curvature; 0: off",
-        limits=(0.0, INF, True, False),
+        "robust matcher: keep a match whose NCC peak is sharp, 1 - NCC <= this x curvature; "
+        "None: off",
+        limits=(0.0, INF, False, False),
     )
-    dense_percentile: float = knob(
-        100.0,
-        "also match above this percentile; 100: off",
-        limits=(0.0, 100.0, True, True),
+    dense_percentile: float | None = knob(
+        None,
+        "also match above this percentile; None: off",
+        limits=(0.0, 100.0, True, False),
     )
     dense_reach: float = knob(
         1.0,
         "robust matcher: how far along the line a match's disparity is tried, patch radii",
         limits=(0.0, INF, False, False),
     )
-    dense_smooth: float = knob(
-        1.0,
-        "robust matcher: drop smooth densified matches (self-NCC above this); 1: off",
-        limits=(-1.0, 1.0, True, True),
+    dense_smooth: float | None = knob(
+        None,
+        "robust matcher: drop smooth densified matches (self-NCC above this); None: off",
+        limits=(-1.0, 1.0, True, False),
     )
-    edge_smooth: float = knob(
+    edge_smooth: float | None = knob(
         0.95,
-        "robust matcher: the smooth-profile test on the search's own matches; 1: off",
-        limits=(-1.0, 1.0, True, True),
+        "robust matcher: the smooth-profile test on the search's own matches; None: off",
+        limits=(-1.0, 1.0, True, False),
     )
     edge_smooth_floor: float | None = knob(
         0.015,
         "with edge_smooth: keep smooth matches with pool conditioning >= this; None: drop",
         limits=(0.0, 1.0, True, True),
     )
-    short_patch: float = knob(
+    short_patch: float | None = knob(
         0.5,
-        "robust matcher: a second pass with profiles this fraction long; 0: off",
-        limits=(0.0, 1.0, True, False),
+        "robust matcher: a second pass with profiles this fraction long; None: off",
+        limits=(0.0, 1.0, False, False),
     )
     gradients: str = knob(
         "average",
