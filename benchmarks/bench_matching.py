@@ -17,9 +17,9 @@ The scored points are the flow step's columns, so the figures agree with
 ``omnivalidate --variants default`` for the default configuration. Run::
 
     python benchmarks/bench_matching.py runs/default/dataset runs/crossing/dataset
-    python benchmarks/bench_matching.py runs/default/dataset --set dense_percentile=100
+    python benchmarks/bench_matching.py runs/default/dataset --set dense_percentile=none
     python benchmarks/bench_matching.py runs/default/dataset --table "edges only" \\
-        --set dense_percentile=100 --json out.json
+        --set dense_percentile=none --json out.json
 
 ``--table NAME`` prints one markdown row (all datasets) instead of a block
 per dataset.
@@ -91,7 +91,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("datasets", nargs="+", help="omnisim dataset directories")
     parser.add_argument(
         "--set", action="append", default=[], metavar="NAME=VALUE",
-        help="OmniFlowConfig field to change (repeatable), e.g. --set dense_percentile=100",
+        help="OmniFlowConfig field to change (repeatable), e.g. --set dense_percentile=none",
     )  # fmt: skip
     parser.add_argument("--table", metavar="NAME", help="print one markdown row named NAME")
     parser.add_argument("--json", metavar="PATH", help="also write the results as JSON here")

@@ -27,11 +27,8 @@ SAMPLINGS = ("cubic", "linear", "exact")
 RIM_FILLS = ("reflect", "none")
 POOL_MODELS = ("linear", "constant")
 EIVS = ("correct", "residual", "none")
-BAND_RULES = ("gain", "variance")
 SHADING_WHERE = ("everywhere", "moving")
 BRIGHTNESS_MODELS = ("linear", "gain")
-#: Weightings of the two units' equations in :func:`omniflow.solve.pooled.pooled_solution`.
-UNIT_WEIGHTINGS = ("equal", "global", "local")
 
 
 def knob(default: Any, help: str, *, limits: Limits | None = None,
@@ -121,16 +118,6 @@ PUBLIC_FIELDS = (
     "decouple_tol", "brightness_gate", "monocular_gap",
 )  # fmt: skip
 
-#: The knobs that thin each pool by its neighbours: they need the k-d tree's pools, so
-#: they cannot be combined with ``pool_grid`` (the value each has when off).
-TREE_ONLY = {
-    "pool_unit_weighting": "equal",
-    "pool_edge_tol": None,
-    "pool_residual_tol": None,
-    "pool_flow_tol": None,
-    "pool_min_info": None,
-}
-
 
 @dataclass(frozen=True)
 class OmniFlowConfig:
@@ -160,9 +147,6 @@ class OmniFlowConfig:
         "DCT band matched on, P = band W (eq. 17)",
         limits=(0.0, 1.0, False, True),
     )
-    match_band: float | None = knob(
-        None, "narrower band for the matched image; None: band", limits=(0.0, 1.0, False, True)
-    )
     flow_band: float | None = knob(
         0.5,
         "DCT band of the flow step; None: per pair",
@@ -172,26 +156,6 @@ class OmniFlowConfig:
         0.5,
         "fraction of the flow band rolled off to 0 (cos^2); 0: the sharp truncation of eq. (18)",
         limits=(0.0, 1.0, True, True),
-    )
-    flow_band_rule: str = knob(
-        "gain",
-        "with flow_band None: keep flow_band_gain of the gradient power, or least variance",
-        choices=BAND_RULES,
-    )
-    flow_band_tolerance: float = knob(
-        1.35,
-        "flow_band_rule 'variance': the factor over the least variance allowed",
-        limits=(1.0, INF, True, False),
-    )
-    flow_band_gain: float = knob(
-        0.99,
-        "flow_band_rule 'gain': the least signal share of the gradient power kept",
-        limits=(0.0, 1.0, False, False),
-    )
-    noise_sigma: float | None = knob(
-        None,
-        "image noise, grey levels of [0, 1] images; None: Immerkaer's estimate per unit",
-        limits=(0.0, INF, True, False),
     )
     eiv: str = knob(
         "residual",
@@ -238,11 +202,6 @@ class OmniFlowConfig:
         "matched profile half-length, px; None: r_m/8",
         limits=(0.0, INF, False, False),
     )
-    patch_lines: int = knob(
-        0,
-        "robust matcher: neighbouring radial lines on each side in the patch",
-        limits=(0, INF, True, False),
-    )
     profile_step: float | None = knob(
         None,
         "robust matcher: spacing of the profile's samples, pixels; None: patch_radius / 16",
@@ -251,10 +210,10 @@ class OmniFlowConfig:
     min_score: float = knob(
         0.95, "robust matcher: smallest NCC accepted", limits=(-1.0, 1.0, True, True)
     )
-    uniqueness: float = knob(
+    uniqueness: float | None = knob(
         0.5,
-        "robust matcher: accept when 1 - NCC_best <= this x (1 - NCC_second); 1: off",
-        limits=(0.0, 1.0, False, True),
+        "robust matcher: accept when 1 - NCC_best <= this x (1 - NCC_second); None: off",
+        limits=(0.0, 1.0, False, False),
     )
     left_right: bool = knob(True, "robust matcher: require the left-right consistency check")
     candidate_fraction: float = knob(
@@ -264,28 +223,23 @@ class OmniFlowConfig:
     )
     # 1 rad already averages a third of the circle; above ~3 rad the matcher's table is
     # empty (measured: 1.6 runs, 3.2 fails)
-    tangential_blur: float = knob(
+    tangential_blur: float | None = knob(
         0.02,
-        "robust matcher: Gaussian blur across the radial lines, radians; 0: off",
-        limits=(0.0, 1.0, True, True),
+        "robust matcher: Gaussian blur across the radial lines, radians; None: off",
+        limits=(0.0, 1.0, False, True),
     )
-    consistency: float = knob(
+    consistency: float | None = knob(
         1.0,
-        "robust matcher: disparity consistency vote, pixels; 0: off",
-        limits=(0.0, INF, True, False),
+        "robust matcher: disparity consistency vote, pixels; None: off",
+        limits=(0.0, INF, False, False),
     )
     consistency_support: int = knob(
         2, "robust matcher: agreeing neighbours the vote needs", limits=(1, INF, True, False)
     )
-    self_similarity: float = knob(
-        1.0,
-        "robust matcher: beat the line's own recurrence, factor on 1 - NCC; 1: off",
-        limits=(0.0, 1.0, False, True),
-    )
-    alias_score: float = knob(
+    alias_score: float | None = knob(
         0.9,
-        "robust matcher: drop a match whose profile recurs on its line above this NCC; 1: off",
-        limits=(-1.0, 1.0, True, True),
+        "robust matcher: drop a match whose profile recurs on its line above this NCC; None: off",
+        limits=(-1.0, 1.0, True, False),
     )
     alias_image2: float = knob(
         0.9,
@@ -297,40 +251,41 @@ class OmniFlowConfig:
         "robust matcher: past image 2's rim, drop only on a second recurrence above this NCC",
         limits=(-1.0, 1.0, True, True),
     )
-    flatness: float = knob(
+    flatness: float | None = knob(
         0.5,
-        "robust matcher: keep a match whose NCC peak is sharp, 1 - NCC <= this x curvature; 0: off",
-        limits=(0.0, INF, True, False),
+        "robust matcher: keep a match whose NCC peak is sharp, 1 - NCC <= this x curvature; "
+        "None: off",
+        limits=(0.0, INF, False, False),
     )
-    dense_percentile: float = knob(
-        100.0,
-        "also match above this percentile; 100: off",
-        limits=(0.0, 100.0, True, True),
+    dense_percentile: float | None = knob(
+        None,
+        "also match above this percentile; None: off",
+        limits=(0.0, 100.0, True, False),
     )
     dense_reach: float = knob(
         1.0,
         "robust matcher: how far along the line a match's disparity is tried, patch radii",
         limits=(0.0, INF, False, False),
     )
-    dense_smooth: float = knob(
-        1.0,
-        "robust matcher: drop smooth densified matches (self-NCC above this); 1: off",
-        limits=(-1.0, 1.0, True, True),
+    dense_smooth: float | None = knob(
+        None,
+        "robust matcher: drop smooth densified matches (self-NCC above this); None: off",
+        limits=(-1.0, 1.0, True, False),
     )
-    edge_smooth: float = knob(
+    edge_smooth: float | None = knob(
         0.95,
-        "robust matcher: the smooth-profile test on the search's own matches; 1: off",
-        limits=(-1.0, 1.0, True, True),
+        "robust matcher: the smooth-profile test on the search's own matches; None: off",
+        limits=(-1.0, 1.0, True, False),
     )
     edge_smooth_floor: float | None = knob(
         0.015,
         "with edge_smooth: keep smooth matches with pool conditioning >= this; None: drop",
         limits=(0.0, 1.0, True, True),
     )
-    short_patch: float = knob(
+    short_patch: float | None = knob(
         0.5,
-        "robust matcher: a second pass with profiles this fraction long; 0: off",
-        limits=(0.0, 1.0, True, False),
+        "robust matcher: a second pass with profiles this fraction long; None: off",
+        limits=(0.0, 1.0, False, False),
     )
     gradients: str = knob(
         "average",
@@ -373,31 +328,6 @@ class OmniFlowConfig:
         "pooled solver: local flow model, linear in theta or constant",
         choices=POOL_MODELS,
     )
-    pool_flow_tol: float | None = knob(
-        None,
-        "pooled solver: second pass without neighbours whose flow differs by more, px/frame",
-        limits=(0.0, INF, False, False),
-    )
-    pool_unit_weighting: str = knob(
-        "equal",
-        "pooled solver: weight of each unit's equations, alike or by residual variance",
-        choices=UNIT_WEIGHTINGS,
-    )
-    pool_edge_tol: float | None = knob(
-        None,
-        "pooled solver: leave out neighbours behind an edge this many times the typical one",
-        limits=(0.0, INF, False, False),
-    )
-    pool_residual_tol: float | None = knob(
-        None,
-        "pooled solver: second pass without neighbours missing the flow by more robust sigmas",
-        limits=(0.0, INF, False, False),
-    )
-    pool_min_info: float | None = knob(
-        None,
-        "pooled solver: grow each pool until it holds this many typical points' information",
-        limits=(0.0, INF, False, False),
-    )
     static_test: float | None = knob(
         None,
         "pooled solver: zero flow where the pool's Wald statistic of motion is below this",
@@ -408,12 +338,9 @@ class OmniFlowConfig:
         "with static_test: only where the pool would have seen this much flow, px/frame",
         limits=(0.0, INF, False, False),
     )
-    min_conditioning: float = knob(
-        0.0, "drop points whose confidence is below this", limits=(0.0, 1.0, True, True)
-    )
     pool_min_conditioning: float = knob(
         1e-3,
-        "pooled solver: the floor of min_conditioning for the pooled system",
+        "pooled solver: drop points whose pooled system's confidence is below this",
         limits=(0.0, 1.0, True, True),
     )
     decouple_tol: float | None = knob(
@@ -480,13 +407,6 @@ class OmniFlowConfig:
         """Raise naming both knobs where one would silently cancel the other."""
         if self.pool_grid is None:
             return
-        for name, off in TREE_ONLY.items():
-            if getattr(self, name) != off:
-                raise ValueError(
-                    f"OmniFlowConfig.pool_grid = {self.pool_grid!r} with {name} = "
-                    f"{getattr(self, name)!r}: {name} needs the k-d tree's pools; set "
-                    f"pool_grid=None or {name}={off!r}"
-                )
         if self.brightness_gate is not None and self.brightness_model != "gain":
             raise ValueError(
                 f"OmniFlowConfig.pool_grid = {self.pool_grid!r} with brightness_model = "
@@ -547,9 +467,7 @@ class OmniFlowConfig:
 
     @property
     def grid_pools(self) -> bool:
-        """Whether the pools are grid filters (``pool_grid``, omniflow.solve.gridpool); the
-        knobs that thin each pool by its neighbours (:data:`TREE_ONLY`) cannot be set with
-        it."""
+        """Whether the pools are grid filters (``pool_grid``, omniflow.solve.gridpool)."""
         return self.pool_grid is not None
 
     def replace(self, **changes) -> OmniFlowConfig:

@@ -54,7 +54,6 @@ from omniflow.fit.series import (
     choose_flow_band,
     fill_outside_rim,
     fit_band,
-    match_frame,
     needs_noise_sigma,
     noise_variance,
     unit_fits,
@@ -233,7 +232,7 @@ def matching_grid(a: Frame, config: OmniFlowConfig) -> PolarGrids:
     if config.match_method == "paper":  # the polar edge finder's f_h, f_theta
         return PolarGrids(f=a.f, f_h=a.grad[0], f_theta=a.grad[1])
     # the robust matcher differentiates its polar table of f
-    return PolarGrids(f=match_frame(a, config).f, f_h=None)
+    return PolarGrids(f=a.f, f_h=None)
 
 
 def stereo_matches(
@@ -254,7 +253,6 @@ def stereo_matches(
         h_min=config.h_min,
         rim_margin=config.rim_margin,
         patch_radius=config.patch_radius,
-        patch_lines=config.patch_lines,
         profile_step=config.profile_step,
         min_score=config.min_score,
         uniqueness=config.uniqueness,
@@ -263,7 +261,6 @@ def stereo_matches(
         tangential_blur=config.tangential_blur,
         consistency=config.consistency,
         consistency_support=config.consistency_support,
-        self_similarity=config.self_similarity,
         flatness=config.flatness,
         alias_score=config.alias_score,
         alias_image2=config.alias_image2,

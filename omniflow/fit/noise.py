@@ -19,11 +19,8 @@ signal above the noise depends on the images; this module measures both.
   gradient's power that is signal, S / (S + N), from the fit's own
   coefficients: the expected shrink factor of a least-squares flow whose
   gradients carry that noise.
-* :func:`predicted_variance`: per candidate band, the relative variance of a
-  least-squares flow (fitted-value noise over signal gradient power).
 * :func:`choose_band`: the widest candidate band whose predicted gain is at
-  least ``min_gain``, or whose predicted variance is within ``tolerance`` of
-  the least.
+  least ``min_gain``.
 """
 
 from __future__ import annotations
@@ -43,7 +40,6 @@ __all__ = [
     "gradient_noise_variance",
     "immerkaer_sigma",
     "predicted_gain",
-    "predicted_variance",
 ]
 
 #: Bands :func:`choose_band` picks from by default (fractions of each axis). At most 1/2:
@@ -229,70 +225,24 @@ def predicted_gain(
     return out
 
 
-def predicted_variance(
-    fit: DCTFit, sigma: float, bands: Sequence[float] = BAND_CANDIDATES
-) -> NDArray:
-    """Relative variance of a least-squares flow per band: P Q / S, S the signal gradient power.
-
-    Noise of standard deviation sigma leaves each fitted value (and so f_t)
-    with variance proportional to sigma^2 P Q / (X Y); a least-squares flow
-    divides it by the gradient power of the signal, S of
-    :func:`predicted_gain`. Widening the band adds terms to both: it pays
-    while the texture still has gradient power above the noise there.
-
-    Returns
-    -------
-    ndarray, shape (len(bands),)
-        P Q / S, in arbitrary units (compare bands with each other); inf
-        where S = 0.
-    """
-    power = _orthonormal_power(fit)
-    wq = (np.pi * np.arange(fit.Q) / fit.height) ** 2
-    wp = (np.pi * np.arange(fit.P) / fit.width) ** 2
-    sig = np.maximum(power - float(sigma) ** 2, 0.0)
-    out = np.empty(len(bands))
-    for i, b in enumerate(bands):
-        q = min(fit.Q, max(1, round(b * fit.height)))
-        p = min(fit.P, max(1, round(b * fit.width)))
-        block = sig[:q, :p]
-        S = float(wq[:q] @ block.sum(axis=1) + block.sum(axis=0) @ wp[:p])
-        out[i] = p * q / S if S > 0 else np.inf
-    return out
-
-
 def choose_band(
     fit: DCTFit,
     sigma: float,
     *,
-    rule: str = "gain",
     min_gain: float = 0.9,
-    tolerance: float = 1.35,
     bands: Sequence[float] = BAND_CANDIDATES,
     frames: int = 1,
 ) -> float:
     """The flow step's band for this image and noise.
 
-    ``rule="gain"``: the widest band whose :func:`predicted_gain` is at least
-    ``min_gain`` (the narrowest if none). ``rule="variance"``: the widest
-    band whose :func:`predicted_variance` is at most ``tolerance`` times the
-    least over the bands (the narrowest band's variance is the smallest on a
-    texture whose power lies at low frequencies; the tolerance buys back
-    texture detail, which the variance does not see: without it the flow
-    loses the brightness constancy of the texture beyond the band).
-    Bands wider than the fit's own are not considered.
+    The widest band whose :func:`predicted_gain` is at least ``min_gain`` (the narrowest
+    if none). Bands wider than the fit's own are not considered.
     """
     bands = sorted(
         b for b in bands if round(b * fit.width) <= fit.P and round(b * fit.height) <= fit.Q
     )
     if not bands:
         raise ValueError(f"no candidate band fits inside the series' {fit.Q} x {fit.P} terms")
-    if rule == "variance":
-        var = predicted_variance(fit, sigma, bands)
-        if not np.isfinite(var).any():
-            return bands[0]
-        return max(b for b, v in zip(bands, var, strict=True) if v <= tolerance * np.min(var))
-    if rule != "gain":
-        raise ValueError(f"rule = {rule!r}: expected 'gain' or 'variance'")
     g = predicted_gain(fit, sigma, bands, frames=frames)
     ok = [b for b, gi in zip(bands, g, strict=True) if gi >= min_gain]
     return max(ok) if ok else bands[0]

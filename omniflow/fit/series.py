@@ -36,7 +36,6 @@ __all__ = [
     "fit_band",
     "gradient_noise",
     "grey_input",
-    "match_frame",
     "needs_noise_sigma",
     "noise_variance",
     "truncate",
@@ -45,6 +44,10 @@ __all__ = [
     "unit_noise_sigma",
     "value_noise_share",
 ]
+
+#: With ``flow_band=None``: the least share of the gradient power that is signal in the
+#: band chosen (:func:`omniflow.fit.noise.choose_band`); docs/decisions/flow_band.md.
+FLOW_BAND_GAIN = 0.99
 
 
 def grey_input(frame, what: str, unit: Unit, config: OmniFlowConfig) -> NDArray:
@@ -221,9 +224,7 @@ def _annulus(unit: Unit, h_min: float, margin: float) -> NDArray:
 
 
 def unit_noise_sigma(frame, unit: Unit, config: OmniFlowConfig) -> float:
-    """The image noise of one unit's frame: ``config.noise_sigma`` or Immerkaer's estimate."""
-    if config.noise_sigma is not None:
-        return float(config.noise_sigma)
+    """The image noise of one unit's frame: Immerkaer's estimate over its annulus."""
     mask = _annulus(unit, float(config.h_min), float(config.rim_margin))
     s = immerkaer_sigma(np.asarray(frame, dtype=np.float32), mask, erode=False)
     return 0.0 if not np.isfinite(s) else s
@@ -237,14 +238,7 @@ def choose_flow_band(
         return float(config.flow_band)
     averaged = 1 if config.gradients == "first" else 2
     return min(
-        choose_band(
-            f["a"],
-            s,
-            rule=config.flow_band_rule,
-            min_gain=config.flow_band_gain,
-            tolerance=config.flow_band_tolerance,
-            frames=averaged,
-        )
+        choose_band(f["a"], s, min_gain=FLOW_BAND_GAIN, frames=averaged)
         for f, s in zip(fits, sigmas, strict=True)
     )
 
@@ -289,13 +283,6 @@ def value_noise_share(fit: DCTFit, config: OmniFlowConfig) -> float:
     P Q / (X Y) for the sharp truncation, the mean squared window weight times that."""
     window = band_window(fit.Q, fit.P, config.flow_taper)
     return float(np.sum(window**2)) / (fit.width * fit.height)
-
-
-def match_frame(frame: Frame, config: OmniFlowConfig) -> Frame:
-    """The image matched on: frame t's series truncated to ``match_band``."""
-    if config.match_band is None or config.match_band >= config.band:
-        return frame
-    return Frame(truncate(frame.fit, config.match_band), frame.unit)
 
 
 def _as32(fit: DCTFit) -> DCTFit:

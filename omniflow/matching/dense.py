@@ -47,21 +47,21 @@ def _ncc(dot, b1, b2, inv1, length):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True)
-def ncc_offsets(t1, t2, k, j, cols, w, stride, lines, out):  # pragma: no cover - compiled
+def ncc_offsets(t1, t2, k, j, cols, w, stride, out):  # pragma: no cover - compiled
     """NCC of the profile of ``t1`` at (k[i], j[i]) with those of ``t2`` at (k[i], cols[i, s]).
 
     A profile: the 2 w + 1 samples every ``stride`` columns centred on the column, on
-    the 2 ``lines`` + 1 lines around k (wrapping in theta); zero-mean, unit-norm (a
+    line k; zero-mean, unit-norm (a
     flat profile has norm 1e-12). Columns must keep the profile inside the table.
     Writes out[i, s]. :func:`omniflow.matching.dense_kernels.ncc_offsets`, value for value: each
     sum is taken in the same order, but four columns' sums at once (independent
     chains of additions the processor overlaps).
     """
     n_lines = t1.shape[0]
-    length = (2 * w + 1) * (2 * lines + 1)
+    length = 2 * w + 1
     n_s = cols.shape[1]
     for i in range(k.size):
-        mean1, inv1 = profile_stats(t1, k[i], j[i], w, stride, lines)
+        mean1, inv1 = profile_stats(t1, k[i], j[i], w, stride)
         for g in range(0, n_s, 4):
             # columns g .. g + 3 (the last repeated past the end, not written)
             c0 = cols[i, g]
@@ -71,27 +71,26 @@ def ncc_offsets(t1, t2, k, j, cols, w, stride, lines, out):  # pragma: no cover 
             d0 = d1 = d2 = d3 = 0.0
             a0 = a1 = a2 = a3 = 0.0
             e0 = e1 = e2 = e3 = 0.0
-            for dk in range(-lines, lines + 1):
-                row = (k[i] + dk) % n_lines
-                for q in range(-w, w + 1):
-                    off = q * stride
-                    u = np.float64(t1[row, j[i] + off]) - mean1
-                    v0 = np.float64(t2[row, c0 + off])
-                    v1 = np.float64(t2[row, c1 + off])
-                    v2 = np.float64(t2[row, c2 + off])
-                    v3 = np.float64(t2[row, c3 + off])
-                    d0 += u * v0
-                    d1 += u * v1
-                    d2 += u * v2
-                    d3 += u * v3
-                    a0 += v0
-                    a1 += v1
-                    a2 += v2
-                    a3 += v3
-                    e0 += v0 * v0
-                    e1 += v1 * v1
-                    e2 += v2 * v2
-                    e3 += v3 * v3
+            row = k[i] % n_lines
+            for q in range(-w, w + 1):
+                off = q * stride
+                u = np.float64(t1[row, j[i] + off]) - mean1
+                v0 = np.float64(t2[row, c0 + off])
+                v1 = np.float64(t2[row, c1 + off])
+                v2 = np.float64(t2[row, c2 + off])
+                v3 = np.float64(t2[row, c3 + off])
+                d0 += u * v0
+                d1 += u * v1
+                d2 += u * v2
+                d3 += u * v3
+                a0 += v0
+                a1 += v1
+                a2 += v2
+                a3 += v3
+                e0 += v0 * v0
+                e1 += v1 * v1
+                e2 += v2 * v2
+                e3 += v3 * v3
             out[i, g] = _ncc(d0, a0, e0, inv1, length)
             if g + 1 < n_s:
                 out[i, g + 1] = _ncc(d1, a1, e1, inv1, length)
@@ -229,7 +228,7 @@ def candidates_numpy(
 
 
 def smooth_profiles(
-    t1: NDArray, k: NDArray, j: NDArray, *, w: int, stride: int, lines: int, smooth: float
+    t1: NDArray, k: NDArray, j: NDArray, *, w: int, stride: int, smooth: float
 ) -> NDArray:
     """Whether each profile of ``t1`` at (k[i], j[i]) (table columns) is smooth over its
     own length: its NCC with the profile of the same table half a profile radius
@@ -253,7 +252,7 @@ def smooth_profiles(
     fits = (cols >= lo) & (cols <= hi)
     S = np.empty(cols.shape)
     t = np.ascontiguousarray(t1, np.float32)
-    ncc_offsets(t, t, k, j, np.clip(cols, lo, hi), int(w), int(stride), int(lines), S)
+    ncc_offsets(t, t, k, j, np.clip(cols, lo, hi), int(w), int(stride), S)
     return np.any(fits & (S > smooth), axis=1)
 
 
@@ -296,7 +295,6 @@ def densify(
     *,
     w: int,
     stride: int,
-    lines: int,
     min_score: float,
     reach: int,
     search: int = 2,
@@ -318,7 +316,7 @@ def densify(
         returns them).
     thr : float
         Candidates have |df1/dh_1| >= thr.
-    w, stride, lines : int
+    w, stride : int
         The profile of :class:`~omniflow.matching.robust.Descriptors`.
     min_score, flatness : float
         Acceptance, as for the robust rule.
@@ -354,7 +352,7 @@ def densify(
 
     def rows(r0: int, r1: int) -> None:  # each share fills its own rows of S
         ncc_offsets(t1c, t2c, ck64[r0:r1], cj64[r0:r1], cols64[r0:r1], int(w), int(stride),
-                    int(lines), S[r0:r1])  # fmt: skip
+                    S[r0:r1])  # fmt: skip
 
     # two shares on omniflow.parallel's threads (the pool's is free by then when the
     # first pass densifies while the second pass has finished)
@@ -369,7 +367,7 @@ def densify(
     ok &= sharp_peak(peak, s_m, s_0, s_p, flatness)
     if smooth < 1.0:
         idx = np.nonzero(ok)[0]  # only the matches the other tests kept
-        ok[idx[smooth_profiles(t1, ck[idx], cj[idx], w=w, stride=stride, lines=lines,
+        ok[idx[smooth_profiles(t1, ck[idx], cj[idx], w=w, stride=stride,
                                smooth=smooth)]] = False  # fmt: skip
     col2 = cj + base + offs[b] + off
     return (ck[ok], (cj - pad)[ok], (col2 - pad)[ok], np.clip(peak[ok], 0.0, 1.0),

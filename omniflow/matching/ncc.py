@@ -4,7 +4,7 @@
 line by line: the edges of both polar tables, the NCC of each significant
 edge of image 1 with the edges of image 2 inside its disparity window only,
 the best and second-best candidates, the polarity, uniqueness,
-self-similarity, periodic-alias and left-right tests, and the NCC at the
+periodic-alias and left-right tests, and the NCC at the
 neighbouring columns for the sub-pixel step. In numpy the same rule formed
 a dense (lines, edges, edges) NCC array by batched products and then masked
 everything outside the window; here nothing outside the window is scored.
@@ -54,31 +54,23 @@ def _edges(a, low, pad, n_h, out):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True)
-def _profile(t, k, j, w, stride, lines, out, r):  # pragma: no cover - compiled
+def _profile(t, k, j, w, stride, out, r):  # pragma: no cover - compiled
     """The zero-mean, unit-norm profile of table ``t`` at (line k, column j) into ``out[r]``.
 
-    Each line's sum and sum of float32 squares are summed in double, then the
-    lines', and rounded to float32: OpenCV's box filter of a float32 image
-    (Descriptors' mean and norm) sums in double too.
+    The sum and sum of float32 squares are summed in double and rounded to float32:
+    OpenCV's box filter of a float32 image (Descriptors' mean and norm) sums in double too.
     """
-    n_lines = t.shape[0]
-    m = 2 * w + 1
+    row = k % t.shape[0]  # an index, not a view: views of the shared tables
+    m = 2 * w + 1  # would count references atomically, and the threads would queue on them
     j0 = j - w * stride
     s1 = 0.0
     s2 = 0.0
-    i = 0
-    for dk in range(-lines, lines + 1):
-        row = (k + dk) % n_lines  # an index, not a view: views of the shared tables
-        r1 = 0.0  # would count references atomically, and the threads would queue on them
-        r2 = 0.0
-        for q in range(m):
-            x = t[row, j0 + q * stride]
-            out[r, i + q] = x
-            r1 += x
-            r2 += x * x
-        s1 += r1
-        s2 += r2
-        i += m
+    for q in range(m):
+        x = t[row, j0 + q * stride]
+        out[r, q] = x
+        s1 += x
+        s2 += x * x
+    i = m
     s1f = np.float32(s1)
     s2f = np.float32(s2)
     mean = s1f / np.float32(i)
@@ -91,11 +83,11 @@ def _profile(t, k, j, w, stride, lines, out, r):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True)
-def profiles(t, k, j, w, stride, lines, out):  # pragma: no cover - compiled
+def profiles(t, k, j, w, stride, out):  # pragma: no cover - compiled
     """The profiles of table ``t`` at (k[i], j[i]) into out[i] (see :func:`_profile`;
     every window must lie inside the table)."""
     for i in range(k.size):
-        _profile(t, k[i], j[i], w, stride, lines, out, i)
+        _profile(t, k[i], j[i], w, stride, out, i)
 
 
 # reassociation lets the compiler split the double sum into vector lanes (the
@@ -119,14 +111,14 @@ def _all_edges(fh1, fh2, low, pad, n_h, cols1, n1, cols2, n2):  # pragma: no cov
 
 @numba.njit(cache=True, nogil=True)
 def _robust_lines(t1, t2, fh1, fh2, cols1, n1, cols2, n2, k0, k1, thr, lo, hi, w, stride,
-                  lines, floor, uniqueness, self_similarity, alias_score, tests, left_right,
+                  floor, uniqueness, alias_score, tests, left_right,
                   ok, j2_out, s_out, n_sig, d1, have1, post, min_score, flatness, pad,
                   periodic, a_score, use2, a_score2, a_confirm, a_lo, a_hi, fin, c2_out,
                   score_out):  # pragma: no cover - compiled  # fmt: skip
     n_cols = t1.shape[1]
-    length = (2 * lines + 1) * (2 * w + 1)
+    length = 2 * w + 1
     do_uniqueness = tests[0]
-    lag_lo = (w * stride) // 2  # the self-similarity and alias tests' shortest lag
+    lag_lo = (w * stride) // 2  # the alias test's shortest lag
     lag_hi = hi - lo
     lo_col = w * stride
     hi_col = n_cols - 1 - w * stride
@@ -148,7 +140,7 @@ def _robust_lines(t1, t2, fh1, fh2, cols1, n1, cols2, n2, k0, k1, thr, lo, hi, w
         # base .. base + n1[k] of d1, kept for the alias test; image 2's all are
         base = k * per_line
         for m in range(c2.size):
-            _profile(t2, k, c2[m], w, stride, lines, d2, m)
+            _profile(t2, k, c2[m], w, stride, d2, m)
         # NCC of edge pairs (image 1, image 2) once scored: the left-right check
         # rereads most of them
         scored[: c1.size, : c2.size] = False
@@ -168,7 +160,7 @@ def _robust_lines(t1, t2, fh1, fh2, cols1, n1, cols2, n2, k0, k1, thr, lo, hi, w
             if stop == first:
                 continue
             if not have1[base + i]:  # made once, when first read
-                _profile(t1, k, c1[i], w, stride, lines, d1, base + i)
+                _profile(t1, k, c1[i], w, stride, d1, base + i)
                 have1[base + i] = True
             b = first
             for m in range(first, stop):
@@ -189,19 +181,6 @@ def _robust_lines(t1, t2, fh1, fh2, cols1, n1, cols2, n2, k0, k1, thr, lo, hi, w
                 if not (one - best) <= uniqueness * (one - second):
                     continue
             if tests[1]:
-                self_best = np.float32(-1.0)
-                for m in range(c1.size):
-                    lag = abs(c1[m] - j1)
-                    if lag >= lag_lo and lag <= lag_hi:
-                        if not have1[base + m]:  # made once, when first read
-                            _profile(t1, k, c1[m], w, stride, lines, d1, base + m)
-                            have1[base + m] = True
-                        a = _dot(d1, base + i, d1, base + m)
-                        if a > self_best:
-                            self_best = a
-                if not (one - best) <= self_similarity * (one - self_best):
-                    continue
-            if tests[2]:
                 # walk outward from j1 on each side: the profile recurs when its NCC
                 # exceeds alias_score at a lag >= lag_lo after falling below 0 nearer in
                 recurs = False
@@ -213,7 +192,7 @@ def _robust_lines(t1, t2, fh1, fh2, cols1, n1, cols2, n2, k0, k1, thr, lo, hi, w
                         if lag > lag_hi:
                             break
                         if not have1[base + m]:  # made once, when first read
-                            _profile(t1, k, c1[m], w, stride, lines, d1, base + m)
+                            _profile(t1, k, c1[m], w, stride, d1, base + m)
                             have1[base + m] = True
                         a = _dot(d1, base + i, d1, base + m)
                         if low_so_far < 0.0 and lag >= lag_lo and a > alias_score:
@@ -231,7 +210,7 @@ def _robust_lines(t1, t2, fh1, fh2, cols1, n1, cols2, n2, k0, k1, thr, lo, hi, w
                     if c1[m] >= j2 - hi and c1[m] <= j2 - lo:
                         if not scored[m, b]:
                             if not have1[base + m]:  # made once, when first read
-                                _profile(t1, k, c1[m], w, stride, lines, d1, base + m)
+                                _profile(t1, k, c1[m], w, stride, d1, base + m)
                                 have1[base + m] = True
                             ncc[m, b] = _dot(d1, base + m, d2, b)
                             scored[m, b] = True
@@ -246,21 +225,21 @@ def _robust_lines(t1, t2, fh1, fh2, cols1, n1, cols2, n2, k0, k1, thr, lo, hi, w
                     s_out[k, j1, q] = best
                     continue
                 jj = min(max(j2 + q - 2, lo_col), hi_col)
-                _profile(t2, k, jj, w, stride, lines, p, 0)
+                _profile(t2, k, jj, w, stride, p, 0)
                 s_out[k, j1, q] = _dot(d1, base + i, p, 0)
             ok[k, j1] = True
             j2_out[k, j1] = j2
         n_sig[k] = count
         if post:
             _refine_line(t1, t2, k, c1, base, d1, have1, ok, j2_out, s_out, min_score,
-                         flatness, pad, periodic, w, stride, lines, lag_lo, lag_hi, a_score,
+                         flatness, pad, periodic, w, stride, lag_lo, lag_hi, a_score,
                          use2, lo, hi, a_score2, a_confirm, a_lo, a_hi, own, p, fin, c2_out,
                          score_out)  # fmt: skip
 
 
 @numba.njit(cache=True, nogil=True)
 def _refine_line(t1, t2, k, c1, base, d1, have1, ok, j2_out, s_out, min_score, flatness, pad,
-                 periodic, w, stride, lines, lag_lo, lag_hi, a_score, use2, lo, hi, a_score2,
+                 periodic, w, stride, lag_lo, lag_hi, a_score, use2, lo, hi, a_score2,
                  a_confirm, a_lo, a_hi, own, p, fin, c2_out,
                  score_out):  # pragma: no cover - compiled  # fmt: skip
     """The sub-pixel step of :meth:`omniflow.matching.robust.RobustSearch.finish` and the
@@ -294,8 +273,8 @@ def _refine_line(t1, t2, k, c1, base, d1, have1, ok, j2_out, s_out, min_score, f
         if keep and periodic:
             at = np.int64(np.rint(np.float64(jj2) + np.float64(off)))
             keep = not _alias_at(
-                t1, t2, k, j1, at, c1, c1.size, d1, have1, base, own, p, w, stride, lines,
-                lag_lo, lag_hi, a_score, use2, lo, hi, a_score2, a_confirm, a_lo, a_hi,
+                t1, t2, k, j1, at, c1, c1.size, d1, have1, base, own, p, w, stride, lag_lo,
+                lag_hi, a_score, use2, lo, hi, a_score2, a_confirm, a_lo, a_hi,
             )  # fmt: skip
         fin[k, j1] = keep
         c2_out[k, j1] = np.float64(jj2) + np.float64(off) - pad
@@ -307,18 +286,18 @@ class EdgeProfiles:
 
     ``cols[k, :n[k]]``: the edge columns of line k, ascending; row
     k * per_line + m of ``d`` holds the profile (:func:`_profile`, with
-    ``w``, ``stride``, ``lines``) of edge m of line k once ``have`` marks it.
+    ``w``, ``stride``) of edge m of line k once ``have`` marks it.
     :class:`LineSearch` fills it as it searches; :func:`alias_lines` reads
     what is there and makes the rest.
     """
 
     def __init__(self, t: NDArray, cols: NDArray, n: NDArray, d: NDArray, have: NDArray,
-                 w: int, stride: int, lines: int):  # fmt: skip
+                 w: int, stride: int):  # fmt: skip
         self.t, self.cols, self.n, self.d, self.have = t, cols, n, d, have
-        self.w, self.stride, self.lines = w, stride, lines
+        self.w, self.stride = w, stride
 
     @classmethod
-    def from_mask(cls, t: NDArray, edges: NDArray, w: int, stride: int, lines: int):
+    def from_mask(cls, t: NDArray, edges: NDArray, w: int, stride: int):
         """The edges marked True in ``edges`` (same shape as the table ``t``)."""
         t = np.ascontiguousarray(t, dtype=np.float32)
         ek, ej = np.nonzero(edges)
@@ -327,9 +306,8 @@ class EdgeProfiles:
         cols = np.zeros((t.shape[0], per_line), dtype=np.int64)
         start = np.concatenate([[0], np.cumsum(n)[:-1]])
         cols[ek, np.arange(ek.size) - start[ek]] = ej
-        length = (2 * lines + 1) * (2 * w + 1)
-        d = np.empty((t.shape[0] * per_line, length), dtype=np.float32)
-        return cls(t, cols, n, d, np.zeros(t.shape[0] * per_line, dtype=bool), w, stride, lines)
+        d = np.empty((t.shape[0] * per_line, 2 * w + 1), dtype=np.float32)
+        return cls(t, cols, n, d, np.zeros(t.shape[0] * per_line, dtype=bool), w, stride)
 
 
 class LineSearch:
@@ -350,8 +328,8 @@ class LineSearch:
 
     def __init__(
         self, t1: NDArray, t2: NDArray, fh1: NDArray, fh2: NDArray, *, low: float, thr: float,
-        pad: int, n_h: int, win: tuple[int, int], w: int, stride: int, lines: int,
-        floor: float, uniqueness: float, self_similarity: float, alias_score: float,
+        pad: int, n_h: int, win: tuple[int, int], w: int, stride: int,
+        floor: float, uniqueness: float, alias_score: float,
         left_right: bool, min_score: float | None = None, flatness: float = 0.0,
         periodic: dict | None = None,
     ):  # fmt: skip
@@ -370,12 +348,12 @@ class LineSearch:
         n2 = np.zeros(n_theta, dtype=np.int64)
         _all_edges(fh1, fh2, f32(low), int(pad), int(n_h), cols1, n1, cols2, n2)
         # numpy's rule took the uniqueness test only when some line has two edges in image 2
-        tests = (uniqueness < 1.0 and int(n2.max()) > 1, self_similarity < 1.0, alias_score < 1.0)
+        tests = (uniqueness < 1.0 and int(n2.max()) > 1, alias_score < 1.0)
         # image 1's edges and their profiles, those the search made (kept for the alias test)
         per_line = max(int(n1.max()), 1)
         self.edges1 = EdgeProfiles(
-            t1, cols1, n1, np.empty((n_theta * per_line, (2 * lines + 1) * (2 * w + 1)), f32),
-            np.zeros(n_theta * per_line, dtype=bool), int(w), int(stride), int(lines),
+            t1, cols1, n1, np.empty((n_theta * per_line, 2 * w + 1), f32),
+            np.zeros(n_theta * per_line, dtype=bool), int(w), int(stride),
         )  # fmt: skip
         self.pad = int(pad)
         post = min_score is not None
@@ -391,8 +369,8 @@ class LineSearch:
             a_lo, a_hi = max(a_lo, a["columns2"][0]), min(a_hi, a["columns2"][1])
         self._args = (
             t1, t2, fh1, fh2, cols1, n1, cols2, n2, f32(thr), int(win[0]), int(win[1]), int(w),
-            int(stride), int(lines), f32(floor), f32(uniqueness), f32(self_similarity),
-            f32(alias_score), tests, bool(left_right), self.ok, self.j2, self.s, self.n_sig,
+            int(stride), f32(floor), f32(uniqueness), f32(alias_score), tests,
+            bool(left_right), self.ok, self.j2, self.s, self.n_sig,
             self.edges1.d, self.edges1.have, post,
             # numpy compares a float32 array with a Python float in float32
             f32(min_score if post else 0.0), f32(flatness), self.pad,
@@ -430,8 +408,8 @@ class LineSearch:
 
 def robust_lines(
     t1: NDArray, t2: NDArray, fh1: NDArray, fh2: NDArray, *, low: float, thr: float,
-    pad: int, n_h: int, win: tuple[int, int], w: int, stride: int, lines: int,
-    floor: float, uniqueness: float, self_similarity: float, alias_score: float,
+    pad: int, n_h: int, win: tuple[int, int], w: int, stride: int,
+    floor: float, uniqueness: float, alias_score: float,
     left_right: bool, threads: int = 1, per_range=None,
 ) -> tuple[NDArray, NDArray, NDArray, int]:  # fmt: skip
     """The matches of :func:`~omniflow.matching.robust.match_robust` before its sub-pixel step.
@@ -454,8 +432,8 @@ def robust_lines(
     """
     search = LineSearch(
         t1, t2, fh1, fh2, low=low, thr=thr, pad=pad, n_h=n_h, win=win, w=w, stride=stride,
-        lines=lines, floor=floor, uniqueness=uniqueness, self_similarity=self_similarity,
-        alias_score=alias_score, left_right=left_right,
+        floor=floor, uniqueness=uniqueness, alias_score=alias_score,
+        left_right=left_right,
     )  # fmt: skip
     ranges = search.ranges(threads)
     if len(ranges) > 1:
@@ -466,7 +444,7 @@ def robust_lines(
 
 
 @numba.njit(cache=True, nogil=True)
-def _alias_at(t1, t2, line, ji, at, c, n_e, d, have, base, own, p, w, stride, lines, lag_lo,
+def _alias_at(t1, t2, line, ji, at, c, n_e, d, have, base, own, p, w, stride, lag_lo,
               lag_hi, alias_score, use2, win_lo, win_hi, alias2, confirm, lo_col,
               hi_col):  # pragma: no cover - compiled  # fmt: skip
     """Whether the match at (line, column ji; image 2's column ``at``) is a periodic
@@ -480,12 +458,12 @@ def _alias_at(t1, t2, line, ji, at, c, n_e, d, have, base, own, p, w, stride, li
     if at_edge:  # the search made it, most likely
         r = base + first_right - 1
         if not have[r]:
-            _profile(t1, line, ji, w, stride, lines, d, r)
+            _profile(t1, line, ji, w, stride, d, r)
             have[r] = True
         for q in range(length):
             own[0, q] = d[r, q]
     else:
-        _profile(t1, line, ji, w, stride, lines, own, 0)
+        _profile(t1, line, ji, w, stride, own, 0)
     alias = False
     hidden = False  # a recurrence whose alias lies in the window but past image 2's rim
     n_confirm = 0  # recurrences above ``confirm`` (a period: two at least)
@@ -499,7 +477,7 @@ def _alias_at(t1, t2, line, ji, at, c, n_e, d, have, base, own, p, w, stride, li
                 break
             r = base + m
             if not have[r]:
-                _profile(t1, line, c[m], w, stride, lines, d, r)
+                _profile(t1, line, c[m], w, stride, d, r)
                 have[r] = True
             a = np.float64(_dot(own, 0, d, r))
             if low < 0.0 and abs(lag) >= lag_lo:
@@ -520,7 +498,7 @@ def _alias_at(t1, t2, line, ji, at, c, n_e, d, have, base, own, p, w, stride, li
                                 if c2 < lo_col or c2 > hi_col:
                                     hidden = True
                                     continue
-                                _profile(t2, line, c2, w, stride, lines, p, 0)
+                                _profile(t2, line, c2, w, stride, p, 0)
                                 s = np.float64(_dot(own, 0, p, 0))
                                 if s > best:
                                     best = s
@@ -533,7 +511,7 @@ def _alias_at(t1, t2, line, ji, at, c, n_e, d, have, base, own, p, w, stride, li
 
 
 @numba.njit(cache=True, nogil=True)
-def _alias_matches(t1, cols, n, d, have, k, j, j2, i0, i1, w, stride, lines, lag_lo, lag_hi,
+def _alias_matches(t1, cols, n, d, have, k, j, j2, i0, i1, w, stride, lag_lo, lag_hi,
                    alias_score, t2, use2, win_lo, win_hi, alias2, confirm, lo_col, hi_col,
                    keep):  # pragma: no cover - compiled  # fmt: skip
     """:func:`alias_lines` for the matches i0 .. i1 - 1 (sorted by line)."""
@@ -546,7 +524,7 @@ def _alias_matches(t1, cols, n, d, have, k, j, j2, i0, i1, w, stride, lines, lag
         at = np.int64(np.rint(j2[i])) if use2 else np.int64(0)
         keep[i] = not _alias_at(
             t1, t2, line, j[i], at, cols[line], n[line], d, have, line * per_line, own, p, w,
-            stride, lines, lag_lo, lag_hi, alias_score, use2, win_lo, win_hi, alias2, confirm,
+            stride, lag_lo, lag_hi, alias_score, use2, win_lo, win_hi, alias2, confirm,
             lo_col, hi_col,
         )  # fmt: skip
 
@@ -577,7 +555,7 @@ def alias_lines(
     if alias_score >= 1.0 or m == 0:
         return keep
     e = edges1
-    w, stride, lines = e.w, e.stride, e.lines
+    w, stride = e.w, e.stride
     order = np.argsort(k, kind="stable")  # one line's matches together
     ks, js = k[order], j[order]
     use2 = t2 is not None and j2 is not None
@@ -594,7 +572,7 @@ def alias_lines(
 
     def run(i0: int, i1: int) -> None:
         _alias_matches(
-            t1, e.cols, e.n, e.d, e.have, ks, js, j2s, i0, i1, int(w), int(stride), int(lines),
+            t1, e.cols, e.n, e.d, e.have, ks, js, j2s, i0, i1, int(w), int(stride),
             int(lags[0]), int(lags[1]), float(alias_score), t2, use2, int(window[0]),
             int(window[1]), float(alias2_score), float(confirm_score), int(lo_col),
             int(hi_col), out,

@@ -34,16 +34,15 @@ from omniflow.matching.robust import Descriptors
 __all__ = ["line_edges", "not_periodic", "not_periodic_numpy", "profiles"]
 
 
-def profiles(table: NDArray, k: NDArray, j: NDArray, *, w: int, stride: int, lines: int) -> NDArray:
+def profiles(table: NDArray, k: NDArray, j: NDArray, *, w: int, stride: int) -> NDArray:
     """Zero-mean, unit-norm radial profiles of a polar table; shape k.shape + (L,).
 
     The profile at (line k, column j) holds columns j - w stride .. j + w
-    stride, every ``stride``-th, on lines k - lines .. k + lines (wrapping in
-    theta): L = (2 lines + 1)(2 w + 1) values, the matcher's descriptors
+    stride, every ``stride``-th, on line k: L = 2 w + 1 values, the matcher's descriptors
     (:class:`omniflow.matching.robust.Descriptors`, whose whole profile must
     lie inside the table).
     """
-    return Descriptors(table, w, stride, lines)(np.asarray(k), np.asarray(j))
+    return Descriptors(table, w, stride)(np.asarray(k), np.asarray(j))
 
 
 def line_edges(edges: NDArray, k: NDArray) -> tuple[NDArray, NDArray]:
@@ -71,7 +70,6 @@ def not_periodic(
     *,
     w: int,
     stride: int,
-    lines: int,
     lags: tuple[int, int],
     alias_score: float,
     table2: NDArray | None = None,
@@ -97,7 +95,7 @@ def not_periodic(
         Image 1's edges (the profiles compared with).
     k, j : ndarray of int, shape (M,)
         Line and table column of each match's edge.
-    w, stride, lines : int
+    w, stride : int
         The profile (:func:`profiles`).
     lags : (int, int)
         Columns: a recurrence counts at lags[0] <= |lag| <= lags[1] (half the
@@ -139,7 +137,7 @@ def not_periodic(
         raise ValueError("not_periodic: every edge's profile must lie inside the table")
     use2 = table2 is not None and j2 is not None and window is not None
     return alias_lines(
-        EdgeProfiles.from_mask(table, edges, w, stride, lines), k, j, lags=lags,
+        EdgeProfiles.from_mask(table, edges, w, stride), k, j, lags=lags,
         alias_score=alias_score, t2=table2 if use2 else None, j2=j2 if use2 else None,
         window=window if use2 else (0, 0), alias2_score=alias2_score,
         confirm_score=confirm_score, columns2=columns2, threads=threads, per_range=per_range,
@@ -154,7 +152,6 @@ def not_periodic_numpy(
     *,
     w: int,
     stride: int,
-    lines: int,
     lags: tuple[int, int],
     alias_score: float,
     table2: NDArray | None = None,
@@ -174,19 +171,19 @@ def not_periodic_numpy(
 
     Parameters
     ----------
-    table, edges, k, j, w, stride, lines, lags, alias_score, table2, j2, window, \
+    table, edges, k, j, w, stride, lags, alias_score, table2, j2, window, \
     alias2_score, confirm_score, columns2
         As :func:`not_periodic`.
     desc1, desc2 : Descriptors, optional
         The matcher's descriptors of ``table`` and ``table2`` with the same
-        (w, stride, lines), if it has them (saves building them again).
+        (w, stride), if it has them (saves building them again).
     """
     m = np.asarray(k).size
     if alias_score >= 1.0 or m == 0:
         return np.ones(m, dtype=bool)
     k = np.asarray(k, dtype=np.intp)
     j = np.asarray(j, dtype=np.intp)
-    desc1 = Descriptors(table, w, stride, lines) if desc1 is None else desc1
+    desc1 = Descriptors(table, w, stride) if desc1 is None else desc1
     d1 = desc1(k, j)  # (M, L)
     # NCC of each match's profile with every edge of its line: the matches and
     # the edges laid out per line, one batched product per line
@@ -226,7 +223,7 @@ def not_periodic_numpy(
     lo_col, hi_col = w * stride, table2.shape[1] - 1 - w * stride
     if columns2 is not None:
         lo_col, hi_col = max(lo_col, columns2[0]), min(hi_col, columns2[1])
-    desc2 = Descriptors(table2, w, stride, lines) if desc2 is None else desc2
+    desc2 = Descriptors(table2, w, stride) if desc2 is None else desc2
     hidden = np.zeros(mi.size, dtype=bool)  # in the window, but no whole profile there
     for sign, dj in itertools.product((1, -1), (-1, 0, 1)):
         c2 = at + sign * lag[mi, ci] + dj

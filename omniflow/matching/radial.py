@@ -36,7 +36,7 @@ Two methods:
     differences of the blurred table) above the threshold; candidates are the
     edges of image 2 inside the disparity window. The score is the normalised
     cross-correlation (NCC) of the radial intensity profiles, +-
-    ``patch_radius`` px around each edge (on 2 ``patch_lines`` + 1 lines). A
+    ``patch_radius`` px around each edge, on its own line. A
     match must have the same edge polarity, score at least ``min_score``, be
     unique ((1 - NCC) of the best at most ``uniqueness`` times that of the
     second best edge) and pass a left-right check (matching image 2's edge
@@ -190,26 +190,24 @@ def match_radial(
     h_min: float = 16.0,
     rim_margin: float = 4.0,
     patch_radius: float | None = None,
-    patch_lines: int = 0,
     profile_step: float | None = None,
     min_score: float = 0.95,
-    uniqueness: float = 0.5,
+    uniqueness: float | None = 0.5,
     left_right: bool = True,
     candidate_fraction: float = 0.5,
-    tangential_blur: float = 0.02,
-    consistency: float = 1.0,
+    tangential_blur: float | None = 0.02,
+    consistency: float | None = 1.0,
     consistency_support: int = 2,
-    self_similarity: float = 1.0,
-    flatness: float = 0.5,
-    alias_score: float = 0.9,
+    flatness: float | None = 0.5,
+    alias_score: float | None = 0.9,
     alias_image2: float = 0.9,
     alias_period: float = 0.8,
-    dense_percentile: float = 100.0,
+    dense_percentile: float | None = None,
     dense_reach: float = 1.0,
-    dense_smooth: float = 1.0,
-    edge_smooth: float = 1.0,
+    dense_smooth: float | None = None,
+    edge_smooth: float | None = None,
     edge_smooth_floor: float | None = None,
-    short_patch: float = 0.5,
+    short_patch: float | None = 0.5,
     grids: tuple[PolarGrids, PolarGrids] | None = None,
 ) -> Matches:
     """Match cam1's significant points along radial lines in cam2 (section 5.2).
@@ -227,15 +225,15 @@ def match_radial(
         The significant points and the search's geometry: the same-named fields of
         :class:`omniflow.config.OmniFlowConfig`. r_min defaults to
         :attr:`Rig.min_common_range`, the nearest range both units can see.
-    patch_radius, patch_lines, profile_step, min_score, uniqueness, left_right,\
+    patch_radius, profile_step, min_score, uniqueness, left_right,\
     candidate_fraction, tangential_blur, consistency, consistency_support,\
-    self_similarity, flatness, alias_score, alias_image2, alias_period,\
+    flatness, alias_score, alias_image2, alias_period,\
     dense_percentile, dense_reach, dense_smooth, edge_smooth, edge_smooth_floor,\
     short_patch
         ``robust`` only: the robust matcher's tests, documented once on the
         same-named fields of :class:`omniflow.config.OmniFlowConfig` (the defaults
-        here are the function's own: ``edge_smooth`` 1 and ``edge_smooth_floor``
-        None switch the smooth-profile test off). The short pass is skipped when
+        here are the function's own: ``edge_smooth`` None switches the smooth-profile
+        test off). None switches a test off, as on the config. The short pass is skipped when
         its profile would be shorter than ``MIN_SHORT_RADIUS`` samples either side.
     grids : (PolarGrids, PolarGrids), optional
         Precomputed grids of the two fits (saves re-evaluating them).
@@ -245,8 +243,8 @@ def match_radial(
     Matches
     """
     kw = {k: v for k, v in locals().items() if k in _PASS_ARGS}
-    if not (0.0 <= short_patch < 1.0):
-        raise ValueError(f"short_patch = {short_patch!r}: expected [0, 1)")
+    if short_patch is not None and not (0.0 < short_patch < 1.0):
+        raise ValueError(f"short_patch = {short_patch!r}: expected (0, 1) or None")
     kw, short_step = _checked_args(rig, kw)
     if grids is None:
         if fit1 is None or fit2 is None:
@@ -269,23 +267,27 @@ def _checked_args(rig: Rig, kw: dict) -> tuple[dict, float | None]:
     threshold_percentile = o["threshold_percentile"]
     if not (0.0 <= threshold_percentile < 100.0):
         raise ValueError(f"threshold_percentile = {threshold_percentile!r}: expected [0, 100)")
-    dense_percentile, dense_reach, flatness = o["dense_percentile"], o["dense_reach"], o["flatness"]
-    if not (0.0 <= dense_percentile <= 100.0 and dense_reach > 0 and flatness >= 0):
+    dense_percentile, dense_reach = o["dense_percentile"], o["dense_reach"]
+    if not ((dense_percentile is None or 0.0 <= dense_percentile < 100.0) and dense_reach > 0):
         raise ValueError(
-            f"dense_percentile = {dense_percentile!r}, dense_reach = {dense_reach!r}, "
-            f"flatness = {flatness!r}: expected [0, 100], > 0 and >= 0"
+            f"dense_percentile = {dense_percentile!r}, dense_reach = {dense_reach!r}: "
+            "expected [0, 100) or None (off), and > 0"
         )
-    for name in ("dense_smooth", "edge_smooth"):
-        if not (-1.0 <= o[name] <= 1.0):
-            raise ValueError(f"{name} = {o[name]!r}: expected an NCC in [-1, 1]")
+    for name in ("flatness", "tangential_blur", "consistency"):  # None: off
+        if o[name] is not None and not o[name] > 0:
+            raise ValueError(f"{name} = {o[name]!r}: expected > 0 or None (off)")
+    for name in ("dense_smooth", "edge_smooth", "alias_score"):
+        if o[name] is not None and not (-1.0 <= o[name] < 1.0):
+            raise ValueError(f"{name} = {o[name]!r}: expected an NCC in [-1, 1) or None (off)")
+    if o["uniqueness"] is not None and not (0.0 < o["uniqueness"] < 1.0):
+        raise ValueError(f"uniqueness = {o['uniqueness']!r}: expected (0, 1) or None (off)")
     short_step = o["profile_step"]  # the short pass's profile step derives from the one given
     if o["patch_radius"] is None:
         o["patch_radius"] = rig.cam1.r_m / 8.0
     if o["profile_step"] is None:
         o["profile_step"] = o["patch_radius"] / 16.0
-    if not (o["h_step"] > 0 and o["n_theta"] >= 8 and o["patch_radius"] > 0
-            and o["patch_lines"] >= 0):  # fmt: skip
-        raise ValueError("expected h_step > 0, n_theta >= 8, patch_radius > 0, patch_lines >= 0")
+    if not (o["h_step"] > 0 and o["n_theta"] >= 8 and o["patch_radius"] > 0):
+        raise ValueError("expected h_step > 0, n_theta >= 8, patch_radius > 0")
     r_min, r_max = o["r_min"], o["r_max"]
     r_min = o["r_min"] = rig.min_common_range if r_min is None else float(r_min)
     if not (0 <= r_min < r_max):
@@ -305,7 +307,8 @@ def _run_passes(
     method, patch_radius, h_step = kw["method"], kw["patch_radius"], kw["h_step"]
     kw = dict(kw)
     passes = [_prepare(grids, rig, **kw)]
-    if method == "robust" and short_patch * patch_radius >= MIN_SHORT_RADIUS * h_step:
+    if (method == "robust" and short_patch is not None
+            and short_patch * patch_radius >= MIN_SHORT_RADIUS * h_step):  # fmt: skip
         # the second pass, with short profiles: its matches are added where the
         # first pass has none
         short = kw["patch_radius"] = short_patch * patch_radius
@@ -333,12 +336,17 @@ def _run_passes(
 #: match_radial's arguments that one pass (:func:`_prepare`) reads
 _PASS_ARGS = (
     "method", "threshold_percentile", "min_gradient", "r_min", "r_max", "n_theta", "h_step",
-    "h_min", "rim_margin", "patch_radius", "patch_lines", "profile_step", "min_score",
+    "h_min", "rim_margin", "patch_radius", "profile_step", "min_score",
     "uniqueness", "left_right", "candidate_fraction", "tangential_blur", "consistency",
-    "consistency_support", "self_similarity", "flatness", "alias_score", "alias_image2",
+    "consistency_support", "flatness", "alias_score", "alias_image2",
     "alias_period", "dense_percentile", "dense_reach", "dense_smooth", "edge_smooth",
     "edge_smooth_floor",
 )  # fmt: skip
+
+
+def _off(value: float | None, off: float) -> float:
+    """A knob as the kernels take it: None (off) as their own value for off."""
+    return off if value is None else value
 
 
 def _run_range(search, k0: int, k1: int) -> None:
@@ -420,7 +428,7 @@ def _prepare(
         if raw is None:
             raw = polar_table(g1.f, maps1), polar_table(g2.f, maps2)
         t1, t2 = raw
-        if o["tangential_blur"] > 0:
+        if o["tangential_blur"] is not None:
             sigma = o["tangential_blur"] * n_theta / (2.0 * np.pi)  # in lines
             t1, t2 = blur_lines(t1, sigma), blur_lines(t2, sigma)
     # df/dh_i along the lines. The paper's rule reads the polar edge finder's
@@ -444,13 +452,13 @@ def _prepare(
         p.paper = match_paper(tab, fh1, fh2, ft1, ft2, thr)
     else:
         p.search = RobustSearch(
-            tab, fh1, fh2, t1, t2, thr, w=w, stride=stride, patch_lines=o["patch_lines"],
-            min_score=o["min_score"], uniqueness=o["uniqueness"], left_right=o["left_right"],
-            candidate_fraction=o["candidate_fraction"], self_similarity=o["self_similarity"],
+            tab, fh1, fh2, t1, t2, thr, w=w, stride=stride, min_score=o["min_score"],
+            uniqueness=_off(o["uniqueness"], 1.0), left_right=o["left_right"],
+            candidate_fraction=o["candidate_fraction"],
             # the periodic-alias test (omniflow.matching.periodic.not_periodic) on the
             # matches that passed the sub-pixel step, not on every candidate
-            flatness=o["flatness"], alias_score=1.0,
-            periodic=None if o["alias_score"] >= 1.0 else dict(
+            flatness=_off(o["flatness"], 0.0), alias_score=1.0,
+            periodic=None if o["alias_score"] is None else dict(
                 alias_score=o["alias_score"], image2=o["alias_image2"] > -1.0,
                 alias2_score=o["alias_image2"], confirm_score=o["alias_period"],
                 columns2=_profile_columns(h0, h_step, cam2.r_m / scale2, w * stride)),
@@ -476,16 +484,16 @@ def _finish(p: _Pass) -> Matches:
     lo, hi = rig.disparity_window(h1, r_min, r_max)
     ok = (h2 >= lo) & (h2 <= hi) & np.isfinite(h2)
     flagged = None  # the smooth matches kept for the flow step (edge_smooth_floor)
-    if method == "robust" and o["edge_smooth"] < 1.0 and np.any(ok):
+    if method == "robust" and o["edge_smooth"] is not None and np.any(ok):
         idx = np.nonzero(ok)[0]  # a ramp's match is not placed by its NCC
         ramp = smooth_profiles(t1, k1[idx], j1[idx] + pad, w=w, stride=stride,
-                               lines=o["patch_lines"], smooth=o["edge_smooth"])  # fmt: skip
+                               smooth=o["edge_smooth"])  # fmt: skip
         if o["edge_smooth_floor"] is None:
             ok[idx[ramp]] = False
         else:
             flagged = np.zeros(ok.size, dtype=bool)
             flagged[idx[ramp]] = True
-    if method == "robust" and o["consistency"] > 0 and np.any(ok):
+    if method == "robust" and o["consistency"] is not None and np.any(ok):
         idx = np.nonzero(ok)[0]
         agree = consistent(
             theta[idx], h1[idx], h2[idx] - scale2 * h1[idx],
@@ -493,14 +501,14 @@ def _finish(p: _Pass) -> Matches:
             support=o["consistency_support"],
         )  # fmt: skip
         ok[idx[~agree]] = False
-    if method == "robust" and o["dense_percentile"] < 100.0 and np.any(ok):
+    if method == "robust" and o["dense_percentile"] is not None and np.any(ok):
         core = slice(pad, pad + n_h)
         thr_d = abs_percentile(fh1[::2, core], o["dense_percentile"])
         reach = max(1, round(o["dense_reach"] * o["patch_radius"] / h_step))
         dk, dj, dc, ds, n_tried = densify(
             tab, fh1, t1, t2, (k1[ok], j1[ok], c2[ok]), max(thr_d, float(o["min_gradient"])),
-            w=w, stride=stride, lines=o["patch_lines"], min_score=o["min_score"],
-            reach=reach, flatness=o["flatness"], smooth=o["dense_smooth"],
+            w=w, stride=stride, min_score=o["min_score"],
+            reach=reach, flatness=_off(o["flatness"], 0.0), smooth=_off(o["dense_smooth"], 1.0),
         )  # fmt: skip
         n_sig += n_tried
         th_d = -np.pi + (2.0 * np.pi / n_theta) * (dk + 0.5)

@@ -22,19 +22,19 @@ class Descriptors:
     """Zero-mean, unit-norm polar patches of one table (the robust rule's profiles).
 
     A patch at (line k, column j) holds the radial profile at columns
-    j - w stride .. j + w stride, every ``stride``-th, on lines
-    k - lines .. k + lines (wrapping around theta); L = (2 lines + 1)(2 w + 1)
-    values. Each is made when asked for, by the compiled
+    j - w stride .. j + w stride, every ``stride``-th, on line k: L = 2 w + 1
+    values (one line: more lost the movers their points,
+    docs/decisions/retired_knobs.md). Each is made when asked for, by the compiled
     :func:`omniflow.matching.ncc.profiles` (the same values as the whole-table
     form :class:`TableDescriptors`, bit for bit); indices whose window leaves
     the table go to that form.
     """
 
-    def __init__(self, table: NDArray, w: int, stride: int, lines: int):
-        self.w, self.stride, self.lines = w, stride, lines
+    def __init__(self, table: NDArray, w: int, stride: int):
+        self.w, self.stride = w, stride
         self.table = np.ascontiguousarray(table, dtype=np.float32)
         self.n_lines, self.n_cols = self.table.shape
-        self.length = (2 * lines + 1) * (2 * w + 1)
+        self.length = 2 * w + 1
         self._whole: TableDescriptors | None = None
 
     def __call__(self, k: NDArray, j: NDArray) -> NDArray:
@@ -47,10 +47,10 @@ class Descriptors:
             or j.max() >= self.n_cols - reach
         ):  # fmt: skip
             if self._whole is None:
-                self._whole = TableDescriptors(self.table, self.w, self.stride, self.lines)
+                self._whole = TableDescriptors(self.table, self.w, self.stride)
             return self._whole(k, j)
         out = np.empty((*k.shape, self.length), dtype=np.float32)
-        profiles(self.table, k.ravel(), j.ravel(), self.w, self.stride, self.lines,
+        profiles(self.table, k.ravel(), j.ravel(), self.w, self.stride,
                  out.reshape(-1, self.length))  # fmt: skip
         return out
 
@@ -60,15 +60,14 @@ class TableDescriptors:
     made at once (box filters): :class:`Descriptors`' reference form.
 
     A patch at (line k, column j) holds the radial profile at columns
-    j - w stride .. j + w stride, every ``stride``-th, on lines
-    k - lines .. k + lines (wrapping around theta); L = (2 lines + 1)(2 w + 1)
+    j - w stride .. j + w stride, every ``stride``-th, on line k: L = 2 w + 1
     values. The table is split by column parity into ``stride`` decimated
     copies so each profile is a contiguous run, and each window's mean and
     norm come from cumulative sums.
     """
 
-    def __init__(self, table: NDArray, w: int, stride: int, lines: int):
-        self.w, self.stride, self.lines = w, stride, lines
+    def __init__(self, table: NDArray, w: int, stride: int):
+        self.w, self.stride = w, stride
         self.n_lines, n_cols = table.shape
         m = 2 * w + 1
         width = -(-n_cols // stride)
@@ -82,22 +81,19 @@ class TableDescriptors:
         self.width = width
         self.flat = sliding_window_view(dec.reshape(-1), m)
 
-        # per window: sum and sum of squares over the (2 lines + 1) x m patch
+        # per window: sum and sum of squares over its m samples
         # (box filters anchored at the window's first sample)
         def window_sum(a):
             out = []
             for par in range(stride):
-                x = a[par]
-                if lines:  # wrap around theta
-                    x = np.concatenate([x[-lines:], x, x[:lines]], axis=0)
-                y = cv2.boxFilter(x, -1, (m, 2 * lines + 1), anchor=(0, 0), normalize=False,
+                y = cv2.boxFilter(a[par], -1, (m, 1), anchor=(0, 0), normalize=False,
                                   borderType=cv2.BORDER_CONSTANT)  # fmt: skip
                 out.append(y[: self.n_lines])
             return np.stack(out)
 
         s1 = window_sum(dec)
         s2 = window_sum(dec * dec)
-        length = (2 * lines + 1) * m
+        length = m
         self.length = length
         self.mean = s1 / np.float32(length)
         var = np.maximum(s2 - s1 * self.mean, np.float32(0.0))
@@ -110,13 +106,7 @@ class TableDescriptors:
         n = self.n_lines
         # flat index of (par, k, col) in the (stride, lines, width) arrays
         fi = (par * n + k) * self.width + col
-        if self.lines == 0:
-            p = self.flat[fi]  # a copy: fancy indexing
-        else:
-            m = 2 * self.w + 1
-            p = np.empty((*np.shape(k), self.length), dtype=np.float32)
-            for i, dk in enumerate(range(-self.lines, self.lines + 1)):
-                p[..., i * m : (i + 1) * m] = self.flat[(par * n + (k + dk) % n) * self.width + col]
+        p = self.flat[fi]  # a copy: fancy indexing
         p -= self.mean.reshape(-1)[fi][..., None]
         p *= self.inv_norm.reshape(-1)[fi][..., None]
         return p
@@ -132,9 +122,9 @@ class RobustSearch:
     """
 
     def __init__(
-        self, tab: TableGeometry, fh1, fh2, t1, t2, thr, *, w, stride, patch_lines, min_score,
-        uniqueness, left_right, candidate_fraction, self_similarity=1.0, flatness=0.0,
-        alias_score=1.0, periodic: dict | None = None, threads: int = 1,
+        self, tab: TableGeometry, fh1, fh2, t1, t2, thr, *, w, stride, min_score, uniqueness,
+        left_right, candidate_fraction, flatness=0.0, alias_score=1.0,
+        periodic: dict | None = None, threads: int = 1,
     ):  # fmt: skip
         # the NCC at whole columns can sit below its peak between them by up to
         # ~(1 - peak) (h_step / correlation length)^2; take a looser floor here
@@ -142,8 +132,8 @@ class RobustSearch:
         floor = min_score - 0.5 * (1.0 - min_score)
         self.search = LineSearch(
             t1, t2, fh1, fh2, low=candidate_fraction * thr, thr=thr, pad=tab.pad, n_h=tab.n_h,
-            win=tab.win, w=w, stride=stride, lines=patch_lines, floor=floor,
-            uniqueness=uniqueness, self_similarity=self_similarity, alias_score=alias_score,
+            win=tab.win, w=w, stride=stride, floor=floor,
+            uniqueness=uniqueness, alias_score=alias_score,
             left_right=left_right, min_score=min_score, flatness=flatness, periodic=periodic,
         )  # fmt: skip
         self.ranges = self.search.ranges(threads)
@@ -172,12 +162,10 @@ def match_robust(
     *,
     w,
     stride,
-    patch_lines,
     min_score,
     uniqueness,
     left_right,
     candidate_fraction,
-    self_similarity=1.0,
     flatness=0.0,
     alias_score=1.0,
 ):
@@ -186,7 +174,7 @@ def match_robust(
     The edges are the local maxima of |f_h| along a line above
     candidate_fraction * thr; each significant edge of image 1 (above thr)
     is scored against the edges of image 2 inside its disparity window, and
-    the best kept when it passes the polarity, uniqueness, self-similarity,
+    the best kept when it passes the polarity, uniqueness,
     periodic-alias (:func:`~omniflow.matching.ncc.robust_lines`, a compiled
     loop over the lines that scores nothing outside the windows) and
     left-right tests. Last, h_2 is refined to sub-pixel and the match kept
@@ -196,9 +184,8 @@ def match_robust(
     (:class:`RobustSearch` is the same in steps).
     """
     search = RobustSearch(
-        tab, fh1, fh2, t1, t2, thr, w=w, stride=stride, patch_lines=patch_lines,
-        min_score=min_score, uniqueness=uniqueness, left_right=left_right,
-        candidate_fraction=candidate_fraction, self_similarity=self_similarity,
+        tab, fh1, fh2, t1, t2, thr, w=w, stride=stride, min_score=min_score,
+        uniqueness=uniqueness, left_right=left_right, candidate_fraction=candidate_fraction,
         flatness=flatness, alias_score=alias_score, threads=parallel.THREADS,
     )  # fmt: skip
     if len(search.ranges) > 1:

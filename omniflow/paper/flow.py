@@ -163,10 +163,8 @@ def direct_solution(
     f2_t: ArrayLike,
     h1: ArrayLike,
     h2: ArrayLike,
-    *,
-    min_conditioning: float = 0.0,
 ) -> tuple[NDArray, NDArray, NDArray]:
-    """The coaxial direct solution, eq. (16).
+    """The coaxial direct solution, eq. (16); NaN where D = 0.
 
     Parameters
     ----------
@@ -176,9 +174,6 @@ def direct_solution(
         The same for image 2 at (h_2, theta).
     h1, h2 : array_like
         Matched image radii, pixels (h_2 > h_1 > 0).
-    min_conditioning : float
-        Points whose :func:`conditioning` is below this get NaN (the paper's
-        "D must not be ~0", made scale-free). 0 keeps every point with D != 0.
 
     Returns
     -------
@@ -195,8 +190,6 @@ def direct_solution(
     k = h2 / h1  # eq. (14)
     D = determinant(f1_h, f1_theta, f2_h, f2_theta, h1, h2)
     ok = D != 0
-    if min_conditioning > 0:
-        ok &= conditioning(f1_h, f1_theta, f2_h, f2_theta, h1, h2) >= min_conditioning
     with np.errstate(divide="ignore", invalid="ignore"):
         a = np.where(ok, (f2_t * f1_theta - f1_t * f2_theta) / D, np.nan)  # eq. (16)
         b = np.where(ok, (k * f2_h * f1_t - f1_h * f2_t) / D, np.nan)  # eq. (16)

@@ -31,12 +31,7 @@ from omniflow.parallel import submit
 from omniflow.solve.decoupled import decouple, start_pool_fits, tests
 from omniflow.solve.gain import gain_solution, gated
 from omniflow.solve.gridpool import GridPools
-from omniflow.solve.pooled import (
-    consistent_neighbours,
-    informative_pools,
-    neighbourhoods,
-    pooled_solution,
-)
+from omniflow.solve.pooled import neighbourhoods, pooled_solution
 from omniflow.solve.refine import refine_moving
 
 __all__ = ["flow_at_matches", "make_solver"]
@@ -64,9 +59,6 @@ def flow_at_matches(
     t1 = time.perf_counter()
     r, h = rig.triangulate(h1, h2)
     noise = (cam1.get("noise_var", 0.0), cam2.get("noise_var", 0.0))
-    edge_map = None
-    if config.solver == "pooled" and config.pool_edge_tol is not None:
-        edge_map = np.hypot(*cam1["g"].grad_xy)  # |grad f| of the flow step's cam1 image
     brightness = None
     gains = config.brightness_gate is not None or config.decouple_gain_tol is not None
     if gains and config.solver == "pooled":
@@ -76,7 +68,7 @@ def flow_at_matches(
         # brightness either way: docs/decisions/brightness_model.md)
         brightness = (sample_f(cam1["a"], x1, y1, config.sampling),
                       sample_f(cam2["a"], x2, y2, config.sampling))  # fmt: skip
-    solve = make_solver(rig, config, x1, y1, theta, h1, h2, r, noise, edge_map=edge_map,
+    solve = make_solver(rig, config, x1, y1, theta, h1, h2, r, noise,
                         static_test=config.static_test, brightness=brightness)  # fmt: skip
     # the two-model test's pool fits read no flow, only the points that keep one (those
     # of the first solve, a refined point keeps a finite flow: checked below)
@@ -236,7 +228,6 @@ def make_solver(
     r: NDArray,
     noise: tuple[float, float] = (0.0, 0.0),
     *,
-    edge_map: NDArray | None = None,
     static_test: float | None = None,
     brightness: tuple[NDArray, NDArray] | None = None,
 ):
@@ -244,33 +235,21 @@ def make_solver(
     of the six derivatives returning (dh1_dt, dtheta_dt, confidence).
 
     ``noise``: the variance of each unit's gradient components, subtracted by
-    the pooled solver (``eiv="correct"``). ``edge_map``: cam1's edge strength
-    on the pixel grid, for ``config.pool_edge_tol``. ``static_test``: the pooled solver's
+    the pooled solver (``eiv="correct"``). ``static_test``: the pooled solver's
     test of no motion (``config.static_test``; passed for the first solve only: the
     refinement replaces only the flow of points that move a pixel or more).
     ``brightness``: each unit's image f at the points, for the pooled solver's gain
     term (``config.brightness_gate``, :mod:`omniflow.solve.gain`): the pools whose F statistic
     of the gain passes the gate take the answer with it. The gain fit pools over the
-    solver's k-d tree pools as searched (before ``pool_min_info``, ``pool_residual_tol``
-    or ``pool_flow_tol`` thin them), or over its grid windows (``pool_grid``).
+    solver's k-d tree pools, or over its grid windows (``pool_grid``).
 
     The returned function's attribute ``pools``: the (idx, w) of
     :func:`omniflow.solve.pooled.neighbourhoods` where the solver pools over them as
-    searched (k-d tree pools, no edge test), else None."""
+    searched (k-d tree pools), else None."""
     if config.solver == "direct":
 
         def solve(f1_h, f1_th, f1_t, f2_h, f2_th, f2_t):
-            a, b, _ = direct_solution(
-                f1_h,
-                f1_th,
-                f1_t,
-                f2_h,
-                f2_th,
-                f2_t,
-                h1,
-                h2,
-                min_conditioning=config.min_conditioning,
-            )
+            a, b, _ = direct_solution(f1_h, f1_th, f1_t, f2_h, f2_th, f2_t, h1, h2)
             return a, b, direct_conditioning(f1_h, f1_th, f2_h, f2_th, h1, h2)
 
         solve.pools = None
@@ -291,36 +270,20 @@ def make_solver(
             tree_pools=lambda mask: neighbourhoods(x1, y1, **tree, query=mask),
         )  # fmt: skip
     else:
-        idx, w = neighbourhoods(x1, y1, **tree, edge_map=edge_map, edge_tol=config.pool_edge_tol)
+        idx, w = neighbourhoods(x1, y1, **tree)
 
-    floor = max(config.min_conditioning, config.pool_min_conditioning)
+    floor = config.pool_min_conditioning
     kw = dict(theta=theta, model=config.pool_model, scale=pool_radius,
               min_conditioning=floor)  # fmt: skip
-
-    def solve_w(derivs, weights):
-        return pooled_solution(
-            *derivs, h1, h2, idx, weights, **kw, noise1=noise[0], noise2=noise[1],
-            residual_noise=config.eiv == "residual", unit_weighting=config.pool_unit_weighting,
-            grid=grid, static_test=static_test, static_max_px=config.static_max_px,
-        )  # fmt: skip
 
     def plain(f1_h, f1_th, f1_t, f2_h, f2_th, f2_t, meanwhile=None):
         if meanwhile is not None:  # nothing to wait for: the caller's work first
             meanwhile()
-        derivs = (f1_h, f1_th, f1_t, f2_h, f2_th, f2_t)
-        weights = w
-        if config.pool_min_info is not None:  # the pool's size from the local texture
-            weights = informative_pools(idx, w, f1_h, f1_th, f2_h, f2_th, h1, h2,
-                                        target=config.pool_min_info)  # fmt: skip
-        a, b, conf = solve_w(derivs, weights)
-        if config.pool_residual_tol is not None:  # second pass: j's equations agree with i
-            weights = consistent_neighbours(idx, weights, *derivs, h1, h2, a, b,
-                                            tol=config.pool_residual_tol)  # fmt: skip
-            if config.pool_flow_tol is None:
-                return solve_w(derivs, weights)
-        if config.pool_flow_tol is None:
-            return a, b, conf
-        return solve_w(derivs, _same_motion(weights, idx, a, b, h1, config.pool_flow_tol))
+        return pooled_solution(
+            f1_h, f1_th, f1_t, f2_h, f2_th, f2_t, h1, h2, idx, w, **kw, noise1=noise[0],
+            noise2=noise[1], residual_noise=config.eiv == "residual", grid=grid,
+            static_test=static_test, static_max_px=config.static_max_px,
+        )  # fmt: skip
 
     solve = plain
     if config.brightness_gate is not None and brightness is not None:
@@ -346,32 +309,9 @@ def make_solver(
             use = gated(F, config.brightness_gate, ag, bg)
             return np.where(use, ag, a), np.where(use, bg, b), np.where(use, confg, conf)
 
-    # the plain k-nearest pools (no edge test), which omniflow.solve.decoupled would search again
-    solve.pools = (idx, w) if grid is None and edge_map is None else None
+    # the plain k-nearest pools, which omniflow.solve.decoupled would search again
+    solve.pools = (idx, w) if grid is None else None
     return solve
-
-
-def _same_motion(
-    w: NDArray, idx: NDArray, a: NDArray, b: NDArray, h1: NDArray, tol: float
-) -> NDArray:
-    """Pool weights with the neighbours whose first-pass flow differs by more than ``tol`` removed.
-
-    Flows are compared in cam1 pixels per frame at the point's own radius:
-    (a_j h_1,i / h_1,j, h_1,i b_j) against (a_i, h_1,i b_i) (the radial flow
-    scales with h_1 on one surface, as in the pooled model). A point without a
-    first-pass flow keeps its neighbours; a neighbour without one is dropped.
-    """
-    n = a.size
-    ext = lambda v: np.append(v, np.nan)  # noqa: E731  (index n: no neighbour)
-    hi = h1[:, None]
-    da = ext(a / h1)[idx] * hi - a[:, None]
-    dc = (ext(b)[idx] - b[:, None]) * hi
-    with np.errstate(invalid="ignore"):
-        same = np.hypot(da, dc) <= tol
-    same[:, 0] = True
-    same |= ~(np.isfinite(a) & np.isfinite(b))[:, None]
-    same &= idx < n
-    return np.where(same, w, 0.0)
 
 
 def _displacement(

@@ -338,7 +338,7 @@ def start_pool_fits(
     derivs = tuple(np.asarray(cols[c], dtype=np.float64) for c in DERIVS)
     chain = config.decouple_gain_tol is not None and brightness is not None
     theta = np.asarray(cols["theta"], dtype=np.float64)
-    floor = max(config.min_conditioning, config.pool_min_conditioning)
+    floor = config.pool_min_conditioning
     grid = idx = w = None
     if config.grid_pools:  # the solver's grid windows, the k-d tree's where ranges mix
         grid = GridPools(

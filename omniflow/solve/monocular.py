@@ -117,7 +117,7 @@ def monocular_flow(
     radius = unit.r_m / 8.0 if config.pool_radius is None else config.pool_radius
     idx, w = neighbourhoods(x, y, k=config.pool_k, radius=radius, r=None, range_tol=None)
     zero = np.zeros_like(x)
-    floor = max(config.min_conditioning, config.pool_min_conditioning)
+    floor = config.pool_min_conditioning
     a, b, conf = pooled_solution(
         f_h, f_th, f_t, zero, zero, zero, h1, h1, idx, w, theta=theta,
         model=config.pool_model, scale=radius, min_conditioning=floor,

@@ -425,7 +425,7 @@ BAD = {
     "bad knob value": (["c1", "c2", "c3", "c4"], ["rig", "--band", "7"], "band"),
     "bad knob choice": (["c1", "c2", "c3", "c4"], ["rig", "--solver", "foo"], "--solver"),
     "bad flow taper": (C4, ["rig", "--flow-taper", "2"], "--flow-taper 2"),
-    "bad unit weighting": (C4, ["rig", "--pool-unit-weighting", "inv"], "--pool-unit-weighting"),
+    "bad pool model": (C4, ["rig", "--pool-model", "inv"], "--pool-model"),
     "dct3d needs 3 steps": (["c1", "c2", "c3", "c4"], ["rig", "--temporal", "dct3d"], "dct3d"),
     "not a dataset": ([], ["--dataset", "NODIR"], "not an omnisim dataset"),
     "calibrate without R, s": (["c1", "c2", "c3", "c4"], ["--calibrate", "--d", "0.1"], "--R, --s"),

@@ -65,7 +65,7 @@ def smooth_wall_runs():
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            cfg = OmniFlowConfig.dense(dense_smooth=1.0)
+            cfg = OmniFlowConfig.dense(dense_smooth=None)
             cols = estimate(f1, f2, rig, cfg)
             unflagged = estimate(f1, f2, rig, cfg, matches=replace(seen[0], ramp=None))
     finally:

@@ -44,18 +44,18 @@ def test_smooth_profiles_flags_a_ramp_not_a_texture():
     t1, _ = _tables()
     k = np.zeros(4, dtype=np.int64)
     j = np.array([60, 100, 180, 200])  # texture, texture, ramp, ramp
-    got = smooth_profiles(t1, k, j, w=W, stride=STRIDE, lines=0, smooth=0.95)
+    got = smooth_profiles(t1, k, j, w=W, stride=STRIDE, smooth=0.95)
     assert got.tolist() == [False, False, True, True]
     # a column where only one side's shifted profile fits uses that side (the ramp
     # section is continued to the right edge of the table: its left side is tried)
     edge = t1.shape[1] - 1 - W * STRIDE - 1
-    assert smooth_profiles(t1, k[:1], np.array([edge]), w=W, stride=STRIDE, lines=0,
+    assert smooth_profiles(t1, k[:1], np.array([edge]), w=W, stride=STRIDE,
                            smooth=0.95).tolist() == [True]  # fmt: skip
     # neither side fits: not smooth (nothing to compare)
     tiny = t1[:, : 2 * W * STRIDE + 3]
-    assert smooth_profiles(tiny, k[:1], np.array([W * STRIDE + 1]), w=W, stride=STRIDE, lines=0,
+    assert smooth_profiles(tiny, k[:1], np.array([W * STRIDE + 1]), w=W, stride=STRIDE,
                            smooth=0.95).tolist() == [False]  # fmt: skip
-    assert smooth_profiles(t1, k[:0], j[:0], w=W, stride=STRIDE, lines=0, smooth=0.95).size == 0
+    assert smooth_profiles(t1, k[:0], j[:0], w=W, stride=STRIDE, smooth=0.95).size == 0
 
 
 def test_densify_drops_ramp_matches_a_wrong_seed_placed():
@@ -68,7 +68,7 @@ def test_densify_drops_ramp_matches_a_wrong_seed_placed():
     k = np.tile(np.arange(6), 2)
     j = np.repeat([50, 180], 6) - PAD
     c2 = j + np.repeat([SHIFT, SHIFT + 6], 6).astype(float)  # the ramp's seeds 6 columns off
-    kw = dict(w=W, stride=STRIDE, lines=0, min_score=0.9, reach=16, flatness=0.0)
+    kw = dict(w=W, stride=STRIDE, min_score=0.9, reach=16, flatness=0.0)
     off = densify(tab, fh1, t1, t2, (k, j, c2), 0.0, smooth=1.0, **kw)
     on = densify(tab, fh1, t1, t2, (k, j, c2), 0.0, smooth=0.95, **kw)
     ramp_off = off[1] + PAD >= RAMP_FROM
@@ -85,7 +85,8 @@ def test_densify_drops_ramp_matches_a_wrong_seed_placed():
 
 
 def test_dense_smooth_is_off_by_default_and_on_in_the_preset():
-    assert OmniFlowConfig().dense_smooth == 1.0
+    assert OmniFlowConfig().dense_smooth is None
     assert OmniFlowConfig.dense().dense_smooth == DENSE["dense_smooth"] < 1.0
-    with pytest.raises(ValueError, match="dense_smooth"):
-        OmniFlowConfig(dense_smooth=1.5)
+    for bad in (1.5, 1.0):  # off is None, one spelling
+        with pytest.raises(ValueError, match="dense_smooth"):
+            OmniFlowConfig(dense_smooth=bad)

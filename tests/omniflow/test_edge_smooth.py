@@ -62,7 +62,7 @@ def test_edge_smooth_drops_the_ramp_matches(rig):
     than without the test."""
     scene = _smooth_wall(rig)
     f1, f2 = _noisy(scene)
-    off = estimate(f1, f2, rig, OmniFlowConfig(edge_smooth=1.0))
+    off = estimate(f1, f2, rig, OmniFlowConfig(edge_smooth=None))
     assert len(off) >= 5  # measured 11
     assert _wrong(scene, off).all()
     with pytest.warns(UserWarning, match="no stereo matches"):
@@ -76,7 +76,7 @@ def test_edge_smooth_keeps_a_textured_walls_matches(rig):
     """The striped wall: the same 1281 matches, none wrong, with the test or without."""
     scene = wall_scene(rig, robot=ROBOT)
     f1, f2 = _noisy(scene)
-    off = estimate(f1, f2, rig, OmniFlowConfig(edge_smooth=1.0))
+    off = estimate(f1, f2, rig, OmniFlowConfig(edge_smooth=None))
     on = estimate(f1, f2, rig, OmniFlowConfig(edge_smooth=0.95, edge_smooth_floor=None))
     default = estimate(f1, f2, rig, OmniFlowConfig())
     assert len(off) > 1000  # measured 1281
@@ -93,7 +93,7 @@ def test_edge_smooth_floor_drops_flagged_points_of_ill_conditioned_pools(rig):
     anisotropic by nature (confidence median 0.0078), so a floor of 0.015 splits them."""
     scene = wall_scene(rig, robot=ROBOT)
     f1, f2 = _noisy(scene)
-    found = estimate(f1, f2, rig, OmniFlowConfig(edge_smooth=1.0))
+    found = estimate(f1, f2, rig, OmniFlowConfig(edge_smooth=None))
     m = Matches.from_polar(rig, found["theta"], found["h1"], found["h2"], found["score"])
     flagged = replace(m, ramp=np.arange(len(m)) % 2 == 0)
     base = estimate(f1, f2, rig, OmniFlowConfig(edge_smooth_floor=None), matches=flagged)
@@ -112,7 +112,8 @@ def test_edge_smooth_floor_drops_flagged_points_of_ill_conditioned_pools(rig):
 def test_edge_smooth_defaults_and_checks():
     assert OmniFlowConfig().edge_smooth == 0.95
     assert OmniFlowConfig().edge_smooth_floor == 0.015
-    with pytest.raises(ValueError, match="edge_smooth"):
-        OmniFlowConfig(edge_smooth=1.5)
+    for bad in (1.5, 1.0):  # off is None, one spelling
+        with pytest.raises(ValueError, match="edge_smooth"):
+            OmniFlowConfig(edge_smooth=bad)
     with pytest.raises(ValueError, match="edge_smooth_floor"):
         OmniFlowConfig(edge_smooth_floor=-0.1)

@@ -249,19 +249,6 @@ def test_boundary_check_catches_grid_pools_without_the_range_test(boundary):
     assert wall > 1.05 * tree_wall  # measured 1.09x
 
 
-@pytest.mark.parametrize(
-    ("name", "value"),
-    [("pool_residual_tol", 3.0), ("pool_flow_tol", 0.5), ("pool_edge_tol", 2.0),
-     ("pool_min_info", 4.0), ("pool_unit_weighting", "local")],
-)  # fmt: skip
-def test_knobs_that_thin_each_pool_reject_grid_pools(name, value):
-    """A knob that needs each pool's neighbours (the k-d tree's) with ``pool_grid`` is an
-    error naming both (main ignored pool_grid there, silently)."""
-    with pytest.raises(ValueError, match=re.escape(f"pool_grid = 0.125 with {name} = ")):
-        OmniFlowConfig(pool_grid=0.125, brightness_model="gain", **{name: value})
-    OmniFlowConfig(pool_grid=None, **{name: value})  # the tree's pools: fine
-
-
 def test_grid_pools_reject_the_linear_gain():
     """Grid pools fit one gain per pool: ``brightness_model="linear"`` with them is an error
     (main fell back to one gain, silently); without the gain fit there is no conflict."""

@@ -246,8 +246,9 @@ def test_polar_gradient_fast_and_sampling():
 
 #: The defaults before the rendered-frame study (tangential blur 0.06 rad,
 #: radial profiles of 9 samples either side, edges only): compared against below.
-EARLIER_DEFAULTS = {"tangential_blur": 0.06, "consistency": 0.0, "flatness": 0.0,
-                    "dense_percentile": 100.0, "alias_score": 1.0, "short_patch": 0.0}  # fmt: skip
+EARLIER_DEFAULTS = {"tangential_blur": 0.06, "consistency": None, "flatness": None,
+                    "dense_percentile": None, "alias_score": None,
+                    "short_patch": None}  # fmt: skip
 
 
 def _earlier(rig) -> dict:
@@ -284,7 +285,7 @@ def test_rendered_frame_fewer_outliers_than_earlier_defaults(tmp_path):
     the outliers (|h2 - gt.stereo.h_other| > 1 px at the match) of the
     defaults against the earlier ones and against the defaults without the
     sharp-peak test. Measured 2 of 423 matches (0.5 %); without the
-    sharp-peak test (flatness = 0) 8 of 505 (1.6 %); the earlier defaults
+    sharp-peak test (flatness None) 8 of 505 (1.6 %); the earlier defaults
     37 of 758 (4.9 %); render seeds 0 / 2: 0.7 % / 0.5 % of 446 / 444,
     2.2 % / 0.6 % without the test, 5.1 % / 6.3 % with the earlier defaults.
     (Before the sharp-peak and alias tests: 0.2-0.8 % of 636-647; with the
@@ -327,7 +328,7 @@ def test_rendered_frame_fewer_outliers_than_earlier_defaults(tmp_path):
 
     new_out, new_n = outliers(match_radial(*fits, rig))
     old_out, _ = outliers(match_radial(*fits, rig, **_earlier(rig)))
-    flat_out, flat_n = outliers(match_radial(*fits, rig, flatness=0.0))
+    flat_out, flat_n = outliers(match_radial(*fits, rig, flatness=None))
     assert new_n > 340
     assert new_out < old_out
     assert new_out / new_n < 0.015
@@ -345,7 +346,7 @@ def test_consistency_vote_removes_isolated_disparities():
     rig = paper_rig()
     scene = SCENES["room 3 m periodic"](rig)
     f1, f2 = _fits(scene)
-    off = match_radial(f1, f2, rig, consistency=0.0)
+    off = match_radial(f1, f2, rig, consistency=None)
     on = match_radial(f1, f2, rig)
     assert _outlier_rate(scene, on) < 0.5 * _outlier_rate(scene, off)
     assert _outlier_rate(scene, on) < 0.02
@@ -354,7 +355,7 @@ def test_consistency_vote_removes_isolated_disparities():
     assert all((round(t, 9), round(h, 9)) in key for t, h in zip(on.theta, on.h1, strict=True))
     wall = wall_scene(rig, radius=3.0, seed=4)
     g1, g2 = _fits(wall)
-    n_off = len(match_radial(g1, g2, rig, consistency=0.0))
+    n_off = len(match_radial(g1, g2, rig, consistency=None))
     assert len(match_radial(g1, g2, rig)) > 0.9 * n_off
 
 
@@ -369,7 +370,7 @@ def test_periodic_walls_at_most_2_percent_outliers():
     period away in cam2 scores as well as the truth or better (0.1 m stripes
     at 3 m: the alias 2 periods away 0.999, the truth 0.98). Measured with the
     defaults (256 px): 0.1 m at 3 m (detail 0.1) 0 matches, against 2201, all
-    wrong, without the periodic-alias test (alias_score = 1); 0.15 m at 2 m
+    wrong, without the periodic-alias test (alias_score None); 0.15 m at 2 m
     with more random detail (0.3) 68 matches, 0 wrong (35 with the rule
     before the image-2 confirmation), against 219 wrong of 790 without it
     (with the densification, dense_percentile 60: 418, 0 wrong, against
@@ -383,7 +384,7 @@ def test_periodic_walls_at_most_2_percent_outliers():
     ):
         f1, f2 = _fits(scene)
         on = match_radial(f1, f2, rig)
-        off = match_radial(f1, f2, rig, alias_score=1.0)
+        off = match_radial(f1, f2, rig, alias_score=None)
         wrong_on = _outlier_rate(scene, on) * len(on) if len(on) else 0.0
         assert wrong_on <= 0.02 * max(len(on), 1) and len(on) >= n_min
         assert _outlier_rate(scene, off) >= 0.10
@@ -394,29 +395,11 @@ def test_periodic_walls_at_most_2_percent_outliers():
     # Mutation caught: ignoring image 2 (alias_image2 = -1 gives 1249, 1267).
     for scene in (SCENES["room 3 m"](rig), wall_scene(rig, radius=2.0, seed=3)):
         f1, f2 = _fits(scene)
-        off = len(match_radial(f1, f2, rig, alias_score=1.0))
+        off = len(match_radial(f1, f2, rig, alias_score=None))
         on = match_radial(f1, f2, rig)
         assert len(on) >= 0.85 * off
         assert len(on) > len(match_radial(f1, f2, rig, alias_image2=-1.0))
         assert _outlier_rate(scene, on) <= 0.005
-
-
-def test_self_similarity_rejects_most_periodic_aliases():
-    """The older, costlier periodic-alias test (self_similarity, off by default),
-    measured with the newer test off (alias_score = 1): a 0.1 m striped wall at
-    3 m (disparity 36 px, image period 12 px, every alias as good as the truth)
-    2201 matches all wrong without it, 100 all wrong with 0.5; 0.15 m at 2 m:
-    178 of 853 wrong -> 46 of 669. Bounds: 10x fewer wrong matches at 3 m,
-    2x at 2 m."""
-    rig = paper_rig()
-    for (period, radius), factor in (((0.1, 3.0), 10.0), ((0.15, 2.0), 2.0)):
-        scene = _periodic_wall(rig, period, radius)
-        f1, f2 = _fits(scene)
-        wrong = []
-        for ss in (1.0, 0.5):
-            m = match_radial(f1, f2, rig, self_similarity=ss, alias_score=1.0)
-            wrong.append(_outlier_rate(scene, m) * len(m))
-        assert wrong[1] * factor <= wrong[0], (period, radius, wrong)
 
 
 def test_densify_grows_matches_without_outliers():
@@ -451,7 +434,7 @@ def test_short_patch_adds_matches_once():
     scene = SyntheticScene.room(rig, wall_radius=3.0, ceiling=1.0, texture_seed=7)
     f1, f2 = _fits(scene)
     both = match_radial(f1, f2, rig)
-    first = match_radial(f1, f2, rig, short_patch=0.0)
+    first = match_radial(f1, f2, rig, short_patch=None)
     assert len(both) > 1.1 * len(first)  # measured 1.17x
     assert _outlier_rate(scene, both) <= 0.01  # measured 0
     keys = np.rint((both.theta + np.pi) * 360 / (2 * np.pi) - 0.5) * 1e4 + np.rint(both.h1)

@@ -17,7 +17,6 @@ from omniflow.fit.noise import (
     gradient_noise_variance,
     immerkaer_sigma,
     predicted_gain,
-    predicted_variance,
 )
 from omniflow.paper.dct import band_window, fit_dct
 
@@ -144,20 +143,3 @@ def test_choose_band_narrows_with_noise():
     # the default candidates stop at 1/2; a series narrower than a candidate excludes it
     assert choose_band(fit_dct(clean, band=0.75), 0.0) == 0.5
     assert choose_band(fit_dct(clean, band=0.25), 0.0) == 0.25
-
-
-def test_variance_rule_follows_the_texture_spectrum():
-    """The variance rule keeps a wide band for fine texture and a narrow one for coarse."""
-    rng = np.random.default_rng(10)
-    fine = _smooth(256, seed=11, cutoff=0.5) + rng.normal(0, 0.01, (256, 256))
-    coarse = _smooth(256, seed=12, cutoff=0.1) + rng.normal(0, 0.01, (256, 256))
-    var_f = predicted_variance(fit_dct(fine, band=0.5), 0.01)
-    var_c = predicted_variance(fit_dct(coarse, band=0.5), 0.01)
-    # measured (bands 0.125 .. 0.5, relative to the least): fine 1.01 1.03 1.01 1.01 1.00
-    # 1.00 1.00 (band 0.5 chosen); coarse 1.0 2.2 4.0 6.2 8.9 12.1 15.6 (band 0.125)
-    b_fine = choose_band(fit_dct(fine, band=0.5), 0.01, rule="variance")
-    b_coarse = choose_band(fit_dct(coarse, band=0.5), 0.01, rule="variance")
-    assert b_fine == 0.5 and b_coarse == 0.125
-    assert var_c[-1] / var_c.min() > 10 and var_f[-1] / var_f.min() < 1.35
-    with pytest.raises(ValueError, match="rule"):
-        choose_band(fit_dct(fine, band=0.5), 0.01, rule="best")

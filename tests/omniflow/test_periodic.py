@@ -50,7 +50,7 @@ def _bumps(signs=(1.0, 1.0), centres=(80, 140), sigma=4.0) -> np.ndarray:
 def _call(t1, t2, j, *, columns2=None, image2=True, edges=None):
     k = np.array([3])
     j = np.array([j])
-    kw = dict(w=W, stride=STRIDE, lines=0, lags=LAGS, alias_score=0.9)
+    kw = dict(w=W, stride=STRIDE, lags=LAGS, alias_score=0.9)
     if image2:
         kw.update(table2=t2, j2=(j + D).astype(float), window=WINDOW, alias2_score=0.9,
                   columns2=columns2)  # fmt: skip
@@ -60,15 +60,16 @@ def _call(t1, t2, j, *, columns2=None, image2=True, edges=None):
 def test_profiles_are_zero_mean_unit_norm_samples_of_the_line():
     rng = np.random.default_rng(0)
     t = rng.random((6, 50)).astype(np.float32)
-    p = profiles(t, np.array([0, 5]), np.array([20, 30]), w=3, stride=2, lines=1)
-    # line 0 with its neighbours 5 and 1 (wrapping), columns 14, 16, ..., 26
-    raw = np.concatenate([t[5, 14:27:2], t[0, 14:27:2], t[1, 14:27:2]])
-    raw = raw - raw.mean()
-    np.testing.assert_allclose(p[0], raw / np.linalg.norm(raw), atol=1e-6)
-    assert p.shape == (2, 21)
+    p = profiles(t, np.array([0, 5]), np.array([20, 30]), w=3, stride=2)
+    # line 0, columns 14, 16, ..., 26; line 5, columns 24, ..., 36
+    for row, (line, col) in enumerate(((0, 20), (5, 30))):
+        raw = t[line, col - 6 : col + 7 : 2]
+        raw = raw - raw.mean()
+        np.testing.assert_allclose(p[row], raw / np.linalg.norm(raw), atol=1e-6)
+    assert p.shape == (2, 7)
     # a constant profile is all zeros (NCC 0 with anything), not NaN
     assert np.all(profiles(np.ones((3, 40), np.float32), np.array([1]), np.array([20]),
-                           w=3, stride=1, lines=0) == 0)  # fmt: skip
+                           w=3, stride=1) == 0)  # fmt: skip
 
 
 def test_line_edges_lists_each_lines_columns_in_order():
@@ -168,7 +169,7 @@ def test_compiled_test_takes_the_numpy_rules_decisions():
     k, j = np.nonzero(wide)
     rng = np.random.default_rng(4)
     j2 = j + D + rng.uniform(-0.6, 0.6, j.size)
-    base = dict(w=W, stride=STRIDE, lines=1, lags=LAGS, alias_score=0.9)
+    base = dict(w=W, stride=STRIDE, lags=LAGS, alias_score=0.9)
     cases = [
         {},
         dict(table2=t2, j2=j2, window=WINDOW, alias2_score=0.9),

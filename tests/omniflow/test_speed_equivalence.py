@@ -13,9 +13,9 @@ checkout of it::
 (run from this repository's root; the script imports omniflow and the test
 helpers from /tmp/speed_ref, so the figures are that commit's). The cases
 cover the default matcher (long and short pass, left-right check, alias
-test), a thin textured pole in front of the wall (the short pass's job), and
-a configuration that also takes the self-similarity test, multi-line patches
-and a sharper uniqueness test.
+test) and a thin textured pole in front of the wall (the short pass's job). (A third
+case, with the self-similarity test and multi-line patches, went with those knobs:
+docs/decisions/retired_knobs.md.)
 """
 
 from __future__ import annotations
@@ -67,10 +67,6 @@ def cases() -> dict[str, tuple[bool, OmniFlowConfig]]:
     return {
         "room": (False, OmniFlowConfig()),
         "room_pole": (True, OmniFlowConfig()),
-        "room_pole_lines": (
-            True,
-            OmniFlowConfig(patch_lines=1, self_similarity=0.8, uniqueness=0.3),
-        ),
     }
 
 
@@ -165,8 +161,8 @@ def test_rim_fill_equals_whole_image_remap(rig_name):
         np.testing.assert_array_equal(out, ref)
 
 
-@pytest.mark.parametrize(("w", "stride", "lines"), [(16, 1, 0), (16, 2, 0), (8, 3, 2)])
-def test_kernel_profiles_equal_descriptors(w, stride, lines):
+@pytest.mark.parametrize(("w", "stride"), [(16, 1), (16, 2), (8, 3)])
+def test_kernel_profiles_equal_descriptors(w, stride):
     """The compiled profiles (the matcher's, and Descriptors') are main's whole-table
     Descriptors' (now TableDescriptors), bit for bit; so are indices off the table's
     profile range (Descriptors hands them to TableDescriptors)."""
@@ -180,16 +176,16 @@ def test_kernel_profiles_equal_descriptors(w, stride, lines):
     table = cv2.GaussianBlur(table, (1, 9), 0)
     k = rng.integers(0, 90, 3000)
     j = rng.integers(w * stride, 200 - w * stride, 3000)
-    ref = TableDescriptors(table, w, stride, lines)(k, j)
+    ref = TableDescriptors(table, w, stride)(k, j)
     out = np.empty_like(ref)
     for i in range(k.size):
-        _profile(table, k[i], j[i], w, stride, lines, out, i)
+        _profile(table, k[i], j[i], w, stride, out, i)
     np.testing.assert_array_equal(out, ref)
-    desc = Descriptors(table, w, stride, lines)
+    desc = Descriptors(table, w, stride)
     np.testing.assert_array_equal(
         desc(k.reshape(50, 60), j.reshape(50, 60)), ref.reshape(50, 60, -1)
     )
     edge = np.array([0, w * stride - 1, 200 - w * stride])  # windows leaving the table
     np.testing.assert_array_equal(
-        desc(k[:3], edge), TableDescriptors(table, w, stride, lines)(k[:3], edge)
+        desc(k[:3], edge), TableDescriptors(table, w, stride)(k[:3], edge)
     )
