@@ -1,0 +1,336 @@
+"""Rig errors of one unit (a mis-made or misaligned mirror and camera) and its traced model.
+
+A real unit is not the ideal one of :class:`omniflow.geometry.rig.Unit` (a pinhole on
+the axis of a 90-degree cone). :class:`UnitErrors` holds five departures, the keys of
+a scene's ``[rig.errors.cam1]`` / ``[rig.errors.cam2]`` tables and of ``rig.errors`` in
+``dataset.json`` and rig files (``docs/scene_format.md``); every key defaults to the
+ideal rig:
+
+==================  ==========  ==========================================================
+key                 unit        meaning
+==================  ==========  ==========================================================
+``mirror_tilt``     [deg, deg]  the cone's axis turned about the rig's X axis, then about
+                                its Y axis, both through the cone's tip (right-handed)
+``mirror_offset``   [m, m, m]   the cone's tip moved, rig frame
+``cone_angle``      deg         the cone's full apex angle (90 ideal)
+``camera_tilt``     [deg, deg]  the camera turned the same way about its centre
+``camera_offset``   [m, m]      the camera centre moved in the rig's X and Y
+==================  ==========  ==========================================================
+
+Model (rig frame of :mod:`omniflow.conventions`; ideal camera centre
+``C0 = (0, 0, tip_h - d)``, ideal tip ``T0 = (0, 0, tip_h)``). A tilt ``[a, b]`` is the
+rotation ``Ry(b) Rx(a)``. The camera keeps its intrinsics (image distance v of eq. 2,
+principal point (x_c, y_c)): pixel (x, y) looks from ``C = C0 + (ox, oy, 0)`` along
+``Rc (x - x_c, y - y_c, v)``. The mirror is the upper nappe of the cone of tip
+``T = T0 + mirror_offset``, axis ``a = Rm (0, 0, 1)`` and half-angle ``alpha =
+cone_angle / 2``, out to distance R from its axis (its base circle, the rim).
+:func:`cone_reflect` intersects a ray with it in closed form (the quadratic
+``((p + t w).a)^2 = cos^2(alpha) |p + t w|^2``, p = origin - T, larger root) and
+reflects it off the surface normal ``(q.a) a - cos^2(alpha) q`` (q = hit - T).
+
+:func:`traced_rays` is the forward model (pixel -> reflected ray) and
+:func:`traced_project` its inverse (rig point -> pixel), by Gauss-Newton from the
+pixel that eq. (1) gives, the Jacobian by finite differences of the forward model.
+The ray-cone functions take an ``ops`` namespace (``sqrt``, ``select``, ``maximum``),
+so the renderer runs the same formulas in Dr.Jit as the ground truth in numpy.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+__all__ = [
+    "ERROR_KEYS",
+    "NUMPY_OPS",
+    "UnitErrors",
+    "cone_reflect",
+    "errors_from_dict",
+    "tilt_matrix",
+    "traced_constants",
+    "traced_project",
+    "traced_rays",
+]
+
+ERROR_KEYS = ("mirror_tilt", "mirror_offset", "cone_angle", "camera_tilt", "camera_offset")
+#: Largest tilt, degrees; larger is a different rig, not an alignment error.
+MAX_TILT_DEG = 5.0
+#: Cone angle range, degrees.
+CONE_ANGLE_RANGE = (80.0, 100.0)
+#: Largest offset, as a fraction of the rig's d.
+MAX_OFFSET_OF_D = 0.1
+#: Array operations of the ray-cone functions for numpy.
+NUMPY_OPS = SimpleNamespace(sqrt=np.sqrt, select=np.where, maximum=np.maximum)
+#: Gauss-Newton of :func:`traced_project`: most steps, the step (px) that ends it, the
+#: finite-difference step (px) of the Jacobian.
+PROJECT_STEPS = 40
+#: The longest Gauss-Newton step, px (near the axis's image the map bends sharply).
+PROJECT_MAX_STEP = 4.0
+#: Image radius (px) about the tip's image inside which unseen points are tried again.
+NEAR_TIP_PX = 20.0
+PROJECT_STEP_TOL = 1e-7
+PROJECT_FD = 1e-3
+
+
+@dataclass(frozen=True)
+class UnitErrors:
+    """The five departures of one unit from the ideal (module docstring); degrees, metres."""
+
+    mirror_tilt: tuple[float, float] = (0.0, 0.0)
+    mirror_offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    cone_angle: float = 90.0
+    camera_tilt: tuple[float, float] = (0.0, 0.0)
+    camera_offset: tuple[float, float] = (0.0, 0.0)
+
+    @property
+    def ideal(self) -> bool:
+        """True when every key has its ideal value (the unit is eq. 1's)."""
+        return self == UnitErrors()
+
+    def as_dict(self) -> dict[str, Any]:
+        """The keys and values as for a rig file or dataset.json (lists, floats)."""
+        return {k: (list(v) if isinstance(v, tuple) else v) for k, v in self._items()}
+
+    def _items(self):
+        return ((k, getattr(self, k)) for k in ERROR_KEYS)
+
+
+def errors_from_dict(
+    tbl: Any, where: str, d: float, fail: Callable[[str, Any, str], Exception]
+) -> UnitErrors:
+    """Read one ``rig.errors.camN`` table; ``fail(key, value, expected)`` makes the error.
+
+    ``where`` is the table's dotted name (``rig.errors.cam1``), ``d`` the rig's d
+    (offsets are limited to :data:`MAX_OFFSET_OF_D` of it).
+    """
+    if not isinstance(tbl, dict):
+        raise fail(where, tbl, f"a table with some of: {', '.join(ERROR_KEYS)}")
+    unknown = sorted(set(tbl) - set(ERROR_KEYS))
+    if unknown:
+        raise fail(f"{where}.{unknown[0]}", tbl[unknown[0]], f"one of: {', '.join(ERROR_KEYS)}")
+    lim = MAX_OFFSET_OF_D * d
+    specs = {
+        "mirror_tilt": (2, MAX_TILT_DEG, "deg"),
+        "mirror_offset": (3, lim, f"m (a tenth of rig.d = {d:g} m)"),
+        "camera_tilt": (2, MAX_TILT_DEG, "deg"),
+        "camera_offset": (2, lim, f"m (a tenth of rig.d = {d:g} m)"),
+    }
+    out: dict[str, Any] = {}
+    for key, (n, hi, unit) in specs.items():
+        if key not in tbl:
+            continue
+        v = tbl[key]
+        expected = f"a list of {n} numbers in [{-hi:g}, {hi:g}] {unit}"
+        if not isinstance(v, list | tuple) or len(v) != n or not all(_finite(x) for x in v):
+            raise fail(f"{where}.{key}", v, expected)
+        if any(abs(x) > hi for x in v):
+            raise fail(f"{where}.{key}", v, expected)
+        out[key] = tuple(float(x) for x in v)
+    if "cone_angle" in tbl:
+        v = tbl["cone_angle"]
+        lo, hi = CONE_ANGLE_RANGE
+        if not _finite(v) or not lo <= v <= hi:
+            raise fail(f"{where}.cone_angle", v, f"a number in [{lo:g}, {hi:g}] deg (90 ideal)")
+        out["cone_angle"] = float(v)
+    return UnitErrors(**out)
+
+
+def _finite(x: Any) -> bool:
+    return isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def tilt_matrix(tilt_deg: ArrayLike) -> NDArray:
+    """Ry(b) Rx(a) of a tilt [a, b] in degrees: about X first, then Y (right-handed)."""
+    a, b = np.radians(np.asarray(tilt_deg, dtype=np.float64))
+    rx = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+    ry = np.array([[np.cos(b), 0, np.sin(b)], [0, 1, 0], [-np.sin(b), 0, np.cos(b)]])
+    return ry @ rx
+
+
+def traced_constants(unit: Any, errors: UnitErrors | None = None) -> SimpleNamespace:
+    """The numbers of the traced model of ``unit`` (its ``errors`` unless given), float64.
+
+    ``C`` camera centre, ``Rc`` camera rotation (3, 3), ``T`` cone tip, ``a`` cone axis,
+    ``cos2`` = cos^2(cone_angle / 2), ``R`` rim radius, ``v``, ``x_c``, ``y_c``.
+    """
+    e = errors if errors is not None else (getattr(unit, "errors", None) or UnitErrors())
+    ox, oy = e.camera_offset
+    rm = tilt_matrix(e.mirror_tilt)
+    return SimpleNamespace(
+        C=np.array([ox, oy, unit.tip_h - unit.d]),
+        Rc=tilt_matrix(e.camera_tilt),
+        T=np.array([0.0, 0.0, unit.tip_h]) + np.asarray(e.mirror_offset, dtype=np.float64),
+        a=rm[:, 2].copy(),
+        cos2=math.cos(math.radians(e.cone_angle) / 2.0) ** 2,
+        R=float(unit.R),
+        v=float(unit.v),
+        x_c=float(unit.x_c),
+        y_c=float(unit.y_c),
+    )
+
+
+def cone_reflect(ops, o, w, g):
+    """Reflect the rays ``o + t w`` (rig frame, 3-tuples; w need not be unit) off the cone.
+
+    ``g`` holds ``T``, ``a``, ``cos2``, ``R`` (:func:`traced_constants`; numbers or JIT
+    scalars). Returns ``(q, r, ok, rho)``: the mirror point (rig frame), the unit
+    reflected direction, where the ray meets the upper nappe inside the rim, and the hit's
+    distance from the cone's axis (metres).
+    """
+    T, ax, c2 = g.T, g.a, g.cos2
+    p = [o[k] - T[k] for k in range(3)]
+    pa = p[0] * ax[0] + p[1] * ax[1] + p[2] * ax[2]
+    wa = w[0] * ax[0] + w[1] * ax[1] + w[2] * ax[2]
+    ww = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
+    pw = p[0] * w[0] + p[1] * w[1] + p[2] * w[2]
+    pp = p[0] * p[0] + p[1] * p[1] + p[2] * p[2]
+    qa = wa * wa - c2 * ww  # > 0 for a ray closer to the axis than the cone's half-angle
+    qb = 2.0 * (pa * wa - c2 * pw)  # < 0: the camera lies inside the lower nappe
+    qc = pa * pa - c2 * pp
+    disc = qb * qb - 4.0 * qa * qc
+    ok = (disc >= 0.0) & (qa > 0.0)
+    den = ops.select(ok, 2.0 * qa, 1.0)
+    t = (ops.sqrt(ops.maximum(disc, 0.0)) - qb) / den  # the larger root: the upper nappe
+    q = [p[k] + t * w[k] for k in range(3)]  # tip-relative
+    za = q[0] * ax[0] + q[1] * ax[1] + q[2] * ax[2]
+    radial = [q[k] - za * ax[k] for k in range(3)]
+    rho = ops.sqrt(radial[0] * radial[0] + radial[1] * radial[1] + radial[2] * radial[2])
+    ok = ok & (za > 0.0) & (rho <= g.R)
+    n = [za * ax[k] - c2 * q[k] for k in range(3)]  # half the gradient of the quadric
+    nn = n[0] * n[0] + n[1] * n[1] + n[2] * n[2]
+    k2 = 2.0 * (w[0] * n[0] + w[1] * n[1] + w[2] * n[2]) / ops.select(nn > 0.0, nn, 1.0)
+    r = [w[k] - k2 * n[k] for k in range(3)]
+    inv = 1.0 / ops.sqrt(r[0] * r[0] + r[1] * r[1] + r[2] * r[2])
+    return [q[k] + T[k] for k in range(3)], [r[k] * inv for k in range(3)], ok, rho
+
+
+def camera_ray(px, py, g):
+    """Origin and direction (3-tuples, rig frame) of the film offset (px, py) from (x_c, y_c)."""
+    rc = g.Rc
+    w = [rc[i][0] * px + rc[i][1] * py + rc[i][2] * g.v for i in range(3)]
+    return [g.C[0], g.C[1], g.C[2]], w
+
+
+def traced_rays(
+    unit: Any, x: ArrayLike, y: ArrayLike, errors: UnitErrors | None = None
+) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+    """Reflected rays of continuous pixels (x, y) through the actual geometry, float64.
+
+    Returns ``(origin, direction, valid, rho)``: the mirror points and unit directions
+    (..., 3), rig frame, where the ray meets the mirror inside its rim, and the hit's
+    distance from the cone's axis.
+    """
+    g = traced_constants(unit, errors)
+    return _rays(g, np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64))
+
+
+def _rays(g, x: NDArray, y: NDArray):
+    o, w = camera_ray(x - g.x_c, y - g.y_c, g)
+    o = [np.broadcast_to(c, x.shape) for c in o]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        q, r, ok, rho = cone_reflect(NUMPY_OPS, o, w, g)
+    return np.stack(q, axis=-1), np.stack(r, axis=-1), ok, rho
+
+
+def traced_project(
+    unit: Any, q: ArrayLike, errors: UnitErrors | None = None
+) -> tuple[NDArray, NDArray, NDArray]:
+    """The pixel (x, y) whose traced reflected ray passes through rig point q (..., 3).
+
+    Gauss-Newton (:func:`_solve`) from eq. (1)'s pixel, placed about the image of the
+    cone's tip. Within :data:`NEAR_TIP_PX` of the tip's image eq. (1) can start on the
+    wrong side (a tilt turns the nearly level rays there), and the iteration may find
+    the ray whose line runs back through q; a point not seen from there is tried again
+    from rings of starts about the tip's image. Returns ``(x, y, seen)``: ``seen`` where
+    it converged, the ray meets the mirror inside its rim and q lies ahead of the mirror
+    point. The image bounds are the caller's.
+    """
+    g = traced_constants(unit, errors)
+    q = np.asarray(q, dtype=np.float64)
+    shape = q.shape[:-1]
+    q = q.reshape(-1, 3)
+    r = np.hypot(q[:, 0], q[:, 1])
+    x_t, y_t = _tip_image(g)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        h_i = g.v * (q[:, 2] - unit.tip_h) / (unit.d + r)  # eq. (1), about the tip's image
+        x = x_t + np.where(r > 0, h_i * q[:, 0] / r, 0.0)
+        y = y_t + np.where(r > 0, h_i * q[:, 1] / r, 0.0)
+    x, y, seen = _solve(g, x, y, q)
+    retry = np.nonzero(~seen & (np.abs(h_i) < NEAR_TIP_PX))[0]
+    for radius in (2.0, 6.0, 12.0):
+        for ang in np.arange(8) * (np.pi / 4):
+            if len(retry) == 0:
+                break
+            x0 = np.full(len(retry), x_t + radius * np.cos(ang))
+            y0 = np.full(len(retry), y_t + radius * np.sin(ang))
+            x1, y1, s1 = _solve(g, x0, y0, q[retry])
+            got = retry[s1]
+            x[got], y[got], seen[got] = x1[s1], y1[s1], True
+            retry = retry[~s1]
+    return x.reshape(shape), y.reshape(shape), seen.reshape(shape)
+
+
+def _solve(g, x: NDArray, y: NDArray, q: NDArray) -> tuple[NDArray, NDArray, NDArray]:
+    """Gauss-Newton from (x, y): q's offset across the ray to zero (``seen`` as above).
+
+    The Jacobian comes from the forward model at + :data:`PROJECT_FD` px; steps are
+    limited to :data:`PROJECT_MAX_STEP` px; it ends when every step is below
+    :data:`PROJECT_STEP_TOL` px (quadratic convergence: the last step bounds the
+    error) or after :data:`PROJECT_STEPS` steps.
+    """
+    x, y = x.copy(), y.copy()
+    step = np.full(len(q), np.inf)
+    act = np.arange(len(q))  # the points still moving
+    for _ in range(PROJECT_STEPS):
+        xa, ya, qa = x[act], y[act], q[act]
+        e0, b1, b2 = _residual(g, xa, ya, qa, None)
+        ex, _, _ = _residual(g, xa + PROJECT_FD, ya, qa, (b1, b2))
+        ey, _, _ = _residual(g, xa, ya + PROJECT_FD, qa, (b1, b2))
+        j11, j21 = (ex[0] - e0[0]) / PROJECT_FD, (ex[1] - e0[1]) / PROJECT_FD
+        j12, j22 = (ey[0] - e0[0]) / PROJECT_FD, (ey[1] - e0[1]) / PROJECT_FD
+        det = j11 * j22 - j12 * j21
+        with np.errstate(invalid="ignore", divide="ignore"):
+            sx = -(j22 * e0[0] - j12 * e0[1]) / det
+            sy = -(-j21 * e0[0] + j11 * e0[1]) / det
+            st = np.hypot(sx, sy)
+            scale = np.minimum(1.0, PROJECT_MAX_STEP / np.where(st > 0, st, 1.0))
+        x[act], y[act], step[act] = xa + scale * sx, ya + scale * sy, st
+        act = act[st > PROJECT_STEP_TOL]  # NaN (no ray) stops too: it is unseen
+        if len(act) == 0:
+            break
+    o, w, ok, _ = _rays(g, x, y)
+    ahead = np.einsum("ij,ij->i", q - o, w) > 0
+    seen = ok & ahead & (step <= 1e3 * PROJECT_STEP_TOL) & np.isfinite(x) & np.isfinite(y)
+    return x, y, seen
+
+
+def _tip_image(g) -> tuple[float, float]:
+    """The pixel that sees the cone's tip (the centre of the image's radial structure)."""
+    dc = g.Rc.T @ (g.T - g.C)
+    return g.x_c + g.v * dc[0] / dc[2], g.y_c + g.v * dc[1] / dc[2]
+
+
+def _residual(g, x, y, q, basis):
+    """q's offset across the ray of (x, y), in the basis (b1, b2) (metres).
+
+    The basis is taken across the ray when none is given (the Jacobian's neighbours
+    reuse the centre's, so their residuals differ only by the ray's change).
+    """
+    o, w, _, _ = _rays(g, x, y)
+    if basis is None:
+        # two unit vectors across w: b1 = w x z_ref / |...|, b2 = w x b1
+        ref = np.array([0.0, 0.0, 1.0])
+        b1 = np.cross(w, ref)
+        b1 /= np.linalg.norm(b1, axis=-1, keepdims=True)
+        b2 = np.cross(w, b1)
+    else:
+        b1, b2 = basis
+    dq = q - o
+    dq = dq - np.einsum("ij,ij->i", dq, w)[:, None] * w  # across this ray
+    return (np.einsum("ij,ij->i", dq, b1), np.einsum("ij,ij->i", dq, b2)), b1, b2
