@@ -249,7 +249,8 @@ def traced_project(
     the ray whose line runs back through q; a point not seen from there is tried again
     from rings of starts about the tip's image. Returns ``(x, y, seen)``: ``seen`` where
     it converged, the ray meets the mirror inside its rim and q lies ahead of the mirror
-    point. The image bounds are the caller's.
+    point; x and y are NaN where no pixel's ray runs ahead through q (not converged, or
+    only the line behind the mirror point). The image bounds are the caller's.
     """
     g = traced_constants(unit, errors)
     q = np.asarray(q, dtype=np.float64)
@@ -272,12 +273,14 @@ def traced_project(
             x1, y1, s1 = _solve(g, x0, y0, q[retry])
             got = retry[s1]
             x[got], y[got], seen[got] = x1[s1], y1[s1], True
+            off = ~s1 & np.isfinite(x1) & ~np.isfinite(x[retry])  # found, off the mirror
+            x[retry[off]], y[retry[off]] = x1[off], y1[off]
             retry = retry[~s1]
     return x.reshape(shape), y.reshape(shape), seen.reshape(shape)
 
 
 def _solve(g, x: NDArray, y: NDArray, q: NDArray) -> tuple[NDArray, NDArray, NDArray]:
-    """Gauss-Newton from (x, y): q's offset across the ray to zero (``seen`` as above).
+    """Gauss-Newton from (x, y): q's offset across the ray to zero (``seen``, NaN as above).
 
     The Jacobian comes from the forward model at + :data:`PROJECT_FD` px; steps are
     limited to :data:`PROJECT_MAX_STEP` px; it ends when every step is below
@@ -305,9 +308,10 @@ def _solve(g, x: NDArray, y: NDArray, q: NDArray) -> tuple[NDArray, NDArray, NDA
         if len(act) == 0:
             break
     o, w, ok, _ = _rays(g, x, y)
-    ahead = np.einsum("ij,ij->i", q - o, w) > 0
-    seen = ok & ahead & (step <= 1e3 * PROJECT_STEP_TOL) & np.isfinite(x) & np.isfinite(y)
-    return x, y, seen
+    with np.errstate(invalid="ignore"):
+        found = (np.einsum("ij,ij->i", q - o, w) > 0) & (step <= 1e3 * PROJECT_STEP_TOL)
+    x, y = np.where(found, x, np.nan), np.where(found, y, np.nan)
+    return x, y, ok & found
 
 
 def _tip_image(g) -> tuple[float, float]:
