@@ -331,7 +331,8 @@ def _residual(g, x, y, q, basis):
         # two unit vectors across w: b1 = w x z_ref / |...|, b2 = w x b1
         ref = np.array([0.0, 0.0, 1.0])
         b1 = np.cross(w, ref)
-        b1 /= np.linalg.norm(b1, axis=-1, keepdims=True)
+        with np.errstate(invalid="ignore", divide="ignore"):  # NaN rays stay NaN
+            b1 /= np.linalg.norm(b1, axis=-1, keepdims=True)
         b2 = np.cross(w, b1)
     else:
         b1, b2 = basis
