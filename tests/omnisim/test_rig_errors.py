@@ -48,8 +48,9 @@ ERRORS_TOML = f"\n[rig.errors.cam1]\n{_toml(ERR1)}\n[rig.errors.cam2]\n{_toml(ER
 
 
 # -- an independent reflection, one pixel at a time ------------------------------------
-def _reference_ray(unit, err: UnitErrors, x: float, y: float):
-    """(mirror point, unit direction) of pixel (x, y), or None off the mirror."""
+def _reference_ray(unit, err: UnitErrors, x: float, y: float, rim: bool = True):
+    """(mirror point, unit direction) of pixel (x, y), or None off the mirror (beyond
+    its rim, unless ``rim`` is False: the cone goes on)."""
     rot_m = Rotation.from_euler("xy", err.mirror_tilt, degrees=True)  # extrinsic: X then Y
     rot_c = Rotation.from_euler("xy", err.camera_tilt, degrees=True)
     tip = np.array([0.0, 0.0, unit.tip_h]) + np.array(err.mirror_offset)
@@ -69,7 +70,7 @@ def _reference_ray(unit, err: UnitErrors, x: float, y: float):
     if not hits:
         return None
     p = min(hits, key=lambda h: np.linalg.norm(h - o_c))
-    if math.hypot(p[0], p[1]) > unit.R:
+    if rim and math.hypot(p[0], p[1]) > unit.R:
         return None
     n = np.array([p[0], p[1], -tan2 * p[2]])
     n /= np.linalg.norm(n)
@@ -79,10 +80,11 @@ def _reference_ray(unit, err: UnitErrors, x: float, y: float):
 
 
 def _reference_pixel(unit, err: UnitErrors, q: np.ndarray, start) -> np.ndarray:
-    """The pixel whose reference ray runs through q: least squares on dir(q - o) - w."""
+    """The pixel whose reference ray runs through q: least squares on dir(q - o) - w
+    (the cone extended beyond the rim, so a start outside it can come in)."""
 
     def res(p):
-        ray = _reference_ray(unit, err, p[0], p[1])
+        ray = _reference_ray(unit, err, p[0], p[1], rim=False)
         if ray is None:
             return np.full(3, 10.0)
         o, w = ray
@@ -259,18 +261,21 @@ def test_ground_truth_agrees_with_the_reference_reflection(rendered):
                 q1 = (np.linalg.inv(poses[1]) @ np.append(world, 1.0))[:3]
                 x1, y1 = x + ch["gt.flow.dx"][i, j], y + ch["gt.flow.dy"][i, j]
                 p1 = _reference_pixel(unit, err, q1, (x1, y1))
+                assert _reference_ray(unit, err, p1[0], p1[1]) is not None
                 worst["flow"] = max(worst["flow"], math.hypot(p1[0] - x1, p1[1] - y1))
                 counts["flow"] += 1
             if ch["gt.stereo.valid"][i, j] > 0.5:
                 r_i = unit_o.image_radius(r, h)  # eq. (1)'s guess, then the reference
                 start = (unit_o.x_c + r_i * math.cos(th), unit_o.y_c + r_i * math.sin(th))
                 po = _reference_pixel(unit_o, err_o, q, start)
+                assert _reference_ray(unit_o, err_o, po[0], po[1]) is not None  # on its mirror
                 h_ref = math.hypot(po[0] - unit_o.x_c, po[1] - unit_o.y_c)
                 worst["stereo"] = max(worst["stereo"], abs(h_ref - ch["gt.stereo.h_other"][i, j]))
                 counts["stereo"] += 1
     print(worst, counts)
     assert min(counts.values()) > 50, counts
-    # the target is 0.02 px; measured: float32 storage of r, theta, h at a few 1e-5 px
+    # the target is 0.02 px; measured max 4.9e-6 (pixel), 5.1e-6 (flow), 3.8e-6 px (stereo):
+    # the float32 storage of r, theta, h
     for key, value in worst.items():
         assert value < 0.02, (key, value)
 
