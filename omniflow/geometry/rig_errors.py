@@ -26,7 +26,9 @@ principal point (x_c, y_c)): pixel (x, y) looks from ``C = C0 + (ox, oy, 0)`` al
 cone_angle / 2``, out to distance R from its axis (its base circle, the rim).
 :func:`cone_reflect` intersects a ray with it in closed form (the quadratic
 ``((p + t w).a)^2 = cos^2(alpha) |p + t w|^2``, p = origin - T, larger root) and
-reflects it off the surface normal ``(q.a) a - cos^2(alpha) q`` (q = hit - T).
+reflects it off the surface normal ``(q.a) a - cos^2(alpha) q`` (q = hit - T); the
+quadratic is solved about the ray's nearest point to the tip, which keeps float32 exact
+enough near the tip (the renderer's rays: ``tests/omnisim/test_rig_errors.py``).
 
 :func:`traced_rays` is the forward model (pixel -> reflected ray) and
 :func:`traced_project` its inverse (rig point -> pixel), by Gauss-Newton from the
@@ -185,19 +187,29 @@ def cone_reflect(ops, o, w, g):
     """
     T, ax, c2 = g.T, g.a, g.cos2
     p = [o[k] - T[k] for k in range(3)]
-    pa = p[0] * ax[0] + p[1] * ax[1] + p[2] * ax[2]
-    wa = w[0] * ax[0] + w[1] * ax[1] + w[2] * ax[2]
+    # Well conditioned near the tip (where the two nappes' roots meet), so float32 holds:
+    # m = w x p, the ray's line is closest to the tip at q0 = (m x w) / |w|^2, and
+    # with q = q0 + s w the quadratic is A s^2 + 2 b s + c = 0, its discriminant
+    # b^2 - A c = cos^2 (sin^2 |m|^2 - (a.m)^2) (no difference of near-equal squares).
+    m = [w[1] * p[2] - w[2] * p[1], w[2] * p[0] - w[0] * p[2], w[0] * p[1] - w[1] * p[0]]
     ww = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
-    pw = p[0] * w[0] + p[1] * w[1] + p[2] * w[2]
-    pp = p[0] * p[0] + p[1] * p[1] + p[2] * p[2]
+    q0 = [
+        (m[(k + 1) % 3] * w[(k + 2) % 3] - m[(k + 2) % 3] * w[(k + 1) % 3]) / ww for k in range(3)
+    ]
+    wa = w[0] * ax[0] + w[1] * ax[1] + w[2] * ax[2]
+    qa0 = q0[0] * ax[0] + q0[1] * ax[1] + q0[2] * ax[2]
+    ma = m[0] * ax[0] + m[1] * ax[1] + m[2] * ax[2]
     qa = wa * wa - c2 * ww  # > 0 for a ray closer to the axis than the cone's half-angle
-    qb = 2.0 * (pa * wa - c2 * pw)  # < 0: the camera lies inside the lower nappe
-    qc = pa * pa - c2 * pp
-    disc = qb * qb - 4.0 * qa * qc
+    b = qa0 * wa
+    c = qa0 * qa0 - c2 * (q0[0] * q0[0] + q0[1] * q0[1] + q0[2] * q0[2])
+    disc = c2 * ((1.0 - c2) * (m[0] * m[0] + m[1] * m[1] + m[2] * m[2]) - ma * ma)
     ok = (disc >= 0.0) & (qa > 0.0)
-    den = ops.select(ok, 2.0 * qa, 1.0)
-    t = (ops.sqrt(ops.maximum(disc, 0.0)) - qb) / den  # the larger root: the upper nappe
-    q = [p[k] + t * w[k] for k in range(3)]  # tip-relative
+    h = ops.sqrt(ops.maximum(disc, 0.0))
+    # the larger root (the upper nappe), in the form without cancellation
+    den = ops.select(b > 0.0, -b - h, ops.select(ok, qa, 1.0))
+    num = ops.select(b > 0.0, c, h - b)
+    s = num / ops.select(den != 0.0, den, 1.0)
+    q = [q0[k] + s * w[k] for k in range(3)]  # tip-relative
     za = q[0] * ax[0] + q[1] * ax[1] + q[2] * ax[2]
     radial = [q[k] - za * ax[k] for k in range(3)]
     rho = ops.sqrt(radial[0] * radial[0] + radial[1] * radial[1] + radial[2] * radial[2])
