@@ -71,7 +71,7 @@ MAX_OFFSET_OF_D = 0.1
 NUMPY_OPS = SimpleNamespace(sqrt=np.sqrt, select=np.where, maximum=np.maximum)
 #: Gauss-Newton of :func:`traced_project`: most steps, the step (px) that ends it, the
 #: finite-difference step (px) of the Jacobian.
-PROJECT_STEPS = 40
+PROJECT_STEPS = 20
 #: The longest Gauss-Newton step, px (near the axis's image the map bends sharply).
 PROJECT_MAX_STEP = 4.0
 #: Image radius (px) about the tip's image inside which unseen points are tried again.
@@ -275,8 +275,8 @@ def traced_project(
         x = x_t + np.where(r > 0, h_i * q[:, 0] / r, 0.0)
         y = y_t + np.where(r > 0, h_i * q[:, 1] / r, 0.0)
     x, y, seen = _solve(g, x, y, q)
-    retry = np.nonzero(~seen & (np.abs(h_i) < NEAR_TIP_PX))[0]
-    for radius in (2.0, 6.0, 12.0):
+    retry = np.nonzero(~np.isfinite(x) & (np.abs(h_i) < NEAR_TIP_PX))[0]
+    for radius in (3.0, 10.0):
         for ang in np.arange(8) * (np.pi / 4):
             if len(retry) == 0:
                 break
