@@ -453,6 +453,9 @@ def run_checks(
                 photo.add(np.hypot(fx, fy)[lam], keep=20000)
 
     results: list[CheckResult] = []
+    # with rig errors the geometric checks use the traced model: say so
+    traced = any(getattr(ds.unit(c), "errors", None) is not None for c in ds.cameras)
+    via = " (traced model: rig errors)" if traced else ""
 
     def geom(name: str, desc: str, a: _Acc, thr: float, unit: str) -> None:
         passed = a.n > 0 and a.bad == 0 and a.max <= thr
@@ -473,11 +476,15 @@ def run_checks(
         )
 
     geom(
-        "eq1", "gt.r, gt.h vs eq. (1) at the pixel centre (max)", acc["eq1"], tol.geometry_px, "px"
+        "eq1",
+        "gt.r, gt.h vs eq. (1) at the pixel centre (max)" + via,
+        acc["eq1"],
+        tol.geometry_px,
+        "px",
     )
     geom(
         "theta",
-        "gt.theta vs the pixel centre's angle, x h_i (max)",
+        "gt.theta vs the pixel centre's angle, x h_i (max)" + via,
         acc["theta"],
         tol.geometry_px,
         "px",
@@ -489,7 +496,13 @@ def run_checks(
         tol.world_m,
         "m",
     )
-    geom("stereo", "gt.stereo.h_other vs eq. (3)/(4) (max)", acc["stereo"], tol.geometry_px, "px")
+    geom(
+        "stereo",
+        "gt.stereo.h_other vs eq. (3)/(4) (max)" + via,
+        acc["stereo"],
+        tol.geometry_px,
+        "px",
+    )
     geom(
         "flow_polar",
         "gt.flow.dh, hdtheta vs gt.flow.dx, dy (max)",
