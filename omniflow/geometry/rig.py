@@ -23,6 +23,9 @@ The rig file (TOML or JSON) uses the same keys as ``dataset.json`` written by
     R = 0.05
     s = 0.30
 
+    [rig.errors.cam1]    # optional, per unit: omniflow.geometry.rig_errors
+    cone_angle = 90.1    # (dataset.json: rig.errors.cam1); the ideal unit if absent
+
     [[cameras]]
     name = "cam1"        # tip at h = s
     x_c = 256.0
