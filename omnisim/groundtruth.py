@@ -73,7 +73,7 @@ Rig errors (``Unit.errors``, ``[rig.errors.camN]``): every ray is the traced mod
 projection above that says eq. (1) is its numerical inverse (``traced_project``,
 Gauss-Newton to under 1e-4 px); h_i and theta of the flow and of ``h_other`` are then
 the traced pixel's polar coordinates about (x_c, y_c). :func:`ground_truth_frame` runs
-the numpy path (:func:`ground_truth_reference`) for such a rig: about 12 s per 512 px
+the numpy path (:func:`ground_truth_reference`) for such a rig: about 21 s per 512 px
 stereo frame against 0.8 s (``docs/decisions/rig_errors.md``).
 """
 

@@ -71,10 +71,14 @@ MAX_OFFSET_OF_D = 0.1
 NUMPY_OPS = SimpleNamespace(sqrt=np.sqrt, select=np.where, maximum=np.maximum)
 #: Gauss-Newton of :func:`traced_project`: most steps, the step (px) that ends it, the
 #: finite-difference step (px) of the Jacobian.
-PROJECT_STEPS = 20
+PROJECT_STEPS = 40
+#: Most steps from a retry's start, 1-10 px from the tip's image (measured: those found
+#: take under 10; the others are points no pixel sees).
+PROJECT_RETRY_STEPS = 15
 #: The longest Gauss-Newton step, px (near the axis's image the map bends sharply).
-PROJECT_MAX_STEP = 4.0
-#: Image radius (px) about the tip's image inside which unseen points are tried again.
+PROJECT_MAX_STEP = 12.0
+#: Image radius (px) about the tip's image inside which unseen points are tried again,
+#: plus v times the angle by which the errors can turn the rays there (:func:`_near_tip`).
 NEAR_TIP_PX = 20.0
 PROJECT_STEP_TOL = 1e-7
 PROJECT_FD = 1e-3
@@ -256,10 +260,11 @@ def traced_project(
     """The pixel (x, y) whose traced reflected ray passes through rig point q (..., 3).
 
     Gauss-Newton (:func:`_solve`) from eq. (1)'s pixel, placed about the image of the
-    cone's tip. Within :data:`NEAR_TIP_PX` of the tip's image eq. (1) can start on the
-    wrong side (a tilt turns the nearly level rays there), and the iteration may find
-    the ray whose line runs back through q; a point not seen from there is tried again
-    from rings of starts about the tip's image. Returns ``(x, y, seen)``: ``seen`` where
+    cone's tip. Near the tip's image (:func:`_near_tip`) eq. (1) can start on the wrong
+    side (the errors turn the nearly level rays there) and the iteration can end on the
+    line behind the mirror point; a point not found from there, unless it lies below
+    every ray there, is tried again with the robust residual from rings of starts 1, 3
+    and 10 px about the tip's image. Returns ``(x, y, seen)``: ``seen`` where
     it converged, the ray meets the mirror inside its rim and q lies ahead of the mirror
     point; x and y are NaN where no pixel's ray runs ahead through q (not converged, or
     only the line behind the mirror point). The image bounds are the caller's.
@@ -275,14 +280,15 @@ def traced_project(
         x = x_t + np.where(r > 0, h_i * q[:, 0] / r, 0.0)
         y = y_t + np.where(r > 0, h_i * q[:, 1] / r, 0.0)
     x, y, seen = _solve(g, x, y, q)
-    retry = np.nonzero(~np.isfinite(x) & (np.abs(h_i) < NEAR_TIP_PX))[0]
-    for radius in (3.0, 10.0):
+    near = np.abs(h_i) < _near_tip(g, errors or unit.errors)
+    retry = np.nonzero(~np.isfinite(x) & near & _above_lowest_ray(g, q))[0]
+    for radius in (1.0, 3.0, 10.0):
         for ang in np.arange(8) * (np.pi / 4):
             if len(retry) == 0:
                 break
             x0 = np.full(len(retry), x_t + radius * np.cos(ang))
             y0 = np.full(len(retry), y_t + radius * np.sin(ang))
-            x1, y1, s1 = _solve(g, x0, y0, q[retry])
+            x1, y1, s1 = _solve(g, x0, y0, q[retry], robust=True)
             got = retry[s1]
             x[got], y[got], seen[got] = x1[s1], y1[s1], True
             off = ~s1 & np.isfinite(x1) & ~np.isfinite(x[retry])  # found, off the mirror
@@ -291,28 +297,35 @@ def traced_project(
     return x.reshape(shape), y.reshape(shape), seen.reshape(shape)
 
 
-def _solve(g, x: NDArray, y: NDArray, q: NDArray) -> tuple[NDArray, NDArray, NDArray]:
-    """Gauss-Newton from (x, y): q's offset across the ray to zero (``seen``, NaN as above).
+def _solve(g, x: NDArray, y: NDArray, q: NDArray, robust: bool = False):
+    """Gauss-Newton from (x, y) to the pixel whose ray runs through q (``seen``, NaN as
+    above); returns ``(x, y, seen)``.
 
-    The Jacobian comes from the forward model at + :data:`PROJECT_FD` px; steps are
-    limited to :data:`PROJECT_MAX_STEP` px; it ends when every step is below
-    :data:`PROJECT_STEP_TOL` px (quadratic convergence: the last step bounds the
-    error) or after :data:`PROJECT_STEPS` steps.
+    The residual is q's offset across the ray (:func:`_across`: fast, but also zero on
+    the line behind the mirror point, which ``found`` rejects), or with ``robust`` the
+    direction to q minus the ray's (:func:`_direction`: 2, not 0, behind the mirror
+    point; slower where no pixel sees q). The Jacobian comes from the forward model at
+    + :data:`PROJECT_FD` px; steps are limited to :data:`PROJECT_MAX_STEP` px; it ends
+    when every step is below :data:`PROJECT_STEP_TOL` px (quadratic convergence: the
+    last step bounds the error) or after :data:`PROJECT_STEPS` steps
+    (:data:`PROJECT_RETRY_STEPS` with ``robust``).
     """
+    residual = _direction if robust else _across
     x, y = x.copy(), y.copy()
     step = np.full(len(q), np.inf)
     act = np.arange(len(q))  # the points still moving
-    for _ in range(PROJECT_STEPS):
+    for _ in range(PROJECT_RETRY_STEPS if robust else PROJECT_STEPS):
         xa, ya, qa = x[act], y[act], q[act]
-        e0, b1, b2 = _residual(g, xa, ya, qa, None)
-        ex, _, _ = _residual(g, xa + PROJECT_FD, ya, qa, (b1, b2))
-        ey, _, _ = _residual(g, xa, ya + PROJECT_FD, qa, (b1, b2))
-        j11, j21 = (ex[0] - e0[0]) / PROJECT_FD, (ex[1] - e0[1]) / PROJECT_FD
-        j12, j22 = (ey[0] - e0[0]) / PROJECT_FD, (ey[1] - e0[1]) / PROJECT_FD
-        det = j11 * j22 - j12 * j21
+        e0, basis = residual(g, xa, ya, qa, None)
+        jx = (residual(g, xa + PROJECT_FD, ya, qa, basis)[0] - e0) / PROJECT_FD
+        jy = (residual(g, xa, ya + PROJECT_FD, qa, basis)[0] - e0) / PROJECT_FD
+        # the normal equations of [jx jy] s = -e0 (2 or 3 rows)
+        a11, a12, a22 = _dot(jx, jx), _dot(jx, jy), _dot(jy, jy)
+        b1, b2 = -_dot(jx, e0), -_dot(jy, e0)
+        det = a11 * a22 - a12 * a12
         with np.errstate(invalid="ignore", divide="ignore"):
-            sx = -(j22 * e0[0] - j12 * e0[1]) / det
-            sy = -(-j21 * e0[0] + j11 * e0[1]) / det
+            sx = (a22 * b1 - a12 * b2) / det
+            sy = (a11 * b2 - a12 * b1) / det
             st = np.hypot(sx, sy)
             scale = np.minimum(1.0, PROJECT_MAX_STEP / np.where(st > 0, st, 1.0))
         x[act], y[act], step[act] = xa + scale * sx, ya + scale * sy, st
@@ -321,9 +334,40 @@ def _solve(g, x: NDArray, y: NDArray, q: NDArray) -> tuple[NDArray, NDArray, NDA
             break
     o, w, ok, _ = _rays(g, x, y)
     with np.errstate(invalid="ignore"):
-        found = (np.einsum("ij,ij->i", q - o, w) > 0) & (step <= 1e3 * PROJECT_STEP_TOL)
+        found = (_dot(q - o, w) > 0) & (step <= 1e3 * PROJECT_STEP_TOL)
+        found &= np.linalg.norm(_direction(g, x, y, q, None)[0], axis=-1) < 1e-6
     x, y = np.where(found, x, np.nan), np.where(found, y, np.nan)
     return x, y, ok & found
+
+
+def _dot(a: NDArray, b: NDArray) -> NDArray:
+    return np.einsum("ij,ij->i", a, b)
+
+
+def _above_lowest_ray(g, q: NDArray) -> NDArray:
+    """False for points below every ray near the tip (they cannot be seen there): the
+    elevation from the tip under the lowest of the rays 0.5 px about the tip's image,
+    by more than the parallax of a mirror point within 2 R of the tip."""
+    x_t, y_t = _tip_image(g)
+    ang = np.linspace(0.0, 2 * np.pi, 64, endpoint=False)
+    _, w, _, _ = _rays(g, x_t + 0.5 * np.cos(ang), y_t + 0.5 * np.sin(ang))
+    lowest = np.nanmin(np.arcsin(np.clip(w[:, 2], -1.0, 1.0)))
+    dq = q - g.T
+    dist = np.linalg.norm(dq, axis=-1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        elev = np.arctan2(dq[:, 2], np.hypot(dq[:, 0], dq[:, 1]))
+        parallax = np.arcsin(np.minimum(1.0, 2 * g.R / dist))
+    return ~(elev < lowest - parallax)
+
+
+def _near_tip(g, e: UnitErrors) -> float:
+    """The image radius (px) within which eq. (1) can start on the wrong side of the tip:
+    :data:`NEAR_TIP_PX` plus v times the turn of the rays there (twice the mirror's
+    tilt, the camera's tilt, the change of the cone's full angle, radians) and the
+    offsets over the camera's distance to the tip."""
+    turn = 2 * math.hypot(*e.mirror_tilt) + math.hypot(*e.camera_tilt) + abs(e.cone_angle - 90)
+    shift = math.hypot(*e.camera_offset) + math.hypot(*e.mirror_offset[:2])  # m, at about d
+    return NEAR_TIP_PX + g.v * (math.radians(turn) + shift / (g.T[2] - g.C[2]))
 
 
 def _tip_image(g) -> tuple[float, float]:
@@ -332,22 +376,24 @@ def _tip_image(g) -> tuple[float, float]:
     return g.x_c + g.v * dc[0] / dc[2], g.y_c + g.v * dc[1] / dc[2]
 
 
-def _residual(g, x, y, q, basis):
-    """q's offset across the ray of (x, y), in the basis (b1, b2) (metres).
-
-    The basis is taken across the ray when none is given (the Jacobian's neighbours
-    reuse the centre's, so their residuals differ only by the ray's change).
-    """
+def _across(g, x: NDArray, y: NDArray, q: NDArray, basis):
+    """q's offset across the ray of (x, y) in the basis (b1, b2), (N, 2) metres, and the
+    basis (taken across the ray when None: the Jacobian's neighbours reuse the centre's,
+    so their residuals differ only by the ray's change)."""
     o, w, _, _ = _rays(g, x, y)
     if basis is None:
-        # two unit vectors across w: b1 = w x z_ref / |...|, b2 = w x b1
-        ref = np.array([0.0, 0.0, 1.0])
-        b1 = np.cross(w, ref)
+        b1 = np.cross(w, np.array([0.0, 0.0, 1.0]))  # two unit vectors across w
         with np.errstate(invalid="ignore", divide="ignore"):  # NaN rays stay NaN
             b1 /= np.linalg.norm(b1, axis=-1, keepdims=True)
-        b2 = np.cross(w, b1)
-    else:
-        b1, b2 = basis
+        basis = (b1, np.cross(w, b1))
     dq = q - o
-    dq = dq - np.einsum("ij,ij->i", dq, w)[:, None] * w  # across this ray
-    return (np.einsum("ij,ij->i", dq, b1), np.einsum("ij,ij->i", dq, b2)), b1, b2
+    dq = dq - _dot(dq, w)[:, None] * w  # across this ray
+    return np.stack([_dot(dq, basis[0]), _dot(dq, basis[1])], axis=-1), basis
+
+
+def _direction(g, x: NDArray, y: NDArray, q: NDArray, basis):
+    """The unit direction from the mirror point of (x, y) to q minus the ray's, (N, 3)."""
+    o, w, _, _ = _rays(g, x, y)
+    dq = q - o
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return dq / np.linalg.norm(dq, axis=-1, keepdims=True) - w, None
