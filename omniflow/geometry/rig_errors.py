@@ -280,7 +280,8 @@ def traced_project(
         x = x_t + np.where(r > 0, h_i * q[:, 0] / r, 0.0)
         y = y_t + np.where(r > 0, h_i * q[:, 1] / r, 0.0)
     x, y, seen = _solve(g, x, y, q)
-    near = np.abs(h_i) < _near_tip(g, errors or unit.errors)
+    e = errors if errors is not None else (getattr(unit, "errors", None) or UnitErrors())
+    near = np.abs(h_i) < _near_tip(g, e)
     retry = np.nonzero(~np.isfinite(x) & near & _above_lowest_ray(g, q))[0]
     for radius in (1.0, 3.0, 10.0):
         for ang in np.arange(8) * (np.pi / 4):
