@@ -10,15 +10,20 @@ Checks (names as printed):
 ``eq1``
     every valid pixel's gt.r, gt.h satisfy eq. (1) for its own camera: the image
     radius v (h - tip_h) / (d + r) equals the pixel centre's radius h_i. Figure: max
-    |difference| in pixels over all frames and cameras.
+    |difference| in pixels over all frames and cameras. For a unit with rig errors
+    (``rig.errors`` in dataset.json, ``docs/decisions/rig_errors.md``) the traced
+    model replaces eq. (1): the point (gt.r, gt.theta, gt.h) is projected through the
+    actual geometry and its image radius compared with h_i.
 ``theta``
-    gt.theta equals the pixel centre's polar angle (max |wrapped difference| x h_i, px).
+    gt.theta equals the pixel centre's polar angle (max |wrapped difference| x h_i, px);
+    with rig errors, the polar angle of the point's traced projection.
 ``world``
     gt.X, gt.Y, gt.Z are the point (gt.r, gt.theta, gt.h) moved by the robot's pose of
     the frame (dataset.json robot.poses): max distance in metres.
 ``stereo``
     where gt.stereo.valid, gt.stereo.h_other equals eq. (3)/(4) of the other camera
-    at (gt.r, gt.h): max |difference|, px.
+    at (gt.r, gt.h) (with rig errors: the image radius of the point's traced
+    projection into the other camera): max |difference|, px.
 ``flow_polar``
     gt.flow.dh, gt.flow.hdtheta agree with gt.flow.dx, dy (conventions.py): max px
     (format version 2: the same for gt.bflow).
@@ -216,6 +221,28 @@ def _noise_sigma(img: NDArray, mask: NDArray) -> tuple[float, int]:
     return math.sqrt(math.pi / 2.0) / 6.0 * float(np.mean(np.abs(lap[m]))), n
 
 
+def _image_polar(unit, r: NDArray, th: NDArray, h: NDArray, mask: NDArray):
+    """(h_i, theta_i) at which ``unit`` images the rig points (r, th, h), (H, W) each.
+
+    Eq. (1) (theta_i = th) for an ideal unit; for one with rig errors
+    (``Unit.errors``) the traced model's pixel
+    (:func:`omniflow.geometry.rig_errors.traced_project`) on ``mask``, its polar
+    coordinates about (x_c, y_c), NaN where no pixel sees the point (counted as
+    non-finite: a failure).
+    """
+    if getattr(unit, "errors", None) is None:
+        return unit.image_radius(r, h), th
+    from omniflow.geometry.rig_errors import traced_project
+
+    h_out = np.full(r.shape, np.nan)
+    th_out = np.full(r.shape, np.nan)
+    q = np.stack([r * np.cos(th), r * np.sin(th), h], axis=-1)[mask]
+    x, y, _ = traced_project(unit, q)
+    h_out[mask] = np.hypot(x - unit.x_c, y - unit.y_c)
+    th_out[mask] = np.arctan2(y - unit.y_c, x - unit.x_c)
+    return h_out, th_out
+
+
 def _luma(ch: dict[str, NDArray]) -> NDArray:
     """The frame's Rec. 709 luma (the project's one: omniflow.io.dataset.grey_of), float64."""
     return grey_of(ch).astype(np.float64)
@@ -335,9 +362,10 @@ def run_checks(
             ids = np.unique(ch["gt.object"][valid]).astype(int)
             unknown_ids |= set(ids.tolist()) - known_ids
 
-            # eq. (1) and theta
-            acc["eq1"].add(np.abs(unit.image_radius(r, h) - h_i)[valid], keep=20000)
-            acc["theta"].add((np.abs(_wrap(th - th_i)) * h_i)[valid])
+            # eq. (1) and theta (the traced model for a unit with rig errors)
+            h_gt, th_gt = _image_polar(unit, r, th, h, valid)
+            acc["eq1"].add(np.abs(h_gt - h_i)[valid], keep=20000)
+            acc["theta"].add((np.abs(_wrap(th_gt - th_i)) * h_i)[valid])
 
             # world point vs rig cylindrical coordinates and the robot's pose
             p_rig = np.stack([r * np.cos(th), r * np.sin(th), h, np.ones_like(r)], axis=-1)
@@ -347,7 +375,8 @@ def run_checks(
 
             # stereo, eq. (3)/(4)
             sv = (ch["gt.stereo.valid"] > 0.5) & valid
-            acc["stereo"].add(np.abs(other.image_radius(r, h) - ch["gt.stereo.h_other"])[sv])
+            h_o = _image_polar(other, r, th, h, sv)[0]
+            acc["stereo"].add(np.abs(h_o - ch["gt.stereo.h_other"])[sv])
 
             # polar flow vs Cartesian flow
             fv = (ch["gt.flow.valid"] > 0.5) & valid
@@ -457,6 +486,9 @@ def run_checks(
                 photo.add(np.hypot(fx, fy)[lam], keep=20000)
 
     results: list[CheckResult] = []
+    # with rig errors the geometric checks use the traced model: say so
+    traced = any(getattr(ds.unit(c), "errors", None) is not None for c in ds.cameras)
+    via = " (traced model: rig errors)" if traced else ""
 
     def geom(name: str, desc: str, a: _Acc, thr: float, unit: str) -> None:
         passed = a.n > 0 and a.bad == 0 and a.max <= thr
@@ -477,11 +509,15 @@ def run_checks(
         )
 
     geom(
-        "eq1", "gt.r, gt.h vs eq. (1) at the pixel centre (max)", acc["eq1"], tol.geometry_px, "px"
+        "eq1",
+        "gt.r, gt.h vs eq. (1) at the pixel centre (max)" + via,
+        acc["eq1"],
+        tol.geometry_px,
+        "px",
     )
     geom(
         "theta",
-        "gt.theta vs the pixel centre's angle, x h_i (max)",
+        "gt.theta vs the pixel centre's angle, x h_i (max)" + via,
         acc["theta"],
         tol.geometry_px,
         "px",
@@ -493,7 +529,13 @@ def run_checks(
         tol.world_m,
         "m",
     )
-    geom("stereo", "gt.stereo.h_other vs eq. (3)/(4) (max)", acc["stereo"], tol.geometry_px, "px")
+    geom(
+        "stereo",
+        "gt.stereo.h_other vs eq. (3)/(4) (max)" + via,
+        acc["stereo"],
+        tol.geometry_px,
+        "px",
+    )
     geom(
         "flow_polar",
         "gt.flow.dh, hdtheta vs gt.flow.dx, dy (max)",

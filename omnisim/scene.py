@@ -59,6 +59,7 @@ from omnisim.motion import (
     euler_deg,
 )
 from omnisim.optics import Optics, optics_from_table
+from omnisim.rig_errors import rig_with_errors
 from omnisim.scene_checker import REQUIRED, Checker, SceneError
 from omnisim.scene_textures import (
     IMAGE_SUFFIXES,
@@ -329,7 +330,9 @@ RENDER_KEYS = frozenset(
     {"width", "height", "spp", "max_depth", "seed", "integrator", "variant", "denoise"}
     | {"time_samples"}
 )
-RIG_KEYS = frozenset({"d", "R", "s", "x_c", "y_c", "r_m", "margin", "struts", "mount_radius"})
+RIG_KEYS = frozenset(
+    {"d", "R", "s", "x_c", "y_c", "r_m", "margin", "struts", "mount_radius", "errors"}
+)
 ROBOT_KEYS = frozenset({"position", "rotation", "motion"})
 MOTION_KEYS = frozenset({"type", "velocity", "angular_velocity", "interpolation", "keys"})
 KEY_KEYS = frozenset({"time", "frame", "position", "rotation"})
@@ -511,9 +514,10 @@ def _rig(chk: Checker, tbl: Any, render: RenderSettings, path: Path) -> Rig:
     cam = {"x_c": x_c, "y_c": y_c, "r_m": r_m, "width": w, "height": h}
     try:
         cams = [dict(cam, name="cam1"), dict(cam, name="cam2")]
-        return rig_from_dict({"rig": {"d": d, "R": big_r, "s": s}, "cameras": cams}, str(path))
+        rig = rig_from_dict({"rig": {"d": d, "R": big_r, "s": s}, "cameras": cams}, str(path))
     except RigError as exc:
         raise SceneError(str(exc)) from exc
+    return rig_with_errors(chk, tbl, rig)  # [rig.errors.camN] (omnisim.rig_errors)
 
 
 def _rig_parts(chk: Checker, tbl: dict, rig: Rig, robot: Robot, objects: list) -> list:

@@ -50,6 +50,13 @@ the pixel's own (max over a 512 x 512 image, a cylinder wall at 2.5 m around
 the axis; ``tests/omnisim/test_sensor.py``) and within 1e-3 px max, 3e-5 px rms on
 the default scene's walls, pillar and crate (``benchmarks/bench_render.py``):
 far under the 0.02 px target, float32 round-off only.
+
+Rig errors (``Unit.errors``, ``omniflow.geometry.rig_errors``): a tilted or offset
+camera or mirror, or a cone of another apex angle, is traced through its actual
+geometry instead (``set_errors``: the camera ray, the closed-form ray-cone
+intersection and the vector reflection, the float64 ground truth's formulas run in
+float32, within 1.4e-4 px of it: ``tests/omnisim/test_rig_errors.py``); a ray that
+misses the mirror is black. An ideal unit keeps the rays above, bit for bit.
 """
 
 from __future__ import annotations
@@ -62,6 +69,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from omniflow.geometry.rig import Unit
+from omniflow.geometry.rig_errors import camera_ray, cone_reflect, traced_constants, traced_rays
 from omnisim.optics import Optics, thin_lens_cone_ray
 
 __all__ = [
@@ -116,13 +124,22 @@ def mirror_rays(unit: Unit, x: ArrayLike, y: ArrayLike) -> MirrorRays:
     """Reflected ray of the continuous pixel (x, y) of ``unit`` (module docstring).
 
     Points outside the rim get ``valid = False``; their rays are still finite
-    (rho is clipped at R) so they can be traced harmlessly.
+    (rho is clipped at R) so they can be traced harmlessly. A unit with ``errors``
+    is traced through its actual geometry (:func:`omniflow.geometry.rig_errors.traced_rays`;
+    ``rho`` is then the hit's distance from the cone's axis, and a ray that misses the
+    mirror is invalid).
     """
     x = np.asarray(x, dtype=np.float64)
     y = np.asarray(y, dtype=np.float64)
     dx = x - unit.x_c
     dy = y - unit.y_c
     h_i = np.hypot(dx, dy)
+    if getattr(unit, "errors", None) is not None:
+        origin, direction, valid, rho = traced_rays(unit, x, y)
+        bad = ~np.all(np.isfinite(origin) & np.isfinite(direction), axis=-1)
+        origin[bad], direction[bad] = (0.0, 0.0, unit.tip_h), (1.0, 0.0, 0.0)
+        valid = valid & ~bad
+        return MirrorRays(origin, direction, valid, h_i, dx, dy, np.where(bad, 0.0, rho))
     v = unit.v
     valid = h_i <= unit.r_m
     k = np.minimum(h_i, unit.r_m) / v  # k <= R / (d + R) < 1
@@ -236,6 +253,7 @@ def _define_sensor_class(mi):
             self._lens_radius = float(props.get("lens_radius", 0.0))
             self._focus = float(props.get("focus_distance", 1.0))
             self._ops = SimpleNamespace(sqrt=dr.sqrt, select=dr.select, maximum=dr.maximum)
+            self._traced = None  # rig errors: the traced model's constants (set_errors)
             self.m_needs_sample_2 = True
             self.m_needs_sample_3 = self._lens_radius > 0.0
 
@@ -248,6 +266,49 @@ def _define_sensor_class(mi):
                 for val in (v, 1.0 / v, d, float(x_c), float(y_c), r_m, float(tip_h))
             ]
 
+        def set_errors(self, unit):
+            """Trace the actual geometry of ``unit.errors`` (None or ideal: eq. 1's rays)."""
+            if getattr(unit, "errors", None) is None:
+                self._traced = None
+                return
+            g = traced_constants(unit)
+
+            def op(a):
+                return [dr.opaque(mi.Float, float(c)) for c in np.ravel(a)]
+
+            self._traced = SimpleNamespace(
+                C=op(g.C),
+                Rc=[op(row) for row in g.Rc],
+                T=op(g.T),
+                a=op(g.a),
+                cos2=op(g.cos2)[0],
+                R=op(g.R)[0],
+                v=op(g.v)[0],
+            )
+
+        def _traced_ray(self, time, px, py, sample3, active):
+            """The ray of film offset (px, py) through the actual geometry (rig errors);
+            through an aperture point when there is a lens."""
+            g = self._traced
+            o, w = camera_ray(px, py, g)
+            if self._lens_radius > 0.0:
+                disk = mi.warp.square_to_uniform_disk_concentric(sample3) * self._lens_radius
+                s = self._focus / g.v
+                lens = (disk.x, disk.y, 0.0)
+                cam = (px * s - disk.x, py * s - disk.y, self._focus)
+                rc = g.Rc
+                o = [g.C[i] + rc[i][0] * lens[0] + rc[i][1] * lens[1] for i in range(3)]
+                w = [rc[i][0] * cam[0] + rc[i][1] * cam[1] + rc[i][2] * cam[2] for i in range(3)]
+            q, r, ok, _ = cone_reflect(self._ops, o, w, g)
+            m = self._m
+            ow = mi.Point3f(
+                *[m[i][0] * q[0] + m[i][1] * q[1] + m[i][2] * q[2] + m[i][3] for i in range(3)]
+            )
+            dw = mi.Vector3f(*[m[i][0] * r[0] + m[i][1] * r[1] + m[i][2] * r[2] for i in range(3)])
+            ray = mi.Ray3f(ow, dr.normalize(dw), time)
+            # Perfect conductor: reflectance 1 on the mirror, black where the ray misses it.
+            return ray, mi.Spectrum(dr.select(active & ok, 1.0, 0.0))
+
         def set_pose(self, pose):
             pose = np.asarray(pose, dtype=np.float64)
             self._m = [[dr.opaque(mi.Float, float(pose[i, j])) for j in range(4)] for i in range(3)]
@@ -259,6 +320,8 @@ def _define_sensor_class(mi):
             offset = mi.ScalarVector2f(film.crop_offset())
             px = sample2.x * size.x + offset.x - x_c
             py = sample2.y * size.y + offset.y - y_c
+            if self._traced is not None:
+                return self._traced_ray(time, px, py, sample3, active)
             if self._lens_radius > 0.0:
                 return self._sample_lens_ray(time, px, py, sample3, active)
             h_i = dr.sqrt(dr.fma(px, px, py * py))
@@ -376,4 +439,5 @@ def sensor_dict(unit: Unit, spp: int, sampler: str | None, optics: Optics | None
 def _make_sensor(mi, unit: Unit, pose: NDArray, spp: int, sampler: str | None, optics):
     sensor = mi.load_dict(sensor_dict(unit, spp, sampler, optics))
     sensor.set_pose(pose)
+    sensor.set_errors(unit)
     return sensor

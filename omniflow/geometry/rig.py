@@ -23,6 +23,9 @@ The rig file (TOML or JSON) uses the same keys as ``dataset.json`` written by
     R = 0.05
     s = 0.30
 
+    [rig.errors.cam1]    # optional, per unit: omniflow.geometry.rig_errors
+    cone_angle = 90.1    # (dataset.json: rig.errors.cam1); the ideal unit if absent
+
     [[cameras]]
     name = "cam1"        # tip at h = s
     x_c = 256.0
@@ -42,7 +45,7 @@ from __future__ import annotations
 import json
 import math
 import tomllib
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -50,6 +53,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from omniflow.conventions import wrap_angle
+from omniflow.geometry.rig_errors import UnitErrors, errors_from_dict
 
 __all__ = [
     "Rig",
@@ -85,6 +89,10 @@ class Unit:
         h of this unit's cone tip in the rig frame (cam2: 0, cam1: s).
     name : str
         ``"cam1"`` or ``"cam2"`` in a rig.
+    errors : UnitErrors or None
+        The unit's departures from the ideal (:mod:`omniflow.geometry.rig_errors`);
+        None for the ideal unit. The methods here are the ideal model, eq. (1)-(7),
+        whatever ``errors`` holds; the traced model is in ``rig_errors``.
     """
 
     d: float
@@ -96,6 +104,7 @@ class Unit:
     height: int
     tip_h: float = 0.0
     name: str = ""
+    errors: UnitErrors | None = None
 
     @property
     def v(self) -> float:
@@ -291,10 +300,14 @@ class Rig:
         cams = []
         for cam in (self.cam1, self.cam2):
             c = asdict(cam)
-            del c["d"], c["R"]
+            del c["d"], c["R"], c["errors"]
             c["v"] = cam.v
             cams.append(c)
-        return {"rig": {"d": self.d, "R": self.R, "s": self.s}, "cameras": cams}
+        rig: dict[str, Any] = {"d": self.d, "R": self.R, "s": self.s}
+        errors = {c.name: c.errors.as_dict() for c in (self.cam1, self.cam2) if c.errors}
+        if errors:  # an ideal rig's layout is what it was before rig errors existed
+            rig["errors"] = errors
+        return {"rig": rig, "cameras": cams}
 
 
 _CAM_KEYS = {"name", "x_c", "y_c", "r_m", "width", "height", "v", "tip_h"}
@@ -310,9 +323,11 @@ def rig_from_dict(data: dict[str, Any], where: str = "rig") -> Rig:
     rig = data["rig"]
     if not isinstance(rig, dict):
         raise RigError(f"{where}: rig = {rig!r}: expected a table with d, R, s")
-    unknown = set(rig) - {"d", "R", "s"}
+    unknown = set(rig) - {"d", "R", "s", "errors"}
     if unknown:  # a typo ('baseline' for 's') would otherwise be silently ignored
-        raise RigError(f"{where}: rig: unknown key(s) {sorted(unknown)}; expected ['R', 'd', 's']")
+        raise RigError(
+            f"{where}: rig: unknown key(s) {sorted(unknown)}; expected ['R', 'd', 'errors', 's']"
+        )
     vals = {}
     for key in ("d", "R", "s"):
         if key not in rig:
@@ -373,8 +388,30 @@ def rig_from_dict(data: dict[str, Any], where: str = "rig") -> Rig:
                     f"{label} ({name}).v = {v}: disagrees with eq. (2) (d/R + 1) r_m = {unit.v:.6g}"
                 )
         units[name] = unit
+    errors = _errors(rig.get("errors", {}), vals["d"], where)
+    for name, err in errors.items():
+        units[name] = replace(units[name], errors=err)
     out = Rig(cam1=units["cam1"], cam2=units["cam2"], s=vals["s"])
     out.validate(where)
+    return out
+
+
+def _errors(tbl: Any, d: float, where: str) -> dict[str, UnitErrors]:
+    """``rig.errors``: a table per unit (``cam1``, ``cam2``); ideal ones are left out."""
+
+    def fail(key: str, value: Any, expected: str) -> RigError:
+        return RigError(f"{where}: {key} = {value!r}: expected {expected}")
+
+    if not isinstance(tbl, dict):
+        raise fail("rig.errors", tbl, "a table with cam1 and/or cam2")
+    unknown = sorted(set(tbl) - {"cam1", "cam2"})
+    if unknown:
+        raise fail(f"rig.errors.{unknown[0]}", tbl[unknown[0]], "only cam1 and cam2 tables")
+    out = {}
+    for name, sub in tbl.items():
+        err = errors_from_dict(sub, f"rig.errors.{name}", d, fail)
+        if not err.ideal:
+            out[name] = err
     return out
 
 

@@ -437,6 +437,12 @@ CASES = [
     Case("--resolution abc", _opt("--resolution", "abc"), 2, ["--resolution", "abc"]),
     Case("--spp -1", _opt("--spp", "-1"), 2, ["--spp", "-1"]),
     Case("--set render.spp=0", _set("render.spp=0"), 2, ["render.spp", "got 0"]),
+    Case(
+        "rig error out of range",
+        _set("rig.errors.cam1.cone_angle=120"),
+        2,
+        ["rig.errors.cam1.cone_angle", "set by an override", "120", "[80, 100] deg"],
+    ),
     Case("resolution too small", _opt("--resolution", "4"), 2, ["render.width", "4"]),
     Case(
         "resolution beyond memory or disk",
