@@ -296,9 +296,9 @@ def temporal_noise_tiles(
     Nyquist wavelength of 2 pixels), a change of gain (c_1) and of offset (c_0).
     The noise of d (n_{t+1} - n_t) is independent of that of M ((n_t + n_{t+1}) / 2)
     for equal variances, so the residual variance v_r (its sum over n - p degrees of
-    freedom, n pixels and p terms) is v_r = 2 sigma^2 + kappa sigma^2 / 2, with kappa = c_1^2 + 2 sum c_e^2 the fitted
-    filter's noise gain (estimated from the coefficients less their own sampling
-    variance); so sigma^2 = v_r / (2 + kappa / 2).
+    freedom, n pixels and p terms) is v_r = 2 sigma^2 + kappa sigma^2 / 2, with
+    kappa = c_1^2 + 2 sum c_e^2 the fitted filter's noise gain (estimated from the
+    coefficients less their own sampling variance); so sigma^2 = v_r / (2 + kappa / 2).
 
     The shift is chosen on one half of a checkerboard of pixels and the fit made on the
     other, then the halves swap and the two estimates are averaged: a shift chosen on
