@@ -300,10 +300,12 @@ def temporal_noise_tiles(
     kappa = c_1^2 + 2 sum c_e^2 the fitted filter's noise gain (estimated from the
     coefficients less their own sampling variance); so sigma^2 = v_r / (2 + kappa / 2).
 
-    The shift is chosen on one half of a checkerboard of pixels and the fit made on the
-    other, then the halves swap and the two estimates are averaged: a shift chosen on
-    the same noise it is measured on would pick the lowest noise where texture does not
-    decide (flat tiles) and err low.
+    The shift is chosen on the tile's top rows and the fit made on its bottom rows, then
+    the two swap and the two estimates are averaged. The two bands are ``2 search``
+    rows apart, so no pixel of either frame that chose the shift (at any candidate)
+    enters the fitted difference: a shift chosen on the noise it is measured on would
+    pick the lowest noise where texture does not decide (flat tiles) and err low, and
+    interleaved pixel sets (a checkerboard) meet through some candidate shift.
 
     Parameters
     ----------
@@ -312,12 +314,13 @@ def temporal_noise_tiles(
     mask : array_like of bool, shape (H, W), optional
         Pixels to estimate over; all by default. Non-finite pixels are left out.
     block : int
-        Tile size, pixels (at least 4).
+        Tile size, pixels (each band of ``(block - 2 search) // 2`` rows must leave at
+        least 16 degrees of freedom).
     search : int
         Largest whole-pixel shift searched per axis, pixels (>= 0).
     reach : int
         Reach of the odd filter, pixels (1 to 3): 3 follows texture nearer the Nyquist
-        wavelength at 3-5 times the cost and 12 fewer degrees of freedom per tile half.
+        wavelength at 3-5 times the cost and 12 fewer degrees of freedom per band.
 
     Returns
     -------
@@ -339,6 +342,13 @@ def temporal_noise_tiles(
     if int(reach) != reach or not 1 <= reach <= 3:
         raise ValueError(f"reach = {reach!r}: expected an integer 1, 2 or 3 (pixels)")
     block, search, reach = int(block), int(search), int(reach)
+    band = (block - 2 * search) // 2
+    terms = 2 + len(_pairs(reach))
+    if band * block - terms < 16:
+        raise ValueError(
+            f"block = {block}: expected a tile whose two bands of (block - 2 search) // 2 "
+            f"rows leave >= 16 degrees of freedom each for {terms} terms (search {search})"
+        )
     finite = np.isfinite(f0) & np.isfinite(f1)
     inner = finite if mask is None else finite & np.asarray(mask, bool)
     if inner.shape != f0.shape:
@@ -350,28 +360,28 @@ def temporal_noise_tiles(
     empty = np.zeros(0)
     if ty.size == 0:
         return NoiseTiles(empty, empty, 0, np.zeros((0, 2), int))
+    span = range(-search, search + 1)
     shifts = sorted(
-        ((sx, sy) for sy in range(-search, search + 1) for sx in range(-search, search + 1)),
-        key=lambda s: (s[0] ** 2 + s[1] ** 2, s),
+        ((sx, sy) for sy in span for sx in span), key=lambda s: (s[0] ** 2 + s[1] ** 2, s)
     )
-    yy, xx = np.mgrid[0 : f0.shape[0], 0 : f0.shape[1]]
-    black = (yy + xx) % 2 == 0
+    row = np.arange(f0.shape[0]) % block
+    bands = ((0, band), (block - band, block))  # top and bottom rows of each tile
     ssd = np.empty((2, len(shifts), ty.size))
     for j, (sx, sy) in enumerate(shifts):
         d2 = (f1 - np.roll(f0, (sy, sx), axis=(0, 1))) ** 2  # f0 at (x - sx, y - sy)
-        for half, on in enumerate((black, ~black)):
-            ssd[half, j] = _tile_sums(np.where(on, d2, 0.0), block)[ty, tx]
+        for k, (lo, hi) in enumerate(bands):
+            on = ((row >= lo) & (row < hi))[:, None]
+            ssd[k, j] = _tile_sums(np.where(on, d2, 0.0), block)[ty, tx]
     variance = np.zeros(ty.size)
     intensity = np.zeros(ty.size)
     chosen = np.zeros((ty.size, 2), int)
-    for half in (0, 1):
-        pick = np.asarray(shifts)[np.argmin(ssd[half], axis=0)]  # first = smallest on ties
-        var, mean = _tile_fit(f0, f1, ty, tx, pick, block, reach, parity=1 - half)
+    for k in (0, 1):
+        pick = np.asarray(shifts)[np.argmin(ssd[k], axis=0)]  # first = smallest on ties
+        var, mean = _tile_fit(f0, f1, ty, tx, pick, block, reach, bands[1 - k])
         variance += 0.5 * var
         intensity += 0.5 * mean
-        chosen = pick if half == 0 else chosen
-    dof = 2 * ((block * block) // 2 - (2 + len(_pairs(reach))))
-    return NoiseTiles(intensity, variance, dof, chosen)
+        chosen = pick if k == 0 else chosen
+    return NoiseTiles(intensity, variance, 2 * (band * block - terms), chosen)
 
 
 def _whole_tiles(inner: NDArray, block: int) -> tuple[NDArray, NDArray]:
@@ -395,17 +405,17 @@ def _tile_fit(
     shift: NDArray,
     block: int,
     reach: int,
-    parity: int,
+    rows: tuple[int, int],
 ) -> tuple[NDArray, NDArray]:
-    """Per tile: sigma^2 from the fit of :func:`temporal_noise_tiles` on one checkerboard
-    half (``parity`` of (row + col) % 2), and the tile's mean brightness."""
+    """Per tile: sigma^2 from the fit of :func:`temporal_noise_tiles` on the tile's rows
+    ``rows[0] <= row < rows[1]``, and the tile's mean brightness."""
     R, B = reach, block
     pairs = _pairs(reach)
     span = np.arange(B + 2 * R) - R
-    rows = ty[:, None] * B + span[None, :]  # (n, B + 2R)
-    cols = tx[:, None] * B + span[None, :]
-    p1 = f1[rows[:, :, None], cols[:, None, :]]
-    p0 = f0[(rows - shift[:, 1:2])[:, :, None], (cols - shift[:, 0:1])[:, None, :]]
+    ys = ty[:, None] * B + span[None, :]  # (n, B + 2R)
+    xs = tx[:, None] * B + span[None, :]
+    p1 = f1[ys[:, :, None], xs[:, None, :]]
+    p0 = f0[(ys - shift[:, 1:2])[:, :, None], (xs - shift[:, 0:1])[:, None, :]]
     m = 0.5 * (p0 + p1)
     centre = (slice(None), slice(R, R + B), slice(R, R + B))
     d = (p1 - p0)[centre]
@@ -417,8 +427,8 @@ def _tile_fit(
     X = np.stack(terms, axis=-1).reshape(ty.size, B * B, len(terms))
     y = d.reshape(ty.size, B * B)
     g = np.arange(B)
-    on = (ty[:, None, None] * B + g[None, :, None]) + (tx[:, None, None] * B + g[None, None, :])
-    w = (on % 2 == parity).reshape(ty.size, B * B).astype(np.float64)
+    on = np.repeat(((g >= rows[0]) & (g < rows[1]))[:, None], B, axis=1)
+    w = np.broadcast_to(on.reshape(1, B * B).astype(np.float64), (ty.size, B * B))
     Xw = X * w[..., None]
     xtx = np.einsum("nkp,nkq->npq", Xw, X)
     xty = np.einsum("nkp,nk->np", Xw, y)
@@ -428,7 +438,9 @@ def _tile_fit(
     v_r = rss / (w.sum(axis=1) - len(terms))
     gain = np.array([0.0, 1.0] + [2.0] * len(pairs))  # each term's taps^2 per coefficient^2
     kappa = beta**2 @ gain - v_r * (np.diagonal(inv, axis1=1, axis2=2) @ gain)
-    var = v_r / (2.0 + 0.5 * np.maximum(kappa, 0.0))
+    # kappa's own noise is kept (not clipped at 0 per tile: that would bias it up); the
+    # floor only guards the division
+    var = v_r / (2.0 + 0.5 * np.maximum(kappa, -2.0))
     return var, m[centre].reshape(ty.size, -1).mean(axis=1)
 
 
