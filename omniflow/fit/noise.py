@@ -408,40 +408,38 @@ def _tile_fit(
     rows: tuple[int, int],
 ) -> tuple[NDArray, NDArray]:
     """Per tile: sigma^2 from the fit of :func:`temporal_noise_tiles` on the tile's rows
-    ``rows[0] <= row < rows[1]``, and the tile's mean brightness."""
+    ``rows[0] <= row < rows[1]``, and those rows' mean brightness."""
     R, B = reach, block
+    lo, hi = rows
     pairs = _pairs(reach)
-    span = np.arange(B + 2 * R) - R
-    ys = ty[:, None] * B + span[None, :]  # (n, B + 2R)
-    xs = tx[:, None] * B + span[None, :]
+    ys = ty[:, None] * B + (np.arange(lo - R, hi + R))[None, :]  # (n, band rows + 2R)
+    xs = tx[:, None] * B + (np.arange(-R, B + R))[None, :]  # (n, B + 2R)
     p1 = f1[ys[:, :, None], xs[:, None, :]]
     p0 = f0[(ys - shift[:, 1:2])[:, :, None], (xs - shift[:, 0:1])[:, None, :]]
     m = 0.5 * (p0 + p1)
-    centre = (slice(None), slice(R, R + B), slice(R, R + B))
+    nr = hi - lo
+    centre = (slice(None), slice(R, R + nr), slice(R, R + B))
     d = (p1 - p0)[centre]
     terms = [np.ones_like(d), m[centre]]
     for ex, ey in pairs:
-        plus = m[:, R + ey : R + ey + B, R + ex : R + ex + B]
-        minus = m[:, R - ey : R - ey + B, R - ex : R - ex + B]
+        plus = m[:, R + ey : R + ey + nr, R + ex : R + ex + B]
+        minus = m[:, R - ey : R - ey + nr, R - ex : R - ex + B]
         terms.append(plus - minus)
-    X = np.stack(terms, axis=-1).reshape(ty.size, B * B, len(terms))
-    y = d.reshape(ty.size, B * B)
-    g = np.arange(B)
-    on = np.repeat(((g >= rows[0]) & (g < rows[1]))[:, None], B, axis=1)
-    w = np.broadcast_to(on.reshape(1, B * B).astype(np.float64), (ty.size, B * B))
-    Xw = X * w[..., None]
-    xtx = np.einsum("nkp,nkq->npq", Xw, X)
-    xty = np.einsum("nkp,nk->np", Xw, y)
+    X = np.stack(terms, axis=-1).reshape(ty.size, nr * B, len(terms))
+    y = d.reshape(ty.size, nr * B)
+    Xt = X.transpose(0, 2, 1)
+    xtx = np.matmul(Xt, X)
+    xty = np.matmul(Xt, y[..., None])[..., 0]
     inv = np.linalg.pinv(xtx, hermitian=True)
-    beta = np.einsum("npq,nq->np", inv, xty)
-    rss = np.maximum(np.einsum("nk,nk->n", w * y, y) - np.einsum("np,np->n", beta, xty), 0.0)
-    v_r = rss / (w.sum(axis=1) - len(terms))
+    beta = np.matmul(inv, xty[..., None])[..., 0]
+    rss = np.maximum(np.einsum("nk,nk->n", y, y) - np.einsum("np,np->n", beta, xty), 0.0)
+    v_r = rss / (nr * B - len(terms))
     gain = np.array([0.0, 1.0] + [2.0] * len(pairs))  # each term's taps^2 per coefficient^2
     kappa = beta**2 @ gain - v_r * (np.diagonal(inv, axis1=1, axis2=2) @ gain)
     # kappa's own noise is kept (not clipped at 0 per tile: that would bias it up); the
     # floor only guards the division
     var = v_r / (2.0 + 0.5 * np.maximum(kappa, -2.0))
-    return var, m[centre].reshape(ty.size, -1).mean(axis=1)
+    return var, m[centre].reshape(ty.size, -1).mean(axis=1)  # brightness of the fitted rows
 
 
 def fit_noise_level(tiles: NoiseTiles, *, bins: int = 8, quantile: float = 0.5) -> NoiseLevel:
