@@ -350,9 +350,9 @@ def temporal_noise_tiles(
             f"rows leave >= 16 degrees of freedom each for {terms} terms (search {search})"
         )
     finite = np.isfinite(f0) & np.isfinite(f1)
+    if mask is not None and np.shape(mask) != f0.shape:
+        raise ValueError(f"mask: expected shape {f0.shape}, got {np.shape(mask)}")
     inner = finite if mask is None else finite & np.asarray(mask, bool)
-    if inner.shape != f0.shape:
-        raise ValueError(f"mask: expected shape {f0.shape}, got {inner.shape}")
     f0, f1 = np.where(finite, f0, 0.0), np.where(finite, f1, 0.0)
     edge = search + reach
     inner = ndimage.binary_erosion(inner, np.ones((2 * edge + 1,) * 2, bool), border_value=0)
