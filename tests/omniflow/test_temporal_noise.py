@@ -22,6 +22,7 @@ import pytest
 from omniflow.fit.noise import NoiseLevel, immerkaer_sigma, temporal_noise, temporal_noise_tiles
 from omnisim.camera import CameraModel
 from omnisim.camera_noise import grey_noise_level, grey_noise_variance
+from omnisim.synthetic import Cylinder, Motion, SyntheticScene, Texture
 from tests.helpers.noise_frames import (
     COARSE,
     FINE,
@@ -30,6 +31,7 @@ from tests.helpers.noise_frames import (
     moving_pair,
     texture_image,
 )
+from tests.helpers.scenes import paper_rig
 
 CAMERAS = {
     "default": {},
@@ -180,3 +182,31 @@ def test_bad_shapes():
         temporal_noise(np.zeros((32, 32)), np.zeros((32, 31)))
     with pytest.raises(ValueError, match=r"mask: expected shape \(32, 32\)"):
         temporal_noise(np.zeros((32, 32)), np.zeros((32, 32)), np.ones((16, 16), bool))
+
+
+@pytest.mark.parametrize("yaw", [0.0, 0.01])
+def test_turning_wall_in_the_annulus(yaw):
+    """The rig's own images: a wall (r = 2 m) of 2-5 cm texture turning about the axis,
+    rendered in closed form (blur 0.5 px), in cam1's annulus. Tangential flow h_i yaw
+    (up to 1.2 px); near the image centre the texture lies near and beyond the Nyquist
+    wavelength, which no local motion follows (docs/decisions/noise_estimate.md)."""
+    rig = paper_rig(256)
+    h_i, _ = rig.cam1.polar_of_pixel(*rig.cam1.pixel_centres())
+    mask = (h_i > 16) & (h_i < rig.cam1.r_m - 4)
+    model = CameraModel()
+    for seed in (3, 4, 5):
+        tex = Texture.random(seed, n=24, wavelengths=(0.02, 0.05), contrast=0.15, mean=0.2,
+                             period_u=4 * np.pi)  # fmt: skip
+        wall = Cylinder(radius=2.0, id=1, name="wall", texture=tex, motion=Motion(yaw_rate=yaw))
+        radiance = SyntheticScene(rig=rig, bodies=(wall,)).frames("cam1", 2, blur=0.5)
+        f0, f1 = camera_frames(model, radiance[0], 0), camera_frames(model, radiance[1], 1)
+        level = temporal_noise(f0, f1, mask)
+        true = _true_sigma(model, level.reference)
+        # measured over seeds 3-5: Immerkaer / true 1.493-2.011 (either yaw); temporal /
+        # true 0.991-0.993 still, 1.083-1.103 turning (1.002-1.011 with blur 1: the
+        # excess is the near-Nyquist texture)
+        assert immerkaer_sigma(f0, mask) > 1.4 * true
+        if yaw == 0.0:
+            assert level.sigma == pytest.approx(true, rel=0.03)
+        else:
+            assert true < level.sigma < 1.15 * true
