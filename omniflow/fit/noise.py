@@ -320,7 +320,8 @@ def temporal_noise_tiles(
         Largest whole-pixel shift searched per axis, pixels (>= 0).
     reach : int
         Reach of the odd filter, pixels (1 to 3): 3 follows texture nearer the Nyquist
-        wavelength at 3-5 times the cost and 12 fewer degrees of freedom per band.
+        wavelength at many times the cost and with 12 fewer degrees of freedom per band
+        (docs/decisions/noise_estimate.md).
 
     Returns
     -------
