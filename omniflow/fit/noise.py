@@ -213,7 +213,7 @@ class NoiseTiles:
     Attributes
     ----------
     intensity : ndarray, shape (n,)
-        Mean brightness of each tile (the mean of the two frames).
+        Mean brightness of each tile's fitted rows (the mean of the two frames).
     variance : ndarray, shape (n,)
         Each tile's noise variance estimate (grey units squared).
     dof : int
@@ -456,6 +456,8 @@ def fit_noise_level(tiles: NoiseTiles, *, bins: int = 8, quantile: float = 0.5) 
     """
     from scipy import stats
 
+    if not 0.0 < quantile < 1.0:
+        raise ValueError(f"quantile = {quantile!r}: expected a number in (0, 1)")
     n = tiles.variance.size
     if n == 0:
         return NoiseLevel(math.nan, math.nan, math.nan, (math.nan, math.nan), 0)
