@@ -221,7 +221,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 1
     suites = [("Benchmark suite: the mini suite (CI)",
                "Three generated scenes at 256 px (docs/suite.md; CI guards these figures with "
-               "`--check scenes/suite/mini_bounds.toml`). Quote the test split, tune on train.\n\n"
+               "`--check validation/mini_bounds.toml`). Quote the test split, tune on train.\n\n"
                + suite_tables((work / "mini" / "leaderboard.md").read_text()))]  # fmt: skip
     if args.full_suite is not None:
         board = args.full_suite / "leaderboard.md"

@@ -1,6 +1,6 @@
 """Accuracy bounds on a suite's leaderboard: the regression guard CI runs on the mini suite.
 
-A bounds file (``scenes/suite/mini_bounds.toml``) holds, per method and split, an upper
+A bounds file (``validation/mini_bounds.toml``) holds, per method and split, an upper
 bound on each error figure and a lower bound on each figure where higher is better, all
 MEASURED: ``python -m validation.suite_bounds LEADERBOARD.json --write BOUNDS.toml``
 derives them from a leaderboard by the rule of ``validation/thresholds.toml`` (1.25 x the

@@ -77,7 +77,7 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--scheduler", default=None, metavar="ADDR",
                     help="render the frames on this Dask scheduler (tcp://host:8786)")  # fmt: skip
     ap.add_argument("--check", default=None, metavar="BOUNDS",
-                    help="compare the leaderboard with a bounds file (scenes/suite/mini_bounds."
+                    help="compare the leaderboard with a bounds file (validation/mini_bounds."
                     "toml) and exit 1 if a figure is outside its bound")  # fmt: skip
     ap.add_argument("--no-progress", action="store_true", help="no progress bars")
     return ap

@@ -1,7 +1,7 @@
 """validation.suite_bounds: bounds derived from a leaderboard pass on it and catch a regression.
 
 The leaderboards here are small dicts in the leaderboard.json layout; the shipped
-scenes/suite/mini_bounds.toml is checked for consistency (each measured figure inside
+validation/mini_bounds.toml is checked for consistency (each measured figure inside
 its own bound), and CI checks it against a real mini-suite run (.ci/run).
 """
 
@@ -144,7 +144,7 @@ def test_a_bad_bounds_file_is_one_line_naming_the_entry_and_key(tmp_path, text, 
 
 
 def test_the_shipped_mini_bounds_hold_their_own_measured_figures():
-    bounds = load_bounds(ROOT / "scenes/suite/mini_bounds.toml")
+    bounds = load_bounds(ROOT / "validation/mini_bounds.toml")
     assert len(bounds) >= 40
     for b in bounds:
         assert b.max is None or b.measured <= b.max
