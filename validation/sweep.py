@@ -102,7 +102,7 @@ def run_sweep(
         summary, how = score_dataset(point / "render", point / "report",
                                      point / "state.json", methods, progress, state)  # fmt: skip
         for r in scene_rows(f"{i:02d}", "", summary):
-            rows.append({"value": value_label(v), "index": i, **r})
+            rows.append({"value": value_label(v), "index": i, **r, **_range_figures(summary, r)})
         log(f"{tag}: {how} in {time.perf_counter() - t0:.1f} s")
     sweep = jsonable({
         "format": "omnivalidate-sweep/1",
@@ -120,6 +120,18 @@ def run_sweep(
     return sweep
 
 
+def _range_figures(summary: Mapping[str, Any], row: Mapping[str, Any]) -> dict[str, Any]:
+    """The median relative range error of the method's stereo points and the median
+    relative time-to-contact error (None for a method without them): where a rig error
+    shows when the matches stay right."""
+    for m in summary.get("methods", []):
+        if m.get("name") == row["method"] and m.get("points") in ("own", "dense"):
+            rel_r = ((m.get("stereo") or {}).get("all") or {}).get("rel_r") or {}
+            ttc = (m.get("derived") or {}).get("ttc_relative_error") or {}
+            return {"range_error": rel_r.get("median"), "ttc_error": ttc.get("median")}
+    return {"range_error": None, "ttc_error": None}
+
+
 def _csv(sweep: Mapping[str, Any]) -> str:
     cols = ["value", "method", *METRICS, "fl", "wauc", "coverage", "tangential_gain", "time_s"]
     buf = io.StringIO()
@@ -133,7 +145,7 @@ def _csv(sweep: Mapping[str, Any]) -> str:
 def _fmt(metric: str, v: Any) -> str:
     if v is None or (isinstance(v, float) and math.isnan(v)):
         return "–"
-    return f"{100 * v:.1f} %" if metric not in ("epe", "radial_gain") else f"{v:.3f}"
+    return f"{v:.3f}" if metric in ("epe", "radial_gain") else f"{100 * v:.1f} %"
 
 
 def _markdown(sweep: Mapping[str, Any]) -> str:

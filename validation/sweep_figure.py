@@ -19,6 +19,8 @@ METRICS = {
     "stereo_outliers": "stereo outliers (> 1 px)",
     "density": "density: points per valid pixel",
     "radial_gain": "radial gain (1 = unbiased)",
+    "range_error": "range: median |r - r_true| / r_true",
+    "ttc_error": "time to contact: median relative error",
 }
 
 #: Units of the keys a rig builder sweeps, for the x-axis label (docs/scene_format.md).
@@ -55,7 +57,7 @@ def sweep_plot(sweep: Mapping[str, Any], path: Path) -> None:
 
     key, labels = sweep["parameter"], list(sweep["values"])
     names = list(dict.fromkeys(r["method"] for r in sweep["rows"]))
-    fig, axes = plt.subplots(2, 3, figsize=(14, 7.5), sharex=True, layout="constrained")
+    fig, axes = plt.subplots(2, 4, figsize=(18, 7.5), sharex=True, layout="constrained")
     for ax, (metric, label) in zip(axes.flat, METRICS.items(), strict=True):
         for name in names:
             by_value = {r["index"]: _num(r.get(metric)) for r in sweep["rows"]
