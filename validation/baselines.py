@@ -61,6 +61,7 @@ from .sampling import bilinear
 __all__ = [
     "BASELINES",
     "DEFAULT_BASELINES",
+    "DIS_MIN_SIDE",
     "METHODS",
     "PANORAMA_METHODS",
     "PANORAMA_SUFFIX",
@@ -89,6 +90,10 @@ PANORAMA_SUFFIX = "-panorama"
 #: opencv-contrib 5.1.0, 55 x 64 px aborts the process (valgrind: invalid writes
 #: inside cv2), 56 x 64, 60 x 377 and larger run clean (docs/decisions/baselines_contrib.md).
 PCAFLOW_MIN_ROWS = 56
+#: The shortest side OpenCV's DIS takes: on opencv-contrib 5.1.0 a 14 x 120 px image
+#: (the DIS-medium-panorama of a 32 px render) kills the process with a segmentation
+#: fault, 16 x 120 and 16 x 16 px run (its own check only refuses both sides under 12).
+DIS_MIN_SIDE = 16
 #: Dense RLOF's seed grid step (OpenCV's default ``gridStep``, 6 x 6 px).
 RLOF_GRID_STEP = 6
 #: The fewest grid seeds dense RLOF is run on. On opencv-contrib 5.1.0 its EPIC
@@ -103,10 +108,22 @@ RLOF_MIN_SEEDS = 256
 PANORAMA_PAD = 16
 
 
+def _dis_size(a: NDArray) -> None:
+    """InputError for an image with a side under :data:`DIS_MIN_SIDE` (DIS would crash)."""
+    if min(a.shape[:2]) < DIS_MIN_SIDE:
+        raise InputError(
+            f"DIS: a {a.shape[0]} x {a.shape[1]} px image; OpenCV's DIS crashes on images "
+            f"with a side under {DIS_MIN_SIDE} px (a panorama has about a seventh of the "
+            "image size in rows at 32 px): use a larger resolution or leave the row out"
+        )
+
+
 def dis_flow(img0: NDArray, img1: NDArray) -> NDArray:
     """DIS optical flow (medium preset), shape (H, W, 2) as (dx, dy) in pixels."""
+    a, b = _u8(img0), _u8(img1)
+    _dis_size(a)
     dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
-    return dis.calc(_u8(img0), _u8(img1), None)
+    return dis.calc(a, b, None)
 
 
 def farneback_flow(img0: NDArray, img1: NDArray) -> NDArray:
@@ -123,12 +140,14 @@ def dis_fine_flow(img0: NDArray, img1: NDArray) -> NDArray:
     (medium: 25) and 10 variational-refinement iterations (medium: 5) with the
     preset's weights (alpha 20, delta 5, gamma 10).
     """
+    a, b = _u8(img0), _u8(img1)
+    _dis_size(a)
     dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
     dis.setFinestScale(0)
     dis.setPatchStride(2)
     dis.setGradientDescentIterations(100)
     dis.setVariationalRefinementIterations(10)
-    return dis.calc(_u8(img0), _u8(img1), None)
+    return dis.calc(a, b, None)
 
 
 def deepflow_flow(img0: NDArray, img1: NDArray) -> NDArray:

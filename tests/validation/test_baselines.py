@@ -129,6 +129,20 @@ def test_pcaflow_refuses_images_it_would_corrupt_memory_on():
         bl.dense_baseline("PCAFlow-panorama", img, img, rig.cam1)
 
 
+def test_dis_refuses_images_it_would_crash_on():
+    # 14 x 120 px (the panorama of a 32 px render): OpenCV's DIS segfaults; never call it.
+    a = np.zeros((bl.DIS_MIN_SIDE - 2, 120), np.uint8)
+    for fn in (bl.dis_flow, bl.dis_fine_flow):
+        with pytest.raises(InputError, match=r"DIS: a 14 x 120 px image.*under 16 px"):
+            fn(a, a)
+    ok = _texture(64)[: bl.DIS_MIN_SIDE]  # 16 x 64 runs
+    assert bl.dis_flow(ok, ok).shape == (bl.DIS_MIN_SIDE, 64, 2)
+    rig = Rig.symmetric(d=0.1, R=0.05, s=0.3, size=32)  # panorama 14 px high
+    img = _texture(32)
+    with pytest.raises(InputError, match="DIS"):
+        bl.dense_baseline("DIS-medium-panorama", img, img, rig.cam1)
+
+
 def test_unknown_baseline_is_one_line_listing_the_choices(capsys):
     rig = Rig.symmetric(d=0.1, R=0.05, s=0.3, size=64)
     a = _texture(64)
