@@ -60,7 +60,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from omniflow.geometry.rig import Rig, RigError, rig_from_dict
-from omniflow.io.dataset import Dataset, DatasetError
+from omniflow.io.dataset import CAMERA_BITS, Dataset, DatasetError
 from omniflow.io.imageio import to_grey
 
 __all__ = [
@@ -78,7 +78,7 @@ __all__ = [
 ]
 
 #: Allowed bit depths of the digital numbers.
-BITS = (8, 10, 12, 16)
+BITS = CAMERA_BITS  # the dataset format's (omniflow.io.dataset)
 #: Allowed response curves.
 RESPONSES = ("linear", "srgb")
 #: Largest full well accepted (electrons); also keeps Poisson means far inside int64.

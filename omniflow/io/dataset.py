@@ -73,6 +73,8 @@ __all__ = [
 ]
 
 
+#: The bit depths of a recorded camera (``dataset.json`` ``camera.bits``; omnisim.camera).
+CAMERA_BITS = (8, 10, 12, 16)
 #: ``dataset.json["format"]`` and ``["format_version"]``.
 FORMAT_NAME = "omnisim-dataset"
 FORMAT_VERSION = 2
@@ -372,10 +374,17 @@ def check_poses(meta: Mapping[str, Any], where: Path, frames: int) -> None:
             arr = np.asarray(poses, dtype=float)
         except (TypeError, ValueError):
             arr = np.zeros(0)
-        if arr.shape != (frames, 4, 4) or not np.isfinite(arr).all():
+        if arr.shape != (frames, 4, 4):
             raise DatasetError(
-                f"{where}: {key}: expected {frames} finite 4x4 matrices (shape "
-                f"({frames}, 4, 4)), got shape {arr.shape}"
+                f"{where}: {key}: expected {frames} 4x4 matrices (shape ({frames}, 4, 4)), "
+                f"got shape {arr.shape}"
+            )
+        bad = np.argwhere(~np.isfinite(arr))
+        if bad.size:
+            k, i, j = (int(v) for v in bad[0])
+            raise DatasetError(
+                f"{where}: {key}[{k}][{i}][{j}] = {arr[k, i, j]!r}: expected finite numbers "
+                f"({len(bad)} entries are NaN or infinite)"
             )
 
 
@@ -489,10 +498,10 @@ class Dataset:
         if not isinstance(cam, Mapping):
             return None
         bits = cam.get("bits", 8)
-        if isinstance(bits, bool) or not isinstance(bits, int) or not 1 <= bits <= 16:
+        if isinstance(bits, bool) or bits not in CAMERA_BITS:
             raise DatasetError(f"{self.dir / 'dataset.json'}: camera.bits = {bits!r}: "
-                               "expected an integer 1..16")  # fmt: skip
-        return bits
+                               f"expected one of {', '.join(map(str, CAMERA_BITS))}")  # fmt: skip
+        return int(bits)
 
     def read_image(self, k: int, cam: str) -> NDArray[np.float32]:
         """The camera image ``camN.png`` of frame ``k`` as omniflow's grey input

@@ -564,7 +564,7 @@ CASES = [
         "check: a pose with null",
         _edit_meta(_obj_poses_nan),
         2,
-        ["objects[0].poses", "finite"],
+        ["objects[0].poses[0][0][0]", "finite"],
         None,
     ),
     Case(
