@@ -7,6 +7,7 @@ Exit status: 0 done (and every threshold met when ``--check`` is given);
 from __future__ import annotations
 
 import argparse
+import contextlib
 import shlex
 import sys
 import time
@@ -230,7 +231,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     from . import baselines as bl
     from .external import ExternalOutput
-    from .report import check_out_dir, write_report
+    from .report import check_out_dir, report_lock, write_report
     from .runner import InputError, run_validation
     from .summary import sweep_rows
     from .thresholds import ThresholdError, check_summary, format_checks, load_thresholds
@@ -298,41 +299,43 @@ def main(argv: Sequence[str] | None = None) -> int:
         levels = [[f"{key.strip()}={v}"] for v in values]
 
     start = time.perf_counter()
-    try:
-        check_out_dir(args.out)
-        external = [
-            ExternalOutput(d, args.method_name[i] if i < len(args.method_name) else None)
-            for i, d in enumerate(args.method_output)
-        ]
-        sweep: list[dict] = []
-        results = None
-        for level in levels:
-            res = run_validation(
-                args.dataset,
-                variants=variants,
-                baselines=names,
-                frames=frames,
-                progress=not args.no_progress,
-                external=external,
-                camera=[*args.camera, *level],
-                partial=args.partial,
+    with contextlib.ExitStack() as held:
+        try:
+            held.enter_context(report_lock(args.out))  # one run per --out
+            check_out_dir(args.out)
+            external = [
+                ExternalOutput(d, args.method_name[i] if i < len(args.method_name) else None)
+                for i, d in enumerate(args.method_output)
+            ]
+            sweep: list[dict] = []
+            results = None
+            for level in levels:
+                res = run_validation(
+                    args.dataset,
+                    variants=variants,
+                    baselines=names,
+                    frames=frames,
+                    progress=not args.no_progress,
+                    external=external,
+                    camera=[*args.camera, *level],
+                    partial=args.partial,
+                )
+                if level:
+                    from omniflow.io.jsonio import jsonable
+
+                    from .summary import summarize
+
+                    key, value = level[0].split("=", 1)
+                    sweep += sweep_rows(jsonable(summarize(res)), key, value)
+                results = results or res
+            command = "omnivalidate " + " ".join(
+                shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:])
             )
-            if level:
-                from omniflow.io.jsonio import jsonable
-
-                from .summary import summarize
-
-                key, value = level[0].split("=", 1)
-                sweep += sweep_rows(jsonable(summarize(res)), key, value)
-            results = results or res
-        command = "omnivalidate " + " ".join(
-            shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:])
-        )
-        summary = write_report(results, args.out, command=command, sweep=sweep or None)
-    except (DatasetError, RigError, InputError) as exc:
-        return fail(str(exc).splitlines()[0])
-    except OSError as exc:
-        return fail(f"{exc.filename or args.out}: {exc.strerror or exc}")
+            summary = write_report(results, args.out, command=command, sweep=sweep or None)
+        except (DatasetError, RigError, InputError) as exc:
+            return fail(str(exc).splitlines()[0])
+        except OSError as exc:
+            return fail(f"{exc.filename or args.out}: {exc.strerror or exc}")
     print("\n".join(summary.get("headline", [])))
     print(_closing_line(summary, len(results.dataset["pairs"]), time.perf_counter() - start,
                         Path(args.out) / "report.html"))  # fmt: skip
