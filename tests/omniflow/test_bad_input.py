@@ -825,3 +825,21 @@ def test_a_second_run_into_one_out_is_refused(base, tmp_path):
     assert proc.returncode == 2 and len(lines) == 1, proc.stderr
     assert f"{out}: another omniflow process (pid 4242) is writing this folder" in lines[0]
     assert {k: v for k, v in snapshot(tmp_path).items() if not k.endswith(".out.lock")} == before
+
+
+def test_two_runs_into_one_new_out_the_second_is_refused(base, tmp_path):
+    # issue 25: without the lock, one failed with "Directory not empty"
+    out = tmp_path / "out"
+    args = [omniflow_command(), *map(str, frames(base)), "--rig", str(base["dir"] / "rig.toml"),
+            "--out", str(out)]  # fmt: skip
+    procs = [subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                              env=_env()) for _ in range(2)]  # fmt: skip
+    results = [(p.wait(timeout=300), p.communicate()[1]) for p in procs]
+    assert sorted(status for status, _ in results) == [0, 2], results  # they overlap: seconds each
+    for status, err in results:
+        if status == 2:
+            assert len(err.strip().splitlines()) == 1 and "another omniflow process" in err
+        else:
+            assert err == "", err
+    assert json.loads((out / "flow.json").read_text())["points"] > 50
+    assert [p.name for p in tmp_path.iterdir()] == ["out"]  # no staging folder, no lock

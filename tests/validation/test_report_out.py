@@ -149,3 +149,19 @@ def test_a_second_run_into_one_out_is_refused(synth, tmp_path):
     assert p.returncode == 2 and len(lines) == 1, p.stderr
     assert f"--out {out}: another omnivalidate process (pid 4242)" in lines[0]
     assert {k: v for k, v in _tree(tmp_path).items() if k != ".r.lock"} == before
+
+
+def test_two_runs_into_one_out_the_second_is_refused(synth, tmp_path):
+    # issue 25: without the lock, both exited 0 and the last silently replaced the other
+    out = tmp_path / "r"
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    cmd = [sys.executable, "-m", "validation.cli", str(synth), "--out", str(out), *FAST]
+    procs = [subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                              env=env, cwd=ROOT) for _ in range(2)]  # fmt: skip
+    results = [(p.wait(timeout=300), p.communicate()[1]) for p in procs]
+    assert sorted(status for status, _ in results) == [0, 2], results  # they overlap: seconds each
+    for status, err in results:
+        if status == 2:
+            assert len(err.strip().splitlines()) == 1 and "another omnivalidate process" in err
+    assert json.loads((out / MARKER).read_text())["written_by"] == "omnivalidate"
+    assert [p.name for p in tmp_path.iterdir()] == ["r"]  # no temporary folder, no lock
