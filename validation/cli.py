@@ -1,7 +1,8 @@
 """``omnivalidate DATASET --out REPORT_DIR``: score omniflow and the baselines on a dataset.
 
 Exit status: 0 done (and every threshold met when ``--check`` is given);
-1 a threshold failed; 2 bad input (the one-line message names the problem).
+1 a threshold failed; 2 bad input (the one-line message names the problem);
+130 interrupted by Ctrl-C, 143 by SIGTERM (one line; nothing written to --out).
 """
 
 from __future__ import annotations
@@ -15,6 +16,8 @@ import typing
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
+
+from omniflow.interrupts import run_main
 
 __all__ = ["main"]
 
@@ -220,11 +223,29 @@ def _closing_line(summary: dict, pairs: int, seconds: float, report: Path) -> st
             f"{count(pairs, 'frame pair')} in {seconds:.1f} s; report: {report}")  # fmt: skip
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    if (sys.argv[1:] if argv is None else list(argv))[:1] == ["suite"]:
-        from .suite_cli import main as suite_main  # the subcommand: omnivalidate suite ...
+#: What an interrupted run leaves (the report is renamed into place at the end).
+NOTE = "nothing was written to --out"
+#: What an interrupted ``omnivalidate suite`` leaves.
+SUITE_NOTE = "finished scenes and frames are kept; run the same command again to resume"
 
-        return suite_main(sys.argv[2:] if argv is None else list(argv)[1:])
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``omnivalidate``: the exit status (module docstring); Ctrl-C or
+    SIGTERM is one line, status 130 / 143 (:mod:`omniflow.interrupts`)."""
+    keep = argv is None  # a console script: keep the handler for the shutdown
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["suite"]:
+        return run_main("omnivalidate suite", lambda: _suite(argv[1:]), note=SUITE_NOTE, keep=keep)
+    return run_main("omnivalidate", lambda: _main(argv), note=NOTE, keep=keep)
+
+
+def _suite(argv: list[str]) -> int:
+    from .suite_cli import main as suite_main  # the subcommand: omnivalidate suite ...
+
+    return suite_main(argv)
+
+
+def _main(argv: list[str]) -> int:
     args = _parser().parse_args(argv)
     from omniflow.geometry.rig import RigError
     from omniflow.io.dataset import DatasetError
@@ -328,9 +349,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                     key, value = level[0].split("=", 1)
                     sweep += sweep_rows(jsonable(summarize(res)), key, value)
                 results = results or res
-            command = "omnivalidate " + " ".join(
-                shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:])
-            )
+            command = "omnivalidate " + " ".join(shlex.quote(a) for a in argv)
             summary = write_report(results, args.out, command=command, sweep=sweep or None)
         except (DatasetError, RigError, InputError) as exc:
             return fail(str(exc).splitlines()[0])

@@ -135,10 +135,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         return exc.exit_status
     except OSError as exc:
         return fail(f"{exc.filename or args.out}: {exc.strerror or exc}")
-    except KeyboardInterrupt:
-        print("omnivalidate suite: interrupted; finished scenes and frames are kept, run "
-              "the same command again to resume", file=sys.stderr)  # fmt: skip
-        return 130
     top = board["methods"][0] if board["methods"] else None
     best = f"; first: {top['method']} (1px {top['1px']})" if top else ""
     print(f"omnivalidate suite: {len(board['scenes'])} scenes, {len(board['methods'])} methods "

@@ -6,7 +6,8 @@ warning line says so), 2 on bad input (a missing or unreadable file, images of
 different sizes, a rig file with a missing or impossible field, NaN pixels, an
 option out of range, an ``--out`` that is a file), 1 when the machine refuses
 (permission denied, read-only or full file system, out of memory) or on an
-internal error. Every failure is one line on standard error naming the path,
+internal error; 130 / 143 interrupted by Ctrl-C / SIGTERM (one line,
+:mod:`omniflow.interrupts`). Every failure is one line on standard error naming the path,
 option or value and what was expected; ``--debug`` shows the traceback
 instead. The outputs are staged and moved into ``--out`` as a set
 (:class:`omniflow.io.imageio.OutputSet`), so a failed run changes nothing there.
@@ -669,9 +670,6 @@ def main(argv: list[str] | None = None, *, prog: str = PROG, short: bool = False
         try:
             with ownership.held_lock(args.out, _busy(args.out)):  # one run per --out
                 summary = run(args, parser._config_fields, argv)  # type: ignore[attr-defined]
-        except KeyboardInterrupt:
-            print(f"{PROG}: interrupted; nothing was written", file=sys.stderr)
-            return 130
         except Exception as exc:  # every failure becomes one line (or, with --debug, a trace)
             if args.debug:
                 traceback.print_exc()
@@ -692,4 +690,7 @@ def main(argv: list[str] | None = None, *, prog: str = PROG, short: bool = False
 
 
 if __name__ == "__main__":  # python -m omniflow.cli.pair
-    sys.exit(main())
+    from omniflow.cli import PAIR_NOTE
+    from omniflow.interrupts import run_main
+
+    sys.exit(run_main(PROG, main, note=PAIR_NOTE, keep=True))

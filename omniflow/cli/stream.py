@@ -9,7 +9,8 @@ keeps grows with the length of the sequence. Every file is written under a tempo
 renamed, so an interrupted run leaves only whole files; run the same command
 again and it resumes after the last pair written (``stream.json`` must hold
 the same input, rig and options, else exit 2). Exit status as ``omniflow``:
-0 success, 2 bad input, 1 the machine refused or an internal error.
+0 success, 2 bad input, 1 the machine refused or an internal error, 130 / 143
+interrupted by Ctrl-C / SIGTERM (one line, :mod:`omniflow.interrupts`).
 """
 
 from __future__ import annotations
@@ -360,10 +361,6 @@ def main(argv: list[str] | None = None, *, prog: str = PROG, short: bool = False
                     "wait for it to finish or choose another --out")  # fmt: skip
             with ownership.held_lock(args.out, busy):  # one run per --out
                 summary = run(args, parser._config_fields, argv)  # type: ignore[attr-defined]
-        except KeyboardInterrupt:
-            print(f"{PROG}: interrupted; every file in --out is whole, rerun to resume",
-                  file=sys.stderr)  # fmt: skip
-            return 130
         except Exception as exc:  # every failure becomes one line (or, with --debug, a trace)
             if args.debug:
                 traceback.print_exc()
@@ -380,4 +377,7 @@ def main(argv: list[str] | None = None, *, prog: str = PROG, short: bool = False
 
 
 if __name__ == "__main__":  # python -m omniflow.cli.stream
-    sys.exit(main())
+    from omniflow.cli import STREAM_NOTE
+    from omniflow.interrupts import run_main
+
+    sys.exit(run_main(PROG, main, note=STREAM_NOTE, keep=True))
