@@ -566,15 +566,15 @@ class DatasetWriter:
 
     def _refuse_foreign_frame(self, p: Path) -> None:
         if p.is_symlink() or (p.exists() and not p.is_dir()):
-            raise DatasetForeignError(
-                f"{ownership.refusal(p, 'omnisim render', self.dir)} (a frame name that is "
-                "not a folder)"
-            )
+            why = ownership.refusal(p, "omnisim render", self.dir, marked=True)
+            raise DatasetForeignError(f"{why} (a frame name that is not a folder)")
         names = set(self.expected_files)
         with contextlib.suppress(FileNotFoundError):  # moved aside meanwhile: nothing to check
             bad = ownership.find_foreign(p, lambda rel: str(rel) in names)
             if bad is not None:
-                raise DatasetForeignError(str(ownership.refusal(bad, "omnisim render", self.dir)))
+                raise DatasetForeignError(
+                    str(ownership.refusal(bad, "omnisim render", self.dir, marked=True))
+                )
 
     def _check_resume(self, old: Mapping[str, Any]) -> None:
         diffs = _diff_paths(old, self.meta)

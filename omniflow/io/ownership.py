@@ -154,10 +154,13 @@ def find_foreign(folder: str | os.PathLike, owned: Callable[[PurePosixPath], boo
     return walk(root)
 
 
-def refusal(path: Path, prog: str, folder: Path) -> ForeignPathError:
+def refusal(path: Path, prog: str, folder: Path, *, marked: bool = False) -> ForeignPathError:
+    """The one line refusing ``path``: its folder has no marker, or (``marked``) the
+    folder is ours but the name is not one the command writes."""
+    why = f"not a name {prog} writes" if marked else f"no {MARKER} in {folder}"
     return ForeignPathError(
-        f"{path}: not written by {prog} (no {MARKER} in {folder}, or not a name {prog} "
-        "writes); refusing to remove or replace it; move it away or choose another --out"
+        f"{path}: not written by {prog} ({why}); refusing to remove or replace it; move "
+        "it away or choose another --out"
     )
 
 
@@ -188,7 +191,7 @@ def claim(
         raise refusal(entries[0], prog, folder)
     bad = find_foreign(folder, owned)
     if bad is not None:
-        raise refusal(bad, prog, folder)
+        raise refusal(bad, prog, folder, marked=True)
     return True
 
 
