@@ -7,8 +7,9 @@ or the environment failed (a renderer package not installed, a Dask scheduler th
 does not answer, a disk error); 2 bad input: a bad scene file, option, input image or
 dataset, an output directory that holds another dataset or is being written by
 another render, a request this machine cannot hold, an incomplete dataset to check
-(reported as one line before any rendering starts); 130 interrupted (the frames
-finished so far are kept; run the same command again to resume).
+(reported as one line before any rendering starts); 130 interrupted by Ctrl-C, 143
+by SIGTERM (one line; the frames finished so far are kept; run the same command again
+to resume).
 
 Every error is one line on stderr, ``omnisim: error: ...``, naming the file, key,
 value or address and what was expected; ``--debug`` adds the Python traceback.
@@ -20,13 +21,14 @@ import argparse
 import contextlib
 import errno
 import re
-import signal
 import sys
 import tomllib
 import traceback
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
+
+from omniflow.interrupts import run_main
 
 __all__ = ["main"]
 
@@ -332,10 +334,6 @@ def _cmd_render(args: argparse.Namespace) -> int:
     return 0
 
 
-def _sigterm(signum, frame):  # let finally/except blocks clean temporaries up
-    raise KeyboardInterrupt(f"signal {signum}")
-
-
 def _error(msg: object) -> None:
     print(f"{PROG}: error: {_one_line(msg)}", file=sys.stderr)
 
@@ -373,17 +371,23 @@ def _describe_exception(exc: BaseException) -> tuple[str, int] | None:
     return None
 
 
+#: What an interrupted render leaves.
+RENDER_NOTE = "finished frames are kept; run the same command again to resume"
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Run the command; the exit status (module docstring). Errors are one line."""
+    """Run the command; the exit status (module docstring). Errors are one line; Ctrl-C
+    or SIGTERM is one line too, status 130 / 143 (:mod:`omniflow.interrupts`)."""
+    keep = argv is None  # a console script: keep the handler for the shutdown
+    argv = list(sys.argv[1:] if argv is None else argv)
+    note = RENDER_NOTE if argv[:1] == ["render"] else ""
+    return run_main(PROG, lambda: _main(argv), note=note, keep=keep)
+
+
+def _main(argv: list[str]) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     debug = bool(getattr(args, "debug", False))
-
-    old = signal.getsignal(signal.SIGTERM)
-    try:
-        signal.signal(signal.SIGTERM, _sigterm)
-    except ValueError:  # not the main thread
-        old = None
     try:
         from omnisim.job import ResourceError
 
@@ -408,12 +412,6 @@ def main(argv: list[str] | None = None) -> int:
                 traceback.print_exc()
             _error(exc)
             return 2
-    except KeyboardInterrupt:
-        print(
-            f"{PROG}: interrupted; finished frames are kept, run the same command again to resume",
-            file=sys.stderr,
-        )
-        return 130
     except Exception as exc:
         if debug:
             traceback.print_exc()
@@ -426,9 +424,6 @@ def main(argv: list[str] | None = None) -> int:
             return 1
         _error(known[0])
         return known[1]
-    finally:
-        if old is not None:
-            signal.signal(signal.SIGTERM, old)
 
 
 if __name__ == "__main__":

@@ -21,6 +21,12 @@ Every temporary name starts with a dot and contains ``.tmp.`` (frame directories
 the writer removes them, under the lock, when it opens the directory, together
 with the ``frames/tmpXXXXXXXX/`` scratch directories of older versions.
 
+Never delete what it did not write (:mod:`omniflow.io.ownership`): the dataset
+directory gets the project's marker file; a directory with neither marker nor
+``dataset.json`` is written into only when empty (the lock, temporaries and an
+empty ``frames/`` aside), and a frame folder holding anything but the frame's
+files is refused (:class:`DatasetForeignError`, one line) before anything is touched.
+
 This module imports neither Mitsuba nor the scene model.
 """
 
@@ -28,12 +34,10 @@ from __future__ import annotations
 
 import contextlib
 import errno
-import fcntl
 import json
 import os
 import re
 import shutil
-import threading
 import uuid
 from collections.abc import Iterable, Mapping
 from pathlib import Path
@@ -41,6 +45,9 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+
+# Markers and the one fcntl lock: what the writer may remove (omniflow.io.ownership).
+from omniflow.io import ownership
 
 # The contract and the reader, re-exported (their home is omniflow.io.dataset).
 from omniflow.io.dataset import (
@@ -94,6 +101,7 @@ __all__ = [
     "TIMING_KEY",
     "Dataset",
     "DatasetError",
+    "DatasetForeignError",
     "DatasetLockedError",
     "DatasetMismatchError",
     "DatasetWriter",
@@ -134,11 +142,8 @@ class DatasetLockedError(DatasetError):
     """Another process holds the dataset directory's write lock."""
 
 
-#: Locks this process holds: real path of the directory -> [descriptor, users]. A
-#: process may open several writers on one directory (tests, a threaded Dask worker);
-#: they share the lock, which is released when the last one closes.
-_HELD: dict[str, list[int]] = {}
-_HELD_GUARD = threading.Lock()
+class DatasetForeignError(DatasetError):
+    """A frame folder holds a file the writer did not write (it is not replaced)."""
 
 
 def _lock_dir(d: Path) -> str:
@@ -148,40 +153,17 @@ def _lock_dir(d: Path) -> str:
     holds it. The lock file stays; the lock itself ends with the descriptor
     (:func:`_unlock_dir`, or the process's end, ``kill -9`` included).
     """
-    key = os.path.realpath(d)
-    with _HELD_GUARD:
-        if key in _HELD:
-            _HELD[key][1] += 1
-            return key
-        path = d / LOCK_NAME
-        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            holder = os.pread(fd, 64, 0).decode("ascii", "replace").strip() or "?"
-            os.close(fd)
-            raise DatasetLockedError(
-                f"{d}: another omnisim process (pid {holder}) is writing this dataset; wait "
-                "for it to finish (then run again to resume) or use another --out directory"
-            ) from None
-        except BaseException:
-            os.close(fd)
-            raise
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
-        _HELD[key] = [fd, 1]
-        return key
+    busy = (
+        f"{d}: another omnisim process (pid {{pid}}) is writing this dataset; wait "
+        "for it to finish (then run again to resume) or use another --out directory"
+    )
+    try:
+        return ownership.lock(d / LOCK_NAME, busy)
+    except ownership.LockedError as exc:
+        raise DatasetLockedError(str(exc)) from None
 
 
-def _unlock_dir(key: str) -> None:
-    with _HELD_GUARD:
-        held = _HELD.get(key)
-        if held is None:
-            return
-        held[1] -= 1
-        if held[1] <= 0:
-            del _HELD[key]
-            os.close(held[0])
+_unlock_dir = ownership.unlock
 
 
 # -- atomic file helpers ----------------------------------------------------------
@@ -544,10 +526,16 @@ class DatasetWriter:
                 old = load_meta(meta_path)
                 self._check_resume(old)
                 self._timing = _frame_timings(old)
+                if cleanup:  # the opener holding the lock; Dask workers skip the scan
+                    self._refuse_foreign_frames()
             else:
                 self._refuse_foreign()
+                self._refuse_foreign_frames()
                 atomic_write_json(meta_path, self.meta)
                 self._made.append(meta_path)
+            if not ownership.has_marker(self.dir):
+                ownership.write_marker(self.dir, "omnisim render")
+                self._made.append(self.dir / ownership.MARKER)
             if not self.frames_dir.exists():
                 self.frames_dir.mkdir()
                 self._made.append(self.frames_dir)
@@ -559,13 +547,43 @@ class DatasetWriter:
             raise
 
     def _refuse_foreign(self) -> None:
-        if self.dir.exists() and any(
-            p.name != FRAMES_DIR for p in self.dir.iterdir() if not p.name.startswith(".")
-        ):
+        """A directory with no dataset.json: refuse it unless it is empty, or ours (its
+        marker), or holds nothing but the lock, temporaries and an empty ``frames/``."""
+        if not self.dir.exists() or ownership.has_marker(self.dir):
+            return
+        for p in sorted(self.dir.iterdir()):
+            if p.name == LOCK_NAME or (_TMP_RE.match(p.name) and not p.is_symlink()):
+                continue
+            if p.name == FRAMES_DIR and p.is_dir() and not p.is_symlink():
+                inner = [c for c in sorted(p.iterdir()) if not _TMP_RE.match(c.name)]
+                if not inner:
+                    continue
+                p = inner[0]
             raise DatasetError(
-                f"{self.dir}: not empty and has no {META_NAME}: refusing to write a "
-                "dataset into it; use an empty or new --out directory"
+                f"{p}: in {self.dir}, which is not empty and has no {META_NAME}: refusing "
+                "to write a dataset into it; use an empty or new --out directory"
             )
+
+    def _refuse_foreign_frames(self) -> None:
+        """Refuse (one line, nothing touched) a frame folder that holds anything but
+        the frame's files, or a frame name that is not a folder: the writer would
+        replace an incomplete frame folder, and removes only what it writes."""
+        if self.frames_dir.is_dir():
+            for p in sorted(self.frames_dir.iterdir()):
+                if FRAME_RE.match(p.name):
+                    self._refuse_foreign_frame(p)
+
+    def _refuse_foreign_frame(self, p: Path) -> None:
+        if p.is_symlink() or (p.exists() and not p.is_dir()):
+            why = ownership.refusal(p, "omnisim render", self.dir, marked=True)
+            raise DatasetForeignError(f"{why} (a frame name that is not a folder)")
+        names = set(self.expected_files)
+        with contextlib.suppress(FileNotFoundError):  # moved aside meanwhile: nothing to check
+            bad = ownership.find_foreign(p, lambda rel: str(rel) in names)
+            if bad is not None:
+                raise DatasetForeignError(
+                    str(ownership.refusal(bad, "omnisim render", self.dir, marked=True))
+                )
 
     def _check_resume(self, old: Mapping[str, Any]) -> None:
         diffs = _diff_paths(old, self.meta)
@@ -711,7 +729,10 @@ class DatasetWriter:
                 _write_synced(tmp / name, files[name])
             fsync_dir(tmp)
             if final.exists() and not self.is_done(k):
-                # An incomplete final directory (someone deleted a file): move it aside.
+                # An incomplete final directory (someone deleted a file): move it aside,
+                # when it holds nothing but the frame's files (checked again: it may
+                # have changed since the writer opened the dataset).
+                self._refuse_foreign_frame(final)
                 trash = self.frames_dir / f".{frame_name(k)}.tmp.stale.{uuid.uuid4().hex[:8]}"
                 os.rename(final, trash)
                 shutil.rmtree(trash, ignore_errors=True)

@@ -35,6 +35,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from omniflow import interrupts
 from omnisim.dataset import DatasetWriter
 
 # What the job is (renderer, scene, dataset.json) lives in omnisim.meta, shared with the
@@ -266,6 +267,8 @@ def render_dataset(
             timeout=scheduler_timeout,
         )
     except BaseException:
+        if scheduler is None:  # under the lock, every temporary is this run's (or a dead
+            writer.remove_temporaries()  # run's); one an interruption cut short goes too
         writer.abandon()  # removes only what this run created, and only before frame 0
         raise
     finally:
@@ -324,6 +327,7 @@ def _render_frames(
             timed = _takes_timings(render_fn)
             context = _timing_context()
             for k in todo:
+                interrupts.check()  # Mitsuba's start-up may have swallowed a Ctrl-C
                 tm: dict[str, float] = {}
                 t_frame = time.perf_counter()
                 frame = render_fn(scene, k, timings=tm) if timed else render_fn(scene, k)

@@ -102,6 +102,7 @@ def test_camera_and_closed_form_scenes_need_no_mitsuba():
 LAYERS: dict[str, int] = {
     "omniflow.conventions": 0,
     "omniflow.parallel": 0,
+    "omniflow.interrupts": 0,
     "omniflow.geometry": 1,
     "omniflow.io": 1,
     "omniflow.paper": 2,

@@ -38,6 +38,9 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from omniflow.io import ownership
+from omniflow.io.dataset import FORMAT_NAME
+
 from .summary import get_path
 
 __all__ = ["main", "make_dataset"]
@@ -51,10 +54,19 @@ LOWER = 0.8
 FRACTIONS = {"outliers", "out1", "out3", "match_rate"}
 
 
+def _a_dataset(folder: Path) -> bool:
+    """A dataset written before markers existed: a dataset.json of the omnisim format."""
+    body = ownership.read_json(folder / "dataset.json")
+    return isinstance(body, dict) and body.get("format") == FORMAT_NAME
+
+
 def make_dataset(spec: dict[str, Any], out: Path, seed: int) -> Path:
     """Make the dataset a ``[scenes.KEY]`` table describes (render or closed form) in a
-    new directory ``out`` (an old one is removed: scene files change)."""
-    shutil.rmtree(out, ignore_errors=True)
+    new directory ``out`` (an old one is removed: scene files change; only a dataset
+    this project wrote, :mod:`omniflow.io.ownership`)."""
+    if ownership.claim(out, prog="validation.calibrate", owned=lambda rel: True,
+                       legacy=_a_dataset):  # fmt: skip
+        shutil.rmtree(out)
     scene = spec["scene"]
     if scene.startswith("synthetic:"):
         from .synthdata import SCENES, write_synthetic_dataset

@@ -2,12 +2,14 @@
 
 Exit status: 0 done (and every threshold met when ``--check`` is given);
 1 a threshold failed, or the machine refused (a full disk: the message names the path);
-2 bad input (the one-line message names the problem).
+2 bad input (the one-line message names the problem); 130 interrupted by Ctrl-C, 143 by
+SIGTERM (one line; nothing written to --out).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import shlex
 import sys
 import time
@@ -15,6 +17,8 @@ import typing
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
+
+from omniflow.interrupts import run_main
 
 __all__ = ["main"]
 
@@ -221,15 +225,39 @@ def _closing_line(summary: dict, pairs: int, seconds: float, report: Path) -> st
             f"{count(pairs, 'frame pair')} in {seconds:.1f} s; report: {report}")  # fmt: skip
 
 
+#: What an interrupted run leaves (the report is renamed into place at the end).
+NOTE = "nothing was written to --out"
+#: What an interrupted ``omnivalidate suite`` leaves.
+SUITE_NOTE = "finished scenes and frames are kept; run the same command again to resume"
+#: What an interrupted ``omnivalidate sweep`` leaves.
+SWEEP_NOTE = "finished renders and reports are kept; run the same command again to resume"
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    if (sys.argv[1:] if argv is None else list(argv))[:1] == ["suite"]:
-        from .suite_cli import main as suite_main  # the subcommand: omnivalidate suite ...
+    """Entry point of ``omnivalidate``: the exit status (module docstring); Ctrl-C or
+    SIGTERM is one line, status 130 / 143 (:mod:`omniflow.interrupts`)."""
+    keep = argv is None  # a console script: keep the handler for the shutdown
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["suite"]:
+        return run_main("omnivalidate suite", lambda: _suite(argv[1:]), note=SUITE_NOTE, keep=keep)
+    if argv[:1] == ["sweep"]:
+        return run_main("omnivalidate sweep", lambda: _sweep(argv[1:]), note=SWEEP_NOTE, keep=keep)
+    return run_main("omnivalidate", lambda: _main(argv), note=NOTE, keep=keep)
 
-        return suite_main(sys.argv[2:] if argv is None else list(argv)[1:])
-    if (sys.argv[1:] if argv is None else list(argv))[:1] == ["sweep"]:
-        from .sweep_cli import main as sweep_main  # omnivalidate sweep SCENE --key ...
 
-        return sweep_main(sys.argv[2:] if argv is None else list(argv)[1:])
+def _suite(argv: list[str]) -> int:
+    from .suite_cli import main as suite_main  # the subcommand: omnivalidate suite ...
+
+    return suite_main(argv)
+
+
+def _sweep(argv: list[str]) -> int:
+    from .sweep_cli import main as sweep_main  # omnivalidate sweep SCENE --key ...
+
+    return sweep_main(argv)
+
+
+def _main(argv: list[str]) -> int:
     args = _parser().parse_args(argv)
     from omniflow.cli.common import MACHINE_ERRNOS
     from omniflow.geometry.rig import RigError
@@ -237,7 +265,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     from . import baselines as bl
     from .external import ExternalOutput
-    from .report import check_out_dir, write_report
+    from .report import check_out_dir, report_lock, write_report
     from .runner import InputError, run_validation
     from .summary import sweep_rows
     from .thresholds import ThresholdError, check_summary, format_checks, load_thresholds
@@ -305,43 +333,43 @@ def main(argv: Sequence[str] | None = None) -> int:
         levels = [[f"{key.strip()}={v}"] for v in values]
 
     start = time.perf_counter()
-    try:
-        check_out_dir(args.out)
-        external = [
-            ExternalOutput(d, args.method_name[i] if i < len(args.method_name) else None)
-            for i, d in enumerate(args.method_output)
-        ]
-        sweep: list[dict] = []
-        results = None
-        for level in levels:
-            res = run_validation(
-                args.dataset,
-                variants=variants,
-                baselines=names,
-                frames=frames,
-                progress=not args.no_progress,
-                external=external,
-                camera=[*args.camera, *level],
-                partial=args.partial,
-            )
-            if level:
-                from omniflow.io.jsonio import jsonable
+    with contextlib.ExitStack() as held:
+        try:
+            held.enter_context(report_lock(args.out))  # one run per --out
+            check_out_dir(args.out)
+            external = [
+                ExternalOutput(d, args.method_name[i] if i < len(args.method_name) else None)
+                for i, d in enumerate(args.method_output)
+            ]
+            sweep: list[dict] = []
+            results = None
+            for level in levels:
+                res = run_validation(
+                    args.dataset,
+                    variants=variants,
+                    baselines=names,
+                    frames=frames,
+                    progress=not args.no_progress,
+                    external=external,
+                    camera=[*args.camera, *level],
+                    partial=args.partial,
+                )
+                if level:
+                    from omniflow.io.jsonio import jsonable
 
-                from .summary import summarize
+                    from .summary import summarize
 
-                key, value = level[0].split("=", 1)
-                sweep += sweep_rows(jsonable(summarize(res)), key, value)
-            results = results or res
-        command = "omnivalidate " + " ".join(
-            shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:])
-        )
-        summary = write_report(results, args.out, command=command, sweep=sweep or None)
-    except (DatasetError, RigError, InputError) as exc:
-        return fail(str(exc).splitlines()[0])
-    except OSError as exc:
-        if exc.errno in MACHINE_ERRNOS:  # a full disk: the machine refused (1), named by --out
-            return fail(f"--out {args.out}: {exc.strerror or exc}; nothing was written", 1)
-        return fail(f"{exc.filename or args.out}: {exc.strerror or exc}")
+                    key, value = level[0].split("=", 1)
+                    sweep += sweep_rows(jsonable(summarize(res)), key, value)
+                results = results or res
+            command = "omnivalidate " + " ".join(shlex.quote(a) for a in argv)
+            summary = write_report(results, args.out, command=command, sweep=sweep or None)
+        except (DatasetError, RigError, InputError) as exc:
+            return fail(str(exc).splitlines()[0])
+        except OSError as exc:
+            if exc.errno in MACHINE_ERRNOS:  # a full disk: the machine refused (1), named by --out
+                return fail(f"--out {args.out}: {exc.strerror or exc}; nothing was written", 1)
+            return fail(f"{exc.filename or args.out}: {exc.strerror or exc}")
     print("\n".join(summary.get("headline", [])))
     print(_closing_line(summary, len(results.dataset["pairs"]), time.perf_counter() - start,
                         Path(args.out) / "report.html"))  # fmt: skip

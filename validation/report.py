@@ -9,8 +9,12 @@ Layout of ``REPORT_DIR``::
 
 The set is written into a temporary directory beside ``REPORT_DIR`` and renamed
 into place at the end, so a reader sees the old report or the new one, never a
-mix; an existing ``REPORT_DIR`` is replaced only if it holds nothing but a
-previous report's files (:func:`check_out_dir`).
+mix; an existing ``REPORT_DIR`` is replaced only if it is a previous report (its
+marker file, or a ``summary.json`` of this format written before markers existed)
+holding nothing but a report's files (:func:`check_out_dir`,
+:mod:`omniflow.io.ownership`). One run per ``REPORT_DIR`` (:func:`report_lock`): a
+second is refused with one line; the temporary directories of a dead run are
+removed by the next.
 """
 
 from __future__ import annotations
@@ -22,13 +26,15 @@ import math
 import os
 import shutil
 import tempfile
-from collections.abc import Mapping, Sequence
-from pathlib import Path
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
+from pathlib import Path, PurePosixPath
 from typing import Any
 
 import numpy as np
 
-from omniflow.io.imageio import atomic_write_text
+from omniflow.io import ownership
+from omniflow.io.imageio import OutputError, atomic_write_text
 from omniflow.io.jsonio import jsonable
 
 from .report_doc import Doc, fmt
@@ -46,9 +52,11 @@ from .report_tables import (
     speed_table,
 )
 from .results import Results
-from .summary import summarize
+from .summary import FORMAT, summarize
 
-__all__ = ["OUTPUTS", "check_out_dir", "write_report"]
+__all__ = ["OUTPUTS", "check_out_dir", "report_lock", "write_report"]
+
+PROG = "omnivalidate"
 
 
 #: What write_report puts in REPORT_DIR (an existing directory holding only these is replaced).
@@ -198,24 +206,39 @@ def _csv_cell(v: Any) -> Any:
     return v
 
 
+def _owned(rel: PurePosixPath) -> bool:
+    """A name write_report writes (``figures/`` holds PNGs only)."""
+    if len(rel.parts) == 1:
+        return rel.name in OUTPUTS or rel.name == ownership.MARKER
+    return (
+        len(rel.parts) == 2
+        and rel.parts[0] == "figures"
+        and (rel.name.endswith(".png") or rel.name == ownership.MARKER)
+    )
+
+
+def _legacy(folder: Path) -> bool:
+    """A report written before markers existed: a summary.json of this format."""
+    body = ownership.read_json(folder / "summary.json")
+    return isinstance(body, dict) and body.get("format") == FORMAT
+
+
 def check_out_dir(out_dir: str | Path) -> Path:
     """Raise InputError (one line) unless ``out_dir`` can receive a report.
 
-    It must be a new path, an empty directory, or a previous report (only
-    :data:`OUTPUTS`) in a directory where a sibling can be created.
+    It must be a new path, an empty directory, or a previous report (its marker or
+    a summary.json of :data:`~validation.summary.FORMAT`, and only :data:`OUTPUTS`,
+    ``figures/*.png`` and markers) in a directory where a sibling can be created.
     """
     from .inputs import InputError
 
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise InputError(f"--out {out}: is a file; expected a directory (new or a report)")
-    if out.is_dir():
-        other = sorted(p.name for p in out.iterdir() if p.name not in OUTPUTS)
-        if other:
-            raise InputError(
-                f"--out {out}: holds files omnivalidate did not write ({', '.join(other[:3])}"
-                f"{' ...' if len(other) > 3 else ''}); choose a new or empty directory"
-            )
+    try:
+        ownership.claim(out, prog=PROG, owned=_owned, legacy=_legacy)
+    except OutputError as exc:
+        raise InputError(f"--out {exc}") from None
     parent = out.absolute().parent
     try:
         parent.mkdir(parents=True, exist_ok=True)
@@ -226,10 +249,42 @@ def check_out_dir(out_dir: str | Path) -> Path:
     return out
 
 
+@contextmanager
+def report_lock(out_dir: str | Path) -> Iterator[None]:
+    """Hold the lock of report ``out_dir`` (``.NAME.lock`` beside it, removed after).
+
+    Raises InputError (one line) when another process holds it; removes the
+    temporary directories of dead runs (:func:`omniflow.io.ownership.remove_dead_temporaries`).
+    """
+    from .inputs import InputError
+
+    out = Path(out_dir)
+    parent = out.absolute().parent
+    busy = (
+        f"--out {out}: another omnivalidate process (pid {{pid}}) is writing this report; "
+        "wait for it to finish or choose another --out"
+    )
+    try:
+        key = ownership.lock_beside(out, busy)
+    except ownership.LockedError as exc:
+        raise InputError(str(exc)) from None
+    except OutputError as exc:  # an ancestor of --out is a file
+        raise InputError(f"--out {out}: cannot write there ({exc})") from None
+    except OSError as exc:
+        raise InputError(f"--out {out}: cannot write there ({exc.strerror or exc})") from exc
+    try:
+        for prefix in (f".{out.name}.tmp-", f".{out.name}.old-"):
+            ownership.remove_dead_temporaries(parent, prefix)
+        yield
+    finally:
+        ownership.unlock(key)
+
+
 def _install(tmp: Path, out: Path) -> None:
     """Rename the finished directory ``tmp`` onto ``out`` (replacing a previous report)."""
     if out.is_dir():
         old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.absolute().parent))
+        ownership.write_marker(old, PROG, pid=True)
         os.replace(out, old / "report")
         os.replace(tmp, out)
         shutil.rmtree(old, ignore_errors=True)
@@ -249,9 +304,16 @@ def write_report(
     The files are written into a temporary directory beside ``out_dir`` and renamed
     into place together (see :func:`check_out_dir` for what ``out_dir`` may be).
     """
-    final = check_out_dir(out_dir)
+    with report_lock(out_dir):
+        return _write_report(results, check_out_dir(out_dir), command, sweep)
+
+
+def _write_report(
+    results: Results, final: Path, command: str | None, sweep: Sequence[Mapping[str, Any]] | None
+) -> dict:
     out = Path(tempfile.mkdtemp(prefix=f".{final.name}.tmp-", dir=final.absolute().parent))
     try:
+        ownership.write_marker(out, PROG, pid=True)
         summary = jsonable(summarize(results))
         if sweep:
             summary["camera_sweep"] = jsonable(sweep)
@@ -259,6 +321,8 @@ def write_report(
             out / "summary.json", json.dumps(summary, indent=1, allow_nan=False) + "\n"
         )
         atomic_write_text(out / "frames.csv", _csv_text(results.rows))
+        (out / "figures").mkdir()
+        ownership.write_marker(out / "figures", PROG)
         figures = draw_figures(results, summary, out / "figures")
         if sweep:
             atomic_write_text(out / "camera_sweep.csv", _csv_text(sweep))

@@ -148,10 +148,6 @@ def main(argv: Sequence[str] | None = None) -> int:
             kept = "what is finished is kept: free some space, then run the same command again"
             return fail(f"--out {args.out}: {exc.strerror or exc}; {kept}", 1)
         return fail(f"{exc.filename or args.out}: {exc.strerror or exc}")
-    except KeyboardInterrupt:
-        print("omnivalidate suite: interrupted; finished scenes and frames are kept, run "
-              "the same command again to resume", file=sys.stderr)  # fmt: skip
-        return 130
     top = board["methods"][0] if board["methods"] else None
     best = f"; first: {top['method']} (1px {100 * top['1px']:.1f} %)" if top else ""
     print(f"omnivalidate suite: {len(board['scenes'])} scenes, {len(board['methods'])} methods "

@@ -2,7 +2,8 @@
 scene key, one render per value (validation.sweep).
 
 Exit status: 0 done; 2 bad input (one line naming the option, file or key); 130
-interrupted (what is finished is kept: run the same command again to resume).
+interrupted by Ctrl-C, 143 by SIGTERM (one line, validation.cli's handler; what is
+finished is kept: run the same command again to resume).
 """
 
 from __future__ import annotations
@@ -96,10 +97,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         return fail(str(exc).splitlines()[0])
     except OSError as exc:
         return fail(f"{exc.filename or args.out}: {exc.strerror or exc}")
-    except KeyboardInterrupt:
-        print("omnivalidate sweep: interrupted; finished renders and reports are kept, run "
-              "the same command again to resume", file=sys.stderr)  # fmt: skip
-        return 130
     print(f"omnivalidate sweep: {args.key} at {len(values)} values, "
           f"{len(sweep['methods']['omniflow']) + len(sweep['methods']['baselines'])} methods in "
           f"{time.perf_counter() - start:.1f} s: {Path(args.out) / 'sweep.md'}")  # fmt: skip

@@ -7,9 +7,14 @@ from __future__ import annotations
 
 import sys
 
-from omniflow.cli import pair
+from omniflow.interrupts import run_main
 
-__all__ = ["HELP", "main"]
+__all__ = ["HELP", "main", "stream_main"]
+
+#: What an interrupted ``omniflow pair`` leaves (the outputs move into --out as a set).
+PAIR_NOTE = "nothing was written to --out"
+#: What an interrupted ``omniflow stream`` leaves.
+STREAM_NOTE = "every file in --out is whole; run the same command again to resume"
 
 #: ``omniflow --help``.
 HELP = """\
@@ -27,18 +32,39 @@ command) is `omniflow pair`.
 """
 
 
+def _pair(argv: list[str], **kw: object) -> int:
+    # imported here, not above: the signal handler is installed before numpy and the rest
+    from omniflow.cli import pair
+
+    return pair.main(argv, **kw)  # type: ignore[arg-type]
+
+
+def _stream(argv: list[str], **kw: object) -> int:
+    # imported here, not above: `python -m omniflow.cli.stream` (the omniflow-stream
+    # script's module) would otherwise find it imported before it runs (runpy warns)
+    from omniflow.cli import stream
+
+    return stream.main(argv, **kw)  # type: ignore[arg-type]
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of ``omniflow``; returns the exit status."""
+    """Entry point of ``omniflow``; returns the exit status (130 / 143 if interrupted)."""
+    keep = argv is None  # a console script: keep the handler for the shutdown
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv[:1] == ["pair"]:
-        return pair.main(argv[1:], prog="omniflow pair", short=True)
+        return run_main("omniflow pair", lambda: _pair(argv[1:], prog="omniflow pair",
+                        short=True), note=PAIR_NOTE, keep=keep)  # fmt: skip
     if argv[:1] == ["stream"]:
-        # imported here, not above: `python -m omniflow.cli.stream` (the omniflow-stream
-        # script's module) would otherwise find it imported before it runs (runpy warns)
-        from omniflow.cli import stream
-
-        return stream.main(argv[1:], prog="omniflow stream", short=True)
+        return run_main("omniflow stream", lambda: _stream(argv[1:], prog="omniflow stream",
+                        short=True), note=STREAM_NOTE, keep=keep)  # fmt: skip
     if argv in (["-h"], ["--help"]):
         print(HELP, end="")
         return 0
-    return pair.main(argv)
+    return run_main("omniflow", lambda: _pair(argv), note=PAIR_NOTE, keep=keep)
+
+
+def stream_main(argv: list[str] | None = None) -> int:
+    """Entry point of ``omniflow-stream``."""
+    keep = argv is None  # a console script: keep the handler for the shutdown
+    argv = list(sys.argv[1:] if argv is None else argv)
+    return run_main("omniflow-stream", lambda: _stream(argv), note=STREAM_NOTE, keep=keep)

@@ -6,7 +6,8 @@ warning line says so), 2 on bad input (a missing or unreadable file, images of
 different sizes, a rig file with a missing or impossible field, NaN pixels, an
 option out of range, an ``--out`` that is a file), 1 when the machine refuses
 (permission denied, read-only or full file system, out of memory) or on an
-internal error. Every failure is one line on standard error naming the path,
+internal error; 130 / 143 interrupted by Ctrl-C / SIGTERM (one line,
+:mod:`omniflow.interrupts`). Every failure is one line on standard error naming the path,
 option or value and what was expected; ``--debug`` shows the traceback
 instead. The outputs are staged and moved into ``--out`` as a set
 (:class:`omniflow.io.imageio.OutputSet`), so a failed run changes nothing there.
@@ -52,6 +53,7 @@ from omniflow.cli.regions import (
 )
 from omniflow.config import PUBLIC_FIELDS
 from omniflow.geometry.rig import Rig, Unit, load_rig, unwarp
+from omniflow.io import ownership
 from omniflow.io.imageio import (
     OutputSet,
     atomic_write_text,
@@ -580,7 +582,9 @@ def run(args: argparse.Namespace, config_fields: list[str], argv: list[str]) -> 
         and not (name == "regions.csv" and not with_regions)
         and not (name == "monocular.csv" and config.monocular_gap is None)
     ]
-    with OutputSet(out, owned=OUTPUTS, manifest="flow.json") as stage:
+    ownership.claim_names(out, prog=PROG, owned=OUTPUTS.__contains__, legacy=_legacy_out)
+    with OutputSet(out, owned=(*OUTPUTS, ownership.MARKER), manifest="flow.json") as stage:
+        ownership.write_marker(stage, PROG)
         t1 = time.perf_counter()
         try:
             result = estimate(f1, f2, rig, config, t=t)
@@ -650,6 +654,21 @@ def run(args: argparse.Namespace, config_fields: list[str], argv: list[str]) -> 
     return summary
 
 
+def _legacy_out(folder: Path) -> bool:
+    """An --out written before markers existed: a flow.json of an omniflow command."""
+    body = ownership.read_json(folder / "flow.json")
+    command = body.get("command") if isinstance(body, dict) else None
+    return isinstance(command, list) and bool(command) and str(command[0]).startswith("omniflow")
+
+
+def _busy(out: str) -> str:
+    """The one line when another process writes ``out`` (pid filled in by the lock)."""
+    return (
+        f"{out}: another omniflow process (pid {{pid}}) is writing this folder; wait for it "
+        "to finish or choose another --out"
+    )
+
+
 def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
     """warnings.showwarning for the command: ``omniflow: warning: ...`` on one line."""
     print(f"{PROG}: warning: {one_line(message)}", file=sys.stderr if file is None else file)
@@ -665,10 +684,8 @@ def main(argv: list[str] | None = None, *, prog: str = PROG, short: bool = False
         warnings.simplefilter("default")  # shown, once per place, as one line each
         warnings.showwarning = _one_line_warning
         try:
-            summary = run(args, parser._config_fields, argv)  # type: ignore[attr-defined]
-        except KeyboardInterrupt:
-            print(f"{PROG}: interrupted; nothing was written", file=sys.stderr)
-            return 130
+            with ownership.held_lock(args.out, _busy(args.out)):  # one run per --out
+                summary = run(args, parser._config_fields, argv)  # type: ignore[attr-defined]
         except Exception as exc:  # every failure becomes one line (or, with --debug, a trace)
             if args.debug:
                 traceback.print_exc()
@@ -689,4 +706,7 @@ def main(argv: list[str] | None = None, *, prog: str = PROG, short: bool = False
 
 
 if __name__ == "__main__":  # python -m omniflow.cli.pair
-    sys.exit(main())
+    from omniflow.cli import PAIR_NOTE
+    from omniflow.interrupts import run_main
+
+    sys.exit(run_main(PROG, main, note=PAIR_NOTE, keep=True))

@@ -9,7 +9,8 @@ keeps grows with the length of the sequence. Every file is written under a tempo
 renamed, so an interrupted run leaves only whole files; run the same command
 again and it resumes after the last pair written (``stream.json`` must hold
 the same input, rig and options, else exit 2). Exit status as ``omniflow``:
-0 success, 2 bad input, 1 the machine refused or an internal error.
+0 success, 2 bad input, 1 the machine refused or an internal error, 130 / 143
+interrupted by Ctrl-C / SIGTERM (one line, :mod:`omniflow.interrupts`).
 """
 
 from __future__ import annotations
@@ -43,6 +44,7 @@ from omniflow.cli.common import (
 )
 from omniflow.config import PUBLIC_FIELDS
 from omniflow.geometry.rig import Rig, load_rig
+from omniflow.io import ownership
 from omniflow.io.imageio import atomic_write_text, read_image, to_grey
 from omniflow.io.jsonio import json_text, jsonable
 
@@ -216,6 +218,21 @@ def pair_name(k0: int, k1: int) -> str:
 # -- the run --------------------------------------------------------------------------------
 
 
+#: The names the command writes in --out (with the marker).
+_OWNED_RE = re.compile(rf"(flow|monocular)_\d{{6}}_\d{{6}}\.csv|{re.escape(MANIFEST)}")
+
+
+def _owned(name: str) -> bool:
+    return _OWNED_RE.fullmatch(name) is not None
+
+
+def _legacy_out(folder: Path) -> bool:
+    """An --out written before markers existed: a stream.json of an omniflow command."""
+    body = ownership.read_json(folder / MANIFEST)
+    command = body.get("command") if isinstance(body, dict) else None
+    return isinstance(command, list) and bool(command) and str(command[0]).startswith("omniflow")
+
+
 def _check_resume(out: Path, header: dict) -> None:
     """Refuse an --out written by the same command with another input, rig or options."""
     manifest = out / MANIFEST
@@ -261,8 +278,11 @@ def run(args: argparse.Namespace, config_fields: list[str], argv: list[str]) -> 
         "config": jsonable(config),
         "columns": column_units(),
     }
+    ownership.claim_names(out, prog=PROG, owned=_owned, legacy=_legacy_out)
     _check_resume(out, header)
     out.mkdir(parents=True, exist_ok=True)
+    if not ownership.has_marker(out):
+        ownership.write_marker(out, PROG)
     # this run's figures: bounded, so nothing grows with the length of the sequence
     recent_ms: collections.deque = collections.deque(maxlen=1000)
     # the first pair's time apart: it loads the compiled kernels (about 10x a warm pair)
@@ -352,11 +372,10 @@ def main(argv: list[str] | None = None, *, prog: str = PROG, short: bool = False
         warnings.simplefilter("default")
         warnings.showwarning = _one_line_warning
         try:
-            summary = run(args, parser._config_fields, argv)  # type: ignore[attr-defined]
-        except KeyboardInterrupt:
-            print(f"{PROG}: interrupted; every file in --out is whole, rerun to resume",
-                  file=sys.stderr)  # fmt: skip
-            return 130
+            busy = (f"{args.out}: another {PROG} process (pid {{pid}}) is writing this folder; "
+                    "wait for it to finish or choose another --out")  # fmt: skip
+            with ownership.held_lock(args.out, busy):  # one run per --out
+                summary = run(args, parser._config_fields, argv)  # type: ignore[attr-defined]
         except Exception as exc:  # every failure becomes one line (or, with --debug, a trace)
             if args.debug:
                 traceback.print_exc()
@@ -373,4 +392,7 @@ def main(argv: list[str] | None = None, *, prog: str = PROG, short: bool = False
 
 
 if __name__ == "__main__":  # python -m omniflow.cli.stream
-    sys.exit(main())
+    from omniflow.cli import STREAM_NOTE
+    from omniflow.interrupts import run_main
+
+    sys.exit(run_main(PROG, main, note=STREAM_NOTE, keep=True))

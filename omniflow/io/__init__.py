@@ -4,4 +4,5 @@
 - :mod:`omniflow.io.jsonio` the project's one JSON rule
 - :mod:`omniflow.io.dataset` the dataset contract and its reader
 - :mod:`omniflow.io.draw` flow colour coding and arrows
+- :mod:`omniflow.io.ownership` what a command may delete (markers) and its output lock
 """

@@ -26,6 +26,7 @@ one warning line, empty outputs with every column, moved into place as a set.
 from __future__ import annotations
 
 import dataclasses
+import fcntl
 import hashlib
 import json
 import math
@@ -44,13 +45,14 @@ import pytest
 
 from omniflow.geometry.rig import Rig
 from omniflow.io.imageio import read_exr_channels, write_exr, write_png
+from omniflow.io.ownership import MARKER
 from omnisim.synthetic import Motion, SyntheticScene
 
 ROOT = Path(__file__).resolve().parents[2]
 SIZE = 96
 OLD = {  # an earlier run's outputs, present in --out before every case
     "flow.csv": b"# old run\nx,y\n1,2\n",
-    "flow.json": b'{"old": true}\n',
+    "flow.json": b'{"command": ["omniflow", "an", "earlier", "run"]}\n',  # ours, no marker
     "flow_arrows.png": b"old picture bytes",
 }
 
@@ -700,7 +702,7 @@ def test_zero_matches_exit_0_with_empty_outputs(base, tmp_path, kind):
     assert meta["points"] == 0 and meta["median_flow_px"] is None
     assert "error" in meta["odometry"]
     # the new set replaced the old one; the user's file stays; no staging folder is left
-    expected = [*OLD, "flow_color.png", "unwarp_cam1.png", "notes.txt"]
+    expected = [*OLD, "flow_color.png", "unwarp_cam1.png", "notes.txt", MARKER]
     assert sorted(p.name for p in out.iterdir()) == sorted(expected)
     assert (out / "flow_arrows.png").read_bytes() != OLD["flow_arrows.png"]
 
@@ -731,7 +733,7 @@ def test_success_replaces_the_old_set_and_drops_stale_pictures(base, tmp_path):
     proc = run_omniflow([*frames(base), "--rig", base["dir"] / "rig.toml", "--out", out,
                          "--no-pictures"])  # fmt: skip
     assert proc.returncode == 0 and proc.stderr == "", proc.stderr
-    assert sorted(p.name for p in out.iterdir()) == ["flow.csv", "flow.json", "mine.txt"]
+    assert sorted(p.name for p in out.iterdir()) == [MARKER, "flow.csv", "flow.json", "mine.txt"]
     meta = json.loads((out / "flow.json").read_text())
     assert meta["outputs"] == ["flow.csv", "flow.json"] and meta["points"] > 50
     # a new --out folder appears whole (one rename of the staging folder)
@@ -739,7 +741,7 @@ def test_success_replaces_the_old_set_and_drops_stale_pictures(base, tmp_path):
     proc = run_omniflow([*frames(base), "--rig", base["dir"] / "rig.toml", "--out", fresh])
     assert proc.returncode == 0, proc.stderr
     assert sorted(p.name for p in fresh.iterdir()) == sorted(
-        ["flow.csv", "flow.json", "flow_arrows.png", "flow_color.png", "unwarp_cam1.png"]
+        [MARKER, "flow.csv", "flow.json", "flow_arrows.png", "flow_color.png", "unwarp_cam1.png"]
     )
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
     mask = os.umask(0)
@@ -788,3 +790,60 @@ def test_orphaned_staging_folders_are_removed(base, tmp_path):
     assert proc.returncode == 0, proc.stderr
     assert not orphan.exists() and live.is_dir()
     assert math.isfinite(json.loads((out / "flow.json").read_text())["points"])
+
+
+# -- never replace what omniflow did not write; one run per --out (issue 25) -----------------
+
+
+@pytest.mark.parametrize(
+    "name, data",
+    [("flow.csv", b"x,y\n1,2\n"), ("flow.json", b'{"my": "notes"}\n'), ("flow_color.png", b"art")],
+)
+def test_a_users_file_with_an_output_name_is_refused(base, tmp_path, name, data):
+    # --out has no marker and no flow.json of an omniflow run: the file is the user's
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / name).write_bytes(data)
+    (tmp_path / "canary.txt").write_text("beside --out")
+    before = snapshot(tmp_path)
+    proc = run_omniflow([*frames(base), "--rig", base["dir"] / "rig.toml", "--out", out])
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1, proc.stderr
+    assert f"{out / name}: not written by omniflow" in lines[0], lines[0]
+    assert snapshot(tmp_path) == before
+
+
+def test_a_second_run_into_one_out_is_refused(base, tmp_path):
+    out = tmp_path / "out"
+    _old_outputs(out)
+    before = snapshot(tmp_path)
+    # "another run" holds the lock beside --out, as a running omniflow does
+    fd = os.open(tmp_path / ".out.lock", os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        os.write(fd, b"4242\n")
+        proc = run_omniflow([*frames(base), "--rig", base["dir"] / "rig.toml", "--out", out])
+    finally:
+        os.close(fd)
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1, proc.stderr
+    assert f"{out}: another omniflow process (pid 4242) is writing this folder" in lines[0]
+    assert {k: v for k, v in snapshot(tmp_path).items() if not k.endswith(".out.lock")} == before
+
+
+def test_two_runs_into_one_new_out_the_second_is_refused(base, tmp_path):
+    # issue 25: without the lock, one failed with "Directory not empty"
+    out = tmp_path / "out"
+    args = [omniflow_command(), *map(str, frames(base)), "--rig", str(base["dir"] / "rig.toml"),
+            "--out", str(out)]  # fmt: skip
+    procs = [subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                              env=_env()) for _ in range(2)]  # fmt: skip
+    results = [(p.wait(timeout=300), p.communicate()[1]) for p in procs]
+    assert sorted(status for status, _ in results) == [0, 2], results  # they overlap: seconds each
+    for status, err in results:
+        if status == 2:
+            assert len(err.strip().splitlines()) == 1 and "another omniflow process" in err
+        else:
+            assert err == "", err
+    assert json.loads((out / "flow.json").read_text())["points"] > 50
+    assert [p.name for p in tmp_path.iterdir()] == ["out"]  # no staging folder, no lock

@@ -28,6 +28,7 @@ from scipy.ndimage import map_coordinates
 from omniflow.config import DENSE
 from omniflow.geometry.rig import Rig
 from omniflow.io.imageio import read_image, to_grey, to_uint8, write_exr, write_png
+from omniflow.io.ownership import MARKER
 from omnisim.synthetic import Motion, SyntheticScene, rim_coverage
 from tests.omniflow.test_calibration import surround_texture
 
@@ -188,6 +189,7 @@ def test_outputs_sidecar_and_pictures(case, tmp_path):
     assert proc.returncode == 0, proc.stderr
     names = sorted(p.name for p in out.iterdir())
     assert names == [
+        MARKER,
         "flow.csv",
         "flow.json",
         "flow_arrows.png",
@@ -227,7 +229,7 @@ def test_dataset_mode(case, tmp_path):
     cols = read_csv(out / "flow.csv")
     meta = json.loads((out / "flow.json").read_text())
     assert meta["inputs"]["frame"] == 1 and meta["inputs"]["frames_read"] == [1, 2]
-    assert sorted(p.name for p in out.iterdir()) == ["flow.csv", "flow.json"]
+    assert sorted(p.name for p in out.iterdir()) == [MARKER, "flow.csv", "flow.json"]
     # The room is rotationally symmetric about the rig, so frame 1 -> 2 has the same truth.
     check_against_truth(case, cols, 0.12)
     # dct3d reads three frames around K.

@@ -9,6 +9,7 @@ import pytest
 
 from omniflow.cli.stream import main
 from omniflow.io.imageio import read_image, to_grey, write_png
+from omniflow.io.ownership import MARKER
 from omniflow.pipeline import OmniFlowConfig, estimate
 from omnisim.synthetic import Motion
 from tests.helpers.scenes import paper_rig, wall_scene
@@ -56,10 +57,11 @@ def test_one_csv_per_pair_equal_to_estimate(folder, tmp_path, capsys, extra):
     # others (mutation: the first in the median again, its own figure gone: caught)
     assert "ms per pair after the first (the first " in said
     names = sorted(p.name for p in out.iterdir())
-    assert names == [f"flow_00000{k}_00000{k + 1}.csv" for k in range(3)] + ["stream.json"]
+    pairs = [f"flow_00000{k}_00000{k + 1}.csv" for k in range(3)]
+    assert names == [MARKER, *pairs, "stream.json"]
     meta = json.loads((out / "stream.json").read_text())
     assert meta["complete"] and meta["pairs_in_out"] == 3 and meta["this_run"]["pairs"] == 3
-    assert meta["this_run"]["points"] == sum(len(read_csv(out / n)["x"]) for n in names[:3])
+    assert meta["this_run"]["points"] == sum(len(read_csv(out / n)["x"]) for n in pairs)
     f1, f2 = _frames(folder)
     for k in range(3):
         cols = read_csv(out / f"flow_{k:06d}_{k + 1:06d}.csv")
@@ -81,7 +83,8 @@ def test_monocular_gap_writes_one_monocular_csv_per_pair(folder, tmp_path):
     assert _stream(folder, out, "--monocular-gap", "4") == 0
     names = sorted(p.name for p in out.iterdir())
     assert names == (
-        [f"flow_00000{k}_00000{k + 1}.csv" for k in range(3)]
+        [MARKER]
+        + [f"flow_00000{k}_00000{k + 1}.csv" for k in range(3)]
         + [f"monocular_00000{k}_00000{k + 1}.csv" for k in range(3)]
         + ["stream.json"]
     )
@@ -129,7 +132,8 @@ def test_a_bad_frame_stops_with_whole_files_only(folder, tmp_path, capsys):
     err = capsys.readouterr().err
     assert status == 2 and err.count("\n") == 1 and "cam2_2.png" in err
     # the first pair was written whole, nothing half-written or temporary is left
-    assert sorted(p.name for p in out.iterdir()) == ["flow_000000_000001.csv", "stream.json"]
+    names = sorted(p.name for p in out.iterdir())
+    assert names == [MARKER, "flow_000000_000001.csv", "stream.json"]
     assert not json.loads((out / "stream.json").read_text())["complete"]
     assert len(read_csv(out / "flow_000000_000001.csv")["x"]) > 100
 
@@ -184,3 +188,15 @@ def test_module_entry_point_runs():
     proc = subprocess.run([sys.executable, "-m", "omniflow.cli.stream", "--help"],
                           capture_output=True, text=True, timeout=120, check=False)  # fmt: skip
     assert proc.returncode == 0 and "usage: omniflow-stream" in proc.stdout
+
+
+def test_a_users_file_with_an_output_name_is_refused(folder, tmp_path, capsys):
+    # issue 25: a flow_K0_K1.csv in an --out with no marker is the user's, not a pair done
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "flow_000000_000001.csv").write_text("my,own\n1,2\n")
+    assert _stream(folder, out) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"{out / 'flow_000000_000001.csv'}: not written by" in err
+    assert sorted(p.name for p in out.iterdir()) == ["flow_000000_000001.csv"]
+    assert (out / "flow_000000_000001.csv").read_text() == "my,own\n1,2\n"

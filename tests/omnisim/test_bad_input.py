@@ -217,6 +217,33 @@ def _out_foreign(d):
     return render_args(_scene(d), d / "out")
 
 
+# Never delete what the command did not write (issue 25): canaries where it writes.
+PHOTO = b"\xff\xd8\xff\xe0 a user's photo"
+
+
+def _out_frames_photo(d):
+    """A folder named frames/000000 holding a user's file, no dataset.json."""
+    (d / "out" / "frames" / "000000").mkdir(parents=True)
+    (d / "out" / "frames" / "000000" / "my_photo.jpg").write_bytes(PHOTO)
+    return render_args(_scene(d), d / "out")
+
+
+def _out_dotfile(d):
+    (d / "out").mkdir()
+    (d / "out" / ".my_settings").write_text("precious\n")
+    return render_args(_scene(d), d / "out")
+
+
+def _incomplete_frame_photo(d):
+    """A dataset of ours whose frame 1 the render would redo holds a user's file."""
+    scene = _scene(d)
+    _render(d, scene, d / "data")
+    frame = d / "data" / "frames" / "000001"
+    (frame / "cam1.exr").unlink()
+    (frame / "my_photo.jpg").write_bytes(PHOTO)
+    return render_args(scene, d / "data")
+
+
 def _set(*sets: str):
     def setup(d):
         args = render_args(_scene(d), d / "out")
@@ -465,6 +492,21 @@ CASES = [
     ),
     Case("--out in /sys", _out_in_sys, 2, ["/sys/omnisim_bad_input_test"], fresh_out=None),
     Case("--out foreign dir", _out_foreign, 2, ["{d}/out", "not empty"], fresh_out=None),
+    Case(
+        "--out holds frames/000000/my_photo.jpg",
+        _out_frames_photo,
+        2,
+        ["{d}/out/frames/000000", "no dataset.json"],
+        fresh_out=None,
+    ),
+    Case("--out holds a dotfile", _out_dotfile, 2, ["{d}/out/.my_settings"], fresh_out=None),
+    Case(
+        "incomplete frame holds my_photo.jpg",
+        _incomplete_frame_photo,
+        2,
+        ["{d}/data/frames/000001/my_photo.jpg", "not written by omnisim render"],
+        fresh_out=None,
+    ),
     Case(
         "changed texture on resume",
         _changed_asset,

@@ -202,7 +202,7 @@ def test_killed_render_resumes_byte_identical(tmp_path, sig):
     _wait_for(out / "frames" / "000001", proc)
     proc.send_signal(sig)
     _, err = proc.communicate(timeout=60)
-    assert proc.returncode == (130 if sig == signal.SIGTERM else -signal.SIGKILL), err
+    assert proc.returncode == (143 if sig == signal.SIGTERM else -signal.SIGKILL), err
     names = final_frames_complete(out)
     done = [n for n in names if not n.startswith(".")]
     assert 2 <= len(done) < 6

@@ -37,7 +37,7 @@ def _render(out: Path) -> None:
 def _files(d: Path) -> dict[str, bytes]:
     out = {}
     for p in sorted(d.rglob("*")):
-        if p.is_file() and p.name != ".omnisim.lock":
+        if p.is_file() and p.name not in (".omnisim.lock", ".omniflow-testbed.json"):
             out[str(p.relative_to(d))] = p.read_bytes()
     return out
 
