@@ -49,6 +49,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from omniflow.geometry.rig import Rig, RigError, rig_from_dict
+from omniflow.input_files import InputFileError, parse_text, read_input
 from omnisim import geometry, rig_parts, scene_placement, textures
 from omnisim.camera import CameraError, CameraModel
 from omnisim.motion import (
@@ -390,9 +391,9 @@ def load_scene(path: str | Path, overrides: Mapping[str, Any] | None = None) -> 
         raise SceneError(f"{path}: scene file not found")
     source = _read_text(path)
     try:
-        raw = tomllib.loads(source)
-    except tomllib.TOMLDecodeError as exc:
-        raise SceneError(f"{path}: not valid TOML: {exc}") from exc
+        raw = parse_text(source, path, "toml")
+    except InputFileError as exc:
+        raise SceneError(str(exc)) from None
     overrides = dict(overrides or {})
     data = apply_overrides(raw, overrides, str(path))
     # Error keys write list items as objects[1]; overrides as objects.1.
@@ -403,11 +404,13 @@ def load_scene(path: str | Path, overrides: Mapping[str, Any] | None = None) -> 
 def _read_text(path: Path) -> str:
     """The scene file's text; SceneError for a binary or unreadable file."""
     try:
-        return path.read_text(encoding="utf-8")
-    except UnicodeDecodeError as exc:
-        raise SceneError(
-            f"{path}: not a text file (byte {exc.start} is not UTF-8); expected a TOML scene"
-        ) from None
+        return read_input(path, "TOML scene")
+    except InputFileError as exc:
+        if "not UTF-8" in str(exc):  # the scene's own wording, which its tests quote
+            byte = str(exc).split("(byte ", 1)[1].split(")", 1)[0]
+            raise SceneError(f"{path}: not a text file (byte {byte} is not UTF-8); expected a "
+                             "TOML scene") from None  # fmt: skip
+        raise SceneError(str(exc)) from None
     except OSError as exc:
         raise SceneError(f"{path}: cannot read: {exc.strerror or exc}") from None
 

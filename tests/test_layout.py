@@ -103,6 +103,7 @@ LAYERS: dict[str, int] = {
     "omniflow.conventions": 0,
     "omniflow.parallel": 0,
     "omniflow.interrupts": 0,
+    "omniflow.input_files": 0,
     "omniflow.geometry": 1,
     "omniflow.io": 1,
     "omniflow.paper": 2,

@@ -28,10 +28,11 @@ from __future__ import annotations
 
 import importlib
 import re
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+from omniflow.input_files import InputFileError, parse_text, read_input
 
 __all__ = ["SPLITS", "Suite", "SuiteError", "SuiteScene", "load_suite", "scene_text"]
 
@@ -136,11 +137,11 @@ def load_suite(path: str | Path) -> Suite:
     """Read and check a suite file; raises :class:`SuiteError` (one line) if it is wrong."""
     path = Path(path)
     try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
+        data = parse_text(read_input(path, "TOML suite file"), path, "toml")
     except OSError as exc:
         raise SuiteError(f"{path}: cannot read: {exc.strerror or exc}") from exc
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise SuiteError(f"{path}: not valid TOML: {exc}") from exc
+    except InputFileError as exc:
+        raise SuiteError(str(exc)) from None
     _unknown(str(path), data, {"suite", "scenes"})
     head = data.get("suite")
     if not isinstance(head, dict):

@@ -22,12 +22,12 @@ import argparse
 import math
 import os
 import sys
-import tomllib
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from omniflow.input_files import InputFileError, parse_text, read_input
 from omniflow.io.imageio import atomic_write_text
 
 __all__ = ["Bound", "BoundsError", "check_bounds", "derive_bounds", "load_bounds", "main"]
@@ -131,11 +131,11 @@ def load_bounds(path: str | os.PathLike[str]) -> list[Bound]:
     """Read a bounds file; BoundsError (one line) for anything that is not a bound."""
     path = Path(path)
     try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError) as exc:
+        data = parse_text(read_input(path, "TOML bounds file"), path, "toml")
+    except OSError as exc:
         raise BoundsError(f"{path}: cannot read: {exc}") from exc
-    except tomllib.TOMLDecodeError as exc:
-        raise BoundsError(f"{path}: not TOML: {exc}") from exc
+    except InputFileError as exc:
+        raise BoundsError(str(exc)) from None
     entries = data.get("bound")
     if not isinstance(entries, list) or not entries:
         raise BoundsError(f"{path}: expected [[bound]] entries")

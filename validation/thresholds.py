@@ -29,11 +29,12 @@ docs/validation.md).
 from __future__ import annotations
 
 import math
-import tomllib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+from omniflow.input_files import InputFileError, parse_text, read_input
 
 from .summary import get_path
 
@@ -102,11 +103,11 @@ def load_thresholds(path: str | Path | None = None) -> dict[str, Any]:
     """Parse and validate a thresholds file (default: the one beside this module)."""
     path = Path(path) if path is not None else _DEFAULT_FILE
     try:
-        data = tomllib.loads(path.read_text())
+        data = parse_text(read_input(path, "TOML thresholds file"), path, "toml")
     except OSError as exc:
         raise ThresholdError(f"{path}: cannot read: {exc}") from exc
-    except tomllib.TOMLDecodeError as exc:
-        raise ThresholdError(f"{path}: not valid TOML: {exc}") from exc
+    except InputFileError as exc:
+        raise ThresholdError(str(exc)) from None
     scenes = data.get("scenes")
     if not isinstance(scenes, dict) or not scenes:
         raise ThresholdError(f"{path}: expected [scenes.NAME] tables")

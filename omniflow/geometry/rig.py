@@ -42,9 +42,7 @@ The rig file (TOML or JSON) uses the same keys as ``dataset.json`` written by
 
 from __future__ import annotations
 
-import json
 import math
-import tomllib
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -54,6 +52,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from omniflow.conventions import wrap_angle
 from omniflow.geometry.rig_errors import UnitErrors, errors_from_dict
+from omniflow.input_files import InputFileError, parse_text, read_input
 
 __all__ = [
     "Rig",
@@ -423,15 +422,10 @@ def load_rig(path: str | Path) -> Rig:
     if not path.is_file():
         raise RigError(f"{path}: not a file; expected a rig file (.toml or .json)")
     try:
-        text = path.read_text(encoding="utf-8")
-    except UnicodeDecodeError as exc:
-        raise RigError(
-            f"{path}: not UTF-8 text (byte {exc.start}); expected a TOML or JSON rig file"
-        ) from exc
-    try:
-        data = json.loads(text) if path.suffix.lower() == ".json" else tomllib.loads(text)
-    except (json.JSONDecodeError, tomllib.TOMLDecodeError) as exc:
-        raise RigError(f"{path}: not valid {path.suffix.lstrip('.').upper()}: {exc}") from exc
+        text = read_input(path, "TOML or JSON rig file")
+        data = parse_text(text, path, "json" if path.suffix.lower() == ".json" else "toml")
+    except InputFileError as exc:
+        raise RigError(str(exc)) from None
     return rig_from_dict(data, where=str(path))
 
 

@@ -37,6 +37,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from omniflow.geometry.rig import Rig, RigError, rig_from_dict
+from omniflow.input_files import InputFileError, parse_text, read_input
 from omniflow.io.imageio import _native_reason, native_output_captured, to_grey
 
 __all__ = [
@@ -325,13 +326,11 @@ def load_meta(path: Path) -> dict[str, Any]:
     """Read and check a dataset.json: format name, a readable version and the keys
     ``rig``, ``cameras``, ``frames``; :class:`DatasetError` naming the file otherwise."""
     try:
-        meta = json.loads(path.read_text(encoding="utf-8"))
+        meta = parse_text(read_input(path, "dataset's JSON"), path, "json")
     except OSError as exc:
         raise DatasetError(f"{path}: cannot read: {exc.strerror or exc}") from exc
-    except UnicodeDecodeError:
-        raise DatasetError(f"{path}: not UTF-8 text; expected the dataset's JSON") from None
-    except json.JSONDecodeError as exc:
-        raise DatasetError(f"{path}: not valid JSON: {exc}") from exc
+    except InputFileError as exc:
+        raise DatasetError(str(exc)) from None
     if not isinstance(meta, dict) or meta.get("format") != FORMAT_NAME:
         raise DatasetError(f"{path}: 'format' is not {FORMAT_NAME!r}: not an omnisim dataset")
     ver = meta.get("format_version")

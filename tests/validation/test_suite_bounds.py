@@ -132,7 +132,7 @@ def test_written_bounds_read_back_the_same(tmp_path):
       "key 'metric' = 'speed'"),
      ("[[bound]]\nmethod = 'a'\nsplit = 'test'\nmetric = '1px'\nmax = 1\nmeasured = 0\n"
       "note = 1\n", "unknown key 'note'"),
-     ("[[bound]\n", "not TOML")],
+     ("[[bound]\n", "not valid TOML")],
 )  # fmt: skip
 def test_a_bad_bounds_file_is_one_line_naming_the_entry_and_key(tmp_path, text, fragment):
     path = tmp_path / "b.toml"
