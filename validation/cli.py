@@ -79,7 +79,7 @@ def _thresholds_unmet(thresholds: dict, args: argparse.Namespace, variants: Any,
         try:  # the scene's name, as the summary will give it; a broken file is named later
             scene = json.loads((Path(args.dataset) / "dataset.json").read_text()).get("scene")
             key = scene.get("name") if isinstance(scene, dict) else None
-        except (OSError, ValueError, AttributeError):
+        except (OSError, ValueError, AttributeError, RecursionError):  # named by the loader
             return None
         if key not in thresholds["scenes"]:
             return (

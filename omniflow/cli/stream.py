@@ -242,7 +242,7 @@ def _check_resume(out: Path, header: dict) -> None:
 
     try:
         old = json.loads(manifest.read_text(encoding="utf-8"))
-    except (ValueError, UnicodeDecodeError) as exc:
+    except (ValueError, UnicodeDecodeError, RecursionError) as exc:
         raise CLIError(f"{manifest}: not a stream manifest ({one_line(exc)})") from exc
     for key in ("input", "rig", "config"):
         if old.get(key) != header[key]:

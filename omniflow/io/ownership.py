@@ -116,7 +116,7 @@ def read_json(path: Path) -> Any:
         if not path.is_file() or path.is_symlink() or path.stat().st_size > _MAX_MANIFEST_BYTES:
             return None
         return json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError):  # unreadable or not JSON: not a manifest of ours
+    except (OSError, ValueError, RecursionError):  # unreadable, not JSON: not ours
         return None
 
 
