@@ -140,6 +140,7 @@ def run_validation(
     ds = open_dataset(dataset_dir)
     done = set(ds.frames_done())
     pairs = _pairs(ds, dataset_dir, done, frames, partial)
+    _check_files(ds, sorted({k for t in pairs for k in (t, t + 1)}))
     vlist = omniflow_variants(variants) if isinstance(variants, str) else list(variants)
     baselines = list(baselines)
     for b in baselines:
@@ -189,6 +190,18 @@ def run_validation(
     results.dataset["camera"] = None if inputs.camera is None else inputs.camera.to_dict()
     results.dataset["images"] = inputs.describe()
     return results
+
+
+def _check_files(ds: Any, frames: Sequence[int]) -> None:
+    """InputError naming the first camera PNG, mask or ``.flo`` of ``frames`` that does not
+    decode (omnisim.check_files): a damaged dataset is refused, not scored."""
+    from omnisim.check_files import dataset_file_problems
+
+    problems, _ = dataset_file_problems(ds, frames)
+    if problems:
+        path, why = next(iter(problems.items()))
+        more = f" (and {len(problems) - 1} more files)" if len(problems) > 1 else ""
+        raise InputError(f"{path}: {why}{more}; re-render the frame or run omnisim check")
 
 
 def _pairs(

@@ -177,6 +177,13 @@ def test_cli_refuses_incomplete_dataset_and_nan_radiance(synth, tmp_path):
     p = _cli(str(tmp_path / "ds2"), "--out", str(tmp_path / "o"), *base, "--partial")
     assert p.returncode == 0, p.stderr
     assert sorted(x.name for x in tmp_path.iterdir() if x.name.startswith(".o")) == []
+    # A truncated .flo of a scored frame: refused naming it (it was scored unnoticed).
+    shutil.copytree(synth, tmp_path / "ds3")
+    flo = tmp_path / "ds3" / "frames" / "000001" / "cam2.flo"
+    flo.write_bytes(flo.read_bytes()[:100])
+    _one_line_exit_2(_cli(str(tmp_path / "ds3"), "--out", str(tmp_path / "o3"), *base),
+                     "000001/cam2.flo: .flo header says")  # fmt: skip
+    assert not (tmp_path / "o3").exists()
 
 
 # -- --row: any configuration of the flow step gets its own scored row -------------------------
