@@ -132,11 +132,32 @@ def generate_scene(family: str, seed: int) -> str:
     )
 
 
+#: The first line of every generated scene file: the proof that a file is ours to replace.
+MARK = "# Generated scene:"
+
+
+def _refuse_foreign(path: Path) -> None:
+    """GenerateError unless ``path`` is free or a scene this generator wrote (:data:`MARK`)."""
+    if path.exists() or path.is_symlink():
+        try:
+            with open(path, encoding="utf-8", errors="replace") as fh:
+                ours = path.is_file() and not path.is_symlink() and fh.readline().startswith(MARK)
+        except OSError:
+            ours = False
+        if not ours:
+            raise GenerateError(f"{path}: exists and is not a scene omnisim generate wrote (its "
+                                f"first line is not '{MARK} ...'); nothing was replaced: choose "
+                                "another --out or remove the file")  # fmt: skip
+
+
 def write_scene(family: str, seed: int, path: str | Path) -> Path:
     """Generate and write the scene to ``path`` (atomically: a temporary name, then rename;
-    the folder is created if missing)."""
+    the folder is created if missing). A file already there is replaced only when it is
+    a generated scene (its first line is :data:`MARK`); anything else is a GenerateError,
+    the file untouched."""
     text = generate_scene(family, seed)
     path = Path(path)
+    _refuse_foreign(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
@@ -155,5 +176,7 @@ def generate_batch(family: str, seeds: Iterable[int], out_dir: str | Path) -> li
     for seed in seeds:
         _check_input(family, seed)
     out = Path(out_dir)
+    for s in seeds:  # every target checked before the first is written
+        _refuse_foreign(out / f"{scene_name(family, s)}.toml")
     out.mkdir(parents=True, exist_ok=True)
     return [write_scene(family, s, out / f"{scene_name(family, s)}.toml") for s in seeds]

@@ -122,6 +122,26 @@ def test_cli_bad_input_is_one_line(args, fragment, tmp_path, capsys):
     assert not list(tmp_path.iterdir())  # nothing written
 
 
+def test_cli_replaces_only_a_generated_scene(tmp_path, capsys):
+    mine = tmp_path / "mine.toml"
+    mine.write_text("# my own scene\nname = 'x'\n")
+    batch = tmp_path / "batch"
+    batch.mkdir()
+    (batch / "room-2.toml").write_text("my notes\n")
+    for argv in (["--seed", "1", "--out", str(mine)], ["--seeds", "1-2", "--out", str(batch)]):
+        assert main(["generate", "--family", "room", *argv]) == 2
+        err = capsys.readouterr().err
+        assert "is not a scene omnisim generate wrote" in err and err.count("\n") == 1
+    assert mine.read_text() == "# my own scene\nname = 'x'\n"
+    assert (batch / "room-2.toml").read_text() == "my notes\n"
+    assert sorted(p.name for p in batch.iterdir()) == ["room-2.toml"]  # room-1 not written
+    # a generated scene is ours: written again in place
+    assert main(["generate", "--family", "room", "--seed", "3", "--out", str(mine)]) == 2
+    mine.write_text(generate_scene("room", 4))
+    assert main(["generate", "--family", "room", "--seed", "3", "--out", str(mine)]) == 0
+    assert mine.read_text(encoding="utf-8") == generate_scene("room", 3)
+
+
 def test_cli_missing_folder(tmp_path, capsys):
     out = tmp_path / "no" / "x.toml"
     assert main(["generate", "--family", "room", "--seed", "1", "--out", str(out)]) == 2
