@@ -20,15 +20,58 @@ import json
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any
 
-from omniflow.io.imageio import atomic_write_text
+from omniflow.io.imageio import OutputError, atomic_write_text
 
 from .inputs import InputError
 from .suite import Suite, SuiteError, SuiteScene, scene_text
 
-__all__ = ["SuiteMethods", "method_catalogue", "resolve_methods", "run_suite", "score_dataset"]
+__all__ = [
+    "SuiteMethods",
+    "claim_run_folder",
+    "method_catalogue",
+    "resolve_methods",
+    "run_suite",
+    "score_dataset",
+]
+
+#: The top-level names ``omnivalidate suite`` writes into its --out.
+SUITE_NAMES = ("leaderboard.md", "leaderboard.html", "leaderboard.csv", "leaderboard.json",
+               "scenes", "renders", "state")  # fmt: skip
+
+
+def _legacy_run(folder: Path) -> bool:
+    """A suite or sweep run from before markers: its leaderboard.json / sweep.json, or the
+    state files of an unfinished one."""
+    from omniflow.io import ownership
+
+    for name, fmt in (("leaderboard.json", "omnivalidate-leaderboard/"),
+                      ("sweep.json", "omnivalidate-sweep/")):  # fmt: skip
+        body = ownership.read_json(folder / name)
+        if isinstance(body, dict) and str(body.get("format", "")).startswith(fmt):
+            return True
+    return any((folder / "state").glob("*.json")) or any((folder / "points").glob("*/state.json"))
+
+
+def claim_run_folder(out: Path, prog: str, names: Sequence[str]) -> None:
+    """Refuse (ForeignPathError, one line) an --out that is not this command's: a folder
+    with files but no marker, or a top-level name the command does not write; then mark
+    it. What lies inside its own subfolders is checked by the steps that write them (the
+    render job, the report)."""
+    from omniflow.io import ownership
+
+    def owned(rel: PurePosixPath) -> bool:
+        return len(rel.parts) > 1 or rel.name in names or rel.name == ownership.MARKER
+
+    try:
+        ownership.claim(out, prog=prog, owned=owned, legacy=_legacy_run)
+    except OutputError as exc:  # a user's file in the way, or --out is a file
+        raise InputError(f"--out {exc}") from None
+    out.mkdir(parents=True, exist_ok=True)
+    if not ownership.has_marker(out):
+        ownership.write_marker(out, prog)
 
 
 @dataclass
@@ -197,7 +240,7 @@ def run_suite(
     scenes = suite.select(split)
     if not scenes:
         raise SuiteError(f"{suite.path}: no scene in split {split!r}")
-    out.mkdir(parents=True, exist_ok=True)
+    claim_run_folder(out, "omnivalidate suite", SUITE_NAMES)
     done: list[tuple[str, str, Mapping[str, Any]]] = []
     for k, scene in enumerate(scenes, 1):
         t0 = time.perf_counter()

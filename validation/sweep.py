@@ -34,10 +34,13 @@ from typing import Any
 from omniflow.io.imageio import atomic_write_text
 
 from .inputs import InputError
-from .suite_run import SuiteMethods, score_dataset
+from .suite_run import SuiteMethods, claim_run_folder, score_dataset
 from .sweep_figure import METRICS, sweep_plot
 
 __all__ = ["METRICS", "parse_values", "run_sweep", "value_label"]
+
+#: The top-level names ``omnivalidate sweep`` writes into its --out.
+SWEEP_NAMES = ("sweep.json", "sweep.csv", "sweep.md", "sweep.png", "points")
 
 
 def parse_values(text: str) -> list[Any]:
@@ -87,7 +90,7 @@ def run_sweep(
 
     from .leaderboard import scene_rows
 
-    out.mkdir(parents=True, exist_ok=True)
+    claim_run_folder(out, "omnivalidate sweep", SWEEP_NAMES)
     base = {"frames": frames, "render.width": resolution, "render.height": resolution}
     base.update(settings or {})
     rows: list[dict[str, Any]] = []

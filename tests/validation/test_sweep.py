@@ -74,3 +74,30 @@ def test_a_sweep_scores_every_value_draws_it_and_resumes(tmp_path):
     assert png[0] != png[1]  # the exposure reached the camera images
     again = _sweep(*args)
     assert again.returncode == 0 and again.stdout.count("scored before") == 2, again.stdout
+
+
+@pytest.mark.parametrize("command", ["sweep", "suite"])
+def test_an_out_holding_the_users_files_is_refused(tmp_path, command):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "notes.md").write_text("mine\n")
+    if command == "sweep":
+        args = ["sweep", "scenes/default.toml", "--key", "camera.exposure", "--values", "1,2",
+                "--out", str(out), "--methods", "zero-flow", "--resolution", "32"]  # fmt: skip
+    else:
+        args = ["suite", "scenes/suite/mini.toml", "--split", "test", "--out", str(out)]
+    run = subprocess.run([sys.executable, "-m", "validation.cli", *args, "--no-progress"],
+                         cwd=ROOT, capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert run.returncode == 2 and len(run.stderr.strip().splitlines()) == 1, run.stderr
+    assert "notes.md: not written by omnivalidate" in run.stderr
+    assert sorted(p.name for p in out.iterdir()) == ["notes.md"]
+    assert (out / "notes.md").read_text() == "mine\n"
+
+
+def test_a_run_from_before_markers_is_ours(tmp_path):
+    from validation.suite_run import _legacy_run
+
+    (tmp_path / "sweep.json").write_text('{"format": "omnivalidate-sweep/1"}')
+    assert _legacy_run(tmp_path)
+    (tmp_path / "sweep.json").write_text('{"format": "mine"}')
+    assert not _legacy_run(tmp_path)
