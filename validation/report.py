@@ -33,6 +33,7 @@ from typing import Any
 
 import numpy as np
 
+from omniflow.cli.common import MACHINE_ERRNOS
 from omniflow.io import ownership
 from omniflow.io.imageio import OutputError, atomic_write_text
 from omniflow.io.jsonio import jsonable
@@ -245,6 +246,8 @@ def check_out_dir(out_dir: str | Path) -> Path:
         probe = tempfile.mkdtemp(prefix=f".{out.name}.probe-", dir=parent)
         os.rmdir(probe)
     except OSError as exc:
+        if exc.errno in MACHINE_ERRNOS:  # a full disk: the machine refused (exit 1), not the path
+            raise
         raise InputError(f"--out {out}: cannot write there ({exc.strerror or exc})") from exc
     return out
 
@@ -271,6 +274,8 @@ def report_lock(out_dir: str | Path) -> Iterator[None]:
     except OutputError as exc:  # an ancestor of --out is a file
         raise InputError(f"--out {out}: cannot write there ({exc})") from None
     except OSError as exc:
+        if exc.errno in MACHINE_ERRNOS:  # a full disk: the machine refused (exit 1)
+            raise
         raise InputError(f"--out {out}: cannot write there ({exc.strerror or exc})") from exc
     try:
         for prefix in (f".{out.name}.tmp-", f".{out.name}.old-"):
