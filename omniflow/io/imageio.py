@@ -48,6 +48,7 @@ __all__ = [
     "check_finite",
     "fsync_dir",
     "native_output_captured",
+    "pid_alive",
     "read_exr_channels",
     "read_image",
     "to_grey",
@@ -319,11 +320,12 @@ def _remove_orphans(parent: Path) -> None:
     with contextlib.suppress(OSError):
         for entry in parent.glob(f"{STAGING_PREFIX}*"):
             pid_text = entry.name[len(STAGING_PREFIX) :].split("-", 1)[0]
-            if pid_text.isdigit() and not _alive(int(pid_text)):
+            if pid_text.isdigit() and not pid_alive(int(pid_text)):
                 shutil.rmtree(entry, ignore_errors=True)
 
 
-def _alive(pid: int) -> bool:
+def pid_alive(pid: int) -> bool:
+    """Whether process ``pid`` runs (another user's counts as running)."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:

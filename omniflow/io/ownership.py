@@ -49,7 +49,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path, PurePosixPath
 from typing import Any
 
-from omniflow.io.imageio import OutputError, atomic_write_text
+from omniflow.io.imageio import OutputError, atomic_write_text, pid_alive
 
 __all__ = [
     "MARKER",
@@ -226,16 +226,6 @@ def claim_names(
             raise refusal(entry, prog, folder)
 
 
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # another user's live process
-        return True
-    return True
-
-
 def remove_dead_temporaries(parent: str | os.PathLike, prefix: str) -> list[Path]:
     """Remove folders ``parent/prefix*`` whose marker names a process no longer running.
 
@@ -249,7 +239,7 @@ def remove_dead_temporaries(parent: str | os.PathLike, prefix: str) -> list[Path
                 continue
             body = read_marker(entry)
             pid = body.get("pid") if body else None
-            if isinstance(pid, int) and pid != os.getpid() and not _alive(pid):
+            if isinstance(pid, int) and pid != os.getpid() and not pid_alive(pid):
                 shutil.rmtree(entry, ignore_errors=True)
                 removed.append(entry)
     return removed
