@@ -41,6 +41,7 @@ __all__ = [
     "plane",
     "room",
     "sphere",
+    "test_card",
     "textured_mesh",
 ]
 
@@ -173,6 +174,26 @@ def cylinder(
     side = len(parts[0][0])
     normals[:side, :2] = mesh.vertices[:side, :2] / radius
     normals[side:, 2] = np.sign(mesh.vertices[side:, 2])
+    mesh.vertex_normals = normals
+    return mesh
+
+
+def test_card(card, *, sections: int = 1440) -> trimesh.Trimesh:
+    """The tube of a registration card (``omniflow.geometry.test_card.TestCard``), open.
+
+    Centred, axis along Z, outward normals; UVs from ``card.uv`` so the card's one-tile
+    texture repeats as its checkerboard (a sector edge at every 2 pi / sectors, a ring
+    edge every ``ring_spacing``). 1440 facets: the flat facets lie within
+    radius (1 - cos(pi / 1440)) = 1.2 um of the tube at r = 0.5 m.
+    """
+    th = np.linspace(0.0, 2 * np.pi, sections + 1)
+    zs = np.array([-card.height / 2, card.height / 2])
+    t, zz = np.meshgrid(th, zs, indexing="ij")
+    pts = np.stack([card.radius * np.cos(t), card.radius * np.sin(t), zz], axis=-1)
+    u, v = card.uv(t, zz)
+    mesh = _join([_grid(pts, np.stack([u, v], axis=-1))])
+    normals = np.zeros_like(mesh.vertices)
+    normals[:, :2] = mesh.vertices[:, :2] / card.radius
     mesh.vertex_normals = normals
     return mesh
 

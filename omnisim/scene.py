@@ -49,6 +49,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from omniflow.geometry.rig import Rig, RigError, rig_from_dict
+from omniflow.geometry.test_card import card_from_table
 from omniflow.input_files import InputFileError, parse_text, read_input
 from omnisim import geometry, rig_parts, scene_placement, textures
 from omnisim.camera import CameraError, CameraModel
@@ -337,7 +338,7 @@ RIG_KEYS = frozenset(
 ROBOT_KEYS = frozenset({"position", "rotation", "motion"})
 MOTION_KEYS = frozenset({"type", "velocity", "angular_velocity", "interpolation", "keys"})
 KEY_KEYS = frozenset({"time", "frame", "position", "rotation"})
-OBJECT_TYPES = ("room", "box", "cylinder", "sphere", "plane", "mesh")
+OBJECT_TYPES = ("room", "box", "cylinder", "sphere", "plane", "mesh", "test_card")
 _OBJ_COMMON = {"name", "type", "id", "position", "rotation", "motion", "texture", "material"}
 OBJECT_KEYS = {
     "room": frozenset(_OBJ_COMMON | {"size", "floor_texture", "ceiling_texture", "wall_texture"}),
@@ -346,7 +347,12 @@ OBJECT_KEYS = {
     "sphere": frozenset(_OBJ_COMMON | {"radius", "sections"}),
     "plane": frozenset(_OBJ_COMMON | {"size"}),
     "mesh": frozenset(_OBJ_COMMON | {"path", "scale", "uv", "center"}),
+    "test_card": frozenset(
+        (_OBJ_COMMON - {"texture"}) | {"radius", "height", "sectors", "ring_spacing", "colors"}
+    ),
 }
+#: A test card's dark and light albedo (``colors``), linear RGB.
+CARD_COLORS = ((0.08, 0.08, 0.08), (0.80, 0.80, 0.80))
 MATERIAL_TYPES = ("diffuse", "plastic", "conductor", "roughconductor")
 MATERIAL_KEYS = frozenset({"type", "roughness", "int_ior", "two_sided"})
 LIGHT_TYPES = ("point", "area", "environment", "directional")
@@ -665,6 +671,10 @@ def _objects(
             rooms.append(RoomInfo(i, name, size, first))
             objects.extend(_room(chk, tbl, i, name, first, size, motion, material, dt, base))
             continue
+        if kind == "test_card":
+            mesh, texture = _test_card(chk, tbl, where)
+            objects.append(SceneObject(first, name, kind, mesh, texture, material, motion, dt, i))
+            continue
         tex_tbl = tbl.get("texture")
         texture = texture_from_table(chk, tex_tbl, f"{where}.texture", first, base)
         tile = tile_of(tex_tbl)
@@ -700,6 +710,18 @@ def _mesh(chk: Checker, tbl: dict, kind: str, where: str, tile: float, base: Pat
         return geometry.load_mesh_file(mesh_path, scale=scale, uv=uv, tile=tile, center=center)
     except ValueError as exc:
         raise chk.error(f"{where}.path", f"{exc}; expected a mesh with triangles") from exc
+
+
+def _test_card(chk: Checker, tbl: dict, where: str):
+    """The mesh and texture of a ``test_card`` (``omniflow.geometry.test_card``)."""
+    card = card_from_table(tbl, lambda key, v, expected: chk.bad(f"{where}.{key}", v, expected))
+    colors = tbl.get("colors", CARD_COLORS)
+    if not isinstance(colors, list | tuple) or len(colors) != 2:
+        raise chk.bad(f"{where}.colors", colors, "two [r, g, b] colours (dark, light) in [0, 1]")
+    dark, light = (chk.vector({"c": c}, "c", f"{where}.colors", n=3, lo=0, hi=1) for c in colors)
+    t = card.texture()[..., None]
+    texture = (dark * (1 - t) + light * t).astype(np.float32)
+    return geometry.test_card(card), texture
 
 
 def _room(chk, tbl, index, name, first, size, motion, material, dt, base) -> list[SceneObject]:
