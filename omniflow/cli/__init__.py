@@ -1,5 +1,6 @@
-"""The ``omniflow`` command: ``omniflow pair`` (:mod:`omniflow.cli.pair`) and
-``omniflow stream`` (:mod:`omniflow.cli.stream`, also ``omniflow-stream``). The older
+"""The ``omniflow`` command: ``omniflow pair`` (:mod:`omniflow.cli.pair`),
+``omniflow stream`` (:mod:`omniflow.cli.stream`, also ``omniflow-stream``) and
+``omniflow calibrate`` (:mod:`omniflow.cli.calibrate`). The older
 ``omniflow IMAGE...`` / ``omniflow --dataset DIR`` form is ``omniflow pair`` with every
 option in its help. Nothing else in ``omniflow`` imports this package."""
 
@@ -18,13 +19,14 @@ STREAM_NOTE = "every file in --out is whole; run the same command again to resum
 
 #: ``omniflow --help``.
 HELP = """\
-usage: omniflow {pair,stream} ... [--help | --help-expert]
+usage: omniflow {pair,stream,calibrate} ... [--help | --help-expert]
 
 Omni flow (Spacek) of a coaxial conical-mirror stereo rig.
 
 commands:
-  pair     the flow of one pair of time steps (image files or an omnisim dataset frame)
-  stream   the flow of every consecutive pair of a sequence, each frame read once
+  pair       the flow of one pair of time steps (image files or an omnisim dataset frame)
+  stream     the flow of every consecutive pair of a sequence, each frame read once
+  calibrate  register both units from test card images (a rig file with rig.errors)
 
 Each command's --help shows its common options; --help-expert every option, and
 --set NAME=VALUE sets any OmniFlowConfig field. `omniflow IMAGE... --out DIR` (no
@@ -47,6 +49,12 @@ def _stream(argv: list[str], **kw: object) -> int:
     return stream.main(argv, **kw)  # type: ignore[arg-type]
 
 
+def _calibrate(argv: list[str], **kw: object) -> int:
+    from omniflow.cli import calibrate
+
+    return calibrate.main(argv, **kw)  # type: ignore[arg-type]
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``omniflow``; returns the exit status (130 / 143 if interrupted)."""
     keep = argv is None  # a console script: keep the handler for the shutdown
@@ -57,6 +65,9 @@ def main(argv: list[str] | None = None) -> int:
     if argv[:1] == ["stream"]:
         return run_main("omniflow stream", lambda: _stream(argv[1:], prog="omniflow stream",
                         short=True), note=STREAM_NOTE, keep=keep)  # fmt: skip
+    if argv[:1] == ["calibrate"]:
+        return run_main("omniflow calibrate", lambda: _calibrate(argv[1:]),
+                        note="a file in --out is whole or absent", keep=keep)  # fmt: skip
     if argv in (["-h"], ["--help"]):
         print(HELP, end="")
         return 0

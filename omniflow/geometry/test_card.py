@@ -49,7 +49,7 @@ class TestCard:
     @property
     def n_rings(self) -> int:
         """Rings (whole ones) on the tube."""
-        return int(math.floor(self.height / self.ring_spacing + 1e-9))
+        return math.floor(self.height / self.ring_spacing + 1e-9)
 
     def ring_edges(self) -> NDArray:
         """Z (rig frame) of every ring edge, the tube's ends excluded."""
