@@ -49,6 +49,7 @@ from omniflow.geometry.rig import Rig, Unit
 from omniflow.paper.dct import DCTFit, fit_dct
 from omniflow.parallel import map_tasks, submit
 from omniflow.pipeline import estimate, flow_grids, matching_grid, stereo_matches
+from omniflow.registration import Rectifier, has_errors
 from omniflow.result import OmniFlowResult, no_points
 from omniflow.solve.at_matches import flow_at_matches
 from omniflow.solve.monocular import add_monocular
@@ -127,7 +128,9 @@ class OmniFlowStream:
     """
 
     def __init__(self, rig: Rig, config: OmniFlowConfig | None = None, *, background: bool = False):
-        self.rig = rig
+        # a rig with errors: each frame rectified to the ideal rig, results mapped back
+        self._rect = Rectifier(rig) if has_errors(rig) else None
+        self.rig = rig if self._rect is None else self._rect.ideal
         self.config = OmniFlowConfig() if config is None else config
         if self.config.flow_shading is not None:  # a second fit per frame, not kept here yet
             raise ValueError("flow_shading: not supported by OmniFlowStream; use estimate()")
@@ -176,6 +179,12 @@ class OmniFlowStream:
             samples (made here, the units in two threads, not while
             sampling); the other stages as in :func:`~omniflow.pipeline.estimate`.
         """
+        if self._rect is not None:
+            frame1, frame2 = self._rect.image(frame1, "cam1"), self._rect.image(frame2, "cam2")
+            return self._rect.result(self._push(frame1, frame2))
+        return self._push(frame1, frame2)
+
+    def _push(self, frame1: ArrayLike, frame2: ArrayLike) -> OmniFlowResult | None:
         index = self.frames_pushed
         if self.config.temporal == "dct3d":
             return self._push_window(frame1, frame2, index)
