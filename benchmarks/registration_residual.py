@@ -13,10 +13,9 @@ import argparse
 from dataclasses import replace
 
 import numpy as np
-
-from omniflow.geometry.rig import Rig
 from numpy.typing import NDArray
 
+from omniflow.geometry.rig import Rig
 from omniflow.geometry.rig_errors import UnitErrors, traced_project
 from omniflow.registration import DEFAULT_DEPTH, ideal_points, rectify_map
 
