@@ -69,6 +69,10 @@ def build_parser(prog: str = PROG) -> Parser:
     parser.add_argument("--card", metavar="FILE", help="scene file or dataset.json of the card")
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
     parser.add_argument("--no-rim", action="store_true", help="fit the card's edges only")
+    parser.add_argument(
+        "--rim-only", action="store_true",
+        help="no card: fit mirror_offset x, y and cone_angle to the rim alone (tilts 0)",
+    )  # fmt: skip
     parser.add_argument("--debug", action="store_true", help="on an error, show the traceback")
     return parser
 
@@ -125,11 +129,13 @@ def _card_from_file(path: str, frame: int):
     if not isinstance(data, dict):
         raise CLIError(f"{path}: expected a scene file or dataset.json")
     if "scene" in data and "robot" in data and "poses" in data.get("robot", {}):
-        return _card_of(data, path, lambda s: _dataset_pose(data["robot"], frame, path),
-                        lambda i, t: _dataset_pose(_object_meta(data, i, path), frame, path))  # fmt: skip
+        robot_pose = lambda s: _dataset_pose(data["robot"], frame, path)  # noqa: E731
+        object_pose = lambda i, t: _dataset_pose(_object_meta(data, i, path), frame, path)  # noqa: E731
+        return _card_of(data, path, robot_pose, object_pose)
     robot = data.get("robot", {})
-    return _card_of(data, path, lambda s: _pose(robot, "position", [0, 0, 0.5], f"{path}: robot"),
-                    lambda i, t: _pose(t, "position", [0, 0, 0], f"{path}: objects[{i}]"))  # fmt: skip
+    robot_pose = lambda s: _pose(robot, "position", [0, 0, 0.5], f"{path}: robot")  # noqa: E731
+    object_pose = lambda i, t: _pose(t, "position", [0, 0, 0], f"{path}: objects[{i}]")  # noqa: E731
+    return _card_of(data, path, robot_pose, object_pose)
 
 
 def _object_meta(meta: dict, i: int, where: str) -> dict:
@@ -172,7 +178,7 @@ def _inputs(args) -> tuple[Rig, list[np.ndarray], Any, dict]:
     else:
         if len(args.images) != 2 or not args.rig:
             raise CLIError("expected CAM1 CAM2 image files and --rig FILE (or --dataset DIR)")
-        if not args.card:
+        if not args.card and not args.rim_only:
             raise CLIError("--card FILE is needed with image files (where the card is)")
         rig = load_rig(args.rig)
         images = [to_grey(read_image(p)) for p in args.images]
@@ -186,6 +192,8 @@ def _inputs(args) -> tuple[Rig, list[np.ndarray], Any, dict]:
         if not np.isfinite(img).all():
             raise CLIError(f"{cam} image has NaN or infinite pixels")
     ideal = Rig(cam1=replace(rig.cam1, errors=None), cam2=replace(rig.cam2, errors=None), s=rig.s)
+    if args.rim_only:
+        return ideal, images, None, info
     card = _card_from_file(card_file, args.frame)
     info["card"] = card_file
     return ideal, images, card, info
@@ -221,6 +229,8 @@ def run(args) -> dict:
 
     if args.frame < 0:
         raise CLIError(f"--frame {args.frame}: expected an integer >= 0")
+    if args.rim_only and (args.no_rim or args.card):
+        raise CLIError("--rim-only fits the rim alone: no --no-rim, no --card")
     rig, images, card, info = _inputs(args)
     units, report = {}, {"inputs": info, "units": {}}
     for cam, img in zip(("cam1", "cam2"), images, strict=True):
@@ -272,9 +282,12 @@ def main(argv: list[str] | None = None, *, prog: str = PROG) -> int:
         return status
     for cam, u in report["units"].items():
         e = u["errors"]
-        print(f"{prog}: {cam}: mirror_tilt {[round(x, 4) for x in e['mirror_tilt']]} deg, mirror_offset "
-              f"{[round(x * 1e3, 4) for x in e['mirror_offset'][:2]]} mm, cone_angle "
-              f"{e['cone_angle']:.4f} deg; residual {u['residual_rms_px']:.3f} px over "
-              f"{u['ring_edges'] + u['sector_edges']} edges")  # fmt: skip
+        tilt = [round(x, 4) for x in e["mirror_tilt"]]
+        offset = [round(x * 1e3, 4) for x in e["mirror_offset"][:2]]
+        n = u["ring_edges"] + u["sector_edges"]
+        fit = (f"residual {u['residual_rms_px']:.3f} px over {n} edges" if n else
+               f"rim residual {u['rim_residual_rms_px']:.3f} px")  # fmt: skip
+        print(f"{prog}: {cam}: mirror_tilt {tilt} deg, mirror_offset {offset} mm, "
+              f"cone_angle {e['cone_angle']:.4f} deg; {fit}")  # fmt: skip
     print(f"{prog}: wrote {Path(args.out) / 'rig.toml'}")
     return 0
