@@ -63,7 +63,7 @@ from omniflow.fit.series import (
 from omniflow.geometry.rig import Rig
 from omniflow.matching import Matches, PolarGrids, match_radial
 from omniflow.parallel import map_tasks, submit
-from omniflow.registration import estimate_registered, has_errors
+from omniflow.registration import Rectifier, has_errors
 from omniflow.result import COLUMNS, NoMatchesWarning, OmniFlowResult, no_points
 from omniflow.solve.at_matches import flow_at_matches
 from omniflow.solve.monocular import add_monocular
@@ -155,7 +155,9 @@ def estimate(
     config = OmniFlowConfig() if config is None else config
     _check_inputs(frames1, frames2, rig, t)
     if matches is None and has_errors(rig):  # registered: docs/decisions/registration.md
-        return estimate_registered(frames1, frames2, rig, config, t=t)
+        rect = Rectifier(rig)  # each image rectified to the ideal unit, results mapped back
+        f1, f2 = rect.frames(frames1, frames2)
+        return rect.result(estimate(f1, f2, rect.ideal, config, t=t))
     timings: dict[str, float] = {}
     t_start = time.perf_counter()
 

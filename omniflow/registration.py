@@ -143,11 +143,3 @@ class Rectifier:
             res.monocular = self.columns(res.monocular, "cam1", cam1)
         return res
 
-
-def estimate_registered(frames1, frames2, rig: Rig, config=None, *, t: int = 0):
-    """:func:`omniflow.pipeline.estimate` of a rig with errors: rectified, then mapped back."""
-    from omniflow.pipeline import estimate
-
-    rect = Rectifier(rig)
-    f1, f2 = rect.frames(frames1, frames2)
-    return rect.result(estimate(f1, f2, rect.ideal, config, t=t))

@@ -114,6 +114,7 @@ LAYERS: dict[str, int] = {
     "omniflow.fit": 6,
     "omniflow.solve": 7,
     "omniflow.applications": 8,
+    "omniflow.registration": 8,
     "omniflow.pipeline": 9,
     "omniflow.stream": 10,
     "omniflow.cli": 11,
