@@ -34,6 +34,7 @@ outputs (in --out):
                     0 (a card cannot tell them from the mirror's, see
                     docs/decisions/registration.md); intrinsics as given
   calibration.json  per unit: the errors, edge counts, residual rms (px), the rim found
+                    and the fitted model's rim against it (rms, px)
 
 the card: a test_card object (omnisim scene files, docs/scene_format.md), read from
   --card (a scene file or dataset.json; default: the dataset's own) and placed in the
@@ -68,7 +69,10 @@ def build_parser(prog: str = PROG) -> Parser:
     parser.add_argument("--frame", type=int, default=0, metavar="K", help="dataset frame (0)")
     parser.add_argument("--card", metavar="FILE", help="scene file or dataset.json of the card")
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
-    parser.add_argument("--no-rim", action="store_true", help="fit the card's edges only")
+    parser.add_argument(
+        "--fit-rim", action="store_true",
+        help="fit the rim circle with the card's edges (default: the rim is only checked)",
+    )  # fmt: skip
     parser.add_argument(
         "--rim-only", action="store_true",
         help="no card: fit mirror_offset x, y and cone_angle to the rim alone (tilts 0)",
@@ -224,27 +228,26 @@ def rig_toml(rig: Rig) -> str:
 
 def run(args) -> dict:
     from omniflow.geometry.calibration import RimError, find_rim
-    from omniflow.geometry.registration import register_unit
+    from omniflow.geometry.registration import register_unit, rim_residual_rms
     from omniflow.io.imageio import atomic_write_text
 
     if args.frame < 0:
         raise CLIError(f"--frame {args.frame}: expected an integer >= 0")
-    if args.rim_only and (args.no_rim or args.card):
-        raise CLIError("--rim-only fits the rim alone: no --no-rim, no --card")
+    if args.rim_only and (args.fit_rim or args.card):
+        raise CLIError("--rim-only fits the rim alone: no --fit-rim, no --card")
     rig, images, card, info = _inputs(args)
     units, report = {}, {"inputs": info, "units": {}}
     for cam, img in zip(("cam1", "cam2"), images, strict=True):
         unit = getattr(rig, cam)
         t0 = time.perf_counter()
-        rim = None
-        if not args.no_rim:
-            try:
-                c = find_rim(img, r_min=0.92 * unit.r_m, r_max=1.08 * unit.r_m)
-            except RimError as exc:
-                raise CLIError(f"{cam}: {one_line(exc)}") from exc
-            rim = (c.x_c, c.y_c, c.r_m)
         try:
-            reg = register_unit(img, unit, card, rim=rim)
+            c = find_rim(img, r_min=0.92 * unit.r_m, r_max=1.08 * unit.r_m)
+        except RimError as exc:
+            raise CLIError(f"{cam}: {one_line(exc)}") from exc
+        rim = (c.x_c, c.y_c, c.r_m)
+        try:
+            fit_rim = args.fit_rim or args.rim_only
+            reg = register_unit(img, unit, card, rim=rim if fit_rim else None)
         except ValueError as exc:
             raise CLIError(f"{cam}: {one_line(exc)}") from exc
         units[cam] = replace(unit, errors=reg.errors)
@@ -256,7 +259,8 @@ def run(args) -> dict:
             "rim_found": None
             if rim is None
             else dict(zip(("x_c", "y_c", "r_m"), rim, strict=True)),
-            "rim_residual_rms_px": reg.rim_rms_px,
+            "rim_fitted": bool(args.fit_rim or args.rim_only),
+            "rim_residual_rms_px": rim_residual_rms(unit, reg.errors, rim),
             "seconds": time.perf_counter() - t0,
         }
     out = Rig(cam1=units["cam1"], cam2=units["cam2"], s=rig.s)

@@ -25,7 +25,8 @@ the card's tube; the residual is the hit's height minus the ring's (scaled to pi
 eq. 1's v / (d + r)) or its azimuth minus the sector edge's (times h_i, pixels). The
 features are found again about the fitted model, with a narrower search, ``rounds`` times.
 The rim circle (:func:`omniflow.geometry.calibration.find_rim`) can be added: the traced
-model's rim (the mirror's edge seen directly) against the circle found.
+model's rim (the mirror's edge seen directly) against the circle found; without a card
+it is all there is (tilts held at 0, see the decision page for what that recovers).
 """
 
 from __future__ import annotations
@@ -54,6 +55,7 @@ __all__ = [
     "errors_of_params",
     "register_unit",
     "rim_points",
+    "rim_residual_rms",
 ]
 
 #: The fitted parameters, in the order of the vector: name, unit of the scaled value.
@@ -262,6 +264,11 @@ def rim_points(unit, errors: UnitErrors, n: int = 90) -> tuple[NDArray, NDArray]
 def _rim_residuals(unit, errors, rim) -> NDArray:
     x, y = rim_points(unit, errors)
     return np.hypot(x - rim[0], y - rim[1]) - rim[2]
+
+
+def rim_residual_rms(unit, errors: UnitErrors, rim: tuple[float, float, float]) -> float:
+    """Rms distance (px) of the model's rim (:func:`rim_points`) from a circle found."""
+    return float(np.sqrt(np.mean(_rim_residuals(unit, errors, rim) ** 2)))
 
 
 def register_unit(

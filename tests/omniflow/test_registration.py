@@ -136,3 +136,61 @@ def test_rectified_card_is_the_ideal_card(rig, card):
         want = ideal.v * (f.target[ring] - ideal.tip_h) / (ideal.d + card.radius)
         rms = np.sqrt(np.mean((h_i - want) ** 2))
         assert lo <= rms < hi, rms
+
+
+@pytest.fixture(scope="module")
+def card_files(tmp_path_factory, rig, card):
+    """A nominal rig file and closed-form card images of both units (192 px)."""
+    from omniflow.cli.calibrate import rig_toml
+    from omniflow.io.imageio import write_png
+
+    d = tmp_path_factory.mktemp("card")
+    (d / "rig.toml").write_text(rig_toml(rig))
+    other = replace(ERRORS, cone_angle=89.9, mirror_tilt=(-0.08, 0.12))
+    for name, unit, e in (("c1.png", rig.cam1, ERRORS), ("c2.png", rig.cam2, other)):
+        write_png(d / name, card_image(unit, card, e))
+    return d, {"cam1": ERRORS, "cam2": other}
+
+
+def test_calibrate_command_writes_the_errors(card_files, tmp_path, capsys):
+    """``omniflow calibrate --rig R --card scenes/test_card.toml c1 c2 --out O``: the rig file
+    read back holds each unit's errors (16-bit PNGs: within the fit's tolerances above)."""
+    from omniflow.cli import main
+    from omniflow.geometry.rig import load_rig
+
+    d, truth = card_files
+    args = ["calibrate", "--rig", str(d / "rig.toml"), "--card", "scenes/test_card.toml",
+            str(d / "c1.png"), str(d / "c2.png"), "--out", str(tmp_path / "cal")]  # fmt: skip
+    assert main(args) == 0
+    got = load_rig(tmp_path / "cal" / "rig.toml")
+    for cam in ("cam1", "cam2"):
+        diff = params_of_errors(getattr(got, cam).errors) - params_of_errors(truth[cam])
+        assert np.all(np.abs(diff[:2]) < 1.5e-3) and np.all(np.abs(diff[2:4]) < 0.03), diff
+        assert abs(diff[4]) < 3e-3, diff
+    assert "wrote" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    ("extra", "message"),
+    [
+        (["--card", "scenes/default.toml"], "0 test_card objects; expected exactly one"),
+        ([], "--card FILE is needed with image files"),
+        (["--card", "scenes/test_card.toml", "--rim-only"], "--rim-only fits the rim alone"),
+        (["--card", "nowhere.toml"], "nowhere.toml"),
+    ],
+)
+def test_calibrate_bad_input_is_one_line(card_files, tmp_path, capsys, extra, message):
+    from omniflow.cli import main
+
+    d, _ = card_files
+    args = ["calibrate", "--rig", str(d / "rig.toml"), str(d / "c1.png"), str(d / "c2.png"),
+            "--out", str(tmp_path / "cal"), *extra]  # fmt: skip
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and message in err and "Traceback" not in err, err
+
+
+def test_calibrate_help_is_short():
+    from omniflow.cli.calibrate import build_parser
+
+    assert len(build_parser().format_help().splitlines()) < 60
