@@ -30,9 +30,9 @@ PROG = "omniflow calibrate"
 EPILOG = """\
 outputs (in --out):
   rig.toml          the rig with [rig.errors.cam1] and [rig.errors.cam2]: mirror_tilt,
-                    mirror_offset (z 0) and cone_angle fitted; camera_tilt and camera_offset
-                    0 (a card cannot tell them from the mirror's, see
-                    docs/decisions/registration.md); intrinsics as given
+                    mirror_offset (z 0) and cone_angle fitted (camera_tilt too with
+                    --camera-tilt); camera_offset 0: a card cannot tell it from the
+                    mirror's offset (docs/decisions/registration.md); intrinsics as given
   calibration.json  per unit: the errors, edge counts, residual rms (px), the rim found
                     and the fitted model's rim against it (rms, px)
 
@@ -72,6 +72,10 @@ def build_parser(prog: str = PROG) -> Parser:
     parser.add_argument(
         "--fit-rim", action="store_true",
         help="fit the rim circle with the card's edges (default: the rim is only checked)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--camera-tilt", action="store_true",
+        help="fit camera_tilt too (7 parameters; for a camera tilted more than 0.05 deg)",
     )  # fmt: skip
     parser.add_argument(
         "--rim-only", action="store_true",
@@ -233,8 +237,8 @@ def run(args) -> dict:
 
     if args.frame < 0:
         raise CLIError(f"--frame {args.frame}: expected an integer >= 0")
-    if args.rim_only and (args.fit_rim or args.card):
-        raise CLIError("--rim-only fits the rim alone: no --fit-rim, no --card")
+    if args.rim_only and (args.fit_rim or args.card or args.camera_tilt):
+        raise CLIError("--rim-only fits the rim alone: no --fit-rim, --camera-tilt or --card")
     rig, images, card, info = _inputs(args)
     units, report = {}, {"inputs": info, "units": {}}
     for cam, img in zip(("cam1", "cam2"), images, strict=True):
@@ -247,7 +251,8 @@ def run(args) -> dict:
         rim = (c.x_c, c.y_c, c.r_m)
         try:
             fit_rim = args.fit_rim or args.rim_only
-            reg = register_unit(img, unit, card, rim=rim if fit_rim else None)
+            reg = register_unit(img, unit, card, rim=rim if fit_rim else None,
+                                camera_tilt=args.camera_tilt)  # fmt: skip
         except ValueError as exc:
             raise CLIError(f"{cam}: {one_line(exc)}") from exc
         units[cam] = replace(unit, errors=reg.errors)

@@ -7,15 +7,15 @@ unit is aligned. This module fits the traced model of a misaligned unit
 with ``scipy.optimize.least_squares``.
 
 Parameters (:data:`PARAMS`, the keys of ``[rig.errors.camN]``): ``mirror_tilt`` [a, b]
-(deg), ``mirror_offset`` [x, y] (m; its z is held at 0) and ``cone_angle`` (deg). The
-other keys are held ideal: what a card at one radius can tell apart is measured in
-docs/decisions/registration.md (``python3 -m benchmarks.registration_identifiability``):
-``camera_tilt`` and ``camera_offset`` move the card's image like a combination of the
-mirror's tilt and offset (within 12 %: a unit with a tilted camera is registered as one
-with a tilted mirror, which images the card the same), and ``mirror_offset`` z moves it
-like the cone angle (within 4 %) at one card radius. The camera's intrinsics (v of
-eq. 2 and the principal point x_c, y_c) are the rig file's: a camera tilt moves the image
-as a principal point does, and a cone angle or axial offset as v does.
+(deg), ``mirror_offset`` [x, y] (m; its z is held at 0) and ``cone_angle`` (deg), and
+with ``camera_tilt=True`` the camera's tilt [a, b] (deg). The other keys are held ideal:
+what a card at one radius can tell apart is measured in docs/decisions/registration.md
+(``python3 -m benchmarks.registration_identifiability``): ``camera_offset`` moves the
+card's image like the mirror's offset and tilt (within 5 %), ``camera_tilt`` like them
+within 12 % (so it is a seventh parameter when the camera may be tilted), and
+``mirror_offset`` z like the cone angle (within 4 %) at one card radius. The camera's
+intrinsics (v of eq. 2 and the principal point x_c, y_c) are the rig file's: a camera
+tilt moves the image as a principal point does, and a cone angle or axial offset as v.
 
 Features: the card's ring edges, sampled along the image radius, and its sector edges,
 sampled across it, each located to a fraction of a pixel on a 1-D profile (cubic
@@ -66,6 +66,8 @@ PARAMS = (
     ("mirror_offset[1]", "mm"),
     ("cone_angle - 90", "deg"),
 )
+#: The two more with ``camera_tilt=True``.
+CAMERA_TILT = (("camera_tilt[0]", "deg"), ("camera_tilt[1]", "deg"))
 #: Smallest image radius of a feature, px: the sectors are 2 pi h_i / sectors wide.
 MIN_FEATURE_H_PX = 25.0
 #: Profile sampling step along a search line, px.
@@ -75,12 +77,15 @@ PROFILE_SIGMA = 0.8
 
 
 def errors_of_params(p: NDArray) -> UnitErrors:
-    """The :class:`UnitErrors` of a parameter vector (deg, deg, mm, mm, deg from 90)."""
+    """The :class:`UnitErrors` of a parameter vector (deg, deg, mm, mm, deg from 90, and
+    with 7 entries the camera tilt, deg, deg: :data:`CAMERA_TILT`)."""
     p = np.asarray(p, dtype=np.float64)
+    cam = (float(p[5]), float(p[6])) if len(p) > 5 else (0.0, 0.0)
     return UnitErrors(
         mirror_tilt=(float(p[0]), float(p[1])),
         mirror_offset=(float(p[2]) * 1e-3, float(p[3]) * 1e-3, 0.0),
         cone_angle=90.0 + float(p[4]),
+        camera_tilt=cam,
     )
 
 
@@ -93,6 +98,7 @@ def params_of_errors(e: UnitErrors) -> NDArray:
             e.mirror_offset[0] * 1e3,
             e.mirror_offset[1] * 1e3,
             e.cone_angle - 90.0,
+            *e.camera_tilt,
         ]
     )
 
@@ -273,7 +279,7 @@ def rim_residual_rms(unit, errors: UnitErrors, rim: tuple[float, float, float]) 
 
 def register_unit(
     image: NDArray, unit, card: TestCard | None, *, rim: tuple[float, float, float] | None = None,
-    rounds: int = 3, free: tuple[bool, ...] | None = None,
+    rounds: int = 3, free: tuple[bool, ...] | None = None, camera_tilt: bool = False,
 ) -> Registration:  # fmt: skip
     """Fit the errors of ``unit`` (its ideal intrinsics) to ``card`` seen in ``image``.
 
@@ -285,8 +291,9 @@ def register_unit(
         raise ValueError("nothing to fit: no card and no rim")
     if free is None:
         free = (True,) * 5 if card is not None else (False, False, True, True, True)
+        free += (camera_tilt, camera_tilt)
     idx = np.flatnonzero(free)
-    p = np.zeros(5)
+    p = np.zeros(len(free))
     feats = None
     halves = (4.0, 2.0, 1.5, 1.5, 1.5)
     for k in range(rounds if card is not None else 1):
