@@ -7,9 +7,9 @@ triangulation, each image is resampled onto the ideal unit's pixels once
 range ``depth`` from the axis is projected by the traced model
 (:func:`omniflow.geometry.rig_errors.traced_project`) into the real image, which is
 sampled there (linear interpolation, :data:`RESAMPLE_ORDER`). The pipeline then runs
-unchanged on the ideal rig, and the results' pixel columns are mapped back to the real images (:meth:`Rectifier.result`),
-so they are scored where the camera saw them. The range r and height h of eq. (5) are
-the rig frame's already.
+unchanged on the ideal rig, and the results' pixel columns are mapped back to the real
+images (:meth:`Rectifier.result`), so they are scored where the camera saw them. The
+range r and height h of eq. (5) are the rig frame's already.
 
 The real image of a point depends on its depth wherever a mirror offset or tilt moves
 the viewpoint ring, so the rectification is exact at ``depth`` only; the residual
