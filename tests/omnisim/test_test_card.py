@@ -53,3 +53,28 @@ def test_card_truth_lies_on_the_tube_and_shades_as_its_pattern(frame):
         dark = card.dark(theta[inner], h[inner])
         assert dark.any() and (~dark).any()
         assert grey[dark].max() < 0.5 * grey[~dark].min()
+
+
+@pytest.mark.parametrize(
+    ("line", "message"),
+    [
+        ("sectors = 5", "objects[0].sectors: got 5, expected an even integer in [4, 360]"),
+        ("radius = -1", "objects[0].radius: got -1, expected a number > 0 (m)"),
+        ("height = 0.05", "objects[0].height: got 0.05, expected at least 4 rings"),
+        ("texture = {type = 'solid'}", "objects[0].texture: unknown key"),
+    ],
+)
+def test_bad_card_keys_are_one_line(tmp_path, line, message):
+    from pathlib import Path
+
+    from omnisim.scene import SceneError, load_scene
+
+    key = line.split(" = ")[0]
+    lines = Path("scenes/test_card.toml").read_text().splitlines()
+    lines = [ln for ln in lines if not ln.startswith(f"{key} = ")]
+    lines.insert(lines.index('type = "test_card"') + 1, line)
+    path = tmp_path / "card.toml"
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(SceneError) as err:
+        load_scene(path)
+    assert message in str(err.value) and "\n" not in str(err.value), str(err.value)
