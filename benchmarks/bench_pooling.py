@@ -33,7 +33,8 @@ import numpy as np
 
 
 def parse_variant(spec: str):
-    """``NAME:k=v;k=v`` -> (name, OmniFlowConfig or TrueMatches)."""
+    """``NAME:k=v;k=v`` -> (name, OmniFlowConfig or TrueMatches); a group's knob by its
+    dotted name (``grid:pooling.pool_grid=0.125``)."""
     from omniflow.config import OmniFlowConfig
     from validation.variants import TrueMatches
 
@@ -45,7 +46,7 @@ def parse_variant(spec: str):
             knobs[key] = ast.literal_eval(value)
         except (ValueError, SyntaxError):
             knobs[key] = value
-    config = OmniFlowConfig(**knobs)
+    config = OmniFlowConfig().with_settings(knobs)
     return name, TrueMatches(config) if name.startswith("truth+") else config
 
 
@@ -145,8 +146,8 @@ def mixing(dataset: str) -> list[str]:
         iy = np.clip(res["y"].astype(int), 0, obj_map.shape[0] - 1)
         ix = np.clip(res["x"].astype(int), 0, obj_map.shape[1] - 1)
         obj = obj_map[iy, ix].astype(int)
-        idx, w = neighbourhoods(res["x"], res["y"], k=config.pool_k, radius=radius,
-                                r=res["r"], range_tol=config.pool_range_tol)  # fmt: skip
+        idx, w = neighbourhoods(res["x"], res["y"], k=config.pooling.pool_k, radius=radius,
+                                r=res["r"], range_tol=config.pooling.pool_range_tol)  # fmt: skip
         other = np.append(obj, -1)[idx] != obj[:, None]
         frac = (w * other).sum(axis=1) / w.sum(axis=1)
         for i in movers:
@@ -173,7 +174,9 @@ def boundary(variants: list, band_mean: float, share: float = 0.1) -> list[str]:
         obj = gt["gt.object"][iy, ix]
         true_dh, true_tan = gt["gt.flow.dh"][iy, ix], gt["gt.flow.hdtheta"][iy, ix]
         est_tan = res["h1"] * res["dtheta_dt"]
-        idx, _ = neighbourhoods(res["x"], res["y"], k=config.pool_k, radius=rig.cam1.r_m / 8.0)
+        idx, _ = neighbourhoods(
+            res["x"], res["y"], k=config.pooling.pool_k, radius=rig.cam1.r_m / 8.0
+        )
         crosses = ((np.append(obj, -1)[idx] != obj[:, None]) & (idx < obj.size)).any(axis=1)
         band, inner = obj == 2, (obj == 2) & ~crosses
         epe = np.hypot(res["dh1_dt"] - true_dh, est_tan - true_tan)

@@ -148,13 +148,29 @@ def test_gain_with_grid_pools(monkeypatch):
     plain 0.0933, gate 20 0.0181 (0.0157 with the gain on k-d tree pools, stop 18).
     Mutation caught: the gain never taken (``gated`` always False in the solver) stays at
     the plain 0.0933."""
-    _, plain, _ = _run(robot=SLOW, dim=DIM, pool_grid=0.125, brightness_model="gain")
-    _, gated, _ = _run(robot=SLOW, dim=DIM, gate=GATE, pool_grid=0.125, brightness_model="gain")
-    _, clean, _ = _run(robot=SLOW, pool_grid=0.125, brightness_model="gain")
+    _, plain, _ = _run(
+        robot=SLOW, dim=DIM, pooling={"pool_grid": 0.125}, brightness={"brightness_model": "gain"}
+    )
+    _, gated, _ = _run(
+        robot=SLOW,
+        dim=DIM,
+        gate=GATE,
+        pooling={"pool_grid": 0.125},
+        brightness={"brightness_model": "gain"},
+    )
+    _, clean, _ = _run(
+        robot=SLOW, pooling={"pool_grid": 0.125}, brightness={"brightness_model": "gain"}
+    )
     assert gated.mean() < 0.25 * plain.mean()  # measured 0.19
     assert gated.mean() < 1.5 * clean.mean()  # measured 1.30
     monkeypatch.setattr(solve_mod, "gated", lambda F, gate, *v: np.zeros(F.shape, bool))
-    _, mutated, _ = _run(robot=SLOW, dim=DIM, gate=GATE, pool_grid=0.125, brightness_model="gain")
+    _, mutated, _ = _run(
+        robot=SLOW,
+        dim=DIM,
+        gate=GATE,
+        pooling={"pool_grid": 0.125},
+        brightness={"brightness_model": "gain"},
+    )
     assert not mutated.mean() < 0.25 * plain.mean()
 
 
@@ -175,7 +191,9 @@ def test_small_gains_are_model_error_not_a_change(monkeypatch):
     tdx, tdy = gt["gt.flow.dx"][sel], gt["gt.flow.dy"][sel]
 
     def median(gate):
-        config = OmniFlowConfig(brightness_gate=gate, pool_min_conditioning=0.0)  # as test_flow
+        config = OmniFlowConfig(
+            brightness_gate=gate, pooling={"pool_min_conditioning": 0.0}
+        )  # as test_flow
         c = estimate(f1, f2, scene.rig, config, matches=m)
         return float(np.median(np.hypot(c["dx"] - tdx, c["dy"] - tdy)))
 

@@ -121,7 +121,9 @@ FLOW_TOL = 1e-10
 
 CONFIGS = {
     "default": OmniFlowConfig(),
-    "eiv correct, constant model": OmniFlowConfig(eiv="correct", pool_model="constant"),
+    "eiv correct, constant model": OmniFlowConfig(
+        pooling={"eiv": "correct", "pool_model": "constant"}
+    ),
 }
 
 

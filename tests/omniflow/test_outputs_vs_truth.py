@@ -163,7 +163,7 @@ def _series_derivatives(scene, frames, result, band: float) -> dict:
     rig, c = scene.rig, result
     out = {}
     eh, et = 1e-3, 1e-5
-    taper = OmniFlowConfig().flow_taper
+    taper = OmniFlowConfig().fit.flow_taper
 
     def fit(image, unit):
         f = fit_dct(fill_outside_rim(image, unit), band=band)
@@ -286,7 +286,7 @@ def test_flow_against_truth(result, truth, key):
 def sharp(scene, frames, result):
     """The same points with the sharply truncated flow series (``flow_taper=0``, eq. 18)."""
     m = Matches.from_polar(scene.rig, result["theta"], result["h1"], result["h2"])
-    out = estimate(*frames, scene.rig, OmniFlowConfig(flow_taper=0.0), matches=m).columns
+    out = estimate(*frames, scene.rig, OmniFlowConfig(fit={"flow_taper": 0.0}), matches=m).columns
     assert np.array_equal(out["x"], result["x"])
     return out
 
@@ -386,4 +386,4 @@ def test_confidence_range_and_ordering(scene, frames, direct, solver):
 def test_score_is_an_accepted_ncc(result):
     """Robust matcher: NCC in [min_score, 1] (measured 0.9503-1.0)."""
     s = result["score"]
-    assert np.all((s >= OmniFlowConfig().min_score) & (s <= 1 + 1e-9))
+    assert np.all((s >= OmniFlowConfig().matching.min_score) & (s <= 1 + 1e-9))
