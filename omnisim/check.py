@@ -79,8 +79,18 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from omniflow.io.dataset import MASK_FILES, Dataset, DatasetError, grey_of
+from omniflow.io.dataset import MASK_FILES, Dataset, DatasetError
 from omnisim.check_files import dataset_file_problems
+from omnisim.check_pixels import (
+    image_polar,
+    interior,
+    is_lambertian,
+    luma,
+    mask_consistency,
+    noise_sigma,
+    remap,
+    wrap,
+)
 
 __all__ = ["CheckResult", "Tolerances", "format_results", "run_checks"]
 
@@ -180,107 +190,6 @@ class _Acc:
         return float(np.percentile(v, q))
 
 
-def _wrap(a: NDArray) -> NDArray:
-    return (a + np.pi) % (2 * np.pi) - np.pi
-
-
-def _remap(img: NDArray, mx: NDArray, my: NDArray, cubic: bool = False) -> NDArray:
-    import cv2
-
-    return cv2.remap(
-        np.ascontiguousarray(img, dtype=np.float32),
-        mx.astype(np.float32),
-        my.astype(np.float32),
-        interpolation=cv2.INTER_CUBIC if cubic else cv2.INTER_LINEAR,
-        borderMode=cv2.BORDER_REPLICATE,
-    )
-
-
-def _interior(ch: dict[str, NDArray]) -> NDArray:
-    """Valid pixels whose 3x3 neighbourhood is valid and shows the same object."""
-    from scipy import ndimage
-
-    valid = ch["gt.valid"] > 0.5
-    obj = np.where(valid, ch["gt.object"], -1.0)
-    same = ndimage.minimum_filter(obj, 3, mode="nearest") == ndimage.maximum_filter(
-        obj, 3, mode="nearest"
-    )
-    return valid & ndimage.binary_erosion(valid, np.ones((3, 3)), border_value=0) & same
-
-
-def _noise_sigma(img: NDArray, mask: NDArray) -> tuple[float, int]:
-    """Immerkaer (1996) noise estimate on ``mask`` (needs the 3x3 support inside it)."""
-    from scipy import ndimage
-
-    k = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], dtype=np.float64)
-    lap = ndimage.convolve(img.astype(np.float64), k, mode="nearest")
-    m = ndimage.binary_erosion(mask, np.ones((3, 3)), border_value=0)
-    n = int(m.sum())
-    if n == 0:
-        return math.nan, 0
-    return math.sqrt(math.pi / 2.0) / 6.0 * float(np.mean(np.abs(lap[m]))), n
-
-
-def _image_polar(unit, r: NDArray, th: NDArray, h: NDArray, mask: NDArray):
-    """(h_i, theta_i) at which ``unit`` images the rig points (r, th, h), (H, W) each.
-
-    Eq. (1) (theta_i = th) for an ideal unit; for one with rig errors
-    (``Unit.errors``) the traced model's pixel
-    (:func:`omniflow.geometry.rig_errors.traced_project`) on ``mask``, its polar
-    coordinates about (x_c, y_c), NaN where no pixel sees the point (counted as
-    non-finite: a failure).
-    """
-    if getattr(unit, "errors", None) is None:
-        return unit.image_radius(r, h), th
-    from omniflow.geometry.rig_errors import traced_project
-
-    h_out = np.full(r.shape, np.nan)
-    th_out = np.full(r.shape, np.nan)
-    q = np.stack([r * np.cos(th), r * np.sin(th), h], axis=-1)[mask]
-    x, y, _ = traced_project(unit, q)
-    h_out[mask] = np.hypot(x - unit.x_c, y - unit.y_c)
-    th_out[mask] = np.arctan2(y - unit.y_c, x - unit.x_c)
-    return h_out, th_out
-
-
-def _luma(ch: dict[str, NDArray]) -> NDArray:
-    """The frame's Rec. 709 luma (the project's one: omniflow.io.dataset.grey_of), float64."""
-    return grey_of(ch).astype(np.float64)
-
-
-def _is_lambertian(material) -> bool:
-    if material is None:
-        return True
-    if isinstance(material, str):
-        return material.lower() in ("diffuse", "lambertian")
-    if isinstance(material, dict):
-        kind = material.get("type", material.get("kind", "diffuse"))
-        return str(kind).lower() in ("diffuse", "lambertian")
-    return "diffuse" in str(material).lower()
-
-
-def _mask_consistency(ch: dict[str, NDArray], k: int) -> tuple[int, int]:
-    """Version 2 flow masks: (pixels where they break the contract, pixels looked at).
-
-    Per direction (``gt.flow``, ``gt.bflow``): valid, occluded, outside are 0/1, disjoint
-    and 0 where ``gt.valid`` is 0; frame 0's backward masks and flow are all 0.
-    """
-    valid = ch["gt.valid"] > 0.5
-    bad = np.zeros(valid.shape, bool)
-    for key in ("gt.flow", "gt.bflow"):
-        masks = [ch[f"{key}.{m}"] for m in ("valid", "occluded", "outside")]
-        total = np.zeros(valid.shape)
-        for m in masks:
-            bad |= (m != 0) & (m != 1)
-            total += m
-        bad |= (total > 1) | ((total > 0) & ~valid)
-        if key == "gt.bflow" and k == 0:
-            for c in ("dx", "dy", "dh", "hdtheta"):
-                bad |= ch[f"{key}.{c}"] != 0
-            bad |= total != 0
-    return int(bad.sum()), bad.size
-
-
 #: Broken files the ``files`` check names in its detail (the count says how many in all).
 _FILES_SHOWN = 5
 
@@ -344,7 +253,7 @@ class _Scene:
             poses_robot=np.asarray(ds.meta["robot"]["poses"], dtype=np.float64),
             obj_meta=obj_meta,
             known_ids=set(obj_meta) | {0},
-            lambertian_ids=[i for i, o in obj_meta.items() if _is_lambertian(o.get("material"))],
+            lambertian_ids=[i for i, o in obj_meta.items() if is_lambertian(o.get("material"))],
         )
 
 
@@ -433,9 +342,9 @@ def _check_frame(ds: Dataset, k: int, cam: str, ch: dict[str, NDArray], scene: _
     tally.unknown_ids |= set(ids.tolist()) - scene.known_ids
 
     # eq. (1) and theta (the traced model for a unit with rig errors)
-    h_gt, th_gt = _image_polar(unit, r, th, h, valid)
+    h_gt, th_gt = image_polar(unit, r, th, h, valid)
     acc["eq1"].add(np.abs(h_gt - h_i)[valid], keep=20000)
-    acc["theta"].add((np.abs(_wrap(th_gt - th_i)) * h_i)[valid])
+    acc["theta"].add((np.abs(wrap(th_gt - th_i)) * h_i)[valid])
 
     # world point vs rig cylindrical coordinates and the robot's pose
     p_rig = np.stack([r * np.cos(th), r * np.sin(th), h, np.ones_like(r)], axis=-1)
@@ -445,7 +354,7 @@ def _check_frame(ds: Dataset, k: int, cam: str, ch: dict[str, NDArray], scene: _
 
     # stereo, eq. (3)/(4)
     sv = (ch["gt.stereo.valid"] > 0.5) & valid
-    h_o = _image_polar(other, r, th, h, sv)[0]
+    h_o = image_polar(other, r, th, h, sv)[0]
     acc["stereo"].add(np.abs(h_o - ch["gt.stereo.h_other"])[sv])
 
     # polar flow vs Cartesian flow
@@ -454,17 +363,17 @@ def _check_frame(ds: Dataset, k: int, cam: str, ch: dict[str, NDArray], scene: _
     dy = ch["gt.flow.dy"].astype(np.float64)
     h2, th2 = unit.polar_of_pixel(x + dx, y + dy)
     e_dh = np.abs((h2 - h_i) - ch["gt.flow.dh"])
-    e_ht = np.abs(h_i * _wrap(th2 - th_i) - ch["gt.flow.hdtheta"])
+    e_ht = np.abs(h_i * wrap(th2 - th_i) - ch["gt.flow.hdtheta"])
     acc["flow_polar"].add(np.maximum(e_dh, e_ht)[fv])
     if ds.version >= 2:  # the backward flow, wherever it is seen at t - 1
         bv = (ch["gt.bflow.valid"] > 0.5) & valid
         h2, th2 = unit.polar_of_pixel(x + ch["gt.bflow.dx"], y + ch["gt.bflow.dy"])
         e_dh = np.abs((h2 - h_i) - ch["gt.bflow.dh"])
-        e_ht = np.abs(h_i * _wrap(th2 - th_i) - ch["gt.bflow.hdtheta"])
+        e_ht = np.abs(h_i * wrap(th2 - th_i) - ch["gt.bflow.hdtheta"])
         acc["flow_polar"].add(np.maximum(e_dh, e_ht)[bv])
 
     if ds.version >= 2:
-        bad, n = _mask_consistency(ch, k)
+        bad, n = mask_consistency(ch, k)
         tally.mask_bad += bad
         tally.mask_n += n
     # the .flo file and the mask PNGs, unless the files check found them broken
@@ -487,8 +396,8 @@ def _check_pair(ds: Dataset, k: int, cam: str, ch: dict[str, NDArray], nxt: dict
     and the photometric residual."""
     unit = ds.unit(cam)
     x, y, fv, dx, dy = pix.x, pix.y, pix.fv, pix.dx, pix.dy
-    int_t = _interior(ch)
-    int_n = _interior(nxt)
+    int_t = interior(ch)
+    int_n = interior(nxt)
     # cv2 index coordinates of the target: continuous (x + dx) - 0.5
     mx = x + np.where(fv, dx, 0.0) - 0.5
     my = y + np.where(fv, dy, 0.0) - 0.5
@@ -509,7 +418,7 @@ def _check_pair(ds: Dataset, k: int, cam: str, ch: dict[str, NDArray], nxt: dict
     st = usable & np.isin(ch["gt.object"], static_ids)
     if st.any():
         world = pix.world
-        wn = np.stack([_remap(nxt[c], mx, my) for c in ("gt.X", "gt.Y", "gt.Z")], -1)
+        wn = np.stack([remap(nxt[c], mx, my) for c in ("gt.X", "gt.Y", "gt.Z")], -1)
         dist = np.linalg.norm(wn.astype(np.float64) - world, axis=-1)
         # local pixel footprint: distance between horizontally/vertically adjacent
         # pixels' world points in frame t (the larger of the two, inside the object)
@@ -537,8 +446,8 @@ def _add_photometric(photo: _Acc, ch: dict[str, NDArray], nxt: dict[str, NDArray
     gt.flow, by zero flow and by gt.flow's neighbours (scaled, shifted), on the
     Lambertian pixels ``lam``."""
     x, y = pix.x, pix.y
-    i_t = _luma(ch)
-    i_n = _luma(nxt).astype(np.float32)
+    i_t = luma(ch)
+    i_n = luma(nxt).astype(np.float32)
     fx, fy = np.where(pix.fv, pix.dx, 0.0), np.where(pix.fv, pix.dy, 0.0)
     a, e = tol.photometric_scale_step, tol.photometric_shift_px
     trials = {
@@ -553,7 +462,7 @@ def _add_photometric(photo: _Acc, ch: dict[str, NDArray], nxt: dict[str, NDArray
     }
     sq_flow = None
     for name, (sc, ox, oy) in trials.items():
-        warped = _remap(i_n, x + sc * fx + ox - 0.5, y + sc * fy + oy - 0.5, True)
+        warped = remap(i_n, x + sc * fx + ox - 0.5, y + sc * fy + oy - 0.5, True)
         sq = (i_t - warped.astype(np.float64))[lam] ** 2
         photo.add_sum(name, float(np.sum(sq)))
         if sq_flow is None:
@@ -561,8 +470,8 @@ def _add_photometric(photo: _Acc, ch: dict[str, NDArray], nxt: dict[str, NDArray
         elif name != "zero":
             # per-pixel excess of gt.flow over this neighbour, for its standard error
             photo.add_sum("d2:" + name, float(np.sum((sq_flow - sq) ** 2)))
-    s_t, n_t = _noise_sigma(i_t, lam)
-    s_n, n_n = _noise_sigma(i_n, int_n & np.isin(nxt["gt.object"], scene.lambertian_ids))
+    s_t, n_t = noise_sigma(i_t, lam)
+    s_n, n_n = noise_sigma(i_n, int_n & np.isin(nxt["gt.object"], scene.lambertian_ids))
     if n_t and n_n:
         photo.add_sum("sig2", (s_t**2 + s_n**2) / 2.0)
         photo.add_sum("pairs", 1)
