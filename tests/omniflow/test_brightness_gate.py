@@ -25,16 +25,16 @@ DIM = 0.99
 
 def _run(robot=None, wall=None, dim=1.0, gate=None, **knobs):
     """(result, cam1 endpoint error per point, true cam1 speed per point, px per frame)
-    on the wall scene. ``decouple_gain_tol`` off unless given: it would take the rising
+    on the wall scene. ``brightness.decouple_gain_tol`` off unless given: it would take the rising
     wall's points itself (tests/omniflow/test_decouple_gain.py), so the gain's own
     effect in the decoupled model is measured without it."""
-    knobs = {"decouple_gain_tol": None, **knobs}
     rig = paper_rig(256)
     scene = wall_scene(rig, robot=robot, wall_motion=wall)
     f1, f2 = frames(scene, 2)
     m, gt = sparse_true_matches(scene, 0.03)
     res = estimate([f1[0], f1[1] * dim], [f2[0], f2[1] * dim], rig,
-                   OmniFlowConfig(brightness_gate=gate, **knobs), matches=m)  # fmt: skip
+                   OmniFlowConfig(brightness_gate=gate, brightness={"decouple_gain_tol": None})
+                   .replace(**knobs), matches=m)  # fmt: skip
     iy, ix = res["y"].astype(int), res["x"].astype(int)  # true matches: pixel centres
     dh, hdtheta = gt["gt.flow.dh"][iy, ix], gt["gt.flow.hdtheta"][iy, ix]
     err = np.hypot(res["dh1_dt"] - dh, res["h1"] * res["dtheta_dt"] - hdtheta)
