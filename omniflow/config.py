@@ -49,8 +49,7 @@ TEMPORALS = ("difference", "dct3d")
 SOLVERS = ("direct", "pooled")
 SAMPLINGS = ("cubic", "linear", "exact")
 RIM_FILLS = ("reflect", "none")
-POOL_MODELS = ("linear", "constant")
-EIVS = ("correct", "residual", "none")
+EIVS = ("residual", "none")
 SHADING_WHERE = ("everywhere", "moving")
 BRIGHTNESS_MODELS = ("linear", "gain")
 
@@ -286,7 +285,7 @@ class MatchingOptions(_Options):
 @dataclass(frozen=True)
 class PoolingOptions(_Options):
     """The pooled solver (omniflow/solve/; docs/decisions/pooling.md): which neighbours
-    form a pool, its flow model, its noise correction, its confidence floor and the
+    form a pool (its flow is linear across it), its noise correction, its confidence floor and the
     static test."""
 
     GROUP: ClassVar[str] = "pooling"
@@ -305,11 +304,6 @@ class PoolingOptions(_Options):
         0.1,
         "pooled solver: leave out neighbours whose range differs by more than this fraction",
         limits=(0.0, INF, False, False),
-    )
-    pool_model: str = knob(
-        "linear",
-        "pooled solver: local flow model, linear in theta or constant",
-        choices=POOL_MODELS,
     )
     eiv: str = knob(
         "residual",

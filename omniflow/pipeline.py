@@ -173,8 +173,8 @@ def estimate(
             flat = tuple(units)
         else:
             cam1, cam2 = units
-    for cam, s in zip((cam1, cam2, *flat), (*sigmas, *sigmas[: len(flat)]), strict=True):
-        cam["noise_var"] = noise_variance(s, cam["g"].fit, config)
+    for cam in (cam1, cam2, *flat):
+        cam["noise_var"] = noise_variance(cam["g"].fit, config)
     diagnostics = {"flow_band": flow_band, "noise_sigma1": sigmas[0], "noise_sigma2": sigmas[1]}
     t_fit = time.perf_counter()
     timings["fit"] = t_fit - t_start

@@ -292,7 +292,7 @@ def _unit_pair(a: _UnitFrame, b: _UnitFrame, config: OmniFlowConfig, flow_band: 
             )
     ft = Frame(replace(fa.fit, coeffs=fb.fit.coeffs - fa.fit.coeffs), a.unit)
     cam = {"a": a.frame(config.band), "af": fa, "b": fb, "g": g, "t": ft}
-    cam["noise_var"] = noise_variance(a.sigma, g.fit, config)
+    cam["noise_var"] = noise_variance(g.fit, config)
     return cam
 
 

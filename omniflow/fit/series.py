@@ -249,21 +249,16 @@ def fit_band(config: OmniFlowConfig) -> float:
 
 
 def needs_noise_sigma(config: OmniFlowConfig) -> bool:
-    """Whether the configuration reads the image noise (band choice or EIV correction)."""
-    return config.flow_band is None or (
-        config.pooling.eiv == "correct" and config.solver == "pooled"
-    )
+    """Whether the configuration reads the image noise (the band choice)."""
+    return config.flow_band is None
 
 
-def noise_variance(sigma: float, g: DCTFit, config: OmniFlowConfig) -> float:
+def noise_variance(g: DCTFit, config: OmniFlowConfig) -> float:
     """The gradient-noise variance the pooled solver subtracts (``config.pooling.eiv``).
 
-    ``"correct"``: from the unit's pixel noise ``sigma``; ``"residual"``: per
-    unit of the fitted value's noise variance (the solver scales it by the
-    residuals); ``"none"``: 0. ``g`` is the gradient series of the pair.
+    ``"residual"``: per unit of the fitted value's noise variance (the solver scales it
+    by the residuals); ``"none"``: 0. ``g`` is the gradient series of the pair.
     """
-    if config.pooling.eiv == "correct":
-        return gradient_noise(sigma, g, config)
     if config.pooling.eiv == "residual":
         return gradient_noise(1.0, g, config) / value_noise_share(g, config)
     return 0.0

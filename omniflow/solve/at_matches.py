@@ -31,7 +31,7 @@ from omniflow.parallel import submit
 from omniflow.solve.decoupled import decouple, start_pool_fits, tests
 from omniflow.solve.gain import gain_solution, gated
 from omniflow.solve.gridpool import GridPools
-from omniflow.solve.pooled import neighbourhoods, pooled_solution
+from omniflow.solve.pooled import POOL_MODEL, neighbourhoods, pooled_solution
 from omniflow.solve.refine import refine_moving
 
 __all__ = ["flow_at_matches", "make_solver"]
@@ -237,9 +237,10 @@ def make_solver(
     of the six derivatives returning (dh1_dt, dtheta_dt, confidence).
 
     ``noise``: the variance of each unit's gradient components, subtracted by
-    the pooled solver (``eiv="correct"``). ``static_test``: the pooled solver's
-    test of no motion (``config.pooling.static_test``; passed for the first solve only: the
-    refinement replaces only the flow of points that move a pixel or more).
+    the pooled solver (``eiv="residual"`` scales it by the residuals). ``static_test``:
+    the pooled solver's test of no motion (``config.pooling.static_test``; passed for the
+    first solve only: the refinement replaces only the flow of points that move a pixel or
+    more).
     ``brightness``: each unit's image f at the points, for the pooled solver's gain
     term (``config.brightness_gate``, :mod:`omniflow.solve.gain`): the pools whose F statistic
     of the gain passes the gate take the answer with it. The gain fit pools over the
@@ -278,7 +279,7 @@ def make_solver(
         idx, w = neighbourhoods(x1, y1, **tree)
 
     floor = config.pooling.pool_min_conditioning
-    kw = dict(theta=theta, model=config.pooling.pool_model, scale=pool_radius,
+    kw = dict(theta=theta, model=POOL_MODEL, scale=pool_radius,
               min_conditioning=floor)  # fmt: skip
 
     def plain(f1_h, f1_th, f1_t, f2_h, f2_th, f2_t, meanwhile=None):
@@ -292,7 +293,7 @@ def make_solver(
 
     solve = plain
     if config.brightness_gate is not None and brightness is not None:
-        gain_kw = dict(model=config.pooling.pool_model, scale=pool_radius, min_conditioning=floor,
+        gain_kw = dict(model=POOL_MODEL, scale=pool_radius, min_conditioning=floor,
                        noise=noise, residual_noise=config.pooling.eiv == "residual",
                        gate=config.brightness_gate, grid=grid,
                        linear_gain=grid is None and config.brightness.brightness_model == "linear",

@@ -42,7 +42,7 @@ from omniflow.config import OmniFlowConfig
 from omniflow.fit.sampling import sample_f, sample_polar_grad
 from omniflow.geometry.rig import Unit
 from omniflow.result import MONOCULAR_COLUMNS, OmniFlowResult
-from omniflow.solve.pooled import neighbourhoods, pooled_solution
+from omniflow.solve.pooled import POOL_MODEL, neighbourhoods, pooled_solution
 
 __all__ = [
     "BLOCK",
@@ -120,7 +120,7 @@ def monocular_flow(
     floor = config.pooling.pool_min_conditioning
     a, b, conf = pooled_solution(
         f_h, f_th, f_t, zero, zero, zero, h1, h1, idx, w, theta=theta,
-        model=config.pooling.pool_model, scale=radius, min_conditioning=floor,
+        model=POOL_MODEL, scale=radius, min_conditioning=floor,
     )  # fmt: skip
     keep = np.isfinite(a) & np.isfinite(b)
     x, y, h1, theta, a, b, conf, f_h, f_th, f_t = (

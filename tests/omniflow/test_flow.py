@@ -17,7 +17,6 @@ true motion 0.10 to 0.27 px median::
     0.25 first   difference pooled                 0.0116 0.0477 0.0469 | 0.0210 0.0529 0.0549
     0.25 average difference pooled                 0.0116 0.0378 0.0367 | 0.0208 0.0522 0.0531
     0.5  first   difference pooled                 0.0006 0.0255 0.0263 | 0.0062 0.0167 0.0186
-    0.5  average difference pooled-const (4 px)    0.0010 0.0106 0.0107 | 0.0070 0.0151 0.0166
     0.5  average difference pooled                 0.0005 0.0029 0.0028 | 0.0034 0.0094 0.0112
     0.5  average dct3d      pooled (3 frames)      0.0037 0.0117 0.0119 | 0.0071 0.0115 0.0119
     default: 0.5 average difference pooled,        0.0000 0.0031 0.0032 | 0.0004 0.0031 0.0042
@@ -37,7 +36,9 @@ their residuals took another 10-30 % off here but gained 0.001 px on renders and
 movers towards the background: retired, docs/decisions/retired_knobs.md.) (With the earlier 24
 neighbours within r_m / 16 the previous default was 0.0007 0.0050 0.0048 |
 0.0054 0.0126 0.0142.) The 3-D DCT (3 frames) is no better than the frame
-difference here.
+difference here. (A flow constant across 4 px pools, the pooled solver's first form,
+measured 0.0010 0.0106 0.0107 | 0.0070 0.0151 0.0166: retired with ``pool_model``,
+docs/decisions/retired_knobs.md.)
 """
 
 from __future__ import annotations
@@ -238,13 +239,6 @@ def _variants() -> dict[str, OmniFlowConfig]:
             solver=solver,
             fit={"flow_taper": 0.0, "gradients": grad, "temporal": temporal},
         )
-    # the pooled solver with a constant local flow over 4 px (its first form)
-    out["0.5 average difference pooled-const"] = OmniFlowConfig(
-        flow_band=0.5,
-        pool_radius=4.0,
-        fit={"flow_taper": 0.0},
-        pooling={"pool_model": "constant", "pool_k": 12},
-    )
     out["default"] = OmniFlowConfig()  # flow band 1/2 rolled off over its outer half
     return out
 

@@ -353,8 +353,9 @@ def direct(scene, frames, result):
 
 #: The matcher before issue 9 part 3 (tangential blur 0.03, no short pass, no sharp-peak
 #: or alias test, edges only): the pooled confidence ordering below was measured on it.
-EDGE_MATCHES = {"dense_percentile": None, "short_patch": None, "flatness": None,
-                "alias_score": None, "tangential_blur": 0.03}  # fmt: skip
+EDGE_MATCHES = {"dense_percentile": None,
+                "matching": {"short_patch": None, "flatness": None, "alias_score": None,
+                             "tangential_blur": 0.03}}  # fmt: skip
 
 
 @pytest.mark.parametrize("solver", ["pooled", "direct"])

@@ -90,7 +90,6 @@ def test_estimate_columns_and_csv(moving_frames, rig256, tmp_path):
         OmniFlowConfig(
             band=0.25,
             fit={"rim_fill": "none", "sampling": "linear"},
-            pooling={"pool_model": "constant"},
         ),
     ],
 )

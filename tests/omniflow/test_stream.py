@@ -26,7 +26,7 @@ REL_TOL = 1e-4
 CONFIGS = {
     "default": OmniFlowConfig(),
     "first-frame gradients": OmniFlowConfig(fit={"gradients": "first"}),
-    "band from the images, eiv correct": OmniFlowConfig(flow_band=None, pooling={"eiv": "correct"}),
+    "band from the images": OmniFlowConfig(flow_band=None),
     "paper": OmniFlowConfig.paper(),
     "linear sampling": OmniFlowConfig(fit={"sampling": "linear"}),
     "dct3d window": OmniFlowConfig(fit={"temporal": "dct3d"}),
