@@ -120,6 +120,10 @@ class _Options:
     def __post_init__(self) -> None:
         _check_fields(self, self.GROUP + ".")
 
+    def as_kwargs(self) -> dict[str, Any]:
+        """The group's fields by name (the keywords of the function that reads them)."""
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
     def changed(self, changes: Mapping[str, Any]) -> _Options:
         """A copy with the fields named in ``changes`` changed; an unknown name is an
         error listing the group's fields."""
