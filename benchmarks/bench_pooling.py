@@ -19,7 +19,8 @@ radial gain, time-to-contact error, each mover's error). Run from the repository
 (it imports tests.helpers)::
 
     PYTHONPATH=$PWD python3 benchmarks/bench_pooling.py runs/crossing/dataset \\
-        runs/independent_movers/dataset default: k96:pooling.pool_k=96 range3:pooling.pool_range_tol=0.03
+        runs/independent_movers/dataset default: k96:pooling.pool_k=96 \\
+        range3:pooling.pool_range_tol=0.03
 """
 
 from __future__ import annotations
