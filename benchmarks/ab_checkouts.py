@@ -12,7 +12,7 @@ both camera pairs of the first two frames per call. Run::
 
 ``--set NAME=VALUE`` (repeatable) gives every omniflow variant that
 OmniFlowConfig field (parsed as the CLI's ``--set``), e.g. the densified
-configuration: ``--set dense_percentile=60 --set pool_grid=0.125 --set decouple_tol=60``.
+configuration: ``--set dense_percentile=60 --set pooling.pool_grid=0.125 --set decouple_tol=60``.
 A variant's own ``:set=ITEMS`` (omniflow.cli.common.config_from_settings' comma-separated
 items, presets included) is added after those, so one run can time several
 configurations of one checkout against DIS in the same rounds::

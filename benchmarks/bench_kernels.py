@@ -29,7 +29,7 @@ from tests.omniflow.test_kernels import numpy_pooled_sums
 CONFIGS = {
     "default": OmniFlowConfig(),
     "dense (threshold_percentile=30, min_score=0.9, n_theta=720)": OmniFlowConfig(
-        threshold_percentile=30, min_score=0.9, n_theta=720
+        threshold_percentile=30, n_theta=720, matching={"min_score": 0.9}
     ),
 }
 

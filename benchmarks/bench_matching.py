@@ -97,9 +97,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", metavar="PATH", help="also write the results as JSON here")
     args = parser.parse_args(argv)
 
-    from omniflow.pipeline import OmniFlowConfig
-
-    config = OmniFlowConfig(**parse_set(args.set, OmniFlowConfig))
+    config = parse_set(args.set)
     rows = [score_dataset(d, config) for d in args.datasets]
     if args.table:
         cell = {k: " / ".join(f(r) for r in rows) for k, f in (

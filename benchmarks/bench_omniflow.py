@@ -32,14 +32,13 @@ room, the robot turning and driving slowly), or rendered frames with
     python benchmarks/bench_omniflow.py                  # 512 x 512 closed-form frames
     python benchmarks/bench_omniflow.py --size 256 --repeats 10 --json bench.json
     python benchmarks/bench_omniflow.py --dataset runs/default/dataset --memory-sizes
-    python benchmarks/bench_omniflow.py --set solver=pooled --set gradients=first
+    python benchmarks/bench_omniflow.py --set solver=pooled --set fit.gradients=first
     python benchmarks/bench_omniflow.py --dataset runs/default/dataset --profile 20
 """
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import os
 import platform
@@ -121,32 +120,16 @@ def opencv_methods() -> dict[str, Callable]:
     }
 
 
-def parse_set(items: list[str], cls) -> dict:
-    """``--set name=value`` pairs for OmniFlowConfig, converted by each field's default type."""
-    fields = {f.name: f for f in dataclasses.fields(cls)}
-    out = {}
-    for item in items:
-        name, sep, text = item.partition("=")
-        if not sep or name not in fields:
-            raise SystemExit(
-                f"bench: --set {item!r}: expected NAME=VALUE, NAME one of {list(fields)}"
-            )
-        default = fields[name].default
-        if text.lower() == "none" and "None" in str(fields[name].type):
-            value = None
-        elif isinstance(default, bool):
-            value = text.lower() in ("1", "true", "yes", "on")
-        elif isinstance(default, int | float) and default is not None:
-            value = type(default)(text)
-        elif text.lower() == "none":
-            value = None
-        else:
-            try:
-                value = json.loads(text)
-            except json.JSONDecodeError:
-                value = text
-        out[name] = value
-    return out
+def parse_set(items: list[str]):
+    """The OmniFlowConfig of ``--set NAME=VALUE`` items (a group's knobs by dotted name,
+    ``pooling.pool_k=64``; ``dense`` or ``paper`` starts from that preset), checked as
+    omniflow's own ``--set`` is (omniflow.cli.common.config_from_settings)."""
+    from omniflow.cli.common import CLIError, config_from_settings
+
+    try:
+        return config_from_settings(list(items))
+    except CLIError as exc:
+        raise SystemExit(f"bench: --set {exc}") from None
 
 
 def _rss_mb(field: str) -> float | None:
@@ -185,13 +168,13 @@ def memory_probe(folder: str, config_items: list[str]) -> dict:
     estimate() runs twice; the peak is reset again and a stream takes the frames
     (forwards and backwards) three times over.
     """
-    from omniflow.pipeline import OmniFlowConfig, estimate
+    from omniflow.pipeline import estimate
     from omniflow.stream import OmniFlowStream
 
     data = np.load(Path(folder) / "frames.npz")
     f1, f2 = list(data["f1"]), list(data["f2"])
     rig = Rig.symmetric(d=0.10, R=0.05, s=0.30, size=f1[0].shape[0])
-    config = OmniFlowConfig(**parse_set(config_items, OmniFlowConfig))
+    config = parse_set(config_items)
     estimate(f1, f2, rig, config, t=0)  # imports, caches, compiled kernels: not the pipeline's
     base = _rss_mb("VmRSS")
     reset = _reset_peak()
@@ -313,11 +296,11 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(memory_probe(args.memory_probe, args.set)))
         return 0
 
-    from omniflow.pipeline import OmniFlowConfig, estimate
+    from omniflow.pipeline import estimate
     from omniflow.stream import OmniFlowStream
 
-    config = OmniFlowConfig(**parse_set(args.set, OmniFlowConfig))
-    pair_frames = config.temporal_frames if config.temporal == "dct3d" else 2
+    config = parse_set(args.set)
+    pair_frames = config.fit.temporal_frames if config.fit.temporal == "dct3d" else 2
     count = max(pair_frames, 4)
     if args.dataset:
         from omniflow.io.dataset import open_dataset
@@ -432,7 +415,7 @@ def main(argv: list[str] | None = None) -> int:
     report = {
         "frames": source,
         "image_size": list(f1[0].shape),
-        "config": {k: v for k, v in dataclasses.asdict(config).items()},
+        "config": config.to_dict(),
         "repeats": args.repeats,
         "warmup": args.warmup,
         "results": rows,

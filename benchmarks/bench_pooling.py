@@ -19,7 +19,8 @@ radial gain, time-to-contact error, each mover's error). Run from the repository
 (it imports tests.helpers)::
 
     PYTHONPATH=$PWD python3 benchmarks/bench_pooling.py runs/crossing/dataset \\
-        runs/independent_movers/dataset default: k96:pool_k=96 range3:pool_range_tol=0.03
+        runs/independent_movers/dataset default: k96:pooling.pool_k=96 \\
+        range3:pooling.pool_range_tol=0.03
 """
 
 from __future__ import annotations
@@ -33,7 +34,8 @@ import numpy as np
 
 
 def parse_variant(spec: str):
-    """``NAME:k=v;k=v`` -> (name, OmniFlowConfig or TrueMatches)."""
+    """``NAME:k=v;k=v`` -> (name, OmniFlowConfig or TrueMatches); a group's knob by its
+    dotted name (``grid:pooling.pool_grid=0.125``)."""
     from omniflow.config import OmniFlowConfig
     from validation.variants import TrueMatches
 
@@ -45,7 +47,7 @@ def parse_variant(spec: str):
             knobs[key] = ast.literal_eval(value)
         except (ValueError, SyntaxError):
             knobs[key] = value
-    config = OmniFlowConfig(**knobs)
+    config = OmniFlowConfig().with_settings(knobs)
     return name, TrueMatches(config) if name.startswith("truth+") else config
 
 
@@ -145,8 +147,8 @@ def mixing(dataset: str) -> list[str]:
         iy = np.clip(res["y"].astype(int), 0, obj_map.shape[0] - 1)
         ix = np.clip(res["x"].astype(int), 0, obj_map.shape[1] - 1)
         obj = obj_map[iy, ix].astype(int)
-        idx, w = neighbourhoods(res["x"], res["y"], k=config.pool_k, radius=radius,
-                                r=res["r"], range_tol=config.pool_range_tol)  # fmt: skip
+        idx, w = neighbourhoods(res["x"], res["y"], k=config.pooling.pool_k, radius=radius,
+                                r=res["r"], range_tol=config.pooling.pool_range_tol)  # fmt: skip
         other = np.append(obj, -1)[idx] != obj[:, None]
         frac = (w * other).sum(axis=1) / w.sum(axis=1)
         for i in movers:
@@ -173,7 +175,9 @@ def boundary(variants: list, band_mean: float, share: float = 0.1) -> list[str]:
         obj = gt["gt.object"][iy, ix]
         true_dh, true_tan = gt["gt.flow.dh"][iy, ix], gt["gt.flow.hdtheta"][iy, ix]
         est_tan = res["h1"] * res["dtheta_dt"]
-        idx, _ = neighbourhoods(res["x"], res["y"], k=config.pool_k, radius=rig.cam1.r_m / 8.0)
+        idx, _ = neighbourhoods(
+            res["x"], res["y"], k=config.pooling.pool_k, radius=rig.cam1.r_m / 8.0
+        )
         crosses = ((np.append(obj, -1)[idx] != obj[:, None]) & (idx < obj.size)).any(axis=1)
         band, inner = obj == 2, (obj == 2) & ~crosses
         epe = np.hypot(res["dh1_dt"] - true_dh, est_tan - true_tan)

@@ -9,7 +9,7 @@ reference checkout on PYTHONPATH and ``--write``, then with this one and ``--com
     PYTHONPATH=$PWD python benchmarks/compare_columns.py --compare ref.npz
     PYTHONPATH=$PWD python benchmarks/compare_columns.py --compare ref.npz --threads 1
     # the densified option: the same --set for both runs
-    ... --set dense_percentile=60 --set pool_grid=0.125 --set decouple_tol=60
+    ... --set dense_percentile=60 --set pooling.pool_grid=0.125 --set decouple_tol=60
 
 Prints the number of points, whether every pair has the same (theta, h1) samples, and
 the largest |new - reference| over a column relative to the column's largest |value|.
@@ -19,7 +19,6 @@ Exit 1 when the samples differ.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import sys
 from pathlib import Path
 
@@ -58,11 +57,10 @@ def main(argv: list[str] | None = None) -> int:
     group.add_argument("--compare", metavar="NPZ")
     args = parser.parse_args(argv)
     from omniflow import parallel
-    from omniflow.config import OmniFlowConfig
 
     if args.threads is not None:
         parallel.THREADS = args.threads
-    config = dataclasses.replace(OmniFlowConfig(), **parse_set(args.set, OmniFlowConfig))
+    config = parse_set(args.set)
     out = columns(args.datasets, args.pairs, config)
     if args.write:
         np.savez(args.write, **out)

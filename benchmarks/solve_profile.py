@@ -6,7 +6,8 @@
 end (wall, ms from the call's start) for the median pair. The components are the module
 functions below, wrapped where estimate() looks them up (so a checkout that lacks one
 just leaves it out). ``--set`` as omniflow's (the dense preset: ``--set
-dense_percentile=60 --set dense_smooth=0.95 --set pool_grid=0.125 --set decouple_tol=60``)::
+dense_percentile=60 --set matching.dense_smooth=0.95 --set pooling.pool_grid=0.125
+--set decouple_tol=60``)::
 
     PYTHONPATH=<checkout> python benchmarks/solve_profile.py runs/approach/dataset [--set ...]
 """

@@ -97,11 +97,12 @@ def flow_grids(cam: dict, config: OmniFlowConfig) -> dict:
     Each is a lazy property of its Frame, made once: making it here changes no value.
     Returns ``cam``.
     """
-    if config.sampling != "exact":
+    if config.fit.sampling != "exact":
         needed = [("g", "grad_xy"), ("t", "f")]
-        if config.iterations > 0 and config.iterate_min_px == 0.0:  # grids read off-pixel
+        # grids read off-pixel
+        if config.iterations > 0 and config.refinement.iterate_min_px == 0.0:
             needed += [("b", "grad_xy"), ("b", "fine"), ("af", "fine")]
-            if config.gradients == "average":
+            if config.fit.gradients == "average":
                 needed.append(("af", "grad_xy"))
         for key, grid_name in needed:
             getattr(cam[key], grid_name)
@@ -137,7 +138,7 @@ def estimate(
     ----------
     frames1, frames2 : sequence of ndarray, each shape (H, W)
         Grey float frames of cam1 and cam2 (at least t + 2; at least
-        ``config.temporal_frames`` for ``temporal="dct3d"``).
+        ``config.fit.temporal_frames`` for ``temporal="dct3d"``).
     rig : Rig
     config : OmniFlowConfig, optional
         Defaults to ``OmniFlowConfig()``.
@@ -171,14 +172,14 @@ def estimate(
     cam1 = unit_frames(fits[0], rig.cam1, config, flow_band)
     cam2 = unit_frames(fits[1], rig.cam2, config, flow_band)
     flat: tuple = ()  # the flattened units when they are used only where objects move
-    if config.flow_shading is not None:  # the flow step on shading-flattened frames
+    if config.brightness.flow_shading is not None:  # the flow step on shading-flattened frames
         units = flow_units(frames1, frames2, t, rig, config, flow_band, (cam1, cam2))
-        if config.flow_shading_where == "moving":
+        if config.brightness.flow_shading_where == "moving":
             flat = tuple(units)
         else:
             cam1, cam2 = units
-    for cam, s in zip((cam1, cam2, *flat), (*sigmas, *sigmas[: len(flat)]), strict=True):
-        cam["noise_var"] = noise_variance(s, cam["g"].fit, config)
+    for cam in (cam1, cam2, *flat):
+        cam["noise_var"] = noise_variance(cam["g"].fit, config)
     diagnostics = {"flow_band": flow_band, "noise_sigma1": sigmas[0], "noise_sigma2": sigmas[1]}
     t_fit = time.perf_counter()
     timings["fit"] = t_fit - t_start
@@ -250,31 +251,12 @@ def stereo_matches(
         rig,
         method=config.match_method,
         threshold_percentile=config.threshold_percentile,
-        min_gradient=config.min_gradient,
         r_min=config.r_min,
         r_max=config.r_max,
         n_theta=config.n_theta,
-        h_step=config.h_step,
-        h_min=config.h_min,
-        rim_margin=config.rim_margin,
         patch_radius=config.patch_radius,
-        profile_step=config.profile_step,
-        min_score=config.min_score,
-        uniqueness=config.uniqueness,
-        left_right=config.left_right,
-        candidate_fraction=config.candidate_fraction,
-        tangential_blur=config.tangential_blur,
-        consistency=config.consistency,
-        consistency_support=config.consistency_support,
-        flatness=config.flatness,
-        alias_score=config.alias_score,
-        alias_image2=config.alias_image2,
-        alias_period=config.alias_period,
         dense_percentile=config.dense_percentile,
-        dense_reach=config.dense_reach,
-        dense_smooth=config.dense_smooth,
-        edge_smooth=config.edge_smooth,
-        edge_smooth_floor=config.edge_smooth_floor,
-        short_patch=config.short_patch,
+        **config.search.as_kwargs(),  # the groups' field names are match_radial's keywords
+        **config.matching.as_kwargs(),
         grids=grids,
     )

@@ -132,13 +132,15 @@ class OmniFlowStream:
         self._rect = Rectifier(rig) if has_errors(rig) else None
         self.rig = rig if self._rect is None else self._rect.ideal
         self.config = OmniFlowConfig() if config is None else config
-        if self.config.flow_shading is not None:  # a second fit per frame, not kept here yet
+        if (
+            self.config.brightness.flow_shading is not None
+        ):  # a second fit per frame, not kept here yet
             raise ValueError("flow_shading: not supported by OmniFlowStream; use estimate()")
         self._prev: StereoFrame | None = None
-        window = self.config.temporal_frames if self.config.temporal == "dct3d" else 0
+        window = self.config.fit.temporal_frames if self.config.fit.temporal == "dct3d" else 0
         self._window: collections.deque = collections.deque(maxlen=max(window, 1))
         self.frames_pushed = 0
-        dct3d = self.config.temporal == "dct3d"
+        dct3d = self.config.fit.temporal == "dct3d"
         self._pool = ThreadPoolExecutor(1, "omniflow-match") if background and not dct3d else None
 
     def reset(self) -> None:
@@ -186,7 +188,7 @@ class OmniFlowStream:
 
     def _push(self, frame1: ArrayLike, frame2: ArrayLike) -> OmniFlowResult | None:
         index = self.frames_pushed
-        if self.config.temporal == "dct3d":
+        if self.config.fit.temporal == "dct3d":
             return self._push_window(frame1, frame2, index)
         t_start = time.perf_counter()
         cur = StereoFrame(frame1, frame2, self.rig, self.config, index)
@@ -226,7 +228,7 @@ class OmniFlowStream:
             # Frame either reads is made here first, so the threads share no lazy dict entry
             for u in (*prev.units, *cur.units):
                 u.frame(config.band)
-                u.frame(flow_band, config.flow_taper)
+                u.frame(flow_band, config.fit.flow_taper)
             flow = [submit(_unit_flow, a, b, config, flow_band)
                     for a, b in zip(prev.units, cur.units, strict=True)]  # fmt: skip
             try:
@@ -282,24 +284,24 @@ def _unit_pair(a: _UnitFrame, b: _UnitFrame, config: OmniFlowConfig, flow_band: 
     """One unit's series for the pair (a, b), keys as :func:`omniflow.pipeline.estimate`'s.
 
     ``a``: frame t at the matching band; ``af``, ``b``: frames t and t + 1 at the flow
-    band, rolled off by ``config.flow_taper``;
+    band, rolled off by ``config.fit.flow_taper``;
     ``g``: the gradient series (frame t's, or the mean of both frames: its
     gradient grids are the mean of theirs, each made once per frame); ``t``:
     the series of f_t, the coefficients' difference (eq. 17 is linear).
     """
-    fa, fb = a.frame(flow_band, config.flow_taper), b.frame(flow_band, config.flow_taper)
-    if config.gradients == "first":
+    fa, fb = a.frame(flow_band, config.fit.flow_taper), b.frame(flow_band, config.fit.flow_taper)
+    if config.fit.gradients == "first":
         g = fa
     else:
         g = Frame(replace(fa.fit, coeffs=0.5 * (fa.fit.coeffs + fb.fit.coeffs)), a.unit)
-        if config.sampling != "exact":  # the exact path evaluates g's series itself
+        if config.fit.sampling != "exact":  # the exact path evaluates g's series itself
             g._grad_xy = tuple(
                 np.multiply(np.add(p, q), np.float32(0.5))
                 for p, q in zip(fa.grad_xy, fb.grad_xy, strict=True)
             )
     ft = Frame(replace(fa.fit, coeffs=fb.fit.coeffs - fa.fit.coeffs), a.unit)
     cam = {"a": a.frame(config.band), "af": fa, "b": fb, "g": g, "t": ft}
-    cam["noise_var"] = noise_variance(a.sigma, g.fit, config)
+    cam["noise_var"] = noise_variance(g.fit, config)
     return cam
 
 

@@ -79,8 +79,18 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from omniflow.io.dataset import MASK_FILES, Dataset, DatasetError, grey_of
+from omniflow.io.dataset import MASK_FILES, Dataset, DatasetError
 from omnisim.check_files import dataset_file_problems
+from omnisim.check_pixels import (
+    image_polar,
+    interior,
+    is_lambertian,
+    luma,
+    mask_consistency,
+    noise_sigma,
+    remap,
+    wrap,
+)
 
 __all__ = ["CheckResult", "Tolerances", "format_results", "run_checks"]
 
@@ -180,107 +190,6 @@ class _Acc:
         return float(np.percentile(v, q))
 
 
-def _wrap(a: NDArray) -> NDArray:
-    return (a + np.pi) % (2 * np.pi) - np.pi
-
-
-def _remap(img: NDArray, mx: NDArray, my: NDArray, cubic: bool = False) -> NDArray:
-    import cv2
-
-    return cv2.remap(
-        np.ascontiguousarray(img, dtype=np.float32),
-        mx.astype(np.float32),
-        my.astype(np.float32),
-        interpolation=cv2.INTER_CUBIC if cubic else cv2.INTER_LINEAR,
-        borderMode=cv2.BORDER_REPLICATE,
-    )
-
-
-def _interior(ch: dict[str, NDArray]) -> NDArray:
-    """Valid pixels whose 3x3 neighbourhood is valid and shows the same object."""
-    from scipy import ndimage
-
-    valid = ch["gt.valid"] > 0.5
-    obj = np.where(valid, ch["gt.object"], -1.0)
-    same = ndimage.minimum_filter(obj, 3, mode="nearest") == ndimage.maximum_filter(
-        obj, 3, mode="nearest"
-    )
-    return valid & ndimage.binary_erosion(valid, np.ones((3, 3)), border_value=0) & same
-
-
-def _noise_sigma(img: NDArray, mask: NDArray) -> tuple[float, int]:
-    """Immerkaer (1996) noise estimate on ``mask`` (needs the 3x3 support inside it)."""
-    from scipy import ndimage
-
-    k = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], dtype=np.float64)
-    lap = ndimage.convolve(img.astype(np.float64), k, mode="nearest")
-    m = ndimage.binary_erosion(mask, np.ones((3, 3)), border_value=0)
-    n = int(m.sum())
-    if n == 0:
-        return math.nan, 0
-    return math.sqrt(math.pi / 2.0) / 6.0 * float(np.mean(np.abs(lap[m]))), n
-
-
-def _image_polar(unit, r: NDArray, th: NDArray, h: NDArray, mask: NDArray):
-    """(h_i, theta_i) at which ``unit`` images the rig points (r, th, h), (H, W) each.
-
-    Eq. (1) (theta_i = th) for an ideal unit; for one with rig errors
-    (``Unit.errors``) the traced model's pixel
-    (:func:`omniflow.geometry.rig_errors.traced_project`) on ``mask``, its polar
-    coordinates about (x_c, y_c), NaN where no pixel sees the point (counted as
-    non-finite: a failure).
-    """
-    if getattr(unit, "errors", None) is None:
-        return unit.image_radius(r, h), th
-    from omniflow.geometry.rig_errors import traced_project
-
-    h_out = np.full(r.shape, np.nan)
-    th_out = np.full(r.shape, np.nan)
-    q = np.stack([r * np.cos(th), r * np.sin(th), h], axis=-1)[mask]
-    x, y, _ = traced_project(unit, q)
-    h_out[mask] = np.hypot(x - unit.x_c, y - unit.y_c)
-    th_out[mask] = np.arctan2(y - unit.y_c, x - unit.x_c)
-    return h_out, th_out
-
-
-def _luma(ch: dict[str, NDArray]) -> NDArray:
-    """The frame's Rec. 709 luma (the project's one: omniflow.io.dataset.grey_of), float64."""
-    return grey_of(ch).astype(np.float64)
-
-
-def _is_lambertian(material) -> bool:
-    if material is None:
-        return True
-    if isinstance(material, str):
-        return material.lower() in ("diffuse", "lambertian")
-    if isinstance(material, dict):
-        kind = material.get("type", material.get("kind", "diffuse"))
-        return str(kind).lower() in ("diffuse", "lambertian")
-    return "diffuse" in str(material).lower()
-
-
-def _mask_consistency(ch: dict[str, NDArray], k: int) -> tuple[int, int]:
-    """Version 2 flow masks: (pixels where they break the contract, pixels looked at).
-
-    Per direction (``gt.flow``, ``gt.bflow``): valid, occluded, outside are 0/1, disjoint
-    and 0 where ``gt.valid`` is 0; frame 0's backward masks and flow are all 0.
-    """
-    valid = ch["gt.valid"] > 0.5
-    bad = np.zeros(valid.shape, bool)
-    for key in ("gt.flow", "gt.bflow"):
-        masks = [ch[f"{key}.{m}"] for m in ("valid", "occluded", "outside")]
-        total = np.zeros(valid.shape)
-        for m in masks:
-            bad |= (m != 0) & (m != 1)
-            total += m
-        bad |= (total > 1) | ((total > 0) & ~valid)
-        if key == "gt.bflow" and k == 0:
-            for c in ("dx", "dy", "dh", "hdtheta"):
-                bad |= ch[f"{key}.{c}"] != 0
-            bad |= total != 0
-    return int(bad.sum()), bad.size
-
-
 #: Broken files the ``files`` check names in its detail (the count says how many in all).
 _FILES_SHOWN = 5
 
@@ -301,6 +210,81 @@ def _files_result(broken: dict, n: int) -> CheckResult:
     )
 
 
+@dataclass
+class _Tally:
+    """What the checks add up over the frames: the geometric accumulators, the
+    photometric sums and the counts of the file and id checks."""
+
+    acc: dict[str, _Acc] = field(
+        default_factory=lambda: {
+            name: _Acc()
+            for name in (
+                "eq1",
+                "theta",
+                "world",
+                "stereo",
+                "flow_polar",
+                "flo_file",
+                "static_world",
+            )
+        }
+    )
+    photo: _Acc = field(default_factory=_Acc)
+    unknown_ids: set[int] = field(default_factory=set)
+    flo_mismatch: int = 0
+    n_valid: int = 0
+    mask_bad: int = 0  # version 2: flow mask consistency
+    mask_n: int = 0
+
+
+@dataclass(frozen=True)
+class _Scene:
+    """The dataset's poses and objects, as the checks read them."""
+
+    poses_robot: NDArray
+    obj_meta: dict[int, dict]
+    known_ids: set[int]
+    lambertian_ids: list[int]
+
+    @classmethod
+    def of(cls, ds: Dataset) -> _Scene:
+        obj_meta = {int(o["id"]): o for o in ds.meta.get("objects", [])}
+        return cls(
+            poses_robot=np.asarray(ds.meta["robot"]["poses"], dtype=np.float64),
+            obj_meta=obj_meta,
+            known_ids=set(obj_meta) | {0},
+            lambertian_ids=[i for i, o in obj_meta.items() if is_lambertian(o.get("material"))],
+        )
+
+
+class _FrameCache:
+    """``ds.read_frame`` keeping frames k - 1 and later (the temporal checks read k + 1)."""
+
+    def __init__(self, ds: Dataset) -> None:
+        self.ds = ds
+        self.cache: dict[tuple[int, str], dict[str, NDArray]] = {}
+
+    def __call__(self, k: int, cam: str) -> dict[str, NDArray]:
+        key = (k, cam)
+        if key not in self.cache:
+            for old in [x for x in self.cache if x[0] < k - 1]:
+                del self.cache[old]
+            self.cache[key] = self.ds.read_frame(k, cam)
+        return self.cache[key]
+
+
+@dataclass(frozen=True)
+class _Pixels:
+    """One frame's pixel grid and the truth the temporal checks reuse."""
+
+    x: NDArray
+    y: NDArray
+    world: NDArray
+    fv: NDArray
+    dx: NDArray
+    dy: NDArray
+
+
 def run_checks(
     ds: Dataset,
     *,
@@ -313,32 +297,11 @@ def run_checks(
     if not done:
         raise DatasetError(f"{ds.dir}: no rendered frame to check")
     frames = sorted(set(done if frames is None else frames) & set(done))
-    poses_robot = np.asarray(ds.meta["robot"]["poses"], dtype=np.float64)
-    obj_meta = {int(o["id"]): o for o in ds.meta.get("objects", [])}
-    known_ids = set(obj_meta) | {0}
-    lambertian_ids = [i for i, o in obj_meta.items() if _is_lambertian(o.get("material"))]
-
-    acc = {
-        name: _Acc()
-        for name in ("eq1", "theta", "world", "stereo", "flow_polar", "flo_file", "static_world")
-    }
-    photo = _Acc()
-    unknown_ids: set[int] = set()
-    flo_mismatch = 0
-    n_valid = 0
-    mask_bad, mask_n = 0, 0  # version 2: flow mask consistency
-
+    scene = _Scene.of(ds)
+    tally = _Tally()
     # camera PNGs, mask PNGs and .flo files that do not decode (the ``files`` check)
     broken, n_files = dataset_file_problems(ds, frames)
-    cache: dict[tuple[int, str], dict[str, NDArray]] = {}
-
-    def load(k: int, cam: str) -> dict[str, NDArray]:
-        key = (k, cam)
-        if key not in cache:
-            for old in [x for x in cache if x[0] < k - 1]:
-                del cache[old]
-            cache[key] = ds.read_frame(k, cam)
-        return cache[key]
+    load = _FrameCache(ds)
 
     it: Iterable[int] = frames
     if progress:
@@ -347,145 +310,181 @@ def run_checks(
         it = tqdm(frames, unit="frame", desc="omnisim check")
 
     for k in it:
-        T = poses_robot[k]
         for cam in ds.cameras:
-            unit = ds.unit(cam)
-            other = ds.unit("cam2" if cam == "cam1" else "cam1")
             ch = load(k, cam)
-            valid = ch["gt.valid"] > 0.5
-            n_valid += int(valid.sum())
-            x, y = unit.pixel_centres()
-            h_i, th_i = unit.polar_of_pixel(x, y)
-            r = ch["gt.r"].astype(np.float64)
-            h = ch["gt.h"].astype(np.float64)
-            th = ch["gt.theta"].astype(np.float64)
-            ids = np.unique(ch["gt.object"][valid]).astype(int)
-            unknown_ids |= set(ids.tolist()) - known_ids
+            pix = _check_frame(ds, k, cam, ch, scene, tally, broken)
+            if k + 1 in frames:  # temporal checks need frame k + 1
+                _check_pair(ds, k, cam, ch, load(k + 1, cam), pix, scene, tally, tol)
 
-            # eq. (1) and theta (the traced model for a unit with rig errors)
-            h_gt, th_gt = _image_polar(unit, r, th, h, valid)
-            acc["eq1"].add(np.abs(h_gt - h_i)[valid], keep=20000)
-            acc["theta"].add((np.abs(_wrap(th_gt - th_i)) * h_i)[valid])
+    results = _geometry_results(ds, tally, tol)
+    results += _file_results(tally, tol, broken, n_files)
+    results.append(_static_world_result(tally.acc["static_world"], tol))
+    results += _photometric_results(tally.photo, tol)
+    return results
 
-            # world point vs rig cylindrical coordinates and the robot's pose
-            p_rig = np.stack([r * np.cos(th), r * np.sin(th), h, np.ones_like(r)], axis=-1)
-            p_w = p_rig @ T.T
-            world = np.stack([ch["gt.X"], ch["gt.Y"], ch["gt.Z"]], axis=-1).astype(np.float64)
-            acc["world"].add(np.linalg.norm(p_w[..., :3] - world, axis=-1)[valid])
 
-            # stereo, eq. (3)/(4)
-            sv = (ch["gt.stereo.valid"] > 0.5) & valid
-            h_o = _image_polar(other, r, th, h, sv)[0]
-            acc["stereo"].add(np.abs(h_o - ch["gt.stereo.h_other"])[sv])
+def _check_frame(ds: Dataset, k: int, cam: str, ch: dict[str, NDArray], scene: _Scene,
+                 tally: _Tally, broken: dict) -> _Pixels:  # fmt: skip
+    """The checks of one frame of one camera: eq. (1), theta, the world point, stereo,
+    the polar flow, the masks and the .flo file."""
+    acc = tally.acc
+    T = scene.poses_robot[k]
+    unit = ds.unit(cam)
+    other = ds.unit("cam2" if cam == "cam1" else "cam1")
+    valid = ch["gt.valid"] > 0.5
+    tally.n_valid += int(valid.sum())
+    x, y = unit.pixel_centres()
+    h_i, th_i = unit.polar_of_pixel(x, y)
+    r = ch["gt.r"].astype(np.float64)
+    h = ch["gt.h"].astype(np.float64)
+    th = ch["gt.theta"].astype(np.float64)
+    ids = np.unique(ch["gt.object"][valid]).astype(int)
+    tally.unknown_ids |= set(ids.tolist()) - scene.known_ids
 
-            # polar flow vs Cartesian flow
-            fv = (ch["gt.flow.valid"] > 0.5) & valid
-            dx = ch["gt.flow.dx"].astype(np.float64)
-            dy = ch["gt.flow.dy"].astype(np.float64)
-            h2, th2 = unit.polar_of_pixel(x + dx, y + dy)
-            e_dh = np.abs((h2 - h_i) - ch["gt.flow.dh"])
-            e_ht = np.abs(h_i * _wrap(th2 - th_i) - ch["gt.flow.hdtheta"])
-            acc["flow_polar"].add(np.maximum(e_dh, e_ht)[fv])
-            if ds.version >= 2:  # the backward flow, wherever it is seen at t - 1
-                bv = (ch["gt.bflow.valid"] > 0.5) & valid
-                h2, th2 = unit.polar_of_pixel(x + ch["gt.bflow.dx"], y + ch["gt.bflow.dy"])
-                e_dh = np.abs((h2 - h_i) - ch["gt.bflow.dh"])
-                e_ht = np.abs(h_i * _wrap(th2 - th_i) - ch["gt.bflow.hdtheta"])
-                acc["flow_polar"].add(np.maximum(e_dh, e_ht)[bv])
+    # eq. (1) and theta (the traced model for a unit with rig errors)
+    h_gt, th_gt = image_polar(unit, r, th, h, valid)
+    acc["eq1"].add(np.abs(h_gt - h_i)[valid], keep=20000)
+    acc["theta"].add((np.abs(wrap(th_gt - th_i)) * h_i)[valid])
 
-            if ds.version >= 2:
-                bad, n = _mask_consistency(ch, k)
-                mask_bad += bad
-                mask_n += n
-            # the .flo file and the mask PNGs, unless the files check found them broken
-            masks = MASK_FILES if ds.version >= 2 else ()
-            if not any(ds.path(k, cam, x) in broken for x in ("flo", *masks)):
-                flow, flo_ok = ds.read_flo(k, cam)
-                known = ds.flo_known(ch)  # version 1: gt.flow.valid; 2: every defined flow
-                flo_mismatch += int((flo_ok != known).sum())
-                for name, mask in ds.read_flow_masks(k, cam).items():  # version 2's PNGs
-                    flo_mismatch += int((mask != (ch[name] > 0.5)).sum())
-                both = flo_ok & known
-                e = np.maximum(np.abs(flow[..., 0] - ch["gt.flow.dx"]), np.abs(flow[..., 1] - dy))
-                acc["flo_file"].add(e[both])
+    # world point vs rig cylindrical coordinates and the robot's pose
+    p_rig = np.stack([r * np.cos(th), r * np.sin(th), h, np.ones_like(r)], axis=-1)
+    p_w = p_rig @ T.T
+    world = np.stack([ch["gt.X"], ch["gt.Y"], ch["gt.Z"]], axis=-1).astype(np.float64)
+    acc["world"].add(np.linalg.norm(p_w[..., :3] - world, axis=-1)[valid])
 
-            # temporal checks need frame k + 1
-            if k + 1 not in frames:
-                continue
-            nxt = load(k + 1, cam)
-            int_t = _interior(ch)
-            int_n = _interior(nxt)
-            # cv2 index coordinates of the target: continuous (x + dx) - 0.5
-            mx = x + np.where(fv, dx, 0.0) - 0.5
-            my = y + np.where(fv, dy, 0.0) - 0.5
-            jn = np.rint(mx).astype(np.int64)
-            in_n = np.rint(my).astype(np.int64)
-            inside = (jn >= 0) & (jn < unit.width) & (in_n >= 0) & (in_n < unit.height)
-            jn_c = np.clip(jn, 0, unit.width - 1)
-            in_c = np.clip(in_n, 0, unit.height - 1)
-            same = nxt["gt.object"][in_c, jn_c] == ch["gt.object"]
-            usable = fv & int_t & inside & int_n[in_c, jn_c] & same
+    # stereo, eq. (3)/(4)
+    sv = (ch["gt.stereo.valid"] > 0.5) & valid
+    h_o = image_polar(other, r, th, h, sv)[0]
+    acc["stereo"].add(np.abs(h_o - ch["gt.stereo.h_other"])[sv])
 
-            # static world point
-            static_ids = [
-                i
-                for i, o in obj_meta.items()
-                if np.allclose(o["poses"][k], o["poses"][k + 1], rtol=0, atol=1e-12)
-            ]
-            st = usable & np.isin(ch["gt.object"], static_ids)
-            if st.any():
-                wn = np.stack([_remap(nxt[c], mx, my) for c in ("gt.X", "gt.Y", "gt.Z")], -1)
-                dist = np.linalg.norm(wn.astype(np.float64) - world, axis=-1)
-                # local pixel footprint: distance between horizontally/vertically adjacent
-                # pixels' world points in frame t (the larger of the two, inside the object)
-                fx = np.zeros_like(dist)
-                fy = np.zeros_like(dist)
-                fx[:, :-1] = np.linalg.norm(world[:, 1:] - world[:, :-1], axis=-1)
-                fy[:-1, :] = np.linalg.norm(world[1:, :] - world[:-1, :], axis=-1)
-                foot = np.maximum(fx, fy)
-                ok = st & (foot > 0)
-                acc["static_world"].add((dist / np.where(foot > 0, foot, 1.0))[ok], keep=20000)
+    # polar flow vs Cartesian flow
+    fv = (ch["gt.flow.valid"] > 0.5) & valid
+    dx = ch["gt.flow.dx"].astype(np.float64)
+    dy = ch["gt.flow.dy"].astype(np.float64)
+    h2, th2 = unit.polar_of_pixel(x + dx, y + dy)
+    e_dh = np.abs((h2 - h_i) - ch["gt.flow.dh"])
+    e_ht = np.abs(h_i * wrap(th2 - th_i) - ch["gt.flow.hdtheta"])
+    acc["flow_polar"].add(np.maximum(e_dh, e_ht)[fv])
+    if ds.version >= 2:  # the backward flow, wherever it is seen at t - 1
+        bv = (ch["gt.bflow.valid"] > 0.5) & valid
+        h2, th2 = unit.polar_of_pixel(x + ch["gt.bflow.dx"], y + ch["gt.bflow.dy"])
+        e_dh = np.abs((h2 - h_i) - ch["gt.bflow.dh"])
+        e_ht = np.abs(h_i * wrap(th2 - th_i) - ch["gt.bflow.hdtheta"])
+        acc["flow_polar"].add(np.maximum(e_dh, e_ht)[bv])
 
-            # photometric: gt.flow against zero flow and against its neighbours
-            lam = usable & np.isin(ch["gt.object"], lambertian_ids)
-            if lam.sum() >= tol.min_pixels:
-                i_t = _luma(ch)
-                i_n = _luma(nxt).astype(np.float32)
-                fx, fy = np.where(fv, dx, 0.0), np.where(fv, dy, 0.0)
-                a, e = tol.photometric_scale_step, tol.photometric_shift_px
-                trials = {
-                    "flow": (1.0, 0.0, 0.0),
-                    "zero": (0.0, 0.0, 0.0),
-                    f"x{1 - a:g}": (1 - a, 0.0, 0.0),
-                    f"x{1 + a:g}": (1 + a, 0.0, 0.0),
-                    f"dx-{e:g}": (1.0, -e, 0.0),
-                    f"dx+{e:g}": (1.0, e, 0.0),
-                    f"dy-{e:g}": (1.0, 0.0, -e),
-                    f"dy+{e:g}": (1.0, 0.0, e),
-                }
-                sq_flow = None
-                for name, (sc, ox, oy) in trials.items():
-                    warped = _remap(i_n, x + sc * fx + ox - 0.5, y + sc * fy + oy - 0.5, True)
-                    sq = (i_t - warped.astype(np.float64))[lam] ** 2
-                    photo.add_sum(name, float(np.sum(sq)))
-                    if sq_flow is None:
-                        sq_flow = sq
-                    elif name != "zero":
-                        # per-pixel excess of gt.flow over this neighbour, for its standard error
-                        photo.add_sum("d2:" + name, float(np.sum((sq_flow - sq) ** 2)))
-                s_t, n_t = _noise_sigma(i_t, lam)
-                s_n, n_n = _noise_sigma(i_n, int_n & np.isin(nxt["gt.object"], lambertian_ids))
-                if n_t and n_n:
-                    photo.add_sum("sig2", (s_t**2 + s_n**2) / 2.0)
-                    photo.add_sum("pairs", 1)
-                photo.add_sum("n", int(lam.sum()))
-                moves = not np.allclose(poses_robot[k], poses_robot[k + 1], rtol=0, atol=1e-12)
-                moves |= len(static_ids) < len(obj_meta)
-                photo.add_sum("moving_pairs", int(moves))
-                photo.add_sum("mean", float(np.sum(i_t[lam])))
-                photo.add(np.hypot(fx, fy)[lam], keep=20000)
+    if ds.version >= 2:
+        bad, n = mask_consistency(ch, k)
+        tally.mask_bad += bad
+        tally.mask_n += n
+    # the .flo file and the mask PNGs, unless the files check found them broken
+    masks = MASK_FILES if ds.version >= 2 else ()
+    if not any(ds.path(k, cam, x) in broken for x in ("flo", *masks)):
+        flow, flo_ok = ds.read_flo(k, cam)
+        known = ds.flo_known(ch)  # version 1: gt.flow.valid; 2: every defined flow
+        tally.flo_mismatch += int((flo_ok != known).sum())
+        for name, mask in ds.read_flow_masks(k, cam).items():  # version 2's PNGs
+            tally.flo_mismatch += int((mask != (ch[name] > 0.5)).sum())
+        both = flo_ok & known
+        e = np.maximum(np.abs(flow[..., 0] - ch["gt.flow.dx"]), np.abs(flow[..., 1] - dy))
+        acc["flo_file"].add(e[both])
+    return _Pixels(x=x, y=y, world=world, fv=fv, dx=dx, dy=dy)
 
+
+def _check_pair(ds: Dataset, k: int, cam: str, ch: dict[str, NDArray], nxt: dict[str, NDArray],
+                pix: _Pixels, scene: _Scene, tally: _Tally, tol: Tolerances) -> None:  # fmt: skip
+    """The temporal checks of frames k and k + 1 of one camera: the static world point
+    and the photometric residual."""
+    unit = ds.unit(cam)
+    x, y, fv, dx, dy = pix.x, pix.y, pix.fv, pix.dx, pix.dy
+    int_t = interior(ch)
+    int_n = interior(nxt)
+    # cv2 index coordinates of the target: continuous (x + dx) - 0.5
+    mx = x + np.where(fv, dx, 0.0) - 0.5
+    my = y + np.where(fv, dy, 0.0) - 0.5
+    jn = np.rint(mx).astype(np.int64)
+    in_n = np.rint(my).astype(np.int64)
+    inside = (jn >= 0) & (jn < unit.width) & (in_n >= 0) & (in_n < unit.height)
+    jn_c = np.clip(jn, 0, unit.width - 1)
+    in_c = np.clip(in_n, 0, unit.height - 1)
+    same = nxt["gt.object"][in_c, jn_c] == ch["gt.object"]
+    usable = fv & int_t & inside & int_n[in_c, jn_c] & same
+
+    # static world point
+    static_ids = [
+        i
+        for i, o in scene.obj_meta.items()
+        if np.allclose(o["poses"][k], o["poses"][k + 1], rtol=0, atol=1e-12)
+    ]
+    st = usable & np.isin(ch["gt.object"], static_ids)
+    if st.any():
+        world = pix.world
+        wn = np.stack([remap(nxt[c], mx, my) for c in ("gt.X", "gt.Y", "gt.Z")], -1)
+        dist = np.linalg.norm(wn.astype(np.float64) - world, axis=-1)
+        # local pixel footprint: distance between horizontally/vertically adjacent
+        # pixels' world points in frame t (the larger of the two, inside the object)
+        fx = np.zeros_like(dist)
+        fy = np.zeros_like(dist)
+        fx[:, :-1] = np.linalg.norm(world[:, 1:] - world[:, :-1], axis=-1)
+        fy[:-1, :] = np.linalg.norm(world[1:, :] - world[:-1, :], axis=-1)
+        foot = np.maximum(fx, fy)
+        ok = st & (foot > 0)
+        tally.acc["static_world"].add((dist / np.where(foot > 0, foot, 1.0))[ok], keep=20000)
+
+    # photometric: gt.flow against zero flow and against its neighbours
+    lam = usable & np.isin(ch["gt.object"], scene.lambertian_ids)
+    if lam.sum() >= tol.min_pixels:
+        moves = not np.allclose(scene.poses_robot[k], scene.poses_robot[k + 1], rtol=0,
+                                atol=1e-12)  # fmt: skip
+        moves |= len(static_ids) < len(scene.obj_meta)
+        _add_photometric(tally.photo, ch, nxt, pix, lam, int_n, scene, tol, moves)
+
+
+def _add_photometric(photo: _Acc, ch: dict[str, NDArray], nxt: dict[str, NDArray], pix: _Pixels,
+                     lam: NDArray, int_n: NDArray, scene: _Scene, tol: Tolerances,
+                     moves: bool) -> None:  # fmt: skip
+    """Add one frame pair's photometric sums: the residual of frame t + 1 warped by
+    gt.flow, by zero flow and by gt.flow's neighbours (scaled, shifted), on the
+    Lambertian pixels ``lam``."""
+    x, y = pix.x, pix.y
+    i_t = luma(ch)
+    i_n = luma(nxt).astype(np.float32)
+    fx, fy = np.where(pix.fv, pix.dx, 0.0), np.where(pix.fv, pix.dy, 0.0)
+    a, e = tol.photometric_scale_step, tol.photometric_shift_px
+    trials = {
+        "flow": (1.0, 0.0, 0.0),
+        "zero": (0.0, 0.0, 0.0),
+        f"x{1 - a:g}": (1 - a, 0.0, 0.0),
+        f"x{1 + a:g}": (1 + a, 0.0, 0.0),
+        f"dx-{e:g}": (1.0, -e, 0.0),
+        f"dx+{e:g}": (1.0, e, 0.0),
+        f"dy-{e:g}": (1.0, 0.0, -e),
+        f"dy+{e:g}": (1.0, 0.0, e),
+    }
+    sq_flow = None
+    for name, (sc, ox, oy) in trials.items():
+        warped = remap(i_n, x + sc * fx + ox - 0.5, y + sc * fy + oy - 0.5, True)
+        sq = (i_t - warped.astype(np.float64))[lam] ** 2
+        photo.add_sum(name, float(np.sum(sq)))
+        if sq_flow is None:
+            sq_flow = sq
+        elif name != "zero":
+            # per-pixel excess of gt.flow over this neighbour, for its standard error
+            photo.add_sum("d2:" + name, float(np.sum((sq_flow - sq) ** 2)))
+    s_t, n_t = noise_sigma(i_t, lam)
+    s_n, n_n = noise_sigma(i_n, int_n & np.isin(nxt["gt.object"], scene.lambertian_ids))
+    if n_t and n_n:
+        photo.add_sum("sig2", (s_t**2 + s_n**2) / 2.0)
+        photo.add_sum("pairs", 1)
+    photo.add_sum("n", int(lam.sum()))
+    photo.add_sum("moving_pairs", int(moves))
+    photo.add_sum("mean", float(np.sum(i_t[lam])))
+    photo.add(np.hypot(fx, fy)[lam], keep=20000)
+
+
+def _geometry_results(ds: Dataset, tally: _Tally, tol: Tolerances) -> list[CheckResult]:
+    """The geometric checks' results: eq. (1), theta, world, stereo, polar flow."""
     results: list[CheckResult] = []
+    acc = tally.acc
     # with rig errors the geometric checks use the traced model: say so
     traced = any(getattr(ds.unit(c), "errors", None) is not None for c in ds.cameras)
     via = " (traced model: rig errors)" if traced else ""
@@ -543,19 +542,25 @@ def run_checks(
         tol.geometry_px,
         "px",
     )
+    return results
+
+
+def _file_results(tally: _Tally, tol: Tolerances, broken: dict, n_files: int) -> list[CheckResult]:
+    """The results of the masks, the .flo files, the files' decoding and the object ids."""
+    results: list[CheckResult] = []
     results.append(
         CheckResult(
             "flow_masks",
             "gt.flow/bflow valid, occluded, outside: 0/1, disjoint, inside gt.valid",
-            float(mask_bad) if mask_n else math.nan,
+            float(tally.mask_bad) if tally.mask_n else math.nan,
             0.0,
             "px",
-            mask_n,
-            (mask_bad == 0) if mask_n else None,
-            "" if mask_n else "format version 1: no masks",
+            tally.mask_n,
+            (tally.mask_bad == 0) if tally.mask_n else None,
+            "" if tally.mask_n else "format version 1: no masks",
         )
     )
-    r_flo = acc["flo_file"]
+    r_flo = tally.acc["flo_file"]
     results.append(
         CheckResult(
             "flo_file",
@@ -564,54 +569,61 @@ def run_checks(
             tol.flo_px,
             "px",
             r_flo.n,
-            (flo_mismatch == 0 and r_flo.max <= tol.flo_px) if (r_flo.n or flo_mismatch) else None,
-            f"{flo_mismatch} validity disagreements",
+            (tally.flo_mismatch == 0 and r_flo.max <= tol.flo_px)
+            if (r_flo.n or tally.flo_mismatch)
+            else None,
+            f"{tally.flo_mismatch} validity disagreements",
         )
     )
     results.append(_files_result(broken, n_files))
-    if unknown_ids:
+    if tally.unknown_ids:
         results.append(
             CheckResult(
                 "object_ids",
                 "gt.object ids listed in dataset.json objects",
-                len(unknown_ids),
+                len(tally.unknown_ids),
                 0,
                 "unknown ids",
-                n_valid,
+                tally.n_valid,
                 False,
-                f"unknown: {sorted(unknown_ids)}",
+                f"unknown: {sorted(tally.unknown_ids)}",
             )
         )
 
-    sw = acc["static_world"]
+    return results
+
+
+def _static_world_result(sw: _Acc, tol: Tolerances) -> CheckResult:
+    """The static world point's result (p95 of its offset, in pixel footprints)."""
     if sw.n >= tol.min_pixels:
         p95 = sw.percentile(95)
-        results.append(
-            CheckResult(
-                "static_world",
-                "world point at p (t) vs at p + flow (t+1), static objects (p95)",
-                p95,
-                tol.static_p95_px,
-                "px",
-                sw.n,
-                bool(p95 <= tol.static_p95_px),
-                f"median {sw.percentile(50):.3g} px, max {sw.max:.3g} px",
-            )
+        return CheckResult(
+            "static_world",
+            "world point at p (t) vs at p + flow (t+1), static objects (p95)",
+            p95,
+            tol.static_p95_px,
+            "px",
+            sw.n,
+            bool(p95 <= tol.static_p95_px),
+            f"median {sw.percentile(50):.3g} px, max {sw.max:.3g} px",
         )
     else:
-        results.append(
-            CheckResult(
-                "static_world",
-                "world point at p (t) vs at p + flow (t+1), static objects (p95)",
-                math.nan,
-                tol.static_p95_px,
-                "px",
-                sw.n,
-                None,
-                "needs two consecutive frames with static, flow-valid interior pixels",
-            )
+        return CheckResult(
+            "static_world",
+            "world point at p (t) vs at p + flow (t+1), static objects (p95)",
+            math.nan,
+            tol.static_p95_px,
+            "px",
+            sw.n,
+            None,
+            "needs two consecutive frames with static, flow-valid interior pixels",
         )
 
+
+def _photometric_results(photo: _Acc, tol: Tolerances) -> list[CheckResult]:
+    """The photometric checks' results: gt.flow's residual against zero flow's
+    (``photometric``) and against its best neighbour's (``photometric_min``)."""
+    results: list[CheckResult] = []
     s = photo.sums
     name0 = "warp(frame t+1, gt.flow) vs frame t on Lambertian surfaces"
     if s.get("n", 0) >= tol.min_pixels:

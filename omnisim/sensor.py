@@ -224,8 +224,11 @@ def _jit_rgb(variant: str) -> bool:
 
 
 def _define_sensor_class(mi):
-    """Define the sensor class for the current variant (mi.Sensor depends on it)."""
+    """Define the sensor class for the current variant (mi.Sensor depends on it): its
+    set-up here, its rays from :func:`_ray_methods`."""
     import drjit as dr
+
+    rays = _ray_methods(mi, dr)
 
     class ConeMirrorSensor(mi.Sensor):
         """Pinhole camera + 90-degree cone mirror, traced analytically.
@@ -286,84 +289,13 @@ def _define_sensor_class(mi):
                 v=op(g.v)[0],
             )
 
-        def _traced_ray(self, time, px, py, sample3, active):
-            """The ray of film offset (px, py) through the actual geometry (rig errors);
-            through an aperture point when there is a lens."""
-            g = self._traced
-            o, w = camera_ray(px, py, g)
-            if self._lens_radius > 0.0:
-                disk = mi.warp.square_to_uniform_disk_concentric(sample3) * self._lens_radius
-                s = self._focus / g.v
-                lens = (disk.x, disk.y, 0.0)
-                cam = (px * s - disk.x, py * s - disk.y, self._focus)
-                rc = g.Rc
-                o = [g.C[i] + rc[i][0] * lens[0] + rc[i][1] * lens[1] for i in range(3)]
-                w = [rc[i][0] * cam[0] + rc[i][1] * cam[1] + rc[i][2] * cam[2] for i in range(3)]
-            q, r, ok, _ = cone_reflect(self._ops, o, w, g)
-            m = self._m
-            ow = mi.Point3f(
-                *[m[i][0] * q[0] + m[i][1] * q[1] + m[i][2] * q[2] + m[i][3] for i in range(3)]
-            )
-            dw = mi.Vector3f(*[m[i][0] * r[0] + m[i][1] * r[1] + m[i][2] * r[2] for i in range(3)])
-            ray = mi.Ray3f(ow, dr.normalize(dw), time)
-            # Perfect conductor: reflectance 1 on the mirror, black where the ray misses it.
-            return ray, mi.Spectrum(dr.select(active & ok, 1.0, 0.0))
-
         def set_pose(self, pose):
             pose = np.asarray(pose, dtype=np.float64)
             self._m = [[dr.opaque(mi.Float, float(pose[i, j])) for j in range(4)] for i in range(3)]
 
-        def sample_ray(self, time, sample1, sample2, sample3, active=True):
-            v, inv_v, d, x_c, y_c, r_m, tip_h = self._k
-            film = self.film()
-            size = mi.ScalarVector2f(film.crop_size())
-            offset = mi.ScalarVector2f(film.crop_offset())
-            px = sample2.x * size.x + offset.x - x_c
-            py = sample2.y * size.y + offset.y - y_c
-            if self._traced is not None:
-                return self._traced_ray(time, px, py, sample3, active)
-            if self._lens_radius > 0.0:
-                return self._sample_lens_ray(time, px, py, sample3, active)
-            h_i = dr.sqrt(dr.fma(px, px, py * py))
-            inside = h_i <= r_m
-            has_dir = h_i > 0
-            inv_h = dr.select(has_dir, dr.rcp(h_i), 0.0)
-            c = dr.select(has_dir, px * inv_h, 1.0)
-            s = dr.select(has_dir, py * inv_h, 0.0)
-            k = dr.minimum(h_i, r_m) * inv_v
-            rho = d * k / (1.0 - k)
-            o = (rho * c, rho * s, tip_h + rho)  # rig frame
-            inv_n = dr.rsqrt(dr.fma(v, v, h_i * h_i))
-            w = (v * c * inv_n, v * s * inv_n, h_i * inv_n)
-            m = self._m
-            ow = mi.Point3f(
-                *[m[i][0] * o[0] + m[i][1] * o[1] + m[i][2] * o[2] + m[i][3] for i in range(3)]
-            )
-            dw = mi.Vector3f(*[m[i][0] * w[0] + m[i][1] * w[1] + m[i][2] * w[2] for i in range(3)])
-            ray = mi.Ray3f(ow, dr.normalize(dw), time)
-            # Perfect conductor: reflectance 1 inside the rim, black outside.
-            weight = dr.select(active & inside, 1.0, 0.0)
-            return ray, mi.Spectrum(weight)
-
-        def _sample_lens_ray(self, time, px, py, sample3, active):
-            """Thin lens: the film point's ray through an aperture point, off the cone.
-
-            A ray that misses the mirror (beyond its rim) is black, as outside the rim.
-            """
-            v, _, d, _, _, _, tip_h = self._k
-            disk = mi.warp.square_to_uniform_disk_concentric(sample3) * self._lens_radius
-            q, w, ok = thin_lens_cone_ray(
-                self._ops, px, py, disk.x, disk.y, v=v, d=d, focus=self._focus
-            )
-            o = (q[0], q[1], q[2] + tip_h)
-            m = self._m
-            ow = mi.Point3f(
-                *[m[i][0] * o[0] + m[i][1] * o[1] + m[i][2] * o[2] + m[i][3] for i in range(3)]
-            )
-            dw = mi.Vector3f(*[m[i][0] * w[0] + m[i][1] * w[1] + m[i][2] * w[2] for i in range(3)])
-            ray = mi.Ray3f(ow, dr.normalize(dw), time)
-            weight = dr.select(active & ok & (q[2] <= self._big_r), 1.0, 0.0)
-            return ray, mi.Spectrum(weight)
+        sample_ray = rays.sample_ray
+        _traced_ray = rays.traced_ray
+        _sample_lens_ray = rays.sample_lens_ray
 
         def sample_ray_differential(self, time, sample1, sample2, sample3, active=True):
             ray, weight = self.sample_ray(time, sample1, sample2, sample3, active)
@@ -375,6 +307,84 @@ def _define_sensor_class(mi):
     global _SENSOR_CLASS
     _SENSOR_CLASS = ConeMirrorSensor
     return ConeMirrorSensor
+
+
+def _ray_methods(mi, dr) -> SimpleNamespace:
+    """The sensor's ray methods for the current variant: the ideal pinhole rays of eq. (1)
+    (``sample_ray``), through a thin lens (``sample_lens_ray``) and through the actual
+    geometry of a unit with rig errors (``traced_ray``)."""
+
+    def to_world(m, o, w, time):
+        """The rig-frame ray (origin ``o``, direction ``w``) in the world by the pose ``m``."""
+        ow = mi.Point3f(
+            *[m[i][0] * o[0] + m[i][1] * o[1] + m[i][2] * o[2] + m[i][3] for i in range(3)]
+        )
+        dw = mi.Vector3f(*[m[i][0] * w[0] + m[i][1] * w[1] + m[i][2] * w[2] for i in range(3)])
+        return mi.Ray3f(ow, dr.normalize(dw), time)
+
+    def traced_ray(self, time, px, py, sample3, active):
+        """The ray of film offset (px, py) through the actual geometry (rig errors);
+        through an aperture point when there is a lens."""
+        g = self._traced
+        o, w = camera_ray(px, py, g)
+        if self._lens_radius > 0.0:
+            disk = mi.warp.square_to_uniform_disk_concentric(sample3) * self._lens_radius
+            s = self._focus / g.v
+            lens = (disk.x, disk.y, 0.0)
+            cam = (px * s - disk.x, py * s - disk.y, self._focus)
+            rc = g.Rc
+            o = [g.C[i] + rc[i][0] * lens[0] + rc[i][1] * lens[1] for i in range(3)]
+            w = [rc[i][0] * cam[0] + rc[i][1] * cam[1] + rc[i][2] * cam[2] for i in range(3)]
+        q, r, ok, _ = cone_reflect(self._ops, o, w, g)
+        ray = to_world(self._m, q, r, time)
+        # Perfect conductor: reflectance 1 on the mirror, black where the ray misses it.
+        return ray, mi.Spectrum(dr.select(active & ok, 1.0, 0.0))
+
+    def sample_ray(self, time, sample1, sample2, sample3, active=True):
+        v, inv_v, d, x_c, y_c, r_m, tip_h = self._k
+        film = self.film()
+        size = mi.ScalarVector2f(film.crop_size())
+        offset = mi.ScalarVector2f(film.crop_offset())
+        px = sample2.x * size.x + offset.x - x_c
+        py = sample2.y * size.y + offset.y - y_c
+        if self._traced is not None:
+            return self._traced_ray(time, px, py, sample3, active)
+        if self._lens_radius > 0.0:
+            return self._sample_lens_ray(time, px, py, sample3, active)
+        h_i = dr.sqrt(dr.fma(px, px, py * py))
+        inside = h_i <= r_m
+        has_dir = h_i > 0
+        inv_h = dr.select(has_dir, dr.rcp(h_i), 0.0)
+        c = dr.select(has_dir, px * inv_h, 1.0)
+        s = dr.select(has_dir, py * inv_h, 0.0)
+        k = dr.minimum(h_i, r_m) * inv_v
+        rho = d * k / (1.0 - k)
+        o = (rho * c, rho * s, tip_h + rho)  # rig frame
+        inv_n = dr.rsqrt(dr.fma(v, v, h_i * h_i))
+        w = (v * c * inv_n, v * s * inv_n, h_i * inv_n)
+        ray = to_world(self._m, o, w, time)
+        # Perfect conductor: reflectance 1 inside the rim, black outside.
+        weight = dr.select(active & inside, 1.0, 0.0)
+        return ray, mi.Spectrum(weight)
+
+    def sample_lens_ray(self, time, px, py, sample3, active):
+        """Thin lens: the film point's ray through an aperture point, off the cone.
+
+        A ray that misses the mirror (beyond its rim) is black, as outside the rim.
+        """
+        v, _, d, _, _, _, tip_h = self._k
+        disk = mi.warp.square_to_uniform_disk_concentric(sample3) * self._lens_radius
+        q, w, ok = thin_lens_cone_ray(
+            self._ops, px, py, disk.x, disk.y, v=v, d=d, focus=self._focus
+        )
+        o = (q[0], q[1], q[2] + tip_h)
+        ray = to_world(self._m, o, w, time)
+        weight = dr.select(active & ok & (q[2] <= self._big_r), 1.0, 0.0)
+        return ray, mi.Spectrum(weight)
+
+    return SimpleNamespace(
+        sample_ray=sample_ray, traced_ray=traced_ray, sample_lens_ray=sample_lens_ray
+    )
 
 
 def sampler_dict(spp: int, kind: str | None = None) -> dict:

@@ -125,9 +125,10 @@ def _parser() -> argparse.ArgumentParser:
         default=[],
         metavar="NAME=VALUE[,NAME=VALUE...]",
         help="one more omniflow row: the default configuration with these OmniFlowConfig "
-        "fields changed (e.g. --row flow_taper=0 --row eiv=none,sampling=exact), or a preset "
-        "and changes (--row dense, --row dense,pool_k=64); the row is named after the nearest "
-        "preset and the fields that differ (omniflow:dense+pool_k=64); repeatable",
+        "knobs changed, a group's by its dotted name (e.g. --row fit.flow_taper=0 --row "
+        "pooling.eiv=none,fit.sampling=exact), or a preset and changes (--row dense, --row "
+        "dense,pooling.pool_k=64); the row is named after the nearest preset and the knobs "
+        "that differ (omniflow:dense+pooling.pool_k=64); repeatable",
     )
     ap.add_argument(
         "--baselines",

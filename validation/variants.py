@@ -24,11 +24,12 @@ __all__ = [
 ]
 
 
-#: The selectable choices of OmniFlowConfig that each get a row, default first.
+#: The selectable choices of OmniFlowConfig that each get a row (by dotted knob name),
+#: default first.
 VARIANT_CHOICES: dict[str, tuple[str, ...]] = {
     "match_method": ("robust", "paper"),
-    "gradients": ("first", "average"),
-    "temporal": ("difference", "dct3d"),
+    "fit.gradients": ("first", "average"),
+    "fit.temporal": ("difference", "dct3d"),
     "solver": ("direct", "pooled"),
 }
 
@@ -56,8 +57,9 @@ class TrueMatches:
 def variant_name(config: Any) -> str:
     """Short, stable row name of an OmniFlowConfig: ``omniflow:PRESET`` for a preset
     (``omniflow:default``, ``omniflow:dense``, ``omniflow:paper``), else the preset it
-    differs from in the fewest fields (the earlier of :data:`omniflow.config.PRESETS` on a
-    tie) and those fields: ``omniflow:default+brightness_model=gain+solver=direct``.
+    differs from in the fewest knobs (the earlier of :data:`omniflow.config.PRESETS` on a
+    tie) and those knobs by their dotted names (``OmniFlowConfig.to_dict``):
+    ``omniflow:default+brightness.brightness_model=gain+solver=direct``.
     :class:`TrueMatches` adds ``+matches=truth``. The full config is in summary.json
     (:func:`config_dict`), so a name never needs to list it."""
     inner = config.config if isinstance(config, TrueMatches) else config
@@ -68,8 +70,15 @@ def variant_name(config: Any) -> str:
     return "+".join([f"omniflow:{base}", *parts])
 
 
+def _settings(config: Any) -> dict[str, Any]:
+    """A config's knobs by dotted name (``to_dict``), a stand-in dataclass's fields."""
+    if hasattr(config, "to_dict"):
+        return config.to_dict()
+    return {f.name: getattr(config, f.name) for f in dataclasses.fields(config)}
+
+
 def _nearest_preset(config: Any) -> tuple[str, list[tuple[str, Any]]]:
-    """(preset name, [(field, value) changed from it]) with the fewest changes; a stand-in
+    """(preset name, [(knob, value) changed from it]) with the fewest changes; a stand-in
     config (not a dataclass with presets) is compared with its own class's defaults."""
     from omniflow.config import PRESETS
 
@@ -84,8 +93,8 @@ def _nearest_preset(config: Any) -> tuple[str, list[tuple[str, Any]]]:
             base = presets(name) if presets is not None else cls()
         except TypeError:
             return "default", []
-        changes = [(f.name, getattr(config, f.name)) for f in dataclasses.fields(config)
-                   if getattr(config, f.name) != getattr(base, f.name)]  # fmt: skip
+        ours, theirs = _settings(config), _settings(base)
+        changes = [(k, v) for k, v in ours.items() if v != theirs.get(k)]
         if best is None or len(changes) < len(best[1]):
             best = (name, changes)
     assert best is not None
@@ -102,20 +111,21 @@ def omniflow_variants(mode: str = "all", *, true_matches: bool = True) -> list[t
     default and of the paper's configuration on the true matches
     (:class:`TrueMatches`).
     """
+    from omniflow.config import knob_fields
     from omniflow.pipeline import OmniFlowConfig
 
     base = OmniFlowConfig()
-    names = {f.name for f in dataclasses.fields(OmniFlowConfig)}
+    names = knob_fields()
     choices = {k: v for k, v in VARIANT_CHOICES.items() if k in names}
     configs: list[Any] = [base]
     if mode == "oat":
         for key, values in choices.items():
             for val in values:
-                if val != getattr(base, key):
-                    configs.append(dataclasses.replace(base, **{key: val}))
+                if val != base.to_dict()[key]:
+                    configs.append(base.with_settings({key: val}))
     elif mode == "all":
         for combo in itertools.product(*choices.values()):
-            cfg = dataclasses.replace(base, **dict(zip(choices, combo, strict=True)))
+            cfg = base.with_settings(dict(zip(choices, combo, strict=True)))
             if cfg != base:
                 configs.append(cfg)
     elif mode != "default":
@@ -180,13 +190,11 @@ def is_paper_config(cfg: Any) -> bool:
 
 
 def config_dict(cfg: Any) -> dict[str, Any]:
+    """Every knob of a row's config by its dotted name (the names of its row name)."""
     if isinstance(cfg, TrueMatches):
         out = config_dict(cfg.config)
         out["match_method"] = "truth"
         out["true_matches_percentile"] = cfg.percentile
         return out
-    out = {}
-    for f in dataclasses.fields(cfg):
-        v = getattr(cfg, f.name)
-        out[f.name] = v if isinstance(v, int | float | str | bool) or v is None else repr(v)
-    return out
+    return {k: v if isinstance(v, int | float | str | bool) or v is None else repr(v)
+            for k, v in _settings(cfg).items()}  # fmt: skip

@@ -93,15 +93,16 @@ def flag(name: str) -> str:
 def check_knobs(values: Any) -> None:
     """Raise :class:`CLIError` naming the option if a knob's value is not allowed.
 
-    ``values`` is an OmniFlowConfig or a mapping of field name to value; each is
-    checked by its field's metadata (:func:`omniflow.config.knob_problem`), the one
-    place that knows the knob's type, range and choices.
+    ``values`` is an OmniFlowConfig or a mapping of dotted knob name to value
+    (``pooling.pool_k``); each is checked by its field's metadata
+    (:func:`omniflow.config.knob_problem`), the one place that knows the knob's type,
+    range and choices.
     """
-    from omniflow.config import knob_problem
+    from omniflow.config import knob_fields, knob_problem
 
-    known = {f.name: f for f in dataclasses.fields(_config_class())}
+    known = knob_fields()
     if dataclasses.is_dataclass(values):
-        values = {f.name: getattr(values, f.name) for f in dataclasses.fields(values)}
+        values = values.to_dict()
     for name, value in values.items():
         if name not in known:
             continue
@@ -111,18 +112,34 @@ def check_knobs(values: Any) -> None:
             raise CLIError(f"{flag(name)} {shown}: {problem}")
 
 
-def add_config_options(parser: argparse.ArgumentParser) -> list[str]:
-    """One option per OmniFlowConfig field, its default shown; returns the field names."""
+def _knob_hints() -> dict[str, Any]:
+    """Each knob's type by its dotted name (``pooling.pool_k``: int)."""
+    from omniflow.config import GROUPS
+
     cls = _config_class()
-    group = parser.add_argument_group(
-        "algorithm options (omniflow.pipeline.OmniFlowConfig; each default shown)"
-    )
     try:
-        hints = typing.get_type_hints(cls)
+        hints = dict(typing.get_type_hints(cls))
+        for group, group_cls in GROUPS.items():
+            hints.update({f"{group}.{k}": v for k, v in typing.get_type_hints(group_cls).items()})
     except Exception:  # unresolvable annotations: fall back to the defaults' types
         hints = {}
+    return hints
+
+
+def add_config_options(parser: argparse.ArgumentParser) -> list[str]:
+    """One option per OmniFlowConfig knob, its default shown (a group's knobs under
+    dotted names, ``--pooling.pool-k``, in one option group per expert group); returns
+    the knobs' dotted names."""
+    from omniflow.config import GROUPS, knob_fields
+
+    hints = _knob_hints()
+    groups = {"": parser.add_argument_group(
+        "algorithm options (omniflow.config.OmniFlowConfig; each default shown)")}  # fmt: skip
+    for name, cls in GROUPS.items():
+        doc = (cls.__doc__ or "").split(":")[0].split("(")[0].strip()
+        groups[name] = parser.add_argument_group(f"expert options, {name}: {doc}")
     names = []
-    for f in dataclasses.fields(cls):
+    for name, f in knob_fields().items():
         if not f.init or f.name.startswith("_"):
             continue
         if f.default is not dataclasses.MISSING:
@@ -131,10 +148,9 @@ def add_config_options(parser: argparse.ArgumentParser) -> list[str]:
             default = f.default_factory()
         else:
             continue
-        tp, optional = _unwrap_optional(hints.get(f.name, type(default)))
-        flag = "--" + f.name.replace("_", "-")
+        tp, optional = _unwrap_optional(hints.get(name, type(default)))
         desc = f.metadata.get("help", "")
-        kwargs: dict[str, Any] = {"dest": f"cfg_{f.name}", "default": argparse.SUPPRESS}
+        kwargs: dict[str, Any] = {"dest": f"cfg_{name}", "default": argparse.SUPPRESS}
         choices = list(f.metadata["choices"]) if f.metadata.get("choices") else None
         if typing.get_origin(tp) is typing.Literal:
             choices = list(typing.get_args(tp))
@@ -173,8 +189,9 @@ def add_config_options(parser: argparse.ArgumentParser) -> list[str]:
         if isinstance(default, tuple):
             shown = " ".join(map(str, default))
         help_text = f"{desc} (default: {shown})" if desc else f"(default: {shown})"
-        group.add_argument(flag, help=help_text.replace("%", "%%"), **kwargs)
-        names.append(f.name)
+        group = groups[name.partition(".")[0] if "." in name else ""]
+        group.add_argument(flag(name), help=help_text.replace("%", "%%"), **kwargs)
+        names.append(name)
     return names
 
 
@@ -202,8 +219,8 @@ def make_config(args, config_fields: list[str]):
     if args.paper and dense:
         raise CLIError("--paper and --dense: expected at most one preset")
     try:
-        preset = cls.paper if args.paper else cls.dense if dense else cls
-        config = preset(**overrides)
+        preset = "paper" if args.paper else "dense" if dense else "default"
+        config = cls.preset(preset).with_settings(overrides)
     except (TypeError, ValueError) as exc:
         raise CLIError(f"bad algorithm option: {one_line(exc)}") from exc
     check_knobs(config)
@@ -220,16 +237,17 @@ class _SettingsParser(argparse.ArgumentParser):
 def setting_flags(
     item: str, parser: argparse.ArgumentParser, fields: list[str], *, presets: bool = False
 ) -> list[str]:
-    """The options one ``NAME=VALUE`` setting stands for (``pool_k=64`` -> ``--pool-k=64``,
-    ``left_right=false`` -> ``--no-left-right``), so that the field's own option parses
-    and checks it; a :class:`CLIError` naming the setting where NAME is no field."""
+    """The options one ``NAME=VALUE`` setting stands for (``pooling.pool_k=64`` ->
+    ``--pooling.pool-k=64``, ``matching.left_right=false`` -> ``--no-matching.left-right``),
+    so that the knob's own option parses and checks it; a :class:`CLIError` naming the
+    setting where NAME is no knob."""
     name, sep, value = item.partition("=")
     name = name.strip().replace("-", "_")
     if not sep or name not in fields:
         raise CLIError(
-            f"{item!r}: expected NAME=VALUE with NAME an OmniFlowConfig field, e.g. "
-            "flow_taper=0 (omniflow pair --help-expert lists them)"
-            + (", or a preset: paper, dense" if presets else "")
+            f"{item!r}: expected NAME=VALUE with NAME an OmniFlowConfig knob, e.g. "
+            f"band=0.3 or fit.flow_taper=0{_knob_hint(name)} (omniflow pair --help-expert "
+            "lists them)" + (", or a preset: paper, dense" if presets else "")
         )
     action = next(a for a in parser._actions if a.dest == f"cfg_{name}")
     if isinstance(action, argparse.BooleanOptionalAction):
@@ -240,6 +258,14 @@ def setting_flags(
     if action.nargs is None:
         return [f"{flag(name)}={value.strip()}"]
     return [flag(name), *value.split()]
+
+
+def _knob_hint(name: str) -> str:
+    """``; it is pooling.pool_k`` where ``name`` is a group's knob given without its group."""
+    from omniflow.config import knob_fields
+
+    dotted = [k for k in knob_fields() if k.endswith("." + name)]
+    return f"; it is {dotted[0]}" if dotted else ""
 
 
 def expand_settings(argv: list[str], parser: argparse.ArgumentParser) -> list[str]:
@@ -283,8 +309,8 @@ def add_expert_options(parser: argparse.ArgumentParser, full) -> None:
     group = parser.add_argument_group("expert options")
     group.add_argument(
         "--set", action="append", metavar="NAME=VALUE", dest="set_items", default=[],
-        help="set any OmniFlowConfig field, repeatable (--set pool_k=64 --set eiv=none; "
-        "none for None); --help-expert lists them",
+        help="set any knob, a group's by its dotted name, repeatable (--set "
+        "pooling.pool_k=64; none for None); --help-expert lists them",
     )  # fmt: skip
     group.add_argument("--help-expert", action=ExpertHelp, full=full,
                        help="show every option, with its default, and exit")  # fmt: skip
@@ -301,13 +327,13 @@ def shorten_help(parser: argparse.ArgumentParser, keep: set[str]) -> None:
 def config_from_settings(settings: str | Sequence[str], *, paper: bool = False) -> Any:
     """An OmniFlowConfig from ``NAME=VALUE`` settings, checked as the CLI's options are.
 
-    ``settings`` is a comma-separated string (``"flow_taper=0,eiv=none"``) or a
-    list of ``NAME=VALUE`` strings; NAME is an OmniFlowConfig field (``-`` or
-    ``_``), VALUE parsed as its option would be (``none`` for None, ``true`` /
+    ``settings`` is a comma-separated string (``"fit.flow_taper=0,pooling.eiv=none"``)
+    or a list of ``NAME=VALUE`` strings; NAME is an OmniFlowConfig knob's dotted name
+    (``-`` or ``_``), VALUE parsed as its option would be (``none`` for None, ``true`` /
     ``false`` for a switch, space-separated numbers for a tuple). The other
-    fields keep their defaults (``paper``: those of ``OmniFlowConfig.paper()``).
+    knobs keep their defaults (``paper``: those of ``OmniFlowConfig.paper()``).
     An item ``paper`` or ``dense`` (no ``=``) starts from that preset instead
-    (``"dense,pool_k=64"``). Raises :class:`CLIError` with one line naming the
+    (``"dense,pooling.pool_k=64"``). Raises :class:`CLIError` with one line naming the
     setting and what was expected.
     """
     items = settings.split(",") if isinstance(settings, str) else list(settings)

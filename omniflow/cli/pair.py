@@ -90,7 +90,7 @@ DESCRIPTION = textwrap.dedent(
     time step: CAM1_T0 CAM2_T0 CAM1_T1 CAM2_T1 [CAM1_T2 CAM2_T2 ...]
     (PNG 8/16-bit, JPEG, TIFF or OpenEXR; colour is reduced to Rec. 709
     luminance). The flow is from time step --t (default 0) to the next;
-    more time steps are used by --temporal dct3d. Or read the frames from an
+    more time steps are used by --set fit.temporal=dct3d. Or read the frames from an
     omnisim dataset: --dataset DIR --frame K (flow from frame K to K + 1).
     """
 )
@@ -156,7 +156,7 @@ SHORT_DESCRIPTION = (
 #: The epilog of ``omniflow pair --help``.
 SHORT_EPILOG = textwrap.dedent(
     """\
-    example: omniflow pair --dataset renders/room --frame 3 --out result --set pool_k=64
+    example: omniflow pair --dataset renders/room --frame 3 --out result --set pooling.pool_k=64
     --help-expert: every option (regions, steering, position fix, calibration, every
     knob), the outputs and the rig file. Exit status: 0 success, 2 bad input, 1 refused.
     """
@@ -482,8 +482,8 @@ def _check_options(args) -> None:
 
 def _load_inputs(args, config):
     """(frames1, frames2, t, rig, rig_source, info) from the command line."""
-    dct3d = getattr(config, "temporal", "difference") == "dct3d"
-    window = max(2, int(getattr(config, "temporal_frames", 3))) if dct3d else 2
+    dct3d = config.fit.temporal == "dct3d"
+    window = max(2, config.fit.temporal_frames) if dct3d else 2
     if args.dataset:
         if args.images:
             raise CLIError("give either IMAGE files or --dataset, not both")
@@ -512,7 +512,8 @@ def _load_inputs(args, config):
             )
         if dct3d and len(f1) < window:
             raise CLIError(
-                f"--temporal dct3d needs {window} time steps (--temporal-frames); got {len(f1)}"
+                f"--fit.temporal dct3d needs {window} time steps (--fit.temporal-frames); "
+                f"got {len(f1)}"
             )
         info = {"images": [str(Path(p)) for p in args.images], "t": t}
     if args.calibrate:
@@ -630,7 +631,7 @@ def run(args: argparse.Namespace, config_fields: list[str], argv: list[str]) -> 
             "inputs": info,
             "rig_source": rig_source,
             "rig": rig.to_dict(),
-            "config": jsonable(config),
+            "config": jsonable(config.to_dict()),
             "points": n,
             "columns": {c: units.get(c, "") for c in cols},
             "timings_s": {

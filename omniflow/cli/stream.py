@@ -262,7 +262,7 @@ def run(args: argparse.Namespace, config_fields: list[str], argv: list[str]) -> 
                        "they are")  # fmt: skip
     source = open_source(args.input, args.rig, args.radiance)
     stop = source.count if args.stop is None else args.stop
-    need = config.temporal_frames if config.temporal == "dct3d" else 2
+    need = config.fit.temporal_frames if config.fit.temporal == "dct3d" else 2
     if not (0 <= args.start and args.start + need <= stop <= source.count):
         raise CLIError(
             f"--start {args.start} --stop {stop}: expected 0 <= start, start + {need} <= stop "
@@ -275,7 +275,7 @@ def run(args: argparse.Namespace, config_fields: list[str], argv: list[str]) -> 
         "command": [PROG, *argv],
         "input": jsonable(source.describe),
         "rig": source.rig.to_dict(),
-        "config": jsonable(config),
+        "config": jsonable(config.to_dict()),
         "columns": column_units(),
     }
     ownership.claim_names(out, prog=PROG, owned=_owned, legacy=_legacy_out)
@@ -297,7 +297,7 @@ def run(args: argparse.Namespace, config_fields: list[str], argv: list[str]) -> 
 
     # dct3d streams the causal window of its last temporal_frames frames: the first
     # pair it can give ends at start + temporal_frames - 1
-    window = config.temporal_frames if config.temporal == "dct3d" else 2
+    window = config.fit.temporal_frames if config.fit.temporal == "dct3d" else 2
     wanted = range(args.start + window - 1, stop)
     # the CSVs are renamed into place whole, so one that exists is complete
     todo = [k for k in wanted if not (out / pair_name(k - 1, k)).is_file()]

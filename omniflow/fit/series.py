@@ -60,7 +60,7 @@ def grey_input(frame, what: str, unit: Unit, config: OmniFlowConfig) -> NDArray:
             f"{unit.height}x{unit.width} (rows x columns)"
         )
     arr = np.asarray(arr, dtype=np.float32)
-    if config.rim_fill == "reflect":
+    if config.fit.rim_fill == "reflect":
         arr = fill_outside_rim(arr, unit)
     return arr
 
@@ -161,8 +161,8 @@ def unit_fits(
     coefficients equals doing it to the grids.
     """
     n = len(frames)
-    if config.temporal == "dct3d":
-        T = config.temporal_frames
+    if config.fit.temporal == "dct3d":
+        T = config.fit.temporal_frames
         if n < T:
             raise ValueError(f"{what}: temporal='dct3d' needs {T} frames, got {n}")
         t0 = int(np.clip(t + 1 - T // 2, 0, n - T))
@@ -175,13 +175,13 @@ def unit_fits(
         return {
             "a": a,
             "b": _as32(f3.at_time(tw + 1)),
-            "g": a if config.gradients == "first" else _as32(f3.at_time(tw + 0.5)),
+            "g": a if config.fit.gradients == "first" else _as32(f3.at_time(tw + 0.5)),
             "t": _as32(f3.time_derivative_at(tw + 0.5)),
         }
     fa, fb = (
         fit_dct(grey_input(frames[k], f"{what}[{k}]", unit, config), band=band) for k in (t, t + 1)
     )
-    g = fa if config.gradients == "first" else replace(fa, coeffs=0.5 * (fa.coeffs + fb.coeffs))
+    g = fa if config.fit.gradients == "first" else replace(fa, coeffs=0.5 * (fa.coeffs + fb.coeffs))
     return {"a": fa, "b": fb, "g": g, "t": replace(fa, coeffs=fb.coeffs - fa.coeffs)}
 
 
@@ -203,10 +203,10 @@ def unit_frames(
     fits: dict[str, DCTFit], unit: Unit, config: OmniFlowConfig, flow_band: float
 ) -> dict:
     """Lazy-grid :class:`Frame` s: ``a`` at the matching band, the others at ``flow_band``
-    rolled off by ``config.flow_taper`` (``af``: frame t the same way, for the iterations)."""
+    rolled off by ``config.fit.flow_taper`` (``af``: frame t the same way, for the iterations)."""
     out = {"a": Frame(truncate(fits["a"], config.band), unit)}
     for key, src in (("af", "a"), ("b", "b"), ("g", "g"), ("t", "t")):
-        out[key] = Frame(truncate(fits[src], flow_band, config.flow_taper), unit)
+        out[key] = Frame(truncate(fits[src], flow_band, config.fit.flow_taper), unit)
     return out
 
 
@@ -225,7 +225,7 @@ def _annulus(unit: Unit, h_min: float, margin: float) -> NDArray:
 
 def unit_noise_sigma(frame, unit: Unit, config: OmniFlowConfig) -> float:
     """The image noise of one unit's frame: Immerkaer's estimate over its annulus."""
-    mask = _annulus(unit, float(config.h_min), float(config.rim_margin))
+    mask = _annulus(unit, float(config.search.h_min), float(config.search.rim_margin))
     s = immerkaer_sigma(np.asarray(frame, dtype=np.float32), mask, erode=False)
     return 0.0 if not np.isfinite(s) else s
 
@@ -236,7 +236,7 @@ def choose_flow_band(
     """The flow step's band: ``config.flow_band``, or the narrower of the units' choices."""
     if config.flow_band is not None:
         return float(config.flow_band)
-    averaged = 1 if config.gradients == "first" else 2
+    averaged = 1 if config.fit.gradients == "first" else 2
     return min(
         choose_band(f["a"], s, min_gain=FLOW_BAND_GAIN, frames=averaged)
         for f, s in zip(fits, sigmas, strict=True)
@@ -249,20 +249,17 @@ def fit_band(config: OmniFlowConfig) -> float:
 
 
 def needs_noise_sigma(config: OmniFlowConfig) -> bool:
-    """Whether the configuration reads the image noise (band choice or EIV correction)."""
-    return config.flow_band is None or (config.eiv == "correct" and config.solver == "pooled")
+    """Whether the configuration reads the image noise (the band choice)."""
+    return config.flow_band is None
 
 
-def noise_variance(sigma: float, g: DCTFit, config: OmniFlowConfig) -> float:
-    """The gradient-noise variance the pooled solver subtracts (``config.eiv``).
+def noise_variance(g: DCTFit, config: OmniFlowConfig) -> float:
+    """The gradient-noise variance the pooled solver subtracts (``config.pooling.eiv``).
 
-    ``"correct"``: from the unit's pixel noise ``sigma``; ``"residual"``: per
-    unit of the fitted value's noise variance (the solver scales it by the
-    residuals); ``"none"``: 0. ``g`` is the gradient series of the pair.
+    ``"residual"``: per unit of the fitted value's noise variance (the solver scales it
+    by the residuals); ``"none"``: 0. ``g`` is the gradient series of the pair.
     """
-    if config.eiv == "correct":
-        return gradient_noise(sigma, g, config)
-    if config.eiv == "residual":
+    if config.pooling.eiv == "residual":
         return gradient_noise(1.0, g, config) / value_noise_share(g, config)
     return 0.0
 
@@ -271,17 +268,17 @@ def gradient_noise(sigma: float, fit: DCTFit, config: OmniFlowConfig) -> float:
     """Variance of the gradient series' f_h (and f_theta / h_i) from pixel noise ``sigma``.
 
     ``fit`` is the flow series (truncated to the flow band and rolled off by
-    ``config.flow_taper``, whose window follows from its shape)."""
-    window = band_window(fit.Q, fit.P, config.flow_taper)
+    ``config.fit.flow_taper``, whose window follows from its shape)."""
+    window = band_window(fit.Q, fit.P, config.fit.flow_taper)
     v = gradient_noise_variance(sigma, fit.P, fit.Q, fit.width, fit.height, window)
     # the mean of two frames' fits with independent noise has half the variance
-    return v if config.gradients == "first" else 0.5 * v
+    return v if config.fit.gradients == "first" else 0.5 * v
 
 
 def value_noise_share(fit: DCTFit, config: OmniFlowConfig) -> float:
     """The share of white pixel noise's variance that the flow series keeps in its values:
     P Q / (X Y) for the sharp truncation, the mean squared window weight times that."""
-    window = band_window(fit.Q, fit.P, config.flow_taper)
+    window = band_window(fit.Q, fit.P, config.fit.flow_taper)
     return float(np.sum(window**2)) / (fit.width * fit.height)
 
 

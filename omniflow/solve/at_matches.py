@@ -31,7 +31,7 @@ from omniflow.parallel import submit
 from omniflow.solve.decoupled import decouple, start_pool_fits, tests
 from omniflow.solve.gain import gain_solution, gated
 from omniflow.solve.gridpool import GridPools
-from omniflow.solve.pooled import neighbourhoods, pooled_solution
+from omniflow.solve.pooled import POOL_MODEL, neighbourhoods, pooled_solution
 from omniflow.solve.refine import refine_moving
 
 __all__ = ["flow_at_matches", "make_solver"]
@@ -52,24 +52,24 @@ def flow_at_matches(
     x2, y2 = rig.cam2.pixel_of_polar(h2, theta)
     derivs = []
     for fr, x, y in ((cam1, x1, y1), (cam2, x2, y2)):
-        f_h, f_th = sample_polar_grad(fr["g"], x, y, config.sampling)
-        f_t = sample_f(fr["t"], x, y, config.sampling)  # section 5.3
+        f_h, f_th = sample_polar_grad(fr["g"], x, y, config.fit.sampling)
+        f_t = sample_f(fr["t"], x, y, config.fit.sampling)  # section 5.3
         derivs.append((f_h, f_th, f_t))
     (f1_h, f1_th, f1_t), (f2_h, f2_th, f2_t) = derivs
     t1 = time.perf_counter()
     r, h = rig.triangulate(h1, h2)
     noise = (cam1.get("noise_var", 0.0), cam2.get("noise_var", 0.0))
     brightness = None
-    gains = config.brightness_gate is not None or config.decouple_gain_tol is not None
+    gains = config.brightness_gate is not None or config.brightness.decouple_gain_tol is not None
     if gains and config.solver == "pooled":
         # the image at the points (omniflow.solve.gain): frame t at the matching band, whose
         # grid the matcher has made already (the gradients' series, the mean of frames t
         # and t + 1 at the flow band, would cost a grid per unit; a regressor of the
         # brightness either way: docs/decisions/brightness_model.md)
-        brightness = (sample_f(cam1["a"], x1, y1, config.sampling),
-                      sample_f(cam2["a"], x2, y2, config.sampling))  # fmt: skip
+        brightness = (sample_f(cam1["a"], x1, y1, config.fit.sampling),
+                      sample_f(cam2["a"], x2, y2, config.fit.sampling))  # fmt: skip
     solve = make_solver(rig, config, x1, y1, theta, h1, h2, r, noise,
-                        static_test=config.static_test, brightness=brightness)  # fmt: skip
+                        static_test=config.pooling.static_test, brightness=brightness)  # fmt: skip
     # the two-model test's pool fits read no flow, only the points that keep one (those
     # of the first solve, a refined point keeps a finite flow: checked below)
     derivs = {"f1_h": f1_h, "f1_theta": f1_th, "f1_t": f1_t,
@@ -90,7 +90,7 @@ def flow_at_matches(
         for task in speculative:
             task.cancel()  # no task outlives the call
         raise
-    floor = config.edge_smooth_floor if config.solver == "pooled" else None
+    floor = config.matching.edge_smooth_floor if config.solver == "pooled" else None
     if floor is not None and matches.ramp is not None:
         # a smooth-profile match (edge_smooth) whose pool is a ramp in two dimensions
         # too: NCC could not place it, nor can the flow equations be solved there
@@ -179,13 +179,15 @@ def _refine(a, b, conf, solve, k, cam1, cam2, rig, x1, y1, x2, y2, theta, h1, h2
     """The first solve's (a, b, conf) refined: at the points that move far
     (:func:`omniflow.solve.refine.refine_moving`, ``iterate_min_px`` > 0) or at every point
     (``iterations`` Gauss-Newton steps on grids read off-pixel)."""
-    if config.iterate_min_px > 0.0:  # refine only the points that move far (omniflow.solve.refine)
+    if (
+        config.refinement.iterate_min_px > 0.0
+    ):  # refine only the points that move far (omniflow.solve.refine)
         a, b, conf, _ = refine_moving(
             a, b, conf, cam1=cam1, cam2=cam2, rig=rig, x1=x1, y1=y1, x2=x2, y2=y2,
             theta=theta, h1=h1, h2=h2, r=r, config=config, make_solver=make_solver, noise=noise,
             pools=solve.pools, **({} if brightness is None else {"brightness": brightness}),
         )  # fmt: skip
-    for _ in range(config.iterations if config.iterate_min_px == 0.0 else 0):
+    for _ in range(config.iterations if config.refinement.iterate_min_px == 0.0 else 0):
         # Gauss-Newton on eq. (8)'s linearisation: the residual of brightness
         # constancy at the displaced points, solved again for the increment.
         ok = np.isfinite(a) & np.isfinite(b)
@@ -194,16 +196,16 @@ def _refine(a, b, conf, solve, k, cam1, cam2, rig, x1, y1, x2, y2, theta, h1, h2
         for fr, x, y, h_i, dh in ((cam1, x1, y1, h1, da0), (cam2, x2, y2, h2, k * da0)):
             unit = fr["a"].unit
             xd, yd = unit.pixel_of_polar(h_i + dh, theta + db0)
-            g_h, g_th = sample_polar_grad(fr["b"], xd, yd, config.sampling)
-            if config.gradients == "average":
-                a_h, a_th = sample_polar_grad(fr["af"], x, y, config.sampling)
+            g_h, g_th = sample_polar_grad(fr["b"], xd, yd, config.fit.sampling)
+            if config.fit.gradients == "average":
+                a_h, a_th = sample_polar_grad(fr["af"], x, y, config.fit.sampling)
                 g_h, g_th = 0.5 * (g_h + a_h), 0.5 * (g_th + a_th)
             # the residual needs the image itself read off-pixel: cubic
             # interpolation of a series with periods down to 1 / band px is
             # biased by a few per cent, Lanczos (8 taps) much less; both
             # frames at the flow band and taper
-            res = sample_fine(fr["b"], xd, yd, config.sampling) - sample_fine(
-                fr["af"], x, y, config.sampling
+            res = sample_fine(fr["b"], xd, yd, config.fit.sampling) - sample_fine(
+                fr["af"], x, y, config.fit.sampling
             )
             # linearised about each point's own flow, solved for the total flow (as
             # omniflow.solve.refine: a pooled increment would add the neighbours' noise)
@@ -235,9 +237,10 @@ def make_solver(
     of the six derivatives returning (dh1_dt, dtheta_dt, confidence).
 
     ``noise``: the variance of each unit's gradient components, subtracted by
-    the pooled solver (``eiv="correct"``). ``static_test``: the pooled solver's
-    test of no motion (``config.static_test``; passed for the first solve only: the
-    refinement replaces only the flow of points that move a pixel or more).
+    the pooled solver (``eiv="residual"`` scales it by the residuals). ``static_test``:
+    the pooled solver's test of no motion (``config.pooling.static_test``; passed for the
+    first solve only: the refinement replaces only the flow of points that move a pixel or
+    more).
     ``brightness``: each unit's image f at the points, for the pooled solver's gain
     term (``config.brightness_gate``, :mod:`omniflow.solve.gain`): the pools whose F statistic
     of the gain passes the gate take the answer with it. The gain fit pools over the
@@ -256,7 +259,9 @@ def make_solver(
         return solve
 
     pool_radius = rig.cam1.r_m / 8.0 if config.pool_radius is None else config.pool_radius
-    tree = dict(k=config.pool_k, radius=pool_radius, r=r, range_tol=config.pool_range_tol)
+    tree = dict(
+        k=config.pooling.pool_k, radius=pool_radius, r=r, range_tol=config.pooling.pool_range_tol
+    )
     grid = None
     if config.grid_pools:
         idx = w = None
@@ -266,14 +271,15 @@ def make_solver(
         tangent = np.column_stack([xp - xm, yp - ym]) / (2.0 * eps * h1[:, None])
         grid = GridPools(
             x1, y1, tangent, (rig.cam1.height, rig.cam1.width), radius=pool_radius,
-            cell=config.pool_grid * pool_radius, r=r, range_tol=config.pool_range_tol,
+            cell=config.pooling.pool_grid * pool_radius, r=r,
+            range_tol=config.pooling.pool_range_tol,
             tree_pools=lambda mask: neighbourhoods(x1, y1, **tree, query=mask),
         )  # fmt: skip
     else:
         idx, w = neighbourhoods(x1, y1, **tree)
 
-    floor = config.pool_min_conditioning
-    kw = dict(theta=theta, model=config.pool_model, scale=pool_radius,
+    floor = config.pooling.pool_min_conditioning
+    kw = dict(theta=theta, model=POOL_MODEL, scale=pool_radius,
               min_conditioning=floor)  # fmt: skip
 
     def plain(f1_h, f1_th, f1_t, f2_h, f2_th, f2_t, meanwhile=None):
@@ -281,16 +287,16 @@ def make_solver(
             meanwhile()
         return pooled_solution(
             f1_h, f1_th, f1_t, f2_h, f2_th, f2_t, h1, h2, idx, w, **kw, noise1=noise[0],
-            noise2=noise[1], residual_noise=config.eiv == "residual", grid=grid,
-            static_test=static_test, static_max_px=config.static_max_px,
+            noise2=noise[1], residual_noise=config.pooling.eiv == "residual", grid=grid,
+            static_test=static_test, static_max_px=config.pooling.static_max_px,
         )  # fmt: skip
 
     solve = plain
     if config.brightness_gate is not None and brightness is not None:
-        gain_kw = dict(model=config.pool_model, scale=pool_radius, min_conditioning=floor,
-                       noise=noise, residual_noise=config.eiv == "residual",
+        gain_kw = dict(model=POOL_MODEL, scale=pool_radius, min_conditioning=floor,
+                       noise=noise, residual_noise=config.pooling.eiv == "residual",
                        gate=config.brightness_gate, grid=grid,
-                       linear_gain=grid is None and config.brightness_model == "linear",
+                       linear_gain=grid is None and config.brightness.brightness_model == "linear",
                        )  # fmt: skip
 
         def solve(*derivs, meanwhile=None):

@@ -42,7 +42,7 @@ textbook quantile would switch static points.
 
 A brightness change that varies across a pool (a body turning under fixed
 lights) inflates both fits' residuals and hides a failing eq. (14) from that
-test. With ``OmniFlowConfig.decouple_gain_tol`` the test is made again with a
+test. With ``OmniFlowConfig.brightness.decouple_gain_tol`` the test is made again with a
 gain varying linearly across the pool in both models
 (:func:`omniflow.solve.gain.decoupled_linear_gain`), and the points it passes
 (:func:`chained`) take the decoupled model with that gain (without it where
@@ -191,7 +191,7 @@ def decouple(
     ``brightness``: each unit's image at the points (:mod:`omniflow.solve.gain`); with
     ``config.brightness_gate`` the decoupled points whose pool's F statistic of a gain
     passes the gate take the decoupled model with the gain (over the k-d tree pools).
-    With ``config.decouple_gain_tol`` (and ``fit`` made with ``brightness``), eq. (14)
+    With ``config.brightness.decouple_gain_tol`` (and ``fit`` made with ``brightness``), eq. (14)
     is then tested again with a gain varying linearly across the pool in both fits
     (:func:`omniflow.solve.gain.decoupled_linear_gain`, over the k-d tree pools): the points
     whose F_U passes :func:`chained`'s gate take the decoupled model with that gain
@@ -213,7 +213,7 @@ def decouple(
     if brightness is not None and config.brightness_gate is not None and switch.any():
         a1, a2, b = _with_gain(cols, rig, config, switch, brightness, a1, a2, b)
     if "gain_F" in fit:  # eq. (14) tested again with a linear gain in both fits
-        chain = chained(fit, config.decouple_gain_tol)
+        chain = chained(fit, config.brightness.decouple_gain_tol)
         a1, a2 = np.where(chain, fit["gain_a1"], a1), np.where(chain, fit["gain_a2"], a2)
         b = np.where(chain, fit["gain_b"], b)
         switch = switch | chain
@@ -237,8 +237,9 @@ def _with_gain(cols, rig, config, switch, brightness, a1, a2, b):
     (:func:`omniflow.solve.gain.decoupled_gain`) at the switched points whose F statistic
     of the gain passes ``config.brightness_gate``."""
     radius = rig.cam1.r_m / 8.0 if config.pool_radius is None else config.pool_radius
-    idx, w = neighbourhoods(cols["x"], cols["y"], k=config.pool_k, radius=radius, r=cols["r"],
-                            range_tol=config.pool_range_tol, query=switch)  # fmt: skip
+    idx, w = neighbourhoods(cols["x"], cols["y"], k=config.pooling.pool_k, radius=radius,
+                            r=cols["r"], range_tol=config.pooling.pool_range_tol,
+                            query=switch)  # fmt: skip
     derivs = tuple(np.asarray(cols[c], dtype=np.float64) for c in DERIVS)
     h1, h2 = (np.asarray(cols[c], dtype=np.float64) for c in ("h1", "h2"))
     g1, g2, gb, F = decoupled_gain(derivs, brightness, h1, h2, idx, w)
@@ -291,7 +292,7 @@ def pool_fits(
     other thread while it refines the flow (:func:`omniflow.solve.at_matches.flow_at_matches`).
     ``pools`` as for :func:`decouple`.
 
-    With ``config.decouple_gain_tol`` and ``brightness`` (each unit's image at the
+    With ``config.brightness.decouple_gain_tol`` and ``brightness`` (each unit's image at the
     points) also the decoupled model with a linear gain and its F_U
     (:func:`omniflow.solve.gain.decoupled_linear_gain`) over the k-d tree pools: keys
     ``gain_a1``, ``gain_a2``, ``gain_b``, ``gain_F`` and ``gain_edge`` (the pool on a range
@@ -332,19 +333,19 @@ def start_pool_fits(
     h1, h2 = (np.asarray(cols[c], dtype=np.float64) for c in ("h1", "h2"))
     radius = rig.cam1.r_m / 8.0 if config.pool_radius is None else config.pool_radius
     search = lambda query=None: neighbourhoods(  # noqa: E731
-        cols["x"], cols["y"], k=config.pool_k, radius=radius, r=cols["r"],
-        range_tol=config.pool_range_tol, query=query,
+        cols["x"], cols["y"], k=config.pooling.pool_k, radius=radius, r=cols["r"],
+        range_tol=config.pooling.pool_range_tol, query=query,
     )  # fmt: skip
     derivs = tuple(np.asarray(cols[c], dtype=np.float64) for c in DERIVS)
-    chain = config.decouple_gain_tol is not None and brightness is not None
+    chain = config.brightness.decouple_gain_tol is not None and brightness is not None
     theta = np.asarray(cols["theta"], dtype=np.float64)
-    floor = config.pool_min_conditioning
+    floor = config.pooling.pool_min_conditioning
     grid = idx = w = None
     if config.grid_pools:  # the solver's grid windows, the k-d tree's where ranges mix
         grid = GridPools(
             cols["x"], cols["y"], None, (rig.cam1.height, rig.cam1.width), radius=radius,
-            cell=config.pool_grid * radius, r=cols["r"], range_tol=config.pool_range_tol,
-            tree_pools=lambda mask: search(query=mask),
+            cell=config.pooling.pool_grid * radius, r=cols["r"],
+            range_tol=config.pooling.pool_range_tol, tree_pools=lambda mask: search(query=mask),
         )  # fmt: skip
     else:
         idx, w = search() if pools is None else kept_pools(*pools, search)
@@ -359,13 +360,15 @@ def start_pool_fits(
         if grid is not None:  # the same Gaussian cut at about the k nearest, as the tree's
             near = GridPools(
                 cols["x"], cols["y"], None, (rig.cam1.height, rig.cam1.width), radius=radius,
-                cell=config.pool_grid * radius, r=cols["r"], range_tol=config.pool_range_tol,
-                tree_pools=lambda mask: (grid.idx, grid.w), window=grid.k_window(config.pool_k),
+                cell=config.pooling.pool_grid * radius, r=cols["r"],
+                range_tol=config.pooling.pool_range_tol,
+                tree_pools=lambda mask: (grid.idx, grid.w),
+                window=grid.k_window(config.pooling.pool_k),
             )  # fmt: skip
             sums = near.linear_gain_sums(
                 derivs, brightness, h1, h2, theta, scale=radius, single=True
             )
-            query = screen(sums, floor, EDGE_GATE * config.decouple_gain_tol)
+            query = screen(sums, floor, EDGE_GATE * config.brightness.decouple_gain_tol)
             # the tree's test where the grid's may pass; the others' rows get weight 0
             # from the search (neighbourhoods' ``query``): not tested (NaN)
             t_idx, t_w = search(query=query)

@@ -29,7 +29,7 @@ exceeds ``OmniFlowConfig.brightness_gate`` (n_eff = 2 (sum w)^2 / sum w^2,
 both units' rows, P the gain fit's unknowns, as the two-model test of
 :mod:`omniflow.solve.decoupled`). Measured in docs/decisions/brightness_model.md.
 
-With ``OmniFlowConfig.brightness_model`` "linear" the coupled gain may vary linearly
+With ``OmniFlowConfig.brightness.brightness_model`` "linear" the coupled gain may vary linearly
 across the pool, (beta + beta_u u_j + beta_h dh_j) f_j: texture turning through shading
 that stays put (a body spinning under fixed lights) changes brightness with no level
 across a pool, only a gradient, which one gain cannot take up. The pool keeps one gain

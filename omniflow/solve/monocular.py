@@ -42,7 +42,7 @@ from omniflow.config import OmniFlowConfig
 from omniflow.fit.sampling import sample_f, sample_polar_grad
 from omniflow.geometry.rig import Unit
 from omniflow.result import MONOCULAR_COLUMNS, OmniFlowResult
-from omniflow.solve.pooled import neighbourhoods, pooled_solution
+from omniflow.solve.pooled import POOL_MODEL, neighbourhoods, pooled_solution
 
 __all__ = [
     "BLOCK",
@@ -78,7 +78,7 @@ def monocular_points(
 ) -> tuple[NDArray, NDArray]:
     """The cam1 pixel centres (x, y) the monocular solve answers at (module docstring)."""
     mag = np.hypot(*grad_xy)
-    inside = _inside(unit, config.h_min, config.rim_margin)
+    inside = _inside(unit, config.search.h_min, config.search.rim_margin)
     if not inside.any():
         return np.zeros(0), np.zeros(0)
     rows, cols = (n // BLOCK * BLOCK for n in mag.shape)
@@ -86,7 +86,7 @@ def monocular_points(
     blocks = blocks.reshape(rows // BLOCK, BLOCK, cols // BLOCK, BLOCK).transpose(0, 2, 1, 3)
     blocks = blocks.reshape(rows // BLOCK, cols // BLOCK, BLOCK * BLOCK)
     best, arg = blocks.max(axis=-1), blocks.argmax(axis=-1)
-    level = max(float(np.percentile(mag[inside], PERCENTILE)), config.min_gradient)
+    level = max(float(np.percentile(mag[inside], PERCENTILE)), config.search.min_gradient)
     bi, bj = np.nonzero(best >= level)
     x = (bj * BLOCK + arg[bi, bj] % BLOCK) + 0.5
     y = (bi * BLOCK + arg[bi, bj] // BLOCK) + 0.5
@@ -112,15 +112,15 @@ def monocular_flow(
     if x.size == 0:  # a constant or dark frame, or matches everywhere: an empty answer
         return {name: np.zeros(0) for name in MONOCULAR_COLUMNS}
     h1, theta = unit.polar_of_pixel(x, y)
-    f_h, f_th = sample_polar_grad(cam1["g"], x, y, config.sampling)
-    f_t = sample_f(cam1["t"], x, y, config.sampling)
+    f_h, f_th = sample_polar_grad(cam1["g"], x, y, config.fit.sampling)
+    f_t = sample_f(cam1["t"], x, y, config.fit.sampling)
     radius = unit.r_m / 8.0 if config.pool_radius is None else config.pool_radius
-    idx, w = neighbourhoods(x, y, k=config.pool_k, radius=radius, r=None, range_tol=None)
+    idx, w = neighbourhoods(x, y, k=config.pooling.pool_k, radius=radius, r=None, range_tol=None)
     zero = np.zeros_like(x)
-    floor = config.pool_min_conditioning
+    floor = config.pooling.pool_min_conditioning
     a, b, conf = pooled_solution(
         f_h, f_th, f_t, zero, zero, zero, h1, h1, idx, w, theta=theta,
-        model=config.pool_model, scale=radius, min_conditioning=floor,
+        model=POOL_MODEL, scale=radius, min_conditioning=floor,
     )  # fmt: skip
     keep = np.isfinite(a) & np.isfinite(b)
     x, y, h1, theta, a, b, conf, f_h, f_th, f_t = (

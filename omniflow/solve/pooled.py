@@ -21,10 +21,16 @@ from omniflow.solve.gridpool import GridPools
 from omniflow.solve.pooled_kernels import cell_knn, pooled_solves, pooled_sums
 
 __all__ = [
+    "POOL_MODEL",
     "motion_statistic",
     "neighbourhoods",
     "pooled_solution",
 ]
+
+#: The local flow model the pipeline's pools fit: linear in theta across the pool
+#: (docs/decisions/pooling.md; the constant model, ``model="constant"`` here, lost:
+#: docs/decisions/retired_knobs.md, ``pool_model``).
+POOL_MODEL = "linear"
 
 
 def neighbourhoods(

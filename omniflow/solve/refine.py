@@ -12,7 +12,7 @@ h_2 / h_1 times cam1's, eq. 14) comes out 8-9 % too fast in both components
 
 :func:`refine_moving` re-linearises eq. (8) at the displaced points, as
 ``OmniFlowConfig.iterations`` always did, but only where the first step's
-displacement in either unit is at least ``OmniFlowConfig.iterate_min_px``
+displacement in either unit is at least ``OmniFlowConfig.refinement.iterate_min_px``
 pixels, and only where at least ``MIN_NEIGHBOURS`` other fast points lie within
 the pool radius, so that a lone wrong match whose first step happens to be fast
 is left as it is. At so few points the fitted series are evaluated exactly
@@ -124,7 +124,7 @@ def refine_moving(
     refined : ndarray of bool
         The points that took the refinement.
     """
-    sel = moving_far(a, b, h1, h2, config.iterate_min_px)
+    sel = moving_far(a, b, h1, h2, config.refinement.iterate_min_px)
     # pooled solves only: the direct solution's fast points are mostly its ill-conditioned
     # failures, and a Gauss-Newton step from them diverges (default scene: mean EPE at
     # those points 5.4 -> 30 px; docs/decisions/refinement.md)
@@ -201,7 +201,7 @@ def _unit_rows(
     fb, g_x, g_y = fr["b"].fit.value_and_gradient(xd, yd, single=SINGLE)  # t + 1, displaced
     fa, a_x, a_y = fr["af"].fit.value_and_gradient(x, y, single=SINGLE)  # frame t, at the point
     g_h, g_th = polar_from_cartesian(g_x, g_y, xd - unit.x_c, yd - unit.y_c)
-    if config.gradients == "average":
+    if config.fit.gradients == "average":
         a_h, a_th = polar_from_cartesian(a_x, a_y, x - unit.x_c, y - unit.y_c)
         g_h, g_th = 0.5 * (g_h + a_h), 0.5 * (g_th + a_th)
     return g_h, g_th, fb - fa  # brightness constancy's residual (eq. 8)

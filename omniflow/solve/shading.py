@@ -63,14 +63,14 @@ def flow_units(
     cams: tuple[dict, dict],
 ) -> tuple[dict, dict]:
     """Both units' flow-step series fitted to shading-flattened frames
-    (``config.flow_shading`` px), each keeping the matcher's frame ``a`` of ``cams``."""
+    (``config.brightness.flow_shading`` px), each keeping the matcher's frame ``a`` of ``cams``."""
     from omniflow.fit.series import fit_band, unit_fits, unit_frames
 
     out = []
     for frames, unit, cam, what in ((frames1, rig.cam1, cams[0], "frames1"),
                                     (frames2, rig.cam2, cams[1], "frames2")):  # fmt: skip
-        rim = unit if config.rim_fill == "reflect" else None
-        flat = _Flattened(frames, config.flow_shading, rim)
+        rim = unit if config.fit.rim_fill == "reflect" else None
+        flat = _Flattened(frames, config.brightness.flow_shading, rim)
         fits = unit_fits(flat, t, unit, config, what, fit_band(config))
         new = unit_frames(fits, unit, config, flow_band)
         new["a"] = cam["a"]

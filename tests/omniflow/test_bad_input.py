@@ -25,7 +25,6 @@ one warning line, empty outputs with every column, moved into place as a set.
 
 from __future__ import annotations
 
-import dataclasses
 import fcntl
 import hashlib
 import json
@@ -433,18 +432,34 @@ CASES = {
     "band nan": (_opts("--band", "nan"), 2, "--band nan: expected a finite number"),
     "band text": (_opts("--band", "wide"), 2, "--band: invalid float value: 'wide'"),
     "flow-band 0": (_opts("--flow-band", "0"), 2, "--flow-band 0"),
-    "h-step 0": (_opts("--h-step", "0"), 2, "--h-step 0: expected a number > 0"),
-    "h-min inf": (_opts("--h-min", "inf"), 2, "--h-min inf: expected a finite number"),
+    "h-step 0": (_opts("--search.h-step", "0"), 2, "--search.h-step 0: expected a number > 0"),
+    "h-min inf": (
+        _opts("--search.h-min", "inf"),
+        2,
+        "--search.h-min inf: expected a finite number",
+    ),
     "patch-radius negative": (_opts("--patch-radius", "-1"), 2, "--patch-radius -1"),
-    "profile-step 0": (_opts("--profile-step", "0"), 2, "--profile-step 0"),
+    "profile-step 0": (_opts("--matching.profile-step", "0"), 2, "--matching.profile-step 0"),
     "threshold-percentile 150": (_opts("--threshold-percentile", "150"), 2, "in [0, 100)"),
-    "min-score 2": (_opts("--min-score", "2"), 2, "--min-score 2: expected a number in [-1, 1]"),
-    "uniqueness 0": (_opts("--uniqueness", "0"), 2, "--uniqueness 0"),
-    "tangential-blur 100": (_opts("--tangential-blur", "100"), 2, "--tangential-blur 100"),
+    "min-score 2": (
+        _opts("--matching.min-score", "2"),
+        2,
+        "--matching.min-score 2: expected a number in [-1, 1]",
+    ),
+    "uniqueness 0": (_opts("--matching.uniqueness", "0"), 2, "--matching.uniqueness 0"),
+    "tangential-blur 100": (
+        _opts("--matching.tangential-blur", "100"),
+        2,
+        "--matching.tangential-blur 100",
+    ),
     "iterations negative": (_opts("--iterations", "-1"), 2, "--iterations -1"),
-    "temporal-frames 1": (_opts("--temporal-frames", "1"), 2, "--temporal-frames 1"),
-    "pool-k 0": (_opts("--pool-k", "0"), 2, "--pool-k 0"),
-    "pool-range-tol negative": (_opts("--pool-range-tol", "-1"), 2, "--pool-range-tol -1"),
+    "temporal-frames 1": (_opts("--fit.temporal-frames", "1"), 2, "--fit.temporal-frames 1"),
+    "pool-k 0": (_opts("--pooling.pool-k", "0"), 2, "--pooling.pool-k 0"),
+    "pool-range-tol negative": (
+        _opts("--pooling.pool-range-tol", "-1"),
+        2,
+        "--pooling.pool-range-tol -1",
+    ),
     "decouple-tol 0": (
         _opts("--decouple-tol", "0"),
         2,
@@ -453,19 +468,23 @@ CASES = {
     "brightness-gate nan": (_opts("--brightness-gate", "nan"), 2, "--brightness-gate nan"),
     "r-max 0": (_opts("--r-max", "0"), 2, "--r-max 0"),
     "pool-min-conditioning nan": (
-        _opts("--pool-min-conditioning", "nan"),
+        _opts("--pooling.pool-min-conditioning", "nan"),
         2,
-        "--pool-min-conditioning nan",
+        "--pooling.pool-min-conditioning nan",
     ),
     "r-min beyond r-max": (_opts("--r-min", "20"), 2, "r_min = 20.0, r_max = 10.0"),
-    "h-min beyond the rim": (_opts("--h-min", "1000"), 2, "do not fit these images (--h-min 1000"),
+    "h-min beyond the rim": (
+        _opts("--search.h-min", "1000"),
+        2,
+        "do not fit these images (--search.h-min 1000",
+    ),
     "solver unknown": (_opts("--solver", "foo"), 2, "--solver: invalid choice: 'foo'"),
     "unknown option": (_opts("--bnd", "0.3"), 2, "unrecognized arguments: --bnd"),
     "arrow-scale 0": (_opts("--arrow-scale", "0"), 2, "--arrow-scale 0.0: expected"),
     "arrow-scale nan": (_opts("--arrow-scale", "nan"), 2, "--arrow-scale nan"),
     "t negative": (_opts("--t", "-1"), 2, "--t -1"),
     "t past the end": (_opts("--t", "1"), 2, "--t 1: the flow needs time steps 1 and 2"),
-    "dct3d with 2 steps": (_opts("--temporal", "dct3d"), 2, "dct3d needs 3 time steps"),
+    "dct3d with 2 steps": (_opts("--fit.temporal", "dct3d"), 2, "dct3d needs 3 time steps"),
     "d without calibrate": (_opts("--d", "0.1"), 2, "apply with --calibrate only"),
     "calibrate negative R": (
         lambda b, w: [*frames(b), "--calibrate", "--d", "0.1", "--R", "-0.05", "--s", "0.3"],
@@ -531,23 +550,27 @@ def test_every_knob_carries_its_check():
     check lives: a help line for every field, a range for every numeric one, choices for
     every word; every preset lies inside. Mutation caught: a numeric knob without limits
     would reach the pipeline unchecked."""
-    from omniflow.config import PRESETS, OmniFlowConfig
+    from omniflow.config import GROUPS, PRESETS, OmniFlowConfig, knob_fields
 
     hints = typing.get_type_hints(OmniFlowConfig)
+    for group, cls in GROUPS.items():
+        hints.update({f"{group}.{k}": v for k, v in typing.get_type_hints(cls).items()})
     numeric = []
-    for f in dataclasses.fields(OmniFlowConfig):
-        assert f.metadata.get("help"), f.name
-        kinds = set(typing.get_args(hints[f.name]) or [hints[f.name]])
+    for name, f in knob_fields().items():
+        assert f.metadata.get("help"), name
+        kinds = set(typing.get_args(hints[name]) or [hints[name]])
         if {int, float} & kinds:
-            numeric.append(f.name)
-            assert f.metadata.get("limits") is not None, f.name
+            numeric.append(name)
+            assert f.metadata.get("limits") is not None, name
         if str in kinds:
-            assert f.metadata.get("choices"), f.name
+            assert f.metadata.get("choices"), name
     assert len(numeric) >= 20  # 52 today; a change of annotation style would empty the list
     for name in PRESETS:  # every preset's values lie in their ranges (made without error)
         OmniFlowConfig.preset(name)
-    with pytest.raises(ValueError, match=r"OmniFlowConfig.pool_k = 0: expected an integer >= 1"):
-        OmniFlowConfig(pool_k=0)
+    with pytest.raises(
+        ValueError, match=r"OmniFlowConfig.pooling.pool_k = 0: expected an integer >= 1"
+    ):
+        OmniFlowConfig(pooling={"pool_k": 0})
 
 
 def test_debug_shows_the_traceback(base, tmp_path):

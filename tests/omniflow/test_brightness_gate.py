@@ -25,16 +25,16 @@ DIM = 0.99
 
 def _run(robot=None, wall=None, dim=1.0, gate=None, **knobs):
     """(result, cam1 endpoint error per point, true cam1 speed per point, px per frame)
-    on the wall scene. ``decouple_gain_tol`` off unless given: it would take the rising
+    on the wall scene. ``brightness.decouple_gain_tol`` off unless given: it would take the rising
     wall's points itself (tests/omniflow/test_decouple_gain.py), so the gain's own
     effect in the decoupled model is measured without it."""
-    knobs = {"decouple_gain_tol": None, **knobs}
     rig = paper_rig(256)
     scene = wall_scene(rig, robot=robot, wall_motion=wall)
     f1, f2 = frames(scene, 2)
     m, gt = sparse_true_matches(scene, 0.03)
     res = estimate([f1[0], f1[1] * dim], [f2[0], f2[1] * dim], rig,
-                   OmniFlowConfig(brightness_gate=gate, **knobs), matches=m)  # fmt: skip
+                   OmniFlowConfig(brightness_gate=gate, brightness={"decouple_gain_tol": None})
+                   .replace(**knobs), matches=m)  # fmt: skip
     iy, ix = res["y"].astype(int), res["x"].astype(int)  # true matches: pixel centres
     dh, hdtheta = gt["gt.flow.dh"][iy, ix], gt["gt.flow.hdtheta"][iy, ix]
     err = np.hypot(res["dh1_dt"] - dh, res["h1"] * res["dtheta_dt"] - hdtheta)
@@ -148,13 +148,29 @@ def test_gain_with_grid_pools(monkeypatch):
     plain 0.0933, gate 20 0.0181 (0.0157 with the gain on k-d tree pools, stop 18).
     Mutation caught: the gain never taken (``gated`` always False in the solver) stays at
     the plain 0.0933."""
-    _, plain, _ = _run(robot=SLOW, dim=DIM, pool_grid=0.125, brightness_model="gain")
-    _, gated, _ = _run(robot=SLOW, dim=DIM, gate=GATE, pool_grid=0.125, brightness_model="gain")
-    _, clean, _ = _run(robot=SLOW, pool_grid=0.125, brightness_model="gain")
+    _, plain, _ = _run(
+        robot=SLOW, dim=DIM, pooling={"pool_grid": 0.125}, brightness={"brightness_model": "gain"}
+    )
+    _, gated, _ = _run(
+        robot=SLOW,
+        dim=DIM,
+        gate=GATE,
+        pooling={"pool_grid": 0.125},
+        brightness={"brightness_model": "gain"},
+    )
+    _, clean, _ = _run(
+        robot=SLOW, pooling={"pool_grid": 0.125}, brightness={"brightness_model": "gain"}
+    )
     assert gated.mean() < 0.25 * plain.mean()  # measured 0.19
     assert gated.mean() < 1.5 * clean.mean()  # measured 1.30
     monkeypatch.setattr(solve_mod, "gated", lambda F, gate, *v: np.zeros(F.shape, bool))
-    _, mutated, _ = _run(robot=SLOW, dim=DIM, gate=GATE, pool_grid=0.125, brightness_model="gain")
+    _, mutated, _ = _run(
+        robot=SLOW,
+        dim=DIM,
+        gate=GATE,
+        pooling={"pool_grid": 0.125},
+        brightness={"brightness_model": "gain"},
+    )
     assert not mutated.mean() < 0.25 * plain.mean()
 
 
@@ -175,7 +191,9 @@ def test_small_gains_are_model_error_not_a_change(monkeypatch):
     tdx, tdy = gt["gt.flow.dx"][sel], gt["gt.flow.dy"][sel]
 
     def median(gate):
-        config = OmniFlowConfig(brightness_gate=gate, pool_min_conditioning=0.0)  # as test_flow
+        config = OmniFlowConfig(
+            brightness_gate=gate, pooling={"pool_min_conditioning": 0.0}
+        )  # as test_flow
         c = estimate(f1, f2, scene.rig, config, matches=m)
         return float(np.median(np.hypot(c["dx"] - tdx, c["dy"] - tdy)))
 

@@ -233,7 +233,7 @@ def test_dataset_mode(case, tmp_path):
     # The room is rotationally symmetric about the rig, so frame 1 -> 2 has the same truth.
     check_against_truth(case, cols, 0.12)
     # dct3d reads three frames around K.
-    proc = run_cli("--dataset", ds, "--frame", 1, "--out", out, "--temporal", "dct3d",
+    proc = run_cli("--dataset", ds, "--frame", 1, "--out", out, "--fit.temporal", "dct3d",
                    "--solver", "direct", "--no-pictures")  # fmt: skip
     assert proc.returncode == 0, proc.stderr
     assert json.loads((out / "flow.json").read_text())["inputs"]["frames_read"] == [0, 1, 2]
@@ -281,8 +281,10 @@ def test_help_documents_inputs_outputs_and_every_knob():
                    "--calibrate", "--out", "flow.csv", "flow.json", "exit status", "[rig]",
                    "px/frame"):  # fmt: skip
         assert phrase in text, phrase
-    for field in OmniFlowConfig.__dataclass_fields__.values():
-        flag = "--" + field.name.replace("_", "-")
+    from omniflow.config import knob_fields
+
+    for name in knob_fields():  # a group's knobs under dotted names, --pooling.pool-k
+        flag = "--" + name.replace("_", "-")
         assert flag in text, flag
     assert f"(default: {OmniFlowConfig().band})" in text
 
@@ -303,14 +305,17 @@ def test_subcommand_help_is_short_and_shows_the_public_knobs():
         for name in PUBLIC_FIELDS:
             assert "--" + name.replace("_", "-") + " " in proc.stdout, (command, name)
         assert "--set NAME=VALUE" in proc.stdout and "--help-expert" in proc.stdout
-        assert "--pool-k" not in proc.stdout  # an expert knob: --set pool_k=...
+        assert "--pooling.pool-k" not in proc.stdout  # an expert knob: --set pooling.pool_k=...
 
 
 @pytest.mark.parametrize(
     ("setting", "fragment"),
-    [("pool_kk=3", "--set 'pool_kk=3': expected NAME=VALUE with NAME an OmniFlowConfig field"),
-     ("pool_k=0", "--pool-k 0: expected an integer >= 1"),
-     ("eiv=maybe", "argument --eiv: invalid choice: 'maybe'")],
+    [("pooling.pool_kk=3",
+      "--set 'pooling.pool_kk=3': expected NAME=VALUE with NAME an OmniFlowConfig knob"),
+     ("pool_k=3", "--set 'pool_k=3': expected NAME=VALUE with NAME an OmniFlowConfig knob, "
+      "e.g. band=0.3 or fit.flow_taper=0; it is pooling.pool_k"),
+     ("pooling.pool_k=0", "--pooling.pool-k 0: expected an integer >= 1"),
+     ("pooling.eiv=maybe", "argument --pooling.eiv: invalid choice: 'maybe'")],
 )  # fmt: skip
 def test_set_is_checked_by_the_field_metadata(setting, fragment, tmp_path):
     """``--set NAME=VALUE`` goes through the field's own option: an unknown name, a value
@@ -322,17 +327,24 @@ def test_set_is_checked_by_the_field_metadata(setting, fragment, tmp_path):
 
 
 def test_set_equals_the_option():
-    """``--set pool_k=64 --set left_right=false`` makes the config the options make."""
+    """``--set pooling.pool_k=64 --set matching.left_right=false`` makes the config the
+    options make."""
     from omniflow.cli.common import expand_settings, make_config
     from omniflow.cli.pair import build_parser
 
     parser = build_parser()
-    argv = ["--out", "o", "--set", "pool_k=64", "--set=left_right=false", "--set", "r_min=none"]
+    argv = ["--out", "o", "--set", "pooling.pool_k=64", "--set=matching.left_right=false",
+            "--set", "r_min=none"]  # fmt: skip
     args = parser.parse_args(expand_settings(argv, parser))
     via_set = make_config(args, parser._config_fields)
-    args = parser.parse_args(["--out", "o", "--pool-k", "64", "--no-left-right", "--r-min=none"])
+    args = parser.parse_args(["--out", "o", "--pooling.pool-k", "64", "--no-matching.left-right",
+                              "--r-min=none"])  # fmt: skip
     assert via_set == make_config(args, parser._config_fields)
-    assert via_set.pool_k == 64 and via_set.left_right is False and via_set.r_min is None
+    assert (
+        via_set.pooling.pool_k == 64
+        and via_set.matching.left_right is False
+        and via_set.r_min is None
+    )
 
 
 # -- bad input: exit status 2 and one line naming the problem ------------------------------
@@ -426,9 +438,10 @@ BAD = {
     "no rig": (["c1", "c2", "c3", "c4"], [], "--rig FILE is required"),
     "bad knob value": (["c1", "c2", "c3", "c4"], ["rig", "--band", "7"], "band"),
     "bad knob choice": (["c1", "c2", "c3", "c4"], ["rig", "--solver", "foo"], "--solver"),
-    "bad flow taper": (C4, ["rig", "--flow-taper", "2"], "--flow-taper 2"),
-    "bad pool model": (C4, ["rig", "--pool-model", "inv"], "--pool-model"),
-    "dct3d needs 3 steps": (["c1", "c2", "c3", "c4"], ["rig", "--temporal", "dct3d"], "dct3d"),
+    "bad flow taper": (C4, ["rig", "--fit.flow-taper", "2"], "--fit.flow-taper 2"),
+    "bad eiv": (C4, ["rig", "--pooling.eiv", "inv"], "--pooling.eiv"),
+    "retired knob": (C4, ["rig", "--pooling.pool-model", "constant"], "unrecognized"),
+    "dct3d needs 3 steps": (["c1", "c2", "c3", "c4"], ["rig", "--fit.temporal", "dct3d"], "dct3d"),
     "not a dataset": ([], ["--dataset", "NODIR"], "not an omnisim dataset"),
     "calibrate without R, s": (["c1", "c2", "c3", "c4"], ["--calibrate", "--d", "0.1"], "--R, --s"),
     "unknown option": (["c1", "c2", "c3", "c4"], ["rig", "--bnd", "0.3"], "unrecognized"),

@@ -199,14 +199,14 @@ def test_the_test_with_the_gain_finds_the_rising_wall(monkeypatch):
     point decoupled, mean dh 0.1805, EPE 0.0086 (no gain field: 0.0022 at 20, 0.0017
     without it, both every point decoupled). Mutation caught: one gain per pool in the
     test and the model (``slopes=False``): EPE 0.0340."""
-    _, plain = _run(decouple_gain_tol=None)
-    res, chain = _run(decouple_gain_tol=20.0)
+    _, plain = _run(brightness={"decouple_gain_tol": None})
+    res, chain = _run(brightness={"decouple_gain_tol": 20.0})
     assert (res["coupled"] == 0).all()
     assert chain.mean() < 0.15 * plain.mean()  # measured 0.096
     assert chain.mean() < 0.015  # measured 0.0086
     single = functools.partial(decoupled_linear_gain, slopes=False)
     monkeypatch.setattr(decoupled_mod, "decoupled_linear_gain", single)
-    _, mutated = _run(decouple_gain_tol=20.0)
+    _, mutated = _run(brightness={"decouple_gain_tol": 20.0})
     assert not mutated.mean() < 0.015  # measured 0.0340
 
 
@@ -217,14 +217,14 @@ def test_the_rising_wall_without_a_brightness_change(monkeypatch):
     flow column equals decouple_gain_tol None's to rounding (measured 3e-14 px), EPE mean
     0.0017. Mutation caught: the rule off (every pool answered with its gain): EPE mean
     0.0022, dh1 and dh2 off by up to 0.013 px (mean 4e-4)."""
-    plain, _ = _run(amp=0.0, decouple_gain_tol=None)
-    res, err20 = _run(amp=0.0, decouple_gain_tol=20.0)
+    plain, _ = _run(amp=0.0, brightness={"decouple_gain_tol": None})
+    res, err20 = _run(amp=0.0, brightness={"decouple_gain_tol": 20.0})
     for name in ("dh1_dt", "dh2_dt", "dtheta_dt", "dx", "dy", "dx2", "dy2", "dr_dt", "coupled"):
         np.testing.assert_allclose(res[name], plain[name], rtol=0, atol=1e-12, err_msg=name)
     assert err20.mean() < 0.002  # measured 0.0017 (None: 0.0017)
     monkeypatch.setattr(gain_mod, "MIN_GAIN_F", -np.inf)
     monkeypatch.setattr(gain_mod, "MIN_GAIN_CHANGE", 0.0)
-    _, mutated = _run(amp=0.0, decouple_gain_tol=20.0)
+    _, mutated = _run(amp=0.0, brightness={"decouple_gain_tol": 20.0})
     assert mutated.mean() > 0.002  # measured 0.0022
 
 
@@ -234,14 +234,14 @@ def test_no_switch_where_eq14_holds(monkeypatch):
     only 0.2 % switch (1 of 419): the coupled fit's residual is never twice the
     decoupled one's (MIN_RESIDUAL_RATIO). Mutations caught: that ratio at 1 (F_U alone)
     lets a gate of 1 switch 12 % of the points (eq. 14 no longer imposed where it holds)."""
-    plain, _ = _run(wall=Motion(), decouple_gain_tol=None)
-    chain, _ = _run(wall=Motion(), decouple_gain_tol=20.0)
+    plain, _ = _run(wall=Motion(), brightness={"decouple_gain_tol": None})
+    chain, _ = _run(wall=Motion(), brightness={"decouple_gain_tol": 20.0})
     for name, col in plain.columns.items():
         np.testing.assert_array_equal(chain[name], col, err_msg=name)
-    loose, _ = _run(wall=Motion(), decouple_gain_tol=1.0)
+    loose, _ = _run(wall=Motion(), brightness={"decouple_gain_tol": 1.0})
     assert (loose["coupled"] == 0).mean() < 0.02  # measured 0.0024
     monkeypatch.setattr(gain_mod, "MIN_RESIDUAL_RATIO", 1.0)
-    loose, _ = _run(wall=Motion(), decouple_gain_tol=1.0)
+    loose, _ = _run(wall=Motion(), brightness={"decouple_gain_tol": 1.0})
     assert (loose["coupled"] == 0).mean() > 0.05  # measured 0.12
 
 
@@ -286,15 +286,15 @@ def test_too_few_residual_degrees_of_freedom_give_no_test(monkeypatch):
 @pytest.mark.parametrize("tol", [0.0, -1.0, float("nan")])
 def test_bad_tol(tol):
     with pytest.raises(ValueError, match="decouple_gain_tol"):
-        OmniFlowConfig(decouple_gain_tol=tol)
+        OmniFlowConfig(brightness={"decouple_gain_tol": tol})
 
 
 def test_the_default_and_the_presets():
     """20 by default, 60 in the dense preset (its larger pools), None in the paper's
     configuration (eq. 14 as written)."""
-    assert OmniFlowConfig().decouple_gain_tol == 20.0
-    assert OmniFlowConfig.dense().decouple_gain_tol == 60.0
-    assert OmniFlowConfig.paper().decouple_gain_tol is None
+    assert OmniFlowConfig().brightness.decouple_gain_tol == 20.0
+    assert OmniFlowConfig.dense().brightness.decouple_gain_tol == 60.0
+    assert OmniFlowConfig.paper().brightness.decouple_gain_tol is None
 
 
 def test_nothing_without_the_test_it_extends():

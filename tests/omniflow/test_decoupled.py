@@ -152,7 +152,7 @@ def test_early_pool_fits_are_used_only_for_the_same_points(monkeypatch):
 
     rig = paper_rig(256)
     f1, f2 = frames(wall_scene(rig, robot=Motion(velocity=(0.02, 0.01), yaw_rate=0.004)), 2)
-    config = OmniFlowConfig.dense(decouple_gain_tol=60.0)
+    config = OmniFlowConfig.dense(brightness={"decouple_gain_tol": 60.0})
     seen = []
     real_decouple = solve_mod.decouple
 

@@ -65,7 +65,7 @@ def smooth_wall_runs():
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            cfg = OmniFlowConfig.dense(dense_smooth=None)
+            cfg = OmniFlowConfig.dense(matching={"dense_smooth": None})
             cols = estimate(f1, f2, rig, cfg)
             unflagged = estimate(f1, f2, rig, cfg, matches=replace(seen[0], ramp=None))
     finally:
@@ -88,7 +88,7 @@ def test_flow_step_drops_inherited_flags_under_the_floor(smooth_wall_runs):
     ``edge_smooth_floor``: with every match flagged, none under it is left (measured 32
     of 42 kept; without the inheritance 39, 7 of them densified ones under the floor)."""
     _, matches, cols, unflagged, cfg = smooth_wall_runs
-    floor = cfg.edge_smooth_floor
+    floor = cfg.matching.edge_smooth_floor
     assert len(unflagged) == len(matches)  # no flag: every point solved
     under = unflagged["confidence"] < floor
     assert 5 <= under.sum() < len(matches)  # measured 10 of 42

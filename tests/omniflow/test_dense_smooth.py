@@ -85,8 +85,8 @@ def test_densify_drops_ramp_matches_a_wrong_seed_placed():
 
 
 def test_dense_smooth_is_off_by_default_and_on_in_the_preset():
-    assert OmniFlowConfig().dense_smooth is None
-    assert OmniFlowConfig.dense().dense_smooth == DENSE["dense_smooth"] < 1.0
+    assert OmniFlowConfig().matching.dense_smooth is None
+    assert OmniFlowConfig.dense().matching.dense_smooth == DENSE["matching"]["dense_smooth"] < 1.0
     for bad in (1.5, 1.0):  # off is None, one spelling
         with pytest.raises(ValueError, match="dense_smooth"):
-            OmniFlowConfig(dense_smooth=bad)
+            OmniFlowConfig(matching={"dense_smooth": bad})

@@ -62,11 +62,13 @@ def test_edge_smooth_drops_the_ramp_matches(rig):
     than without the test."""
     scene = _smooth_wall(rig)
     f1, f2 = _noisy(scene)
-    off = estimate(f1, f2, rig, OmniFlowConfig(edge_smooth=None))
+    off = estimate(f1, f2, rig, OmniFlowConfig(matching={"edge_smooth": None}))
     assert len(off) >= 5  # measured 11
     assert _wrong(scene, off).all()
     with pytest.warns(UserWarning, match="no stereo matches"):
-        drop = estimate(f1, f2, rig, OmniFlowConfig(edge_smooth=0.95, edge_smooth_floor=None))
+        drop = estimate(
+            f1, f2, rig, OmniFlowConfig(matching={"edge_smooth": 0.95, "edge_smooth_floor": None})
+        )
     assert len(drop) == 0  # measured 0
     default = estimate(f1, f2, rig, OmniFlowConfig())
     assert 0 < len(default) < len(off)  # measured 7 of 11
@@ -76,8 +78,10 @@ def test_edge_smooth_keeps_a_textured_walls_matches(rig):
     """The striped wall: the same 1281 matches, none wrong, with the test or without."""
     scene = wall_scene(rig, robot=ROBOT)
     f1, f2 = _noisy(scene)
-    off = estimate(f1, f2, rig, OmniFlowConfig(edge_smooth=None))
-    on = estimate(f1, f2, rig, OmniFlowConfig(edge_smooth=0.95, edge_smooth_floor=None))
+    off = estimate(f1, f2, rig, OmniFlowConfig(matching={"edge_smooth": None}))
+    on = estimate(
+        f1, f2, rig, OmniFlowConfig(matching={"edge_smooth": 0.95, "edge_smooth_floor": None})
+    )
     default = estimate(f1, f2, rig, OmniFlowConfig())
     assert len(off) > 1000  # measured 1281
     assert not _wrong(scene, off).any()
@@ -93,27 +97,31 @@ def test_edge_smooth_floor_drops_flagged_points_of_ill_conditioned_pools(rig):
     anisotropic by nature (confidence median 0.0078), so a floor of 0.015 splits them."""
     scene = wall_scene(rig, robot=ROBOT)
     f1, f2 = _noisy(scene)
-    found = estimate(f1, f2, rig, OmniFlowConfig(edge_smooth=None))
+    found = estimate(f1, f2, rig, OmniFlowConfig(matching={"edge_smooth": None}))
     m = Matches.from_polar(rig, found["theta"], found["h1"], found["h2"], found["score"])
     flagged = replace(m, ramp=np.arange(len(m)) % 2 == 0)
-    base = estimate(f1, f2, rig, OmniFlowConfig(edge_smooth_floor=None), matches=flagged)
-    got = estimate(f1, f2, rig, OmniFlowConfig(edge_smooth_floor=0.015), matches=flagged)
+    base = estimate(
+        f1, f2, rig, OmniFlowConfig(matching={"edge_smooth_floor": None}), matches=flagged
+    )
+    got = estimate(
+        f1, f2, rig, OmniFlowConfig(matching={"edge_smooth_floor": 0.015}), matches=flagged
+    )
     row = {(t, h): i for i, (t, h) in enumerate(zip(m.theta, m.h1, strict=True))}
     ramp = flagged.ramp[[row[(t, h)] for t, h in zip(base["theta"], base["h1"], strict=True)]]
     gone = ramp & (base["confidence"] < 0.015)
     assert 100 < gone.sum() < ramp.sum()  # measured 482 of the 641 flagged (1281 points)
     np.testing.assert_array_equal(got["h1"], base["h1"][~gone])
-    direct = OmniFlowConfig(solver="direct", edge_smooth_floor=0.015)
+    direct = OmniFlowConfig(solver="direct", matching={"edge_smooth_floor": 0.015})
     assert len(estimate(f1, f2, rig, direct, matches=flagged)) == len(
-        estimate(f1, f2, rig, replace(direct, edge_smooth_floor=None), matches=flagged)
+        estimate(f1, f2, rig, direct.replace(matching={"edge_smooth_floor": None}), matches=flagged)
     )
 
 
 def test_edge_smooth_defaults_and_checks():
-    assert OmniFlowConfig().edge_smooth == 0.95
-    assert OmniFlowConfig().edge_smooth_floor == 0.015
+    assert OmniFlowConfig().matching.edge_smooth == 0.95
+    assert OmniFlowConfig().matching.edge_smooth_floor == 0.015
     for bad in (1.5, 1.0):  # off is None, one spelling
         with pytest.raises(ValueError, match="edge_smooth"):
-            OmniFlowConfig(edge_smooth=bad)
+            OmniFlowConfig(matching={"edge_smooth": bad})
     with pytest.raises(ValueError, match="edge_smooth_floor"):
-        OmniFlowConfig(edge_smooth_floor=-0.1)
+        OmniFlowConfig(matching={"edge_smooth_floor": -0.1})

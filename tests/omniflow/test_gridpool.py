@@ -229,7 +229,9 @@ def test_grid_pools_at_a_motion_boundary_no_worse_than_the_tree(boundary):
     """Closed-form motion boundary, true matches at 10 % of the pixels: the band keeps 0.758
     of its flow with the grid (0.750 with the tree), the wall's mean EPE 0.0179 px (0.0193)."""
     tree_ratio, tree_wall = _band(boundary)
-    ratio, wall = _band(boundary, pool_grid=0.125, brightness_model="gain")
+    ratio, wall = _band(
+        boundary, pooling={"pool_grid": 0.125}, brightness={"brightness_model": "gain"}
+    )
     print(
         f"grid: band ratio {ratio:.3f} (tree {tree_ratio:.3f}); wall {wall:.4f} ({tree_wall:.4f})"
     )
@@ -244,7 +246,11 @@ def test_boundary_check_catches_grid_pools_without_the_range_test(boundary):
     and wall EPE 0.0211 px, both outside the check's bounds (the tree's 0.750 - 0.02 and
     1.05 x 0.0193)."""
     tree_ratio, tree_wall = _band(boundary)
-    ratio, wall = _band(boundary, pool_grid=0.125, brightness_model="gain", pool_range_tol=None)
+    ratio, wall = _band(
+        boundary,
+        pooling={"pool_grid": 0.125, "pool_range_tol": None},
+        brightness={"brightness_model": "gain"},
+    )
     assert ratio < tree_ratio - 0.02  # measured 0.659
     assert wall > 1.05 * tree_wall  # measured 1.09x
 
@@ -252,11 +258,11 @@ def test_boundary_check_catches_grid_pools_without_the_range_test(boundary):
 def test_grid_pools_reject_the_linear_gain():
     """Grid pools fit one gain per pool: ``brightness_model="linear"`` with them is an error
     (main fell back to one gain, silently); without the gain fit there is no conflict."""
-    message = re.escape("pool_grid = 0.125 with brightness_model = 'linear'")
+    message = re.escape("pooling.pool_grid = 0.125 with brightness.brightness_model = 'linear'")
     with pytest.raises(ValueError, match=message):
-        OmniFlowConfig(pool_grid=0.125)
-    OmniFlowConfig(pool_grid=0.125, brightness_gate=None)
-    OmniFlowConfig(pool_grid=0.125, brightness_model="gain")
+        OmniFlowConfig(pooling={"pool_grid": 0.125})
+    OmniFlowConfig(brightness_gate=None, pooling={"pool_grid": 0.125})
+    OmniFlowConfig(pooling={"pool_grid": 0.125}, brightness={"brightness_model": "gain"})
 
 
 def _brute_force_gain(x, y, tangent, derivs, f, h1, h2, r, tol, scale):

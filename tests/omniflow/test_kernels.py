@@ -111,8 +111,8 @@ def test_empty_pool():
 # -- before / after: the flow columns with the kernel against those with numpy's sums ----
 
 # Largest |kernel - numpy| over a column relative to the column's largest |value|,
-# measured on these frames (128 px closed-form): 8.7e-14 (default), 2.5e-14 (eiv="correct",
-# constant model; earlier 7.5e-14 with a second pooled pass, since retired); on the rendered
+# measured on these frames (128 px closed-form): 8.7e-14 (default), 6.4e-14 (eiv="none";
+# earlier 7.5e-14 with a second pooled pass, since retired); on the rendered
 # default scene at 512 px,
 # 7 configs, the columns against the code before the kernel differed by 1.4e-13. 1e-10 leaves room
 # for the solver's amplification on other frames; a real change of the sums (see the
@@ -121,7 +121,7 @@ FLOW_TOL = 1e-10
 
 CONFIGS = {
     "default": OmniFlowConfig(),
-    "eiv correct, constant model": OmniFlowConfig(eiv="correct", pool_model="constant"),
+    "no noise correction": OmniFlowConfig(pooling={"eiv": "none"}),
 }
 
 

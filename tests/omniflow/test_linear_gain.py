@@ -180,10 +180,13 @@ def test_one_gain_where_the_slopes_add_nothing():
 
 def test_config():
     """The default "linear"; "gain" selectable; anything else refused."""
-    assert OmniFlowConfig().brightness_model == "linear"
-    assert OmniFlowConfig(brightness_model="gain").brightness_model == "gain"
+    assert OmniFlowConfig().brightness.brightness_model == "linear"
+    assert (
+        OmniFlowConfig(brightness={"brightness_model": "gain"}).brightness.brightness_model
+        == "gain"
+    )
     with pytest.raises(ValueError, match="brightness_model"):
-        OmniFlowConfig(brightness_model="offset")
+        OmniFlowConfig(brightness={"brightness_model": "offset"})
     with pytest.raises(ValueError, match="k-d tree"):  # the kernel itself refuses the grid
         _solve(*_pool(), linear_gain=True, grid=object())
 
@@ -211,10 +214,10 @@ def test_the_wall_at_rest_under_a_gain_field():
     Without the field the linear model changes nothing (EPE 0 both: no F, every term below
     MIN_CHANGE). Mutation caught: make_solver not passing ``linear_gain`` (the knob
     ignored) gives the one-gain figure."""
-    _, one = _run(brightness_model="gain")
+    _, one = _run(brightness={"brightness_model": "gain"})
     _, lin = _run()
     assert lin.mean() < 0.4 * one.mean() and lin.mean() < 0.035  # measured 0.19x, 0.0260
-    flat, _ = _run(amp=0.0, brightness_model="gain")
+    flat, _ = _run(amp=0.0, brightness={"brightness_model": "gain"})
     flat_lin, _ = _run(amp=0.0)
     for name in ("dh1_dt", "dtheta_dt"):
         np.testing.assert_array_equal(flat_lin[name], flat[name], err_msg=name)

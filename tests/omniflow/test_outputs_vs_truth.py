@@ -163,7 +163,7 @@ def _series_derivatives(scene, frames, result, band: float) -> dict:
     rig, c = scene.rig, result
     out = {}
     eh, et = 1e-3, 1e-5
-    taper = OmniFlowConfig().flow_taper
+    taper = OmniFlowConfig().fit.flow_taper
 
     def fit(image, unit):
         f = fit_dct(fill_outside_rim(image, unit), band=band)
@@ -286,7 +286,7 @@ def test_flow_against_truth(result, truth, key):
 def sharp(scene, frames, result):
     """The same points with the sharply truncated flow series (``flow_taper=0``, eq. 18)."""
     m = Matches.from_polar(scene.rig, result["theta"], result["h1"], result["h2"])
-    out = estimate(*frames, scene.rig, OmniFlowConfig(flow_taper=0.0), matches=m).columns
+    out = estimate(*frames, scene.rig, OmniFlowConfig(fit={"flow_taper": 0.0}), matches=m).columns
     assert np.array_equal(out["x"], result["x"])
     return out
 
@@ -353,8 +353,9 @@ def direct(scene, frames, result):
 
 #: The matcher before issue 9 part 3 (tangential blur 0.03, no short pass, no sharp-peak
 #: or alias test, edges only): the pooled confidence ordering below was measured on it.
-EDGE_MATCHES = {"dense_percentile": None, "short_patch": None, "flatness": None,
-                "alias_score": None, "tangential_blur": 0.03}  # fmt: skip
+EDGE_MATCHES = {"dense_percentile": None,
+                "matching": {"short_patch": None, "flatness": None, "alias_score": None,
+                             "tangential_blur": 0.03}}  # fmt: skip
 
 
 @pytest.mark.parametrize("solver", ["pooled", "direct"])
@@ -386,4 +387,4 @@ def test_confidence_range_and_ordering(scene, frames, direct, solver):
 def test_score_is_an_accepted_ncc(result):
     """Robust matcher: NCC in [min_score, 1] (measured 0.9503-1.0)."""
     s = result["score"]
-    assert np.all((s >= OmniFlowConfig().min_score) & (s <= 1 + 1e-9))
+    assert np.all((s >= OmniFlowConfig().matching.min_score) & (s <= 1 + 1e-9))

@@ -85,9 +85,12 @@ def test_estimate_columns_and_csv(moving_frames, rig256, tmp_path):
     [
         OmniFlowConfig(),
         OmniFlowConfig.paper(),
-        OmniFlowConfig(temporal="dct3d"),
-        OmniFlowConfig(solver="direct", gradients="first", sampling="exact"),
-        OmniFlowConfig(band=0.25, rim_fill="none", sampling="linear", pool_model="constant"),
+        OmniFlowConfig(fit={"temporal": "dct3d"}),
+        OmniFlowConfig(solver="direct", fit={"gradients": "first", "sampling": "exact"}),
+        OmniFlowConfig(
+            band=0.25,
+            fit={"rim_fill": "none", "sampling": "linear"},
+        ),
     ],
 )
 def test_every_variant_runs(moving_frames, rig256, config):
@@ -176,7 +179,7 @@ def test_bad_inputs(moving_frames, rig256):
     with pytest.raises(ValueError, match="shape"):
         estimate([f[:, :-1] for f in f1], f2, rig256)
     with pytest.raises(ValueError, match="dct3d"):
-        estimate(f1[:2], f2[:2], rig256, OmniFlowConfig(temporal="dct3d"))
+        estimate(f1[:2], f2[:2], rig256, OmniFlowConfig(fit={"temporal": "dct3d"}))
     with pytest.raises(ValueError, match="solver"):
         OmniFlowConfig(solver="magic")
     with pytest.raises(ValueError, match="band"):
@@ -191,7 +194,7 @@ def test_bad_inputs(moving_frames, rig256):
 
 def test_config_paper_and_replace():
     p = OmniFlowConfig.paper()
-    assert (p.band, p.match_method, p.gradients, p.temporal, p.solver) == (
+    assert (p.band, p.match_method, p.fit.gradients, p.fit.temporal, p.solver) == (
         0.25, "paper", "first", "difference", "direct")  # fmt: skip
     assert OmniFlowConfig.paper(solver="pooled").solver == "pooled"
     c = OmniFlowConfig().replace(n_theta=360)

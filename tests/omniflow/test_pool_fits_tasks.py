@@ -42,7 +42,7 @@ def solver_call():
 
     rig = paper_rig(256)
     f1, f2 = frames(wall_scene(rig, robot=Motion(velocity=(0.02, 0.01), yaw_rate=0.004)), 2)
-    config = OmniFlowConfig.dense(decouple_gain_tol=60.0)
+    config = OmniFlowConfig.dense(brightness={"decouple_gain_tol": 60.0})
     seen = []
     real = solve_mod.start_pool_fits
 
@@ -180,7 +180,7 @@ def test_speculative_pool_fits_only_when_every_point_keeps_its_flow(monkeypatch)
     _two_threads(monkeypatch)
     rig = paper_rig(256)
     f1, f2 = frames(wall_scene(rig, robot=Motion(velocity=(0.02, 0.01), yaw_rate=0.004)), 2)
-    config = OmniFlowConfig.dense(decouple_gain_tol=60.0)
+    config = OmniFlowConfig.dense(brightness={"decouple_gain_tol": 60.0})
     starts, seen = [], []
     real_start, real_decouple = solve_mod.start_pool_fits, solve_mod.decouple
 

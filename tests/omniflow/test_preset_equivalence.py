@@ -47,7 +47,7 @@ def test_preset_spellings_agree():
     assert OmniFlowConfig.preset("default") == OmniFlowConfig()
     assert OmniFlowConfig.preset("dense") == OmniFlowConfig.dense()
     assert OmniFlowConfig.preset("paper") == OmniFlowConfig.paper()
-    assert OmniFlowConfig.preset("dense", pool_k=64).pool_k == 64
+    assert OmniFlowConfig.preset("dense", pooling={"pool_k": 64}).pooling.pool_k == 64
     with pytest.raises(ValueError, match="preset 'fastest': expected one of"):
         OmniFlowConfig.preset("fastest")
 

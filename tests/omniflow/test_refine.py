@@ -49,7 +49,7 @@ def _run(turning_wall, **knobs):
 
 def test_refinement_removes_the_large_motion_overshoot(turning_wall):
     first, true_tan = _run(turning_wall, iterations=0)
-    refined, _ = _run(turning_wall, iterations=1, iterate_min_px=1.0)
+    refined, _ = _run(turning_wall, iterations=1, refinement={"iterate_min_px": 1.0})
     fast = moving_far(first["dh1_dt"], first["dtheta_dt"], first["h1"], first["h2"], 1.0)
     assert fast.sum() > 1000 and (~fast).sum() > 50
     ratio = {
@@ -79,7 +79,7 @@ def test_moving_far_reads_either_unit():
 
 def test_iterate_min_px_is_checked():
     with pytest.raises(ValueError, match="iterate_min_px"):
-        OmniFlowConfig(iterate_min_px=-1.0)
+        OmniFlowConfig(refinement={"iterate_min_px": -1.0})
 
 
 def test_a_lone_fast_point_is_not_refined(turning_wall, monkeypatch):
@@ -93,7 +93,7 @@ def test_a_lone_fast_point_is_not_refined(turning_wall, monkeypatch):
     keep = ~fast | ((np.cumsum(fast) % 60 == 1) & fast)
     assert 15 <= (keep & fast).sum() <= 30
     sub = Matches.from_polar(rig, m.theta[keep], m.h1[keep], m.h2[keep])
-    knobs = dict(iterations=1, iterate_min_px=1.0)
+    knobs = dict(iterations=1, refinement={"iterate_min_px": 1.0})
     base = estimate(f1, f2, rig, OmniFlowConfig(iterations=0), matches=sub)
     lone = estimate(f1, f2, rig, OmniFlowConfig(**knobs), matches=sub)
     np.testing.assert_array_equal(lone["dtheta_dt"], base["dtheta_dt"])
@@ -129,9 +129,9 @@ def test_single_precision_evaluation_moves_the_refined_flow_by_micro_pixels(
     Mutation caught: the coefficients rounded to float16 in
     DCTFit.value_and_gradient (dh_1 differs by 4.3e-4 px)."""
     assert refine.SINGLE
-    single, _ = _run(turning_wall, iterations=1, iterate_min_px=1.0)
+    single, _ = _run(turning_wall, iterations=1, refinement={"iterate_min_px": 1.0})
     monkeypatch.setattr(refine, "SINGLE", False)
-    double, _ = _run(turning_wall, iterations=1, iterate_min_px=1.0)
+    double, _ = _run(turning_wall, iterations=1, refinement={"iterate_min_px": 1.0})
     first, _ = _run(turning_wall, iterations=0)
     fast = moving_far(first["dh1_dt"], first["dtheta_dt"], first["h1"], first["h2"], 1.0)
     assert fast.sum() > 1000
@@ -168,7 +168,9 @@ def test_refinement_adds_no_noise_of_its_own(sigma):
     f1 = [f + rng.normal(0, sigma, f.shape).astype(np.float32) for f in f1]
     f2 = [f + rng.normal(0, sigma, f.shape).astype(np.float32) for f in f2]
     first = estimate(f1, f2, rig, OmniFlowConfig(iterations=0), matches=m)
-    refined = estimate(f1, f2, rig, OmniFlowConfig(iterations=1, iterate_min_px=1.0), matches=m)
+    refined = estimate(
+        f1, f2, rig, OmniFlowConfig(iterations=1, refinement={"iterate_min_px": 1.0}), matches=m
+    )
     iy, ix = first["y"].astype(int), first["x"].astype(int)  # true matches: pixel centres
     fast = moving_far(first["dh1_dt"], first["dtheta_dt"], first["h1"], first["h2"], 1.0)
     assert fast.sum() > 300
@@ -192,7 +194,7 @@ def test_the_direct_solution_is_not_refined_where_it_moves(turning_wall):
     refined; docs/decisions/refinement.md). Mutation caught: the solver test removed (the
     refined columns then differ from the first step's)."""
     rig, f1, f2, m, _ = turning_wall
-    knobs = dict(solver="direct", iterate_min_px=1.0)
+    knobs = dict(solver="direct", refinement={"iterate_min_px": 1.0})
     first = estimate(f1, f2, rig, OmniFlowConfig(iterations=0, **knobs), matches=m)
     refined = estimate(f1, f2, rig, OmniFlowConfig(iterations=1, **knobs), matches=m)
     fast = moving_far(first["dh1_dt"], first["dtheta_dt"], first["h1"], first["h2"], 1.0)

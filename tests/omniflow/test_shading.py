@@ -57,7 +57,9 @@ def shaded():
 
 def _pillar(shaded, sigma, **knobs):
     rig, f1, f2, m, gt = shaded
-    res = estimate(f1, f2, rig, OmniFlowConfig(flow_shading=sigma, **knobs), matches=m)
+    res = estimate(
+        f1, f2, rig, OmniFlowConfig(**knobs).replace(brightness={"flow_shading": sigma}), matches=m
+    )
     iy, ix = res["y"].astype(int), res["x"].astype(int)
     on = gt["gt.object"][iy, ix] == 3
     true = gt["gt.flow.dh"][iy, ix]  # cam2's radial truth equals cam1's (pure vertical motion)
@@ -66,7 +68,7 @@ def _pillar(shaded, sigma, **knobs):
 
 
 def test_flattened_shading_restores_the_movers_flow(shaded):
-    dh2, room = _pillar(shaded, 4.0, decouple_gain_tol=None)
+    dh2, room = _pillar(shaded, 4.0, brightness={"decouple_gain_tol": None})
     print(f"\nflow_shading 4: dh2 ratio {dh2:.3f}, room {room:.5f}")
     assert abs(dh2 - 1.0) <= 0.05  # measured 0.995
     assert room <= 0.002  # measured 0.00078 (0.00075 unshaded, default)
@@ -76,7 +78,7 @@ def test_the_shading_check_fails_without_flattening(shaded):
     """The mutation the check above catches: the flow step on the shaded frames as given
     (without the gain, whose coupled answer lands dh2_dt near 1 by chance, and without the
     linear-gain test, which handles this ramp itself: docstring)."""
-    dh2, _ = _pillar(shaded, None, brightness_gate=None, decouple_gain_tol=None)
+    dh2, _ = _pillar(shaded, None, brightness_gate=None, brightness={"decouple_gain_tol": None})
     assert abs(dh2 - 1.0) > 0.05  # measured 0.687
 
 
@@ -84,7 +86,7 @@ def test_the_stream_refuses_flow_shading(shaded):
     from omniflow.stream import OmniFlowStream
 
     with pytest.raises(ValueError, match="flow_shading"):
-        OmniFlowStream(shaded[0], OmniFlowConfig(flow_shading=8.0))
+        OmniFlowStream(shaded[0], OmniFlowConfig(brightness={"flow_shading": 8.0}))
 
 
 def test_flatten_shading_divides_a_slow_ramp_away():
@@ -111,9 +113,13 @@ def test_where_moving_takes_the_flattened_flow_only_at_the_movers(shaded):
 
     rig, f1, f2, m, _ = shaded
     plain = estimate(f1, f2, rig, OmniFlowConfig(), matches=m)
-    flat = estimate(f1, f2, rig, OmniFlowConfig(flow_shading=4.0), matches=m)
+    flat = estimate(f1, f2, rig, OmniFlowConfig(brightness={"flow_shading": 4.0}), matches=m)
     mixed = estimate(
-        f1, f2, rig, OmniFlowConfig(flow_shading=4.0, flow_shading_where="moving"), matches=m
+        f1,
+        f2,
+        rig,
+        OmniFlowConfig(brightness={"flow_shading": 4.0, "flow_shading_where": "moving"}),
+        matches=m,
     )
     mv = moving_points(plain.columns, rig)
     # both sets occur (measured: 573 of 2,133 points picked; odometry on a static rig

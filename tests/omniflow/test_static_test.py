@@ -147,7 +147,9 @@ def _band_figures(res, gt):
 def test_static_test_zeroes_the_still_wall_and_keeps_the_band(noisy_band):
     rig, f1, f2, m, gt = noisy_band
     plain = _band_figures(estimate(f1, f2, rig, OmniFlowConfig(), matches=m), gt)
-    tested = _band_figures(estimate(f1, f2, rig, OmniFlowConfig(static_test=4.0), matches=m), gt)
+    tested = _band_figures(
+        estimate(f1, f2, rig, OmniFlowConfig(pooling={"static_test": 4.0}), matches=m), gt
+    )
     print(f"plain {plain}\ntested {tested}")
     assert tested["wall_epe"] < 0.6 * plain["wall_epe"]  # measured 0.0138 against 0.0323 px
     assert tested["wall_still"] > 0.6  # measured 0.78 (plain: 0)
@@ -166,7 +168,9 @@ def test_band_check_catches_a_test_that_calls_everything_still(noisy_band, monke
         return stat / 100.0, sd
 
     monkeypatch.setattr(flow_module, "motion_statistic", small)
-    tested = _band_figures(estimate(f1, f2, rig, OmniFlowConfig(static_test=4.0), matches=m), gt)
+    tested = _band_figures(
+        estimate(f1, f2, rig, OmniFlowConfig(pooling={"static_test": 4.0}), matches=m), gt
+    )
     print(f"mutation {tested}")
     assert tested["band_still"] > 0.05  # measured 1.0: every point still
     assert abs(tested["band_tan"] / 0.2711 - 1.0) > 0.01  # the plain band's 0.2711 px; 0

@@ -25,11 +25,11 @@ REL_TOL = 1e-4
 
 CONFIGS = {
     "default": OmniFlowConfig(),
-    "first-frame gradients": OmniFlowConfig(gradients="first"),
-    "band from the images, eiv correct": OmniFlowConfig(flow_band=None, eiv="correct"),
+    "first-frame gradients": OmniFlowConfig(fit={"gradients": "first"}),
+    "band from the images": OmniFlowConfig(flow_band=None),
     "paper": OmniFlowConfig.paper(),
-    "linear sampling": OmniFlowConfig(sampling="linear"),
-    "dct3d window": OmniFlowConfig(temporal="dct3d"),
+    "linear sampling": OmniFlowConfig(fit={"sampling": "linear"}),
+    "dct3d window": OmniFlowConfig(fit={"temporal": "dct3d"}),
     "cam1-only flow away from the matches": OmniFlowConfig(monocular_gap=4.0),
 }
 
@@ -77,7 +77,7 @@ def test_stream_equals_estimate_pair_by_pair(name, rig128, sequence):
     config = CONFIGS[name]
     f1, f2 = sequence
     stream = OmniFlowStream(rig128, config)
-    window = config.temporal_frames if config.temporal == "dct3d" else 2
+    window = config.fit.temporal_frames if config.fit.temporal == "dct3d" else 2
     compared = 0
     for t in range(len(f1)):
         result = stream.push(f1[t], f2[t])
@@ -140,7 +140,7 @@ def test_mixing_frames_mismatched_to_the_pair_is_caught(rig128, sequence):
     """A stream that averaged the gradient of the wrong frames would fail the tolerance."""
     f1, f2 = sequence
     # no conditioning floor, so both keep every match and the flows compare one to one
-    config = OmniFlowConfig(pool_min_conditioning=0.0)
+    config = OmniFlowConfig(pooling={"pool_min_conditioning": 0.0})
     stream = OmniFlowStream(rig128, config)
     stream.push(f1[0], f2[0])
     result = stream.push(f1[2], f2[2])  # skips frame 1: the pair (0, 2)

@@ -190,7 +190,7 @@ def test_cli_refuses_incomplete_dataset_and_nan_radiance(synth, tmp_path):
 
 
 def test_row_scores_a_configuration_the_variants_do_not_list(tmp_path):
-    """``--row flow_taper=0`` adds one row named after that field; it runs the changed
+    """``--row fit.flow_taper=0`` adds one row named after that knob; it runs the changed
     configuration (its figures differ from the default row's: the taper changes the flow
     fit at every point), and the default row is unchanged by the extra row. Mutation
     caught: a --row that is parsed but not run (same figures as the default) or not added.
@@ -203,14 +203,14 @@ def test_row_scores_a_configuration_the_variants_do_not_list(tmp_path):
     write_synthetic_dataset(ds, demo_scene(128), 3, name="synthetic-demo", supersample=1)
     base = [str(ds), "--variants", "default", "--baselines", "none", "--no-progress"]
     assert main([*base, "--out", str(tmp_path / "a")]) == 0
-    assert main([*base, "--out", str(tmp_path / "b"), "--row", "flow_taper=0"]) == 0
+    assert main([*base, "--out", str(tmp_path / "b"), "--row", "fit.flow_taper=0"]) == 0
 
     a = json.loads((tmp_path / "a" / "summary.json").read_text())["methods"]
     b = json.loads((tmp_path / "b" / "summary.json").read_text())["methods"]
     assert len(a) == 1 and len(b) == 2
     assert b[0]["name"] == a[0]["name"]
-    assert b[1]["name"] == "omniflow:default+flow_taper=0.0", b[1]["name"]
-    assert b[1]["config"]["flow_taper"] == 0.0  # the full config is in summary.json
+    assert b[1]["name"] == "omniflow:default+fit.flow_taper=0.0", b[1]["name"]
+    assert b[1]["config"]["fit.flow_taper"] == 0.0  # the full config is in summary.json
     assert a[0]["flow"]["cam1"]["all"]["n"] > 0
     assert b[0]["flow"]["cam1"]["all"]["epe"] == a[0]["flow"]["cam1"]["all"]["epe"]
     assert b[1]["flow"]["cam1"]["all"]["epe"] != a[0]["flow"]["cam1"]["all"]["epe"]
@@ -219,11 +219,13 @@ def test_row_scores_a_configuration_the_variants_do_not_list(tmp_path):
 def test_cli_refuses_a_bad_row(synth, tmp_path):
     base = [str(synth), "--variants", "default", "--baselines", "none", "--no-progress"]
     out = ["--out", str(tmp_path / "o")]
-    _one_line_exit_2(_cli(*base, *out, "--row", "flow_taper=2"), "--flow-taper 2: expected")
-    _one_line_exit_2(_cli(*base, *out, "--row", "nosuch=1"), "an OmniFlowConfig field")
-    _one_line_exit_2(_cli(*base, *out, "--row", "eiv=bogus"), "--eiv: invalid choice: 'bogus'")
+    _one_line_exit_2(_cli(*base, *out, "--row", "fit.flow_taper=2"), "--fit.flow-taper 2: expected")
+    _one_line_exit_2(_cli(*base, *out, "--row", "nosuch=1"), "an OmniFlowConfig knob")
+    _one_line_exit_2(
+        _cli(*base, *out, "--row", "pooling.eiv=bogus"), "--pooling.eiv: invalid choice: 'bogus'"
+    )
     # the default configuration again: already the first row
-    _one_line_exit_2(_cli(*base, *out, "--row", "flow_taper=0.5"), "already scored")
+    _one_line_exit_2(_cli(*base, *out, "--row", "fit.flow_taper=0.5"), "already scored")
     assert not (tmp_path / "o").exists()
 
 
@@ -235,12 +237,18 @@ def test_row_presets_start_from_the_preset():
     from omniflow.config import DENSE, OmniFlowConfig
 
     assert config_from_settings("dense") == OmniFlowConfig.dense() != OmniFlowConfig()
-    assert config_from_settings("dense,pool_k=64") == OmniFlowConfig.dense(pool_k=64)
+    assert config_from_settings("dense,pooling.pool_k=64") == OmniFlowConfig.dense(
+        pooling={"pool_k": 64}
+    )
     assert config_from_settings("paper") == OmniFlowConfig.paper()
     dense = OmniFlowConfig.dense()
-    assert {k: getattr(dense, k) for k in DENSE} == DENSE
     changed = {k for k, v in OmniFlowConfig().to_dict().items() if dense.to_dict()[k] != v}
-    assert changed == set(DENSE)
+    assert dense == OmniFlowConfig().with_settings({k: dense.to_dict()[k] for k in changed})
+    assert changed == {
+        f"{k}.{g}" if isinstance(v, dict) else k
+        for k, v in DENSE.items()
+        for g in (v if isinstance(v, dict) else [k])
+    }
     with pytest.raises(CLIError, match="at most one preset"):
         config_from_settings("paper,dense")
 

@@ -23,13 +23,16 @@ def test_presets_are_named_by_the_preset_alone():
 
 def test_other_configs_name_the_nearest_preset_and_the_changes():
     assert (
-        variant_name(OmniFlowConfig(brightness_model="gain"))
-        == "omniflow:default+brightness_model=gain"
+        variant_name(OmniFlowConfig(brightness={"brightness_model": "gain"}))
+        == "omniflow:default+brightness.brightness_model=gain"
     )
-    assert variant_name(OmniFlowConfig.dense(pool_k=64)) == "omniflow:dense+pool_k=64"
+    assert (
+        variant_name(OmniFlowConfig.dense(pooling={"pool_k": 64}))
+        == "omniflow:dense+pooling.pool_k=64"
+    )
     assert variant_name(OmniFlowConfig.paper(band=0.5)) == "omniflow:paper+band=0.5"
-    two = OmniFlowConfig(gradients="first", solver="direct")
-    assert variant_name(two) == "omniflow:default+gradients=first+solver=direct"
+    two = OmniFlowConfig(solver="direct", fit={"gradients": "first"})
+    assert variant_name(two) == "omniflow:default+solver=direct+fit.gradients=first"
     assert variant_name(TrueMatches(OmniFlowConfig())) == "omniflow:default+matches=truth"
     assert variant_name(TrueMatches(OmniFlowConfig.paper())) == "omniflow:paper+matches=truth"
 
