@@ -106,21 +106,21 @@ def match_figures(res, g1, g2, rig, cfg, levels) -> dict[str, np.ndarray]:
 
     c = res.columns
     cam1, cam2 = rig.cam1, rig.cam2
-    n_theta, h_step, h_min = cfg.n_theta, cfg.h_step, cfg.h_min
+    n_theta, h_step, h_min = cfg.n_theta, cfg.search.h_step, cfg.search.h_min
     patch = cam1.r_m / 8.0 if cfg.patch_radius is None else cfg.patch_radius
-    step = patch / 16.0 if cfg.profile_step is None else cfg.profile_step
+    step = patch / 16.0 if cfg.matching.profile_step is None else cfg.matching.profile_step
     stride = max(1, round(step / h_step))
     w = int(np.ceil(patch / (h_step * stride)))
     pad = w * stride + 10
     scale2 = cam2.v / cam1.v
-    h_top = min(cam1.r_m - cfg.rim_margin, (cam2.r_m - cfg.rim_margin) / scale2)
+    h_top = min(cam1.r_m - cfg.search.rim_margin, (cam2.r_m - cfg.search.rim_margin) / scale2)
     h0 = h_min - pad * h_step
     n_cols = int(np.floor((h_top - h_min) / h_step)) + 1 + 2 * pad
     maps = (
         polar_maps(cam1, n_theta, h0, h_step, n_cols),
         polar_maps(cam2, n_theta, scale2 * h0, scale2 * h_step, n_cols),
     )
-    blur = cfg.tangential_blur * n_theta / (2.0 * np.pi)
+    blur = cfg.matching.tangential_blur * n_theta / (2.0 * np.pi)
     tabs, shares = [], []
     for frames, unit, m, s in ((g1, cam1, maps[0], 1.0), (g2, cam2, maps[1], scale2)):
         fits = unit_fits(frames, 0, unit, cfg, "frames", fit_band(cfg))

@@ -35,7 +35,7 @@ def test_table_noise_follows_the_pixel_noise():
     sigma = 0.02
     cfg = OmniFlowConfig()
     maps = polar_maps(unit, 360, 16.0, 1.0, int(unit.r_m - 20))
-    blur = cfg.tangential_blur * 360 / (2 * np.pi)
+    blur = cfg.matching.tangential_blur * 360 / (2 * np.pi)
     wt, wd = _tables(_white_grid(unit, cfg), maps, blur, 1.0)
     share_v, share_d = np.mean(wt**2, axis=0), np.mean(wd**2, axis=0)
     clean = _grid(scene.render("cam1", 0, dtype=np.float32), unit)
