@@ -56,9 +56,12 @@ def worker(dataset: str, dis: bool, threads: int | None, settings: str = "") -> 
 
         config = OmniFlowConfig()
         if settings:
-            from omniflow.cli.common import config_from_settings
-
-            config = config_from_settings(settings)
+            try:
+                from omniflow.cli.common import config_from_settings
+            except ImportError:  # a checkout before the presets: OmniFlowConfig.dense() etc.
+                config = getattr(OmniFlowConfig, settings)()
+            else:
+                config = config_from_settings(settings)
 
         if threads is not None:
             try:
