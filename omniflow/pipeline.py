@@ -51,14 +51,17 @@ from numpy.typing import NDArray
 from omniflow.config import OmniFlowConfig
 from omniflow.fit.series import (
     Frame,
+    annulus,
     choose_flow_band,
     fill_outside_rim,
     fit_band,
+    gradient_noise,
     needs_noise_sigma,
     noise_variance,
     unit_fits,
     unit_frames,
     unit_noise_sigma,
+    value_noise_share,
 )
 from omniflow.geometry.rig import Rig
 from omniflow.matching import Matches, PolarGrids, match_radial
@@ -66,7 +69,9 @@ from omniflow.parallel import map_tasks, submit
 from omniflow.result import COLUMNS, NoMatchesWarning, OmniFlowResult, no_points
 from omniflow.solve.at_matches import flow_at_matches
 from omniflow.solve.monocular import add_monocular
+from omniflow.solve.pooled import neighbourhoods
 from omniflow.solve.shading import flow_units, where_moving
+from omniflow.solve.sigma import model_for, point_noise, sigmas
 
 __all__ = [
     "COLUMNS",
@@ -219,7 +224,42 @@ def estimate(
         n_significant=n_sig,
         diagnostics=diagnostics,
     )
+    t_sigma = time.perf_counter()
+    frames = (frames1, frames2)
+    result.sigma = predicted_sigmas(result.columns, frames, t, rig, (cam1, cam2), config)
+    timings["sigma"] = time.perf_counter() - t_sigma
+    timings["total"] += timings["sigma"]
     return add_monocular(result, cam1, rig.cam1)  # cam1 alone where no match is near
+
+
+def predicted_sigmas(
+    cols: dict, frames: tuple, t: int, rig: Rig, cams: tuple, config: OmniFlowConfig
+) -> dict:
+    """The predicted standard deviations of :mod:`omniflow.solve.sigma` for the columns:
+    each unit's temporal noise (frames t and t + 1 over its annulus) at the points, the
+    flow series' noise shares, and the solver's pools (k-d pools of the points kept)."""
+    noise = []
+    for frames_u, unit, (x, y) in zip(frames, (rig.cam1, rig.cam2),
+                                      ((cols["x"], cols["y"]), (cols["x2"], cols["y2"])),
+                                      strict=True):  # fmt: skip
+        mask = annulus(unit, float(config.h_min), float(config.rim_margin))
+        noise.append(point_noise(frames_u[t], frames_u[t + 1], mask, x, y)[0])
+    pools = None
+    if config.solver == "pooled":
+        radius = rig.cam1.r_m / 8.0 if config.pool_radius is None else config.pool_radius
+        pools = neighbourhoods(cols["x"], cols["y"], k=config.pool_k, radius=radius,
+                               r=cols["r"], range_tol=config.pool_range_tol)  # fmt: skip
+    return sigmas(
+        cols,
+        noise=(noise[0], noise[1]),
+        value_share=tuple(value_noise_share(c["g"].fit, config) for c in cams),
+        gradient_var=tuple(gradient_noise(1.0, c["g"].fit, config) for c in cams),
+        d=rig.d,
+        s=rig.s,
+        v2=rig.cam2.v,
+        pools=pools,
+        model=model_for(config),
+    )
 
 
 def matching_grids(a1: Frame, a2: Frame, config: OmniFlowConfig) -> tuple[PolarGrids, PolarGrids]:

@@ -16,8 +16,16 @@ import numpy as np
 from numpy.typing import NDArray
 
 from omniflow.config import OmniFlowConfig
+from omniflow.solve.sigma import SIGMA_COLUMNS
 
-__all__ = ["COLUMNS", "MONOCULAR_COLUMNS", "NoMatchesWarning", "OmniFlowResult", "no_points"]
+__all__ = [
+    "COLUMNS",
+    "MONOCULAR_COLUMNS",
+    "SIGMA_COLUMNS",
+    "NoMatchesWarning",
+    "OmniFlowResult",
+    "no_points",
+]
 
 
 #: Output columns and their units, in CSV order.
@@ -91,6 +99,10 @@ class OmniFlowResult:
         With ``config.monocular_gap``: cam1's flow alone where no stereo match is
         near (:mod:`omniflow.solve.monocular`, columns in its ``MONOCULAR_COLUMNS``);
         else empty.
+    sigma : dict[str, ndarray]
+        The predicted standard deviation of each point's flow per unit and of its
+        range (keys and units in :data:`SIGMA_COLUMNS`, :mod:`omniflow.solve.sigma`),
+        the same length as the columns; empty where not predicted.
     """
 
     columns: dict[str, NDArray]
@@ -99,21 +111,27 @@ class OmniFlowResult:
     n_significant: int = 0
     diagnostics: dict[str, float] = field(default_factory=dict)
     monocular: dict[str, NDArray] = field(default_factory=dict)
+    sigma: dict[str, NDArray] = field(default_factory=dict)
 
     def __len__(self) -> int:
         return int(next(iter(self.columns.values())).size) if self.columns else 0
 
     def __getitem__(self, key: str) -> NDArray:
+        if key not in self.columns and key in self.sigma:
+            return self.sigma[key]
         return self.columns[key]
 
     def to_csv(self, path: str | Path, units: Mapping[str, str] | None = None) -> Path:
-        """Write the columns to CSV atomically, with a '#' header line of units.
+        """Write the columns, then :attr:`sigma`'s, to CSV atomically, with a '#' header
+        line of units.
 
         ``units`` names the unit of columns added after :func:`estimate` (the
         CLI's ``odometry_inlier``, ``auto_region``, ...); :data:`COLUMNS` gives
         the rest.
         """
-        return _write_csv(path, self.columns, {**COLUMNS, **(units or {})}, "per-point results")
+        cols = {**self.columns, **{k: v for k, v in self.sigma.items() if k not in self.columns}}
+        known = {**COLUMNS, **SIGMA_COLUMNS, **(units or {})}
+        return _write_csv(path, cols, known, "per-point results")
 
     def monocular_to_csv(self, path: str | Path) -> Path:
         """Write :attr:`monocular` to CSV atomically, like :meth:`to_csv`."""
@@ -161,4 +179,7 @@ def no_points(timings: dict, t_start: float, config, n_sig: int) -> OmniFlowResu
     )
     timings.update(sample=0.0, solve=0.0, total=time.perf_counter() - t_start)
     columns = {name: np.zeros(0) for name in COLUMNS}
-    return OmniFlowResult(columns=columns, timings=timings, config=config, n_significant=n_sig)
+    sigma = {name: np.zeros(0) for name in SIGMA_COLUMNS}
+    return OmniFlowResult(
+        columns=columns, timings=timings, config=config, n_significant=n_sig, sigma=sigma
+    )

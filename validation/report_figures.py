@@ -45,6 +45,7 @@ def draw_figures(results: Results, summary: Mapping[str, Any], fig_dir: Path) ->
         out.update(_flow_figures(plt, snap, fig_dir))
         out.update(_error_map_figure(plt, snap, fig_dir))
     out.update(_range_speed_figures(plt, results, fig_dir))
+    out.update(reliability_figure(plt, summary, fig_dir))
     # Accuracy vs time, every row at the default's points (zero flow left out: no time).
     _accuracy_vs_time(plt, summary, fig_dir / "accuracy_vs_time.png")
     out["accuracy_vs_time"] = "figures/accuracy_vs_time.png"
@@ -193,6 +194,66 @@ def _error_map_figure(plt: Any, snap: FramePair, fig_dir: Path) -> dict[str, str
         out["error_maps"] = "figures/error_maps.png"
 
     return out
+
+
+def reliability_figure(plt: Any, summary: Mapping[str, Any], fig_dir: Path) -> dict[str, str]:
+    """The reliability diagram of each method that predicts sigmas: per quantity (cam1,
+    cam2 flow, range), the observed 68.3 % and 95.4 % error quantiles of each bin of
+    predicted sigma against the bin's median sigma; calibrated points lie on the lines
+    y = sigma and y = 2 sigma. Nothing when no method predicts sigmas."""
+    methods = [m for m in summary["methods"] if m.get("calibration")]
+    if not methods:
+        return {}
+    quantities = list(methods[0]["calibration"])
+    fig, axes = plt.subplots(1, len(quantities), figsize=(5.2 * len(quantities), 4.6))
+    for ax, q in zip(np.atleast_1d(axes), quantities, strict=True):
+        lo, hi = math.inf, 0.0
+        unit = methods[0]["calibration"][q]["unit"]
+        for i, m in enumerate(methods):
+            b = m["calibration"][q]
+            rel = b.get("reliability") or []
+            if not rel:
+                continue
+            s = np.array([num(r["sigma"]) for r in rel])
+            colour = f"C{i % 10}"
+            ax.plot(
+                s,
+                [num(r["q68"]) for r in rel],
+                "o-",
+                color=colour,
+                label=f"{m['name']}: 68.3 % quantile ({num(b['within1']):.0%} within 1 sigma)",
+            )
+            ax.plot(
+                s,
+                [num(r["q95"]) for r in rel],
+                "s--",
+                color=colour,
+                label=f"{m['name']}: 95.4 % quantile ({num(b['within2']):.0%} within 2 sigma)",
+            )
+            pos = s[np.isfinite(s) & (s > 0)]
+            if pos.size:
+                lo, hi = min(lo, float(pos.min())), max(hi, float(pos.max()))
+        if hi > 0 and math.isfinite(lo):
+            line = np.array([lo, hi])
+            ax.plot(line, line, color="0.4", lw=1, label="calibrated 1 sigma: y = sigma")
+            ax.plot(
+                line, 2 * line, color="0.4", lw=1, ls=":", label="calibrated 2 sigma: y = 2 sigma"
+            )
+            ax.set_xscale("log")
+            ax.set_yscale("log")
+        else:
+            _no_data(ax, "no point with truth")
+        ax.set_xlabel(f"predicted sigma ({unit}), bin median")
+        ax.set_ylabel(f"observed error quantile ({unit})")
+        title = {"cam1": "cam1 flow: endpoint error", "cam2": "cam2 flow: endpoint error",
+                 "range": "range: |r - r_gt|"}.get(q, q)  # fmt: skip
+        ax.set_title(title)
+        ax.legend(fontsize=6, loc="upper left")
+    fig.suptitle("Reliability of the predicted sigmas (equal-count bins of predicted sigma)")
+    fig.tight_layout()
+    save(fig, fig_dir / "reliability.png")
+    plt.close(fig)
+    return {"reliability": "figures/reliability.png"}
 
 
 def _range_speed_figures(plt: Any, results: Results, fig_dir: Path) -> dict[str, str]:
