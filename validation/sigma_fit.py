@@ -38,10 +38,10 @@ from .calibration_sigma import sigma_errors, within
 from .inputs import CAMERAS, Inputs, camera_model
 from .suite import load_suite
 
-SHARES = (0.0, 0.02, 0.05, 0.1, 0.2, 0.3)
-FLOORS = (0.0, 0.005, 0.01, 0.02, 0.05, 0.1)  # px
-SCORE_TERMS = (0.0, 0.1, 0.3, 1.0, 3.0, 10.0)  # px^2 per unit (1 - score)
-RANGE_FLOORS = (0.0, 0.02, 0.05, 0.1, 0.2, 0.5)  # px
+SHARES = (0.0, 0.02, 0.05, 0.1, 0.2, 0.3, 0.5)
+FLOORS = (0.0, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5)  # px
+SCORE_TERMS = (0.0, 0.1, 0.3, 1.0, 3.0, 10.0, 30.0)  # px^2 per unit (1 - score)
+RANGE_FLOORS = (0.0, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0)  # px
 TARGET = 0.95
 
 
