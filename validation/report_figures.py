@@ -205,10 +205,13 @@ def reliability_figure(plt: Any, summary: Mapping[str, Any], fig_dir: Path) -> d
     if not methods:
         return {}
     quantities = list(methods[0]["calibration"])
-    fig, axes = plt.subplots(1, len(quantities), figsize=(5.2 * len(quantities), 4.6))
+    fig, axes = plt.subplots(1, len(quantities), figsize=(5.2 * len(quantities), 5.2))
+    titles = {"cam1": "cam1 flow: endpoint error", "cam2": "cam2 flow: endpoint error",
+              "range": "range: |r - r_gt|"}  # fmt: skip
     for ax, q in zip(np.atleast_1d(axes), quantities, strict=True):
         lo, hi = math.inf, 0.0
         unit = methods[0]["calibration"][q]["unit"]
+        shares = []
         for i, m in enumerate(methods):
             b = m["calibration"][q]
             rel = b.get("reliability") or []
@@ -216,41 +219,32 @@ def reliability_figure(plt: Any, summary: Mapping[str, Any], fig_dir: Path) -> d
                 continue
             s = np.array([num(r["sigma"]) for r in rel])
             colour = f"C{i % 10}"
-            ax.plot(
-                s,
-                [num(r["q68"]) for r in rel],
-                "o-",
-                color=colour,
-                label=f"{m['name']}: 68.3 % quantile ({num(b['within1']):.0%} within 1 sigma)",
-            )
-            ax.plot(
-                s,
-                [num(r["q95"]) for r in rel],
-                "s--",
-                color=colour,
-                label=f"{m['name']}: 95.4 % quantile ({num(b['within2']):.0%} within 2 sigma)",
-            )
+            q68 = [num(r["q68"]) for r in rel]
+            q95 = [num(r["q95"]) for r in rel]
+            ax.plot(s, q68, "o-", color=colour, label=f"{m['name']}: 68.3 % error quantile")
+            ax.plot(s, q95, "s--", color=colour, label=f"{m['name']}: 95.4 % error quantile")
+            shares.append(f"{m['name']}: {num(b['within1']):.0%} / {num(b['within2']):.0%}")
             pos = s[np.isfinite(s) & (s > 0)]
             if pos.size:
                 lo, hi = min(lo, float(pos.min())), max(hi, float(pos.max()))
         if hi > 0 and math.isfinite(lo):
             line = np.array([lo, hi])
-            ax.plot(line, line, color="0.4", lw=1, label="calibrated 1 sigma: y = sigma")
-            ax.plot(
-                line, 2 * line, color="0.4", lw=1, ls=":", label="calibrated 2 sigma: y = 2 sigma"
-            )
+            ax.plot(line, line, color="0.4", lw=1, label="calibrated: y = sigma (68.3 %)")
+            ax.plot(line, 2 * line, color="0.4", lw=1, ls=":",
+                    label="calibrated: y = 2 sigma (95.4 %)")  # fmt: skip
             ax.set_xscale("log")
             ax.set_yscale("log")
         else:
             _no_data(ax, "no point with truth")
         ax.set_xlabel(f"predicted sigma ({unit}), bin median")
         ax.set_ylabel(f"observed error quantile ({unit})")
-        title = {"cam1": "cam1 flow: endpoint error", "cam2": "cam2 flow: endpoint error",
-                 "range": "range: |r - r_gt|"}.get(q, q)  # fmt: skip
-        ax.set_title(title)
-        ax.legend(fontsize=6, loc="upper left")
+        head = titles.get(q, q)
+        ax.set_title(head + "\nwithin 1 / 2 sigma: " + "; ".join(shares), fontsize=8)
+    handles, labels = np.atleast_1d(axes)[0].get_legend_handles_labels()
+    if handles:
+        fig.legend(handles, labels, loc="lower center", ncol=3, fontsize=7)
     fig.suptitle("Reliability of the predicted sigmas (equal-count bins of predicted sigma)")
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0.12, 1, 1))
     save(fig, fig_dir / "reliability.png")
     plt.close(fig)
     return {"reliability": "figures/reliability.png"}

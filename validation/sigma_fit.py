@@ -10,8 +10,9 @@ its prediction. On the train split it then chooses, per preset's solver:
 
 * flow: ``flow_share`` and ``flow_floor`` from a grid, each with the ``flow_scale``
   that puts 95 % of the train points (both cameras) within 2 sigma; kept: the pair
-  whose reliability is flattest (the smallest worst deviation of a sigma bin's
-  2-sigma share from 95 %), the smaller median sigma on ties;
+  with the smallest sum of the worst deviation of a sigma bin's 2-sigma share from
+  95 % (a flat reliability curve) and the mean deviation of a train scene's share
+  (the same calibration on every scene), the smaller median sigma on ties;
 * range: ``range_score`` and ``range_floor`` the same way, with ``range_scale``.
 
 It prints the constants and the train and test splits' shares within 1 and 2 sigma per
@@ -40,7 +41,7 @@ from .suite import load_suite
 
 SHARES = (0.0, 0.02, 0.05, 0.1, 0.2, 0.3, 0.5)
 FLOORS = (0.0, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5)  # px
-SCORE_TERMS = (0.0, 0.1, 0.3, 1.0, 3.0, 10.0, 30.0)  # px^2 per unit (1 - score)
+SCORE_TERMS = (0.0, 0.3, 1.0, 3.0, 10.0, 30.0, 100.0, 300.0)  # px^2 per unit (1 - score)
 RANGE_FLOORS = (0.0, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0)  # px
 TARGET = 0.95
 
@@ -123,28 +124,53 @@ def _scale(err: np.ndarray, raw: np.ndarray) -> float:
 
 
 def _flatness(err, sig, bins=8):
+    """The worst deviation of a sigma bin's 2-sigma share from TARGET."""
     order = np.argsort(np.where(np.isfinite(sig), sig, np.inf))
-    dev = [abs(within(err[p], sig[p], 2.0) - TARGET) for p in np.array_split(order, bins)]
-    return max(dev)
+    return max(abs(within(err[p], sig[p], 2.0) - TARGET) for p in np.array_split(order, bins))
+
+
+def _scene_spread(scenes, shares):
+    """The mean deviation of the train scenes' 2-sigma shares from TARGET (scenes with
+    at least MIN_POINTS points)."""
+    dev = [abs(shares(d) - TARGET) for d in scenes]
+    return float(np.mean(dev)) if dev else 0.0
+
+
+MIN_POINTS = 50
 
 
 def fit(train: list[dict]) -> dict[str, float]:
-    """The constants of one solver from the train split's points (module docstring)."""
+    """The constants of one solver from the train split's points (module docstring): per
+    candidate, the scale that puts TARGET of the pooled points within 2 sigma; kept, the
+    smallest sum of the worst sigma bin's and the mean scene's deviation from TARGET."""
     d = {k: np.concatenate([t[k] for t in train if k in t]) for k in train[0]}
+    big = [t for t in train if t["cam1.err"].size >= MIN_POINTS]
+    err = np.concatenate([d["cam1.err"], d["cam2.err"]])
     best = None
     for share, floor in itertools.product(SHARES, FLOORS):
         raw = np.concatenate([flow_raw(d, c, share, floor) for c in ("cam1", "cam2")])
-        err = np.concatenate([d["cam1.err"], d["cam2.err"]])
         s = _scale(err, raw)
-        key = (_flatness(err, s * raw), float(np.median(s * raw)))
+
+        def shares(t, s=s, share=share, floor=floor):
+            e = np.concatenate([t["cam1.err"], t["cam2.err"]])
+            r = np.concatenate([flow_raw(t, c, share, floor) for c in ("cam1", "cam2")])
+            return within(e, s * r, 2.0)
+
+        key = (_flatness(err, s * raw) + _scene_spread(big, shares), float(np.median(s * raw)))
         if best is None or key < best[0]:
             best = (key, share, floor, s)
     out = {"flow_share": best[1], "flow_floor": best[2], "flow_scale": best[3]}
+    big = [t for t in train if t["range.err"].size >= MIN_POINTS]
     best = None
     for st, floor in itertools.product(SCORE_TERMS, RANGE_FLOORS):
         raw = range_raw(d, st, floor)
         s = _scale(d["range.err"], raw)
-        key = (_flatness(d["range.err"], s * raw), float(np.median(s * raw)))
+
+        def shares(t, s=s, st=st, floor=floor):
+            return within(t["range.err"], s * range_raw(t, st, floor), 2.0)
+
+        key = (_flatness(d["range.err"], s * raw) + _scene_spread(big, shares),
+               float(np.median(s * raw)))  # fmt: skip
         if best is None or key < best[0]:
             best = (key, st, floor, s)
     out.update(range_score=best[1], range_floor=best[2], range_scale=best[3])
@@ -182,6 +208,8 @@ def main(argv=None) -> int:
     ap.add_argument("--json", default=None, help="write the constants and figures here")
     ap.add_argument("--pairs", type=int, default=None, help="the first N frame pairs per scene")
     ap.add_argument("--cached-only", action="store_true", help="fit on the cached scenes only")
+    ap.add_argument("--collect", choices=("train", "test"), default=None,
+                    help="only collect this split's points into --cache (no fit)")  # fmt: skip
     args = ap.parse_args(argv)
     suite = load_suite(args.suite)
     neutral = sigma_mod.SigmaModel()
@@ -189,7 +217,10 @@ def main(argv=None) -> int:
     report = {}
     presets = args.methods.split(",")
     points: dict[str, dict] = {p: {} for p in presets}
-    for scene in sorted(suite.scenes, key=lambda s: s.split != "train"):  # train first
+    scenes = sorted(suite.scenes, key=lambda s: s.split != "train")  # train first
+    if args.collect:
+        scenes = [s for s in scenes if s.split == args.collect]
+    for scene in scenes:
         for preset in presets:
             cache = None if args.cache is None else Path(args.cache) / f"{scene.name}.{preset}.npz"
             if cache is not None and cache.exists():
@@ -205,6 +236,8 @@ def main(argv=None) -> int:
             if cache is not None:
                 cache.parent.mkdir(parents=True, exist_ok=True)
                 np.savez_compressed(cache, **got)
+    if args.collect:
+        return 0
     for preset in presets:
         per = points[preset]
         split = {s.name: s.split for s in suite.scenes}

@@ -95,17 +95,33 @@ def model_for(config) -> SigmaModel:
     return MODELS["grid" if config.grid_pools else "pooled"]
 
 
+#: Rows of each stripe the noise is measured on, and the stripes' period (rows): a
+#: sixth of the tile rows, the middle one of three in each kept stripe, for a sixth of
+#: the estimate's time (:func:`point_noise`).
+STRIPE, STRIPE_PERIOD = 48, 96
+
+
 def point_noise(frame_t: NDArray, frame_t1: NDArray, mask: NDArray, x: NDArray, y: NDArray):
     """Each point's image noise sigma (grey): the temporal estimate sigma^2 = a I + b
     (:func:`omniflow.fit.noise.temporal_noise`) of frames t and t + 1 at the brightness
-    of frame t's pixel holding the point, and the fitted level."""
-    level = temporal_noise(frame_t, frame_t1, mask)
-    f = np.asarray(frame_t, dtype=np.float64)
-    h, w = f.shape
+    of frame t's pixel holding the point, and the fitted level.
+
+    Measured on stripes of :data:`STRIPE` rows every :data:`STRIPE_PERIOD` rows, stacked
+    into one image (each stripe's first and last rows left out of the mask, so no tile
+    straddles two stripes): its tiles are a sixth of the whole annulus's, spread over it.
+    """
+    f0, f1 = (np.asarray(f, dtype=np.float64) for f in (frame_t, frame_t1))
+    rows = np.arange(f0.shape[0])
+    keep = rows % STRIPE_PERIOD < STRIPE
+    inner = np.asarray(mask, bool)[keep].copy()
+    edge = rows[keep] % STRIPE_PERIOD
+    inner[(edge == 0) | (edge == STRIPE - 1)] = False  # no tile across a seam
+    level = temporal_noise(f0[keep], f1[keep], inner)
+    h, w = f0.shape
     ok = np.isfinite(x) & np.isfinite(y)
     j = np.clip(np.floor(np.where(ok, x, 0.0)).astype(np.intp), 0, w - 1)
     i = np.clip(np.floor(np.where(ok, y, 0.0)).astype(np.intp), 0, h - 1)
-    return _sigma_at(level, f[i, j]), level
+    return _sigma_at(level, f0[i, j]), level
 
 
 def _sigma_at(level: NoiseLevel, intensity: NDArray) -> NDArray:

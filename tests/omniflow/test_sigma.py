@@ -92,8 +92,8 @@ def test_covariance_hand_computed():
     """One point, the direct solution: rows (f1_h, f1_theta / h1), (k f2_h, f2_theta / h1)
     with k = h2 / h1. f1_h = 2, f1_theta = 0 and f2_h = 0, f2_theta = h1 = 10 give
     A = [[2, 0], [0, 1]] (k = 1.5 multiplies f2_h = 0), so Cov = diag(var1 / 4, var2)."""
-    cols = {"f1_h": np.array([2.0]), "f1_theta": np.array([0.0]), "f2_h": np.array([0.0]),
-            "f2_theta": np.array([10.0]), "h1": np.array([10.0]), "h2": np.array([15.0])}  # fmt: skip
+    values = {"f1_h": 2.0, "f1_theta": 0.0, "f2_h": 0.0, "f2_theta": 10.0, "h1": 10.0, "h2": 15.0}
+    cols = {k: np.array([v]) for k, v in values.items()}
     c_aa, c_ab, c_bb = flow_covariance(cols, (np.array([0.04]), np.array([0.09])))
     np.testing.assert_allclose([c_aa[0], c_ab[0], c_bb[0]], [0.01, 0.0, 0.09], atol=1e-15)
     # pooled over two copies of the point (weights 1): half the variance
