@@ -238,12 +238,14 @@ def predicted_sigmas(
     """The predicted standard deviations of :mod:`omniflow.solve.sigma` for the columns:
     each unit's temporal noise (frames t and t + 1 over its annulus) at the points, the
     flow series' noise shares, and the solver's pools (k-d pools of the points kept)."""
-    noise = []
-    for frames_u, unit, (x, y) in zip(frames, (rig.cam1, rig.cam2),
-                                      ((cols["x"], cols["y"]), (cols["x2"], cols["y2"])),
-                                      strict=True):  # fmt: skip
-        mask = annulus(unit, float(config.h_min), float(config.rim_margin))
-        noise.append(point_noise(frames_u[t], frames_u[t + 1], mask, x, y)[0])
+    tasks = [
+        (frames_u[t], frames_u[t + 1], annulus(unit, float(config.h_min), float(config.rim_margin)),
+         x, y)
+        for frames_u, unit, (x, y) in zip(frames, (rig.cam1, rig.cam2),
+                                          ((cols["x"], cols["y"]), (cols["x2"], cols["y2"])),
+                                          strict=True)
+    ]  # fmt: skip
+    noise = [level[0] for level in map_tasks(point_noise, *tasks)]  # the two units' threads
     pools = None
     if config.solver == "pooled":
         radius = rig.cam1.r_m / 8.0 if config.pool_radius is None else config.pool_radius

@@ -39,7 +39,7 @@ from .calibration_sigma import sigma_errors, within
 from .inputs import CAMERAS, Inputs, camera_model
 from .suite import load_suite
 
-SHARES = (0.0, 0.02, 0.05, 0.1, 0.2, 0.3, 0.5)
+SHARES = (0.0, 0.02, 0.05, 0.1, 0.2, 0.3, 0.5, 0.7, 1.0, 1.5, 2.0, 3.0)
 FLOORS = (0.0, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5)  # px
 SCORE_TERMS = (0.0, 0.3, 1.0, 3.0, 10.0, 30.0, 100.0, 300.0)  # px^2 per unit (1 - score)
 RANGE_FLOORS = (0.0, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0)  # px

@@ -96,9 +96,10 @@ def model_for(config) -> SigmaModel:
 
 
 #: Rows of each stripe the noise is measured on, and the stripes' period (rows): a
-#: sixth of the tile rows, the middle one of three in each kept stripe, for a sixth of
-#: the estimate's time (:func:`point_noise`).
-STRIPE, STRIPE_PERIOD = 48, 96
+#: twelfth of the tile rows (the middle one of three in each kept stripe), and the
+#: whole-pixel motion searched per tile (:func:`point_noise`): the estimate in a tenth
+#: of the whole annulus's time.
+STRIPE, STRIPE_PERIOD, SEARCH = 48, 192, 1
 
 
 def point_noise(frame_t: NDArray, frame_t1: NDArray, mask: NDArray, x: NDArray, y: NDArray):
@@ -108,7 +109,9 @@ def point_noise(frame_t: NDArray, frame_t1: NDArray, mask: NDArray, x: NDArray, 
 
     Measured on stripes of :data:`STRIPE` rows every :data:`STRIPE_PERIOD` rows, stacked
     into one image (each stripe's first and last rows left out of the mask, so no tile
-    straddles two stripes): its tiles are a sixth of the whole annulus's, spread over it.
+    straddles two stripes): its tiles are a twelfth of the whole annulus's, spread over
+    it, each searched for a whole-pixel motion of up to :data:`SEARCH` px (the flow
+    steps' motions are mostly sub-pixel; the fit follows what is left).
     """
     f0, f1 = (np.asarray(f, dtype=np.float64) for f in (frame_t, frame_t1))
     rows = np.arange(f0.shape[0])
@@ -116,7 +119,7 @@ def point_noise(frame_t: NDArray, frame_t1: NDArray, mask: NDArray, x: NDArray, 
     inner = np.asarray(mask, bool)[keep].copy()
     edge = rows[keep] % STRIPE_PERIOD
     inner[(edge == 0) | (edge == STRIPE - 1)] = False  # no tile across a seam
-    level = temporal_noise(f0[keep], f1[keep], inner)
+    level = temporal_noise(f0[keep], f1[keep], inner, search=SEARCH)
     h, w = f0.shape
     ok = np.isfinite(x) & np.isfinite(y)
     j = np.clip(np.floor(np.where(ok, x, 0.0)).astype(np.intp), 0, w - 1)
