@@ -107,7 +107,8 @@ def point_noise(frame_t: NDArray, frame_t1: NDArray, mask: NDArray, x: NDArray, 
     (:func:`omniflow.fit.noise.temporal_noise`) of frames t and t + 1 at the brightness
     of frame t's pixel holding the point, and the fitted level.
 
-    Measured on stripes of :data:`STRIPE` rows every :data:`STRIPE_PERIOD` rows, stacked
+    From 2 :data:`STRIPE_PERIOD` rows up (smaller images whole), measured on stripes of
+    :data:`STRIPE` rows every :data:`STRIPE_PERIOD` rows, stacked
     into one image (each stripe's first and last rows left out of the mask, so no tile
     straddles two stripes): its tiles are a twelfth of the whole annulus's, spread over
     it, each searched for a whole-pixel motion of up to :data:`SEARCH` px (the flow
@@ -115,10 +116,12 @@ def point_noise(frame_t: NDArray, frame_t1: NDArray, mask: NDArray, x: NDArray, 
     """
     f0, f1 = (np.asarray(f, dtype=np.float64) for f in (frame_t, frame_t1))
     rows = np.arange(f0.shape[0])
-    keep = rows % STRIPE_PERIOD < STRIPE
+    # stripes from two periods up (512 px: three stripes); a smaller image whole
+    keep = rows % STRIPE_PERIOD < STRIPE if rows.size >= 2 * STRIPE_PERIOD else rows >= 0
     inner = np.asarray(mask, bool)[keep].copy()
-    edge = rows[keep] % STRIPE_PERIOD
-    inner[(edge == 0) | (edge == STRIPE - 1)] = False  # no tile across a seam
+    if not keep.all():
+        edge = rows[keep] % STRIPE_PERIOD
+        inner[(edge == 0) | (edge == STRIPE - 1)] = False  # no tile across a seam
     level = temporal_noise(f0[keep], f1[keep], inner, search=SEARCH)
     h, w = f0.shape
     ok = np.isfinite(x) & np.isfinite(y)
