@@ -81,11 +81,15 @@ class SigmaModel:
 #: The constants per solver: the direct solution (eq. 16), the pooled solver on k-d tree
 #: pools and on grid pools (``pool_grid``); chosen on the train split
 #: (docs/decisions/confidence.md).
+#: The direct solution (the paper preset) is not calibrated: its constants are neutral,
+#: so its sigmas are the noise's alone.
 MODELS: dict[str, SigmaModel] = {
     "direct": SigmaModel(),
-    "pooled": SigmaModel(),
-    "grid": SigmaModel(),
-}
+    "pooled": SigmaModel(flow_scale=0.641, flow_share=0.7, flow_floor=0.01,
+                         range_scale=0.817, range_score=100.0, range_floor=0.05),
+    "grid": SigmaModel(flow_scale=0.783, flow_share=0.3, flow_floor=0.0,
+                       range_scale=1.54, range_score=0.0, range_floor=0.1),
+}  # fmt: skip
 
 
 def model_for(config) -> SigmaModel:

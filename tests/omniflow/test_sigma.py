@@ -55,7 +55,7 @@ def _spread(rig, f1, f2, m, config, monkeypatch):
 # Measured (seed 26, 24 realisations, 128 px): the median ratio of the empirical RMS
 # endpoint error to the predicted sigma was 0.934 for both units (eq. 14 ties cam2's
 # to cam1's), the correlation of their logarithms over the points 0.957. The tolerance
-# 0.15 on the ratio is the measured 0.067 with the ratio's sampling spread at 24
+# 0.15 on the ratio is the measured 0.066 with the ratio's sampling spread at 24
 # realisations (a chi distribution of 48 degrees of freedom per point: 10 % per point,
 # far less for a median over the points) and the noise estimate's own error added.
 # The pooled solver's raw prediction is not tested so: its pools' rows share the
