@@ -16,7 +16,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from omniflow.config import OmniFlowConfig
-from omniflow.solve.sigma import SIGMA_COLUMNS
 
 __all__ = [
     "COLUMNS",
@@ -57,6 +56,15 @@ COLUMNS: dict[str, str] = {
     "f2_theta": "grey/rad, df2/dtheta used in eq. (15)",
     "f2_t": "grey/frame, df2/dt used in eq. (15)",
     "coupled": "1/0, eq. (14) ties dh2_dt to dh1_dt (0: decoupled, omniflow.solve.decoupled)",
+}
+
+
+#: The predicted standard deviations (:attr:`OmniFlowResult.sigma`,
+#: :mod:`omniflow.solve.sigma`) and their units, in CSV order after the columns.
+SIGMA_COLUMNS: dict[str, str] = {
+    "sigma_flow1": "px/frame, predicted RMS endpoint error of cam1's (dx, dy)",
+    "sigma_flow2": "px/frame, predicted RMS endpoint error of cam2's (dx2, dy2)",
+    "sigma_r": "m, predicted standard deviation of r",
 }
 
 

@@ -34,6 +34,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from omniflow.fit.noise import NoiseLevel, temporal_noise
+from omniflow.result import SIGMA_COLUMNS
 
 __all__ = [
     "MODELS",
@@ -44,14 +45,6 @@ __all__ = [
     "point_noise",
     "sigmas",
 ]
-
-#: The predicted standard deviations and their units, in CSV order after the columns.
-SIGMA_COLUMNS: dict[str, str] = {
-    "sigma_flow1": "px/frame, predicted RMS endpoint error of cam1's (dx, dy)",
-    "sigma_flow2": "px/frame, predicted RMS endpoint error of cam2's (dx2, dy2)",
-    "sigma_r": "m, predicted standard deviation of r",
-}
-
 
 @dataclass(frozen=True)
 class SigmaModel:
