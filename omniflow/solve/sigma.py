@@ -46,6 +46,7 @@ __all__ = [
     "sigmas",
 ]
 
+
 @dataclass(frozen=True)
 class SigmaModel:
     """The constants of the prediction (module docstring), chosen on the train split.
