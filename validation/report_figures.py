@@ -234,6 +234,7 @@ def reliability_figure(plt: Any, summary: Mapping[str, Any], fig_dir: Path) -> d
                     label="calibrated: y = 2 sigma (95.4 %)")  # fmt: skip
             ax.set_xscale("log")
             ax.set_yscale("log")
+            ax.xaxis.set_minor_formatter(plt.NullFormatter())  # labelled decades only
         else:
             _no_data(ax, "no point with truth")
         ax.set_xlabel(f"predicted sigma ({unit}), bin median")
