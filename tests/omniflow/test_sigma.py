@@ -101,3 +101,22 @@ def test_covariance_hand_computed():
     idx, w = np.array([[0, 1], [1, 0]]), np.ones((2, 2))
     c_aa, _, c_bb = flow_covariance(two, (np.full(2, 0.04), np.full(2, 0.09)), idx, w)
     np.testing.assert_allclose([c_aa[0], c_bb[0]], [0.005, 0.045], atol=1e-15)
+
+
+def test_stream_gives_the_same_sigmas(still_wall):
+    """OmniFlowStream.push equals estimate on the same pair, the sigmas included."""
+    from omniflow.stream import OmniFlowStream
+
+    rig, f1, f2, _ = still_wall
+    g1 = [
+        f + np.float32(0.01) * np.sin(np.arange(f.size, dtype=np.float32)).reshape(f.shape)
+        for f in f1
+    ]  # fmt: skip  (some texture-free 'noise' so the level is not 0)
+    config = OmniFlowConfig()
+    ref = estimate(g1, f2, rig, config)
+    with OmniFlowStream(rig, config) as stream:
+        assert stream.push(g1[0], f2[0]) is None
+        res = stream.push(g1[1], f2[1])
+    np.testing.assert_array_equal(res["x"], ref["x"])
+    for k in SIGMA_COLUMNS:
+        np.testing.assert_allclose(res.sigma[k], ref.sigma[k], rtol=1e-12, err_msg=k)
