@@ -224,22 +224,35 @@ def estimate(
         n_significant=n_sig,
         diagnostics=diagnostics,
     )
-    t_sigma = time.perf_counter()
     frames = (frames1, frames2)
-    result.sigma = predicted_sigmas(result.columns, frames, t, rig, (cam1, cam2), config)
-    timings["sigma"] = time.perf_counter() - t_sigma
-    timings["total"] += timings["sigma"]
+    result.defer_sigma(predicted_sigmas(result.columns, frames, t, rig, (cam1, cam2), config))
     return add_monocular(result, cam1, rig.cam1)  # cam1 alone where no match is near
+
+
+#: The columns :func:`omniflow.solve.sigma.sigmas` reads.
+_SIGMA_READS = ("x", "y", "x2", "y2", "h1", "h2", "r", "dh1_dt", "dtheta_dt", "dx", "dy", "dx2",
+                "dy2", "coupled", "score", "f1_h", "f1_theta", "f2_h", "f2_theta")  # fmt: skip
 
 
 def predicted_sigmas(
     cols: dict, frames: tuple, t: int, rig: Rig, cams: tuple, config: OmniFlowConfig
-) -> dict:
-    """The predicted standard deviations of :mod:`omniflow.solve.sigma` for the columns:
+):
+    """The predicted standard deviations of :mod:`omniflow.solve.sigma` for the columns,
+    as a function of no argument that makes them (:meth:`OmniFlowResult.defer_sigma`):
     each unit's temporal noise (frames t and t + 1 over its annulus) at the points, the
-    flow series' noise shares, and the solver's pools (k-d pools of the points kept)."""
+    flow series' noise shares (taken now, so the function holds the frames t and t + 1
+    and the columns only), and the solver's pools (k-d pools of the points kept)."""
+    # copies: the sigmas do not change if the caller reuses its buffers before reading
+    frames = tuple((np.array(f[t]), np.array(f[t + 1])) for f in frames)
+    cols = {k: np.array(cols[k]) for k in _SIGMA_READS if k in cols}
+    value_share = tuple(value_noise_share(c["g"].fit, config) for c in cams)
+    gradient_var = tuple(gradient_noise(1.0, c["g"].fit, config) for c in cams)
+    return lambda: _predicted_sigmas(cols, frames, rig, config, value_share, gradient_var)
+
+
+def _predicted_sigmas(cols, frames, rig, config, value_share, gradient_var) -> dict:
     tasks = [
-        (frames_u[t], frames_u[t + 1], annulus(unit, float(config.h_min), float(config.rim_margin)),
+        (frames_u[0], frames_u[1], annulus(unit, float(config.h_min), float(config.rim_margin)),
          x, y)
         for frames_u, unit, (x, y) in zip(frames, (rig.cam1, rig.cam2),
                                           ((cols["x"], cols["y"]), (cols["x2"], cols["y2"])),
@@ -254,8 +267,8 @@ def predicted_sigmas(
     return sigmas(
         cols,
         noise=(noise[0], noise[1]),
-        value_share=tuple(value_noise_share(c["g"].fit, config) for c in cams),
-        gradient_var=tuple(gradient_noise(1.0, c["g"].fit, config) for c in cams),
+        value_share=value_share,
+        gradient_var=gradient_var,
         d=rig.d,
         s=rig.s,
         v2=rig.cam2.v,

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import time
 import warnings
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -110,7 +110,9 @@ class OmniFlowResult:
     sigma : dict[str, ndarray]
         The predicted standard deviation of each point's flow per unit and of its
         range (keys and units in :data:`SIGMA_COLUMNS`, :mod:`omniflow.solve.sigma`),
-        the same length as the columns; empty where not predicted.
+        the same length as the columns; empty where not predicted. Made when first
+        read (:meth:`defer_sigma`; its seconds then in ``timings["sigma"]``, not in
+        ``total``), so a caller that never reads it does not pay for it.
     """
 
     columns: dict[str, NDArray]
@@ -119,7 +121,25 @@ class OmniFlowResult:
     n_significant: int = 0
     diagnostics: dict[str, float] = field(default_factory=dict)
     monocular: dict[str, NDArray] = field(default_factory=dict)
-    sigma: dict[str, NDArray] = field(default_factory=dict)
+    _sigma: dict[str, NDArray] | Callable[[], dict[str, NDArray]] = field(
+        default_factory=dict, repr=False
+    )
+
+    @property
+    def sigma(self) -> dict[str, NDArray]:
+        if callable(self._sigma):  # made on first reading (defer_sigma)
+            t0 = time.perf_counter()
+            self._sigma = self._sigma()
+            self.timings["sigma"] = time.perf_counter() - t0
+        return self._sigma
+
+    @sigma.setter
+    def sigma(self, value: dict[str, NDArray]) -> None:
+        self._sigma = value
+
+    def defer_sigma(self, make: Callable[[], dict[str, NDArray]]) -> None:
+        """Make :attr:`sigma` with ``make()`` when it is first read."""
+        self._sigma = make
 
     def __len__(self) -> int:
         return int(next(iter(self.columns.values())).size) if self.columns else 0
@@ -189,5 +209,5 @@ def no_points(timings: dict, t_start: float, config, n_sig: int) -> OmniFlowResu
     columns = {name: np.zeros(0) for name in COLUMNS}
     sigma = {name: np.zeros(0) for name in SIGMA_COLUMNS}
     return OmniFlowResult(
-        columns=columns, timings=timings, config=config, n_significant=n_sig, sigma=sigma
+        columns=columns, timings=timings, config=config, n_significant=n_sig, _sigma=sigma
     )

@@ -96,7 +96,7 @@ class StereoFrame:
         def fit(what, frame, unit):
             image = grey_input(frame, f"{what} of push {index}", unit, config)
             sigma = unit_noise_sigma(frame, unit, config) if need_sigma else 0.0
-            return _UnitFrame(fit_dct(image, band=fit_band(config)), unit, sigma, np.asarray(frame))
+            return _UnitFrame(fit_dct(image, band=fit_band(config)), unit, sigma, np.array(frame))
 
         units = map_tasks(fit, ("frame1", frame1, rig.cam1), ("frame2", frame2, rig.cam2))
         self.units: tuple[_UnitFrame, _UnitFrame] = (units[0], units[1])
@@ -258,11 +258,8 @@ class OmniFlowStream:
         timings["total"] = time.perf_counter() - t_start
         out = OmniFlowResult(columns=result, timings=timings, config=config,
                              n_significant=n_sig, diagnostics=diagnostics)  # fmt: skip
-        t_sigma = time.perf_counter()
         frames = tuple((a.image, b.image) for a, b in zip(prev.units, cur.units, strict=True))
-        out.sigma = predicted_sigmas(result, frames, 0, self.rig, tuple(cams), config)
-        timings["sigma"] = time.perf_counter() - t_sigma
-        timings["total"] += timings["sigma"]
+        out.defer_sigma(predicted_sigmas(result, frames, 0, self.rig, tuple(cams), config))
         return add_monocular(out, cams[0], self.rig.cam1)
 
 
