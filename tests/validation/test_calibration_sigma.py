@@ -75,3 +75,21 @@ def test_leaderboard_within2_pools_cameras():
     assert math.isclose(rows["m"]["within2_flow"], 0.8)
     assert rows["m"]["within2_range"] == 0.8
     assert math.isnan(rows["b"]["within2_flow"]) and math.isnan(rows["b"]["within2_range"])
+
+
+def test_external_sigma_columns_are_read(tmp_path):
+    """An external per-point flow.csv may carry any of the sigma columns; the others are
+    NaN (no point of theirs is scored), and without any the result has no sigma."""
+    from omniflow.geometry.rig import Rig
+    from validation.external import ExternalOutput
+
+    rig = Rig.symmetric(d=0.10, R=0.05, s=0.30, size=64)
+    for name, header, row in (("with", "x,y,dx,dy,sigma_r", "30.5,20.5,0.1,0.2,0.05"),
+                              ("without", "x,y,dx,dy", "30.5,20.5,0.1,0.2")):  # fmt: skip
+        frame = tmp_path / name / "frames" / "000000"
+        frame.mkdir(parents=True)
+        (frame / "flow.csv").write_text(f"# units\n{header}\n{row}\n")
+    res = ExternalOutput(tmp_path / "with").points(0, rig)
+    assert res.sigma["sigma_r"].tolist() == [0.05]
+    assert np.isnan(res.sigma["sigma_flow1"]).all() and np.isnan(res.sigma["sigma_flow2"]).all()
+    assert ExternalOutput(tmp_path / "without").points(0, rig).sigma == {}
