@@ -120,3 +120,24 @@ def test_stream_gives_the_same_sigmas(still_wall):
     np.testing.assert_array_equal(res["x"], ref["x"])
     for k in SIGMA_COLUMNS:
         np.testing.assert_allclose(res.sigma[k], ref.sigma[k], rtol=1e-12, err_msg=k)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_point_noise_on_stripes_reads_the_added_noise(seed):
+    """At 512 px the noise is measured on stripes (a twelfth of the tiles): on a still
+    textured image with white noise of sigma 0.01 added to each frame it reads 0.01.
+    Measured (seeds 0-4): 0.00989-0.01006 from 90 tiles. Tolerance 5 %: each tile's
+    variance has 2 x 98 degrees of freedom (7 rows of 16 less 14 terms, twice), 10 % in
+    variance, 5 % in sigma; the median of 90 tiles about 0.7 %, so 5 % is 7 of those."""
+    from scipy import ndimage
+
+    from omniflow.solve.sigma import point_noise
+
+    rng = np.random.default_rng(seed)
+    base = ndimage.gaussian_filter(rng.random((512, 512)), 3) * 4.0
+    base = 0.5 + base - base.mean()
+    f0, f1 = (base + rng.normal(0.0, 0.01, base.shape) for _ in range(2))
+    sigma, level = point_noise(f0, f1, np.ones(base.shape, bool), np.array([100.5]),
+                               np.array([200.5]))  # fmt: skip
+    assert level.tiles == 90
+    assert sigma[0] == pytest.approx(0.01, rel=0.05)
