@@ -1,8 +1,8 @@
 """A predicted standard deviation for every flow and range estimate.
 
-Three columns beside the result's (:data:`SIGMA_COLUMNS`), made after the solve
-from the columns themselves and the measured image noise, so no existing column
-changes:
+Three columns beside the result's (:data:`SIGMA_COLUMNS`), made from the columns
+themselves and the measured image noise when the result's sigma is first read
+(:func:`omniflow.pipeline.predicted_sigmas`), so no existing column changes:
 
 * ``sigma_flow1``, ``sigma_flow2``: the predicted root-mean-square endpoint error of
   each unit's pixel flow (dx, dy), px/frame. The noise part is the covariance of the
@@ -12,7 +12,8 @@ changes:
   N = sum_j w_j A_j^T A_j, with var_j the variance of the equation's residual:
   the fitted frame difference (2 rho sigma^2, rho the share of white noise the flow
   series keeps) plus the gradient noise times the flow (g (a^2 + (h1 b)^2)).
-  cam1's prediction is sqrt(trace Cov u); cam2's is h2/h1 times it (eq. 14).
+  cam1's prediction is sqrt(trace Cov u); cam2's is h2/h1 times it (eq. 14) where
+  eq. (14) is kept (``coupled``), else its own from trace(diag(k^2, k^2) Cov u).
   What noise does not explain (the series' truncation, the linearisation, a wrong
   match) enters as a share of the flow and a floor, and a scale calibrates the whole:
   sigma^2 = scale^2 (sigma_ls^2 + (share |v|)^2 + floor^2).
