@@ -240,7 +240,8 @@ def reliability_figure(plt: Any, summary: Mapping[str, Any], fig_dir: Path) -> d
         ax.set_xlabel(f"predicted sigma ({unit}), bin median")
         ax.set_ylabel(f"observed error quantile ({unit})")
         head = titles.get(q, q)
-        ax.set_title(head + "\nwithin 1 / 2 sigma: " + "; ".join(shares), fontsize=8)
+        # one line per method: within 1 / 2 sigma
+        ax.set_title("\n".join([head, *(f"{t} within 1 / 2 sigma" for t in shares)]), fontsize=7)
     handles, labels = np.atleast_1d(axes)[0].get_legend_handles_labels()
     if handles:
         fig.legend(handles, labels, loc="lower center", ncol=3, fontsize=7)
