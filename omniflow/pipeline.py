@@ -51,14 +51,17 @@ from numpy.typing import NDArray
 from omniflow.config import OmniFlowConfig
 from omniflow.fit.series import (
     Frame,
+    annulus,
     choose_flow_band,
     fill_outside_rim,
     fit_band,
+    gradient_noise,
     needs_noise_sigma,
     noise_variance,
     unit_fits,
     unit_frames,
     unit_noise_sigma,
+    value_noise_share,
 )
 from omniflow.geometry.rig import Rig
 from omniflow.matching import Matches, PolarGrids, match_radial
@@ -67,7 +70,9 @@ from omniflow.registration import Rectifier, has_errors
 from omniflow.result import COLUMNS, NoMatchesWarning, OmniFlowResult, no_points
 from omniflow.solve.at_matches import flow_at_matches
 from omniflow.solve.monocular import add_monocular
+from omniflow.solve.pooled import neighbourhoods
 from omniflow.solve.shading import flow_units, where_moving
+from omniflow.solve.sigma import model_for, point_noise, sigmas
 
 __all__ = [
     "COLUMNS",
@@ -225,7 +230,57 @@ def estimate(
         n_significant=n_sig,
         diagnostics=diagnostics,
     )
+    frames = (frames1, frames2)
+    result.defer_sigma(predicted_sigmas(result.columns, frames, t, rig, (cam1, cam2), config))
     return add_monocular(result, cam1, rig.cam1)  # cam1 alone where no match is near
+
+
+#: The columns :func:`omniflow.solve.sigma.sigmas` reads.
+_SIGMA_READS = ("x", "y", "x2", "y2", "h1", "h2", "r", "dh1_dt", "dtheta_dt", "dx", "dy", "dx2",
+                "dy2", "coupled", "score", "f1_h", "f1_theta", "f2_h", "f2_theta")  # fmt: skip
+
+
+def predicted_sigmas(
+    cols: dict, frames: tuple, t: int, rig: Rig, cams: tuple, config: OmniFlowConfig
+):
+    """The predicted standard deviations of :mod:`omniflow.solve.sigma` for the columns,
+    as a function of no argument that makes them (:meth:`OmniFlowResult.defer_sigma`):
+    each unit's temporal noise (frames t and t + 1 over its annulus) at the points, the
+    flow series' noise shares (taken now, so the function holds the frames t and t + 1
+    and the columns only), and the solver's pools (k-d pools of the points kept)."""
+    # copies: the sigmas do not change if the caller reuses its buffers before reading
+    frames = tuple((np.array(f[t]), np.array(f[t + 1])) for f in frames)
+    cols = {k: np.array(cols[k]) for k in _SIGMA_READS if k in cols}
+    value_share = tuple(value_noise_share(c["g"].fit, config) for c in cams)
+    gradient_var = tuple(gradient_noise(1.0, c["g"].fit, config) for c in cams)
+    return lambda: _predicted_sigmas(cols, frames, rig, config, value_share, gradient_var)
+
+
+def _predicted_sigmas(cols, frames, rig, config, value_share, gradient_var) -> dict:
+    h_min, rim_margin = float(config.search.h_min), float(config.search.rim_margin)
+    tasks = [
+        (frames_u[0], frames_u[1], annulus(unit, h_min, rim_margin), x, y)
+        for frames_u, unit, (x, y) in zip(frames, (rig.cam1, rig.cam2),
+                                          ((cols["x"], cols["y"]), (cols["x2"], cols["y2"])),
+                                          strict=True)
+    ]  # fmt: skip
+    noise = [level[0] for level in map_tasks(point_noise, *tasks)]  # the two units' threads
+    pools = None
+    if config.solver == "pooled":
+        radius = rig.cam1.r_m / 8.0 if config.pool_radius is None else config.pool_radius
+        pools = neighbourhoods(cols["x"], cols["y"], k=config.pooling.pool_k, radius=radius,
+                               r=cols["r"], range_tol=config.pooling.pool_range_tol)  # fmt: skip
+    return sigmas(
+        cols,
+        noise=(noise[0], noise[1]),
+        value_share=value_share,
+        gradient_var=gradient_var,
+        d=rig.d,
+        s=rig.s,
+        v2=rig.cam2.v,
+        pools=pools,
+        model=model_for(config),
+    )
 
 
 def matching_grids(a1: Frame, a2: Frame, config: OmniFlowConfig) -> tuple[PolarGrids, PolarGrids]:

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import time
 import warnings
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -17,7 +17,14 @@ from numpy.typing import NDArray
 
 from omniflow.config import OmniFlowConfig
 
-__all__ = ["COLUMNS", "MONOCULAR_COLUMNS", "NoMatchesWarning", "OmniFlowResult", "no_points"]
+__all__ = [
+    "COLUMNS",
+    "MONOCULAR_COLUMNS",
+    "SIGMA_COLUMNS",
+    "NoMatchesWarning",
+    "OmniFlowResult",
+    "no_points",
+]
 
 
 #: Output columns and their units, in CSV order.
@@ -49,6 +56,15 @@ COLUMNS: dict[str, str] = {
     "f2_theta": "grey/rad, df2/dtheta used in eq. (15)",
     "f2_t": "grey/frame, df2/dt used in eq. (15)",
     "coupled": "1/0, eq. (14) ties dh2_dt to dh1_dt (0: decoupled, omniflow.solve.decoupled)",
+}
+
+
+#: The predicted standard deviations (:attr:`OmniFlowResult.sigma`,
+#: :mod:`omniflow.solve.sigma`) and their units, in CSV order after the columns.
+SIGMA_COLUMNS: dict[str, str] = {
+    "sigma_flow1": "px/frame, predicted RMS endpoint error of cam1's (dx, dy)",
+    "sigma_flow2": "px/frame, predicted RMS endpoint error of cam2's (dx2, dy2)",
+    "sigma_r": "m, predicted standard deviation of r",
 }
 
 
@@ -91,6 +107,12 @@ class OmniFlowResult:
         With ``config.monocular_gap``: cam1's flow alone where no stereo match is
         near (:mod:`omniflow.solve.monocular`, columns in its ``MONOCULAR_COLUMNS``);
         else empty.
+    sigma : dict[str, ndarray]
+        The predicted standard deviation of each point's flow per unit and of its
+        range (keys and units in :data:`SIGMA_COLUMNS`, :mod:`omniflow.solve.sigma`),
+        the same length as the columns; empty where not predicted. Made when first
+        read (:meth:`defer_sigma`; its seconds then in ``timings["sigma"]``, not in
+        ``total``), so a caller that never reads it does not pay for it.
     """
 
     columns: dict[str, NDArray]
@@ -99,21 +121,45 @@ class OmniFlowResult:
     n_significant: int = 0
     diagnostics: dict[str, float] = field(default_factory=dict)
     monocular: dict[str, NDArray] = field(default_factory=dict)
+    _sigma: dict[str, NDArray] | Callable[[], dict[str, NDArray]] = field(
+        default_factory=dict, repr=False
+    )
+
+    @property
+    def sigma(self) -> dict[str, NDArray]:
+        if callable(self._sigma):  # made on first reading (defer_sigma)
+            t0 = time.perf_counter()
+            self._sigma = self._sigma()
+            self.timings["sigma"] = time.perf_counter() - t0
+        return self._sigma
+
+    @sigma.setter
+    def sigma(self, value: dict[str, NDArray]) -> None:
+        self._sigma = value
+
+    def defer_sigma(self, make: Callable[[], dict[str, NDArray]]) -> None:
+        """Make :attr:`sigma` with ``make()`` when it is first read."""
+        self._sigma = make
 
     def __len__(self) -> int:
         return int(next(iter(self.columns.values())).size) if self.columns else 0
 
     def __getitem__(self, key: str) -> NDArray:
+        if key not in self.columns and key in self.sigma:
+            return self.sigma[key]
         return self.columns[key]
 
     def to_csv(self, path: str | Path, units: Mapping[str, str] | None = None) -> Path:
-        """Write the columns to CSV atomically, with a '#' header line of units.
+        """Write the columns, then :attr:`sigma`'s, to CSV atomically, with a '#' header
+        line of units.
 
         ``units`` names the unit of columns added after :func:`estimate` (the
         CLI's ``odometry_inlier``, ``auto_region``, ...); :data:`COLUMNS` gives
         the rest.
         """
-        return _write_csv(path, self.columns, {**COLUMNS, **(units or {})}, "per-point results")
+        cols = {**self.columns, **{k: v for k, v in self.sigma.items() if k not in self.columns}}
+        known = {**COLUMNS, **SIGMA_COLUMNS, **(units or {})}
+        return _write_csv(path, cols, known, "per-point results")
 
     def monocular_to_csv(self, path: str | Path) -> Path:
         """Write :attr:`monocular` to CSV atomically, like :meth:`to_csv`."""
@@ -161,4 +207,7 @@ def no_points(timings: dict, t_start: float, config, n_sig: int) -> OmniFlowResu
     )
     timings.update(sample=0.0, solve=0.0, total=time.perf_counter() - t_start)
     columns = {name: np.zeros(0) for name in COLUMNS}
-    return OmniFlowResult(columns=columns, timings=timings, config=config, n_significant=n_sig)
+    sigma = {name: np.zeros(0) for name in SIGMA_COLUMNS}
+    return OmniFlowResult(
+        columns=columns, timings=timings, config=config, n_significant=n_sig, _sigma=sigma
+    )

@@ -32,7 +32,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import replace
 
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 
 from omniflow.config import OmniFlowConfig
 from omniflow.fit.series import (
@@ -48,7 +48,13 @@ from omniflow.fit.series import (
 from omniflow.geometry.rig import Rig, Unit
 from omniflow.paper.dct import DCTFit, fit_dct
 from omniflow.parallel import map_tasks, submit
-from omniflow.pipeline import estimate, flow_grids, matching_grid, stereo_matches
+from omniflow.pipeline import (
+    estimate,
+    flow_grids,
+    matching_grid,
+    predicted_sigmas,
+    stereo_matches,
+)
 from omniflow.registration import Rectifier, has_errors
 from omniflow.result import OmniFlowResult, no_points
 from omniflow.solve.at_matches import flow_at_matches
@@ -60,8 +66,9 @@ __all__ = ["OmniFlowStream", "StereoFrame"]
 class _UnitFrame:
     """One unit at one time step: its DCT fit, noise level and grids per band."""
 
-    def __init__(self, fit: DCTFit, unit: Unit, sigma: float):
+    def __init__(self, fit: DCTFit, unit: Unit, sigma: float, image: NDArray):
         self.fit, self.unit, self.sigma = fit, unit, sigma
+        self.image = image  # the frame as pushed, for the noise of the predicted sigmas
         self._frames: dict[tuple[float, float], Frame] = {}
 
     def frame(self, band: float, taper: float = 0.0) -> Frame:
@@ -90,7 +97,7 @@ class StereoFrame:
         def fit(what, frame, unit):
             image = grey_input(frame, f"{what} of push {index}", unit, config)
             sigma = unit_noise_sigma(frame, unit, config) if need_sigma else 0.0
-            return _UnitFrame(fit_dct(image, band=fit_band(config)), unit, sigma)
+            return _UnitFrame(fit_dct(image, band=fit_band(config)), unit, sigma, np.array(frame))
 
         units = map_tasks(fit, ("frame1", frame1, rig.cam1), ("frame2", frame2, rig.cam2))
         self.units: tuple[_UnitFrame, _UnitFrame] = (units[0], units[1])
@@ -262,6 +269,8 @@ class OmniFlowStream:
         timings["total"] = time.perf_counter() - t_start
         out = OmniFlowResult(columns=result, timings=timings, config=config,
                              n_significant=n_sig, diagnostics=diagnostics)  # fmt: skip
+        frames = tuple((a.image, b.image) for a, b in zip(prev.units, cur.units, strict=True))
+        out.defer_sigma(predicted_sigmas(result, frames, 0, self.rig, tuple(cams), config))
         return add_monocular(out, cams[0], self.rig.cam1)
 
 

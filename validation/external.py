@@ -13,7 +13,10 @@ scored frame pair t -> t + 1, one of two formats (the first found decides):
   header row). Required: ``x, y, dx, dy`` (cam1 pixel and its flow). Optional:
   ``x2, y2, dx2, dy2`` (cam2), ``h1, dh1_dt, dtheta_dt`` (else the polar
   components come from dx, dy), ``h2, r, h`` (stereo is scored), ``theta,
-  dr_dt`` (dr/dt, time to contact and odometry are scored). Scored like an
+  dr_dt`` (dr/dt, time to contact and odometry are scored), ``sigma_flow1,
+  sigma_flow2, sigma_r`` (the predicted RMS endpoint error of each camera's flow, px,
+  and the standard deviation of r, m: their calibration is scored,
+  :mod:`validation.calibration_sigma`; any one may be given alone). Scored like an
   omniflow variant, at its own points.
 
 Missing files for a scored pair are an error naming them (score fewer pairs
@@ -31,6 +34,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .baselines import DenseFlow
+from .calibration_sigma import SIGMA_KEYS
 from .inputs import InputError
 from .metrics import polar_components
 
@@ -44,8 +48,9 @@ POINT_COLUMNS = ("x", "y", "theta", "h1", "h2", "r", "h", "dh1_dt", "dtheta_dt",
 class PointsResult:
     """A per-point result in the shape of ``OmniFlowResult`` (columns, timings)."""
 
-    def __init__(self, columns: dict[str, NDArray]):
+    def __init__(self, columns: dict[str, NDArray], sigma: dict[str, NDArray] | None = None):
         self.columns = columns
+        self.sigma = sigma or {}
         self.timings: dict[str, float] = {}
         self.n_significant = None
 
@@ -140,4 +145,6 @@ class ExternalOutput:
             if cam == "cam1" and "dtheta_dt" not in cols:
                 with np.errstate(invalid="ignore", divide="ignore"):
                     out["dtheta_dt"] = hdth / out["h1"]
-        return PointsResult(out)
+        given = [k for k in SIGMA_KEYS if k in cols]  # optional predicted sigmas
+        sigma = {k: cols.get(k, np.full(n, np.nan)) for k in SIGMA_KEYS} if given else None
+        return PointsResult(out, sigma)

@@ -37,10 +37,11 @@ OUTPUTS = ("leaderboard.md", "leaderboard.html", "leaderboard.csv", "leaderboard
 #: Columns of every row, in the CSV's order.
 COLUMNS = ("rank", "method", "scene", "split", "kind", "1px", "epe", "fl", "wauc", "coverage",
            "sparse_1px", "sparse_epe", "density", "stereo_outliers", "radial_gain",
-           "tangential_gain", "time_s", "scenes", "missing")  # fmt: skip
+           "tangential_gain", "within2_flow", "within2_range", "time_s", "scenes",
+           "missing")  # fmt: skip
 #: Columns aggregated as the plain mean over the scenes that have them.
 _MEANS = ("coverage", "sparse_1px", "sparse_epe", "density", "stereo_outliers", "radial_gain",
-          "tangential_gain", "time_s")  # fmt: skip
+          "tangential_gain", "within2_flow", "within2_range", "time_s")  # fmt: skip
 #: What a scene with no dense value counts as (every pixel wrong).
 _FAILED = {"1px": 1.0, "fl": 1.0, "wauc": 0.0, "epe": math.nan}
 
@@ -79,10 +80,23 @@ def scene_rows(scene: str, split: str, summary: Mapping[str, Any]) -> list[dict[
         row["stereo_outliers"] = _num(_get(m, "stereo", "all", "outliers"))
         row["radial_gain"] = _num(_get(m, "flow", "cam1", "all", "radial", "gain"))
         row["tangential_gain"] = _num(_get(m, "flow", "cam1", "all", "tangential", "gain"))
+        row["within2_flow"], row["within2_range"] = _within2(m.get("calibration"))
         row["time_s"] = _num(_get(m, "time_per_frame", "median_s"))
         row["missing"] = int(not d_all.get("n"))
         rows.append(row)
     return rows
+
+
+def _within2(cal: Mapping[str, Any] | None) -> tuple[float, float]:
+    """The shares of points within 2 predicted sigma: flow (cam1 and cam2 pooled) and
+    range; NaN for a method that predicts no sigma (validation.calibration_sigma)."""
+    if not cal:
+        return math.nan, math.nan
+    flow = [cal[c] for c in ("cam1", "cam2") if c in cal and cal[c].get("n")]
+    n = sum(b["n"] for b in flow)
+    w_flow = sum(b["n"] * _num(b["within2"]) for b in flow) / n if n else math.nan
+    rng = cal.get("range") or {}
+    return w_flow, _num(rng.get("within2")) if rng.get("n") else math.nan
 
 
 def _mean(values: Sequence[float]) -> float:
@@ -154,7 +168,7 @@ def _aggregate(scene_lists: Sequence[list[dict[str, Any]]], split: str) -> list[
 def _table(doc: Doc, rows: Sequence[Mapping[str, Any]], aggregated: bool) -> None:
     header = ["rank", "method", "1px", "epe", "fl", "wauc", "coverage", "sparse 1px",
               "sparse epe", "density", "stereo out", "radial gain", "tang. gain",
-              "time s"]  # fmt: skip
+              "2σ flow", "2σ range", "time s"]  # fmt: skip
     if aggregated:
         header += ["scenes", "missing"]
     body = []
@@ -162,7 +176,8 @@ def _table(doc: Doc, rows: Sequence[Mapping[str, Any]], aggregated: bool) -> Non
         line = [str(r["rank"]), f"`{r['method']}`", pct(r["1px"]), fmt(r["epe"]), pct(r["fl"]),
                 fmt(r["wauc"]), pct(r["coverage"]), pct(r["sparse_1px"]), fmt(r["sparse_epe"]),
                 pct(r["density"]), pct(r["stereo_outliers"]), fmt(r["radial_gain"]),
-                fmt(r["tangential_gain"]), fmt(r["time_s"])]  # fmt: skip
+                fmt(r["tangential_gain"]), pct(r["within2_flow"]), pct(r["within2_range"]),
+                fmt(r["time_s"])]  # fmt: skip
         if aggregated:
             line += [str(r["scenes"]), str(r["missing"])]
         body.append(line)
@@ -176,7 +191,10 @@ def _document(board: Mapping[str, Any], command: str | None) -> Doc:
     doc.p(
         f"Suite `{s.get('path')}`: {len(board['scenes'])} scenes, {s.get('frames')} frames "
         f"each at {s.get('resolution')} px. Ranked by `1px` (the fraction of valid pixels "
-        "with endpoint error above 1 px, both cameras; lower is better). The first four "
+        "with endpoint error above 1 px, both cameras; lower is better). `2σ flow` and "
+        "`2σ range`: the share of a method's points whose flow error (both cameras) or "
+        "range error is within 2 predicted sigma, for methods that predict sigmas "
+        "(target 90-97 %). The first four "
         "figures are dense (every valid pixel; a sparse method's flow interpolated "
         "edge-aware); `sparse` figures are at the method's own points, `density` their "
         "share of the valid pixels. A scene with no dense value counts as every pixel "

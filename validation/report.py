@@ -43,6 +43,7 @@ from .report_figures import draw_figures, sweep_figure
 from .report_tables import (
     bias_speed_table,
     bias_table,
+    calibration_table,
     derived_table,
     headline_table,
     method_table,
@@ -150,6 +151,19 @@ def _document(summary: Mapping[str, Any], figures: Mapping[str, str], command: s
     doc.table(*range_table(summary))
     if "error_vs_range" in figures:
         doc.img(figures["error_vs_range"], "error vs range")
+    cal = calibration_table(summary)
+    if cal[1]:
+        doc.h(2, "Calibration of the predicted sigmas")
+        doc.p(
+            "For each method that predicts a standard deviation per point: the share of "
+            "points whose error is within 1 and within 2 predicted sigma (cam1 and cam2: "
+            "endpoint error against the predicted RMS endpoint error, px; range: |r - r_gt| "
+            "against sigma_r, m). The target is 90-97 % within 2 sigma. The diagram bins the "
+            "points by predicted sigma and plots the observed error quantiles against it."
+        )
+        doc.table(*cal)
+        if "reliability" in figures:
+            doc.img(figures["reliability"], "reliability diagram of the predicted sigmas")
     doc.h(2, "Derived quantities")
     doc.p(
         "dr/dt and time to contact (TTC, frames) against the objects' known motion from the "

@@ -45,6 +45,7 @@ def draw_figures(results: Results, summary: Mapping[str, Any], fig_dir: Path) ->
         out.update(_flow_figures(plt, snap, fig_dir))
         out.update(_error_map_figure(plt, snap, fig_dir))
     out.update(_range_speed_figures(plt, results, fig_dir))
+    out.update(reliability_figure(plt, summary, fig_dir))
     # Accuracy vs time, every row at the default's points (zero flow left out: no time).
     _accuracy_vs_time(plt, summary, fig_dir / "accuracy_vs_time.png")
     out["accuracy_vs_time"] = "figures/accuracy_vs_time.png"
@@ -193,6 +194,62 @@ def _error_map_figure(plt: Any, snap: FramePair, fig_dir: Path) -> dict[str, str
         out["error_maps"] = "figures/error_maps.png"
 
     return out
+
+
+def reliability_figure(plt: Any, summary: Mapping[str, Any], fig_dir: Path) -> dict[str, str]:
+    """The reliability diagram of each method that predicts sigmas: per quantity (cam1,
+    cam2 flow, range), the observed 68.3 % and 95.4 % error quantiles of each bin of
+    predicted sigma against the bin's median sigma; calibrated points lie on the lines
+    y = sigma and y = 2 sigma. Nothing when no method predicts sigmas."""
+    methods = [m for m in summary["methods"] if m.get("calibration")]
+    if not methods:
+        return {}
+    quantities = list(methods[0]["calibration"])
+    fig, axes = plt.subplots(1, len(quantities), figsize=(5.2 * len(quantities), 5.2))
+    titles = {"cam1": "cam1 flow: endpoint error", "cam2": "cam2 flow: endpoint error",
+              "range": "range: |r - r_gt|"}  # fmt: skip
+    for ax, q in zip(np.atleast_1d(axes), quantities, strict=True):
+        lo, hi = math.inf, 0.0
+        unit = methods[0]["calibration"][q]["unit"]
+        shares = []
+        for i, m in enumerate(methods):
+            b = m["calibration"][q]
+            rel = b.get("reliability") or []
+            if not rel:
+                continue
+            s = np.array([num(r["sigma"]) for r in rel])
+            colour = f"C{i % 10}"
+            q68 = [num(r["q68"]) for r in rel]
+            q95 = [num(r["q95"]) for r in rel]
+            ax.plot(s, q68, "o-", color=colour, label=f"{m['name']}: 68.3 % error quantile")
+            ax.plot(s, q95, "s--", color=colour, label=f"{m['name']}: 95.4 % error quantile")
+            shares.append(f"{m['name']}: {num(b['within1']):.0%} / {num(b['within2']):.0%}")
+            pos = s[np.isfinite(s) & (s > 0)]
+            if pos.size:
+                lo, hi = min(lo, float(pos.min())), max(hi, float(pos.max()))
+        if hi > 0 and math.isfinite(lo):
+            line = np.array([lo, hi])
+            ax.plot(line, line, color="0.4", lw=1, label="calibrated: y = sigma (68.3 %)")
+            ax.plot(line, 2 * line, color="0.4", lw=1, ls=":",
+                    label="calibrated: y = 2 sigma (95.4 %)")  # fmt: skip
+            ax.set_xscale("log")
+            ax.set_yscale("log")
+            ax.xaxis.set_minor_formatter(plt.NullFormatter())  # labelled decades only
+        else:
+            _no_data(ax, "no point with truth")
+        ax.set_xlabel(f"predicted sigma ({unit}), bin median")
+        ax.set_ylabel(f"observed error quantile ({unit})")
+        head = titles.get(q, q)
+        # one line per method: within 1 / 2 sigma
+        ax.set_title("\n".join([head, *(f"{t} within 1 / 2 sigma" for t in shares)]), fontsize=7)
+    handles, labels = np.atleast_1d(axes)[0].get_legend_handles_labels()
+    if handles:
+        fig.legend(handles, labels, loc="lower center", ncol=3, fontsize=7)
+    fig.suptitle("Reliability of the predicted sigmas (equal-count bins of predicted sigma)")
+    fig.tight_layout(rect=(0, 0.12, 1, 1))
+    save(fig, fig_dir / "reliability.png")
+    plt.close(fig)
+    return {"reliability": "figures/reliability.png"}
 
 
 def _range_speed_figures(plt: Any, results: Results, fig_dir: Path) -> dict[str, str]:

@@ -274,3 +274,15 @@ def movers_table(summary: Mapping[str, Any]) -> tuple[list[str], list[list[str]]
                          fmt(1000 * num(o["dr_dt_est_mean_m_per_frame"])),
                          fmt(1000 * num(o["dr_dt_true_mean_m_per_frame"]))])  # fmt: skip
     return header, rows
+
+
+def calibration_table(summary: Mapping[str, Any]) -> tuple[list[str], list[list[str]]]:
+    """Per method that predicts sigmas and per quantity: points, shares within 1 and 2
+    predicted sigma, median sigma (validation.calibration_sigma)."""
+    header = ["method", "quantity", "n", "within 1 sigma", "within 2 sigma", "median sigma"]
+    rows = []
+    for m in summary["methods"]:
+        for q, b in (m.get("calibration") or {}).items():
+            rows.append([m["name"], q, str(b["n"]), pct(b["within1"]), pct(b["within2"]),
+                         f"{fmt(b['sigma_median'], 4)} {b['unit']}"])  # fmt: skip
+    return header, rows

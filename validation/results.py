@@ -52,6 +52,11 @@ class Results:
     stereo_counts: dict[str, dict[str, int]] = field(
         default_factory=lambda: defaultdict(lambda: defaultdict(int))
     )
+    #: method -> list of per-frame sigma records (validation.calibration_sigma.sigma_errors:
+    #: cam1, cam2, range -> err, sigma), for a method that predicts its sigmas
+    sigma: dict[str, list[dict[str, dict[str, NDArray]]]] = field(
+        default_factory=lambda: defaultdict(list)
+    )
     #: method -> list of per-frame derived-quantity records
     derived: dict[str, list[dict[str, Any]]] = field(default_factory=lambda: defaultdict(list))
     #: method -> seconds per frame pair (both cameras)

@@ -31,6 +31,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from . import baselines as bl
+from .calibration_sigma import has_sigma, sigma_errors
 from .densify import interpolate_flow
 from .external import ExternalOutput
 from .inputs import CAMERAS, InputError, Inputs, camera_model
@@ -373,6 +374,9 @@ def _score_pair(run: _Run, t: int) -> None:
                     }
             results.rows.append(row)
         _score_monocular(results, name, res, truth["cam1"], dense)
+        sigma = getattr(res, "sigma", None)
+        if has_sigma(sigma):  # the predicted sigmas against the errors (calibration)
+            results.sigma[name].append(sigma_errors(cols, sigma, truth))
         srow = score_stereo(results, name, cols, res, truth["cam1"], t)
         drow = score_derived(results, name, cols, truth["cam1"], t, *run.poses)
         results.rows[-2].update(srow)

@@ -16,6 +16,7 @@ from numpy.typing import NDArray
 
 from omniflow.io.jsonio import jsonable
 
+from .calibration_sigma import calibration
 from .metrics import flow_summary, protocol_splits, stats, stereo_summary
 from .results import Results
 
@@ -223,6 +224,8 @@ def summarize(results: Results) -> dict[str, Any]:
                     "baselines_at_same_points": same,
                 }
             )
+            if results.sigma.get(m.name):  # the method predicts its sigmas
+                methods[-1]["calibration"] = calibration(results.sigma[m.name])
             mono = _flow_block(results, m.name, "monocular")
             if mono:  # cam1's flow alone where no stereo match is near (monocular_gap)
                 same_mono = _same_points(results, f"@{m.name}:monocular")

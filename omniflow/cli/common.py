@@ -361,9 +361,11 @@ def config_from_settings(settings: str | Sequence[str], *, paper: bool = False) 
 
 def column_units() -> dict[str, str]:
     from omniflow.pipeline import COLUMNS
+    from omniflow.result import SIGMA_COLUMNS
 
     return {
         **COLUMNS,
+        **SIGMA_COLUMNS,
         "time_to_contact": "frames, -r / (dr/dt) where approaching, else inf",
         "odometry_inlier": "1 where the odometry fit used the point, 0 where not (moving or "
         "mismatched), nan without a fit",

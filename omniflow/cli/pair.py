@@ -105,7 +105,9 @@ EPILOG = textwrap.dedent(
                        dr_dt (m/frame), dx, dy (cam1 px/frame), cam2 columns x2, y2,
                        dh2_dt, dx2, dy2, confidence, D, coupled (1: eq. 14 holds,
                        0: each camera's radial flow solved on its own),
-                       time_to_contact (frames)
+                       time_to_contact (frames), and the predicted standard deviations
+                       sigma_flow1, sigma_flow2 (RMS endpoint error of each camera's
+                       flow, px/frame) and sigma_r (m)
       flow.json        units of every column, the config, the rig, the inputs and timings
       regions.csv      with --region / --auto-regions: per region its point count,
                        mean flow, dr/dt, time to contact and steering headings (with

@@ -211,7 +211,7 @@ def unit_frames(
 
 
 @lru_cache(maxsize=8)
-def _annulus(unit: Unit, h_min: float, margin: float) -> NDArray:
+def annulus(unit: Unit, h_min: float, margin: float) -> NDArray:
     """Pixels of the unit's annulus h_min + 1 <= h_i <= r_m - margin - 1 (read-only).
 
     One pixel inside the searched annulus, so the 3x3 noise kernel sees only its pixels.
@@ -225,7 +225,7 @@ def _annulus(unit: Unit, h_min: float, margin: float) -> NDArray:
 
 def unit_noise_sigma(frame, unit: Unit, config: OmniFlowConfig) -> float:
     """The image noise of one unit's frame: Immerkaer's estimate over its annulus."""
-    mask = _annulus(unit, float(config.search.h_min), float(config.search.rim_margin))
+    mask = annulus(unit, float(config.search.h_min), float(config.search.rim_margin))
     s = immerkaer_sigma(np.asarray(frame, dtype=np.float32), mask, erode=False)
     return 0.0 if not np.isfinite(s) else s
 

@@ -73,9 +73,11 @@ def test_estimate_columns_and_csv(moving_frames, rig256, tmp_path):
     assert res.n_significant >= n
     path = res.to_csv(tmp_path / "out.csv")
     lines = path.read_text().splitlines()
-    assert lines[0].startswith("#") and lines[1].split(",") == list(res.columns)
+    # the columns, then the predicted sigmas (omniflow.solve.sigma)
+    assert lines[0].startswith("#") and lines[1].split(",") == [*res.columns, *res.sigma]
+    assert list(res.sigma) == ["sigma_flow1", "sigma_flow2", "sigma_r"]
     back = np.loadtxt(path, delimiter=",", skiprows=2)
-    assert back.shape == (n, len(res.columns))
+    assert back.shape == (n, len(res.columns) + len(res.sigma))
     np.testing.assert_allclose(back[:, 0], res["x"], rtol=1e-8)
     assert not list(tmp_path.glob(".*partial*"))  # written atomically, nothing left over
 
