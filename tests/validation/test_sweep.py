@@ -112,5 +112,30 @@ def test_registration_twins_share_a_colour_and_differ_in_style():
                   "omniflow:default+registration=card"])  # fmt: skip
     (lab0, c0, s0), (_, c1, _), (_, c2, s2), (_, c3, s3) = (st[n] for n in st)
     assert c0 == c2 == c3 != c1 and len({s0, s2, s3}) == 3
-    assert lab0 == "omniflow:default (recorded rig)"
+    assert lab0 == "omniflow:default (recorded rig: its true errors)"
     assert _styles(["omniflow:default"])["omniflow:default"][0] == "omniflow:default"
+
+
+def test_each_panel_is_titled_by_its_metric(monkeypatch, tmp_path):
+    import validation.sweep_figure as sf
+
+    seen = {}
+    monkeypatch.setattr(sf, "save", lambda fig, path: seen.update(fig=fig))
+    rows = [
+        {"index": i, "method": m, "epe": 0.1 * (i + 1), "1px": 0.01}
+        for i in (0, 1)
+        for m in ("DIS-medium", "omniflow:default+registration=none")
+    ]
+    sf.sweep_plot(
+        {
+            "parameter": "camera.exposure",
+            "values": ["1", "2"],
+            "rows": rows,
+            "scene": "s.toml",
+            "resolution": 64,
+            "frames": 2,
+        },
+        tmp_path / "p.png",
+    )
+    titles = [ax.get_title() for ax in seen["fig"].axes]
+    assert titles == list(sf.METRICS.values())
