@@ -131,6 +131,17 @@ def _parser() -> argparse.ArgumentParser:
         "that differ (omniflow:dense+pooling.pool_k=64); repeatable",
     )
     ap.add_argument(
+        "--registration",
+        default=None,
+        metavar="recorded|none|RIG_FILE[,...]",
+        help="what omniflow is told about the rig: 'recorded' the dataset's rig, with its "
+        "true [rig.errors] if any (an oracle registration); 'none' the ideal rig of eq. (1), "
+        "no rectification (an unregistered rig); or a rig file, e.g. from omniflow calibrate "
+        "(a card's registration). Comma-separated: each omniflow row once per choice, named "
+        "+registration=none / =card; the truth and the baselines are not affected "
+        "(default: recorded)",
+    )
+    ap.add_argument(
         "--baselines",
         default="DIS-medium,Farneback,DIS-medium-panorama,zero-flow",
         help="comma-separated baselines, or 'none'; zero-flow predicts no motion, the floor "
@@ -321,6 +332,16 @@ def _main(argv: list[str]) -> int:
             if name in dict(variants):
                 return fail(f"--row {text}: the row {name} is already scored")
             variants.append((name, config))
+    if args.registration is not None:
+        from .runner import InputError
+        from .variants import omniflow_variants, with_registration
+
+        if isinstance(variants, str):
+            variants = omniflow_variants(variants, true_matches=variants != "default")
+        try:
+            variants = with_registration(variants, args.registration)
+        except InputError as exc:
+            return fail(str(exc))
     if thresholds is not None:
         problem = _thresholds_unmet(thresholds, args, variants, names)
         if problem:

@@ -43,10 +43,12 @@ from .scoring_flow import FLOW_TRUTH, flow_row, omniflow_points, score_dense, sc
 from .scoring_stereo import score_stereo
 from .variants import (
     VARIANT_CHOICES,
+    Registered,
     TrueMatches,
     config_dict,
     is_paper_config,
     omniflow_variants,
+    told_rig,
     true_matches,
     variant_name,
 )
@@ -150,6 +152,7 @@ def run_validation(
 
     for ext in external:
         ext.check(pairs)
+    _check_told_rigs(ds, vlist)
     meta = ds.meta
     auto = not isinstance(meta.get("camera"), dict) and not any(
         str(c).split("=", 1)[0].strip().removeprefix("camera.") == "exposure" for c in camera
@@ -191,6 +194,27 @@ def run_validation(
     results.dataset["camera"] = None if inputs.camera is None else inputs.camera.to_dict()
     results.dataset["images"] = inputs.describe()
     return results
+
+
+def _check_told_rigs(ds: Any, vlist: Sequence[tuple[str, Any]]) -> None:
+    """InputError where a row's rig file (``--registration FILE``) is not this dataset's
+    camera: another image size, or another d, R or s."""
+    for _, cfg in vlist:
+        rig = cfg.rig if isinstance(cfg, Registered) else None
+        if rig is None:
+            continue
+        for cam in CAMERAS:
+            mine, theirs = getattr(ds.rig, cam), getattr(rig, cam)
+            if (mine.width, mine.height) != (theirs.width, theirs.height):
+                raise InputError(
+                    f"--registration {cfg.rig_file}: {cam} is {theirs.width} x "
+                    f"{theirs.height} px, the dataset's {mine.width} x {mine.height}; "
+                    "calibrate at the dataset's resolution"
+                )
+        got, want = (rig.d, rig.R, rig.s), (ds.rig.d, ds.rig.R, ds.rig.s)
+        if not np.allclose(got, want, rtol=1e-6, atol=0.0):
+            raise InputError(f"--registration {cfg.rig_file}: d, R, s = {got}, the dataset's "
+                             f"{want}; expected the dataset's rig")  # fmt: skip
 
 
 def _check_files(ds: Any, frames: Sequence[int]) -> None:
@@ -448,7 +472,9 @@ def _estimate_row(run: _Run, pair: _Pair, name: str, cfg: Any) -> tuple[Any, flo
     """One row's result on the pair and its seconds; a failure is a note and no points."""
     from omniflow.pipeline import OmniFlowConfig
 
-    results, rig, estimate, t, start = run.results, run.rig, run.estimate, pair.t, pair.start
+    results, estimate, t, start = run.results, run.estimate, pair.t, pair.start
+    rig = told_rig(cfg, run.rig)  # --registration: what omniflow is told about the rig
+    cfg = cfg.config if isinstance(cfg, Registered) else cfg
     g1 = pair.grey["cam1"]
     g2 = pair.grey["cam2"]
     if not _dct3d(cfg):

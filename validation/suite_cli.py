@@ -66,6 +66,11 @@ def _parser() -> argparse.ArgumentParser:
         help="methods to score: omniflow rows and baselines by name (default: omniflow's "
         "default, dense and paper rows and every baseline); repeatable",
     )
+    ap.add_argument("--registration", default=None, metavar="recorded|none|RIG_FILE[,...]",
+                    help="what omniflow is told about the rig, as omnivalidate DATASET "
+                    "--registration: recorded (the true errors), none (eq. 1) or a rig file; "
+                    "comma-separated, each omniflow method once per choice (default: "
+                    "recorded)")  # fmt: skip
     ap.add_argument(
         "--method-output",
         action="append",
@@ -133,7 +138,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return fail(f"--check: {exc}")
     try:
         suite = load_suite(args.suite_file)
-        methods = resolve_methods(names, external)
+        methods = resolve_methods(names, external, args.registration)
         command = "omnivalidate suite " + " ".join(shlex.quote(a) for a in argv)
         board = run_suite(suite, args.out, split=args.split, methods=methods,
                           scheduler=args.scheduler, progress=not args.no_progress,

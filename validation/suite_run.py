@@ -84,12 +84,17 @@ class SuiteMethods:
     external: dict[str, Path] = field(default_factory=dict)
 
     def key(self) -> dict[str, Any]:
-        """JSON-able description, compared on resume."""
-        return {
+        """JSON-able description, compared on resume (with the rig file of a row
+        registered by a card, ``--registration FILE``)."""
+        key = {
             "omniflow": [name for name, _ in self.rows],
             "baselines": list(self.baselines),
             "external": {k: str(Path(v).resolve()) for k, v in self.external.items()},
         }
+        cards = {n: c.rig_file for n, c in self.rows if getattr(c, "registration", "") == "card"}
+        if cards:
+            key["registration_rig"] = cards
+        return key
 
 
 def method_catalogue() -> tuple[list[tuple[str, Any]], list[tuple[str, Any]]]:
@@ -112,16 +117,22 @@ def method_catalogue() -> tuple[list[tuple[str, Any]], list[tuple[str, Any]]]:
 
 
 def resolve_methods(
-    names: Sequence[str] | None, external: Mapping[str, Path] | None = None
+    names: Sequence[str] | None,
+    external: Mapping[str, Path] | None = None,
+    registration: str | None = None,
 ) -> SuiteMethods:
     """The rows for ``--methods`` (None: omniflow's default, dense and paper rows and
-    every baseline); InputError (one line) for an unknown name."""
+    every baseline), each once per ``--registration`` choice
+    (:func:`validation.variants.with_registration`); InputError (one line) for an
+    unknown name or registration."""
     from . import baselines as bl
+    from .variants import with_registration
 
     rows, defaults = method_catalogue()
     external = dict(external or {})
     if names is None:
-        return SuiteMethods(defaults, list(bl.BASELINES), external)
+        return SuiteMethods(with_registration(defaults, registration), list(bl.BASELINES),
+                            external)  # fmt: skip
     by_name = dict(rows)
     picked: list[tuple[str, Any]] = []
     base: list[str] = []
@@ -135,7 +146,7 @@ def resolve_methods(
                 f"--methods: unknown method {n!r}; expected some of "
                 f"{[r for r, _ in rows] + list(bl.BASELINES)}"
             )
-    return SuiteMethods(picked, base, external)
+    return SuiteMethods(with_registration(picked, registration), base, external)
 
 
 def _write_scene(scene: SuiteScene, out: Path) -> Path:

@@ -30,6 +30,8 @@ the metrics are the suite's (docs/suite.md).
 examples:
   omnivalidate sweep scenes/default.toml --key optics.f_number --values 2.8,5.6,11,inf \\
       --out runs/sweep-f --methods omniflow:default,DIS-medium
+  omnivalidate sweep scenes/default.toml --key rig.errors.cam1.cone_angle \\
+      --values 89.8,90,90.2 --out runs/sweep-cone --registration recorded,none
   omnivalidate sweep scenes/default.toml --key camera.exposure --values 0.25,0.5,1,2 \\
       --out runs/sweep-exposure --set optics.focal_length=0.006
 """
@@ -51,6 +53,11 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--methods", default=None, metavar="NAME[,NAME...]",
                     help="methods to score, as omnivalidate suite --methods (default: "
                     "omniflow:default and DIS-medium)")  # fmt: skip
+    ap.add_argument("--registration", default=None, metavar="recorded|none|RIG_FILE[,...]",
+                    help="what omniflow is told about the rig, as omnivalidate DATASET "
+                    "--registration: recorded (the true errors), none (eq. 1) or a rig file; "
+                    "comma-separated, each omniflow method once per choice (default: "
+                    "recorded)")  # fmt: skip
     ap.add_argument("--resolution", type=int, default=256, help="image size, px (default 256)")
     ap.add_argument("--frames", type=int, default=3, help="frames per render (default 3)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
@@ -87,7 +94,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.key in settings:
             return fail(f"--set {args.key}: that is the swept --key")
         names = _split_names(args.methods or "omniflow:default,DIS-medium")
-        methods = resolve_methods(names)
+        methods = resolve_methods(names, registration=args.registration)
         command = "omnivalidate sweep " + " ".join(shlex.quote(a) for a in argv)
         sweep = run_sweep(Path(args.scene).resolve(), args.key, values, Path(args.out),
                           methods=methods, frames=args.frames, resolution=args.resolution,

@@ -44,6 +44,30 @@ def _num(v: Any) -> float:
     return math.nan if v is None else float(v)
 
 
+#: Line style by what omniflow was told about the rig (``--registration``): a row and its
+#: ``+registration=`` twins share a colour.
+LINESTYLES = {"recorded": "-", "none": "--", "card": ":"}
+
+
+def _styles(names: list[str]) -> dict[str, tuple[str, Any, str]]:
+    """(label, colour, line style) per row: one colour per method, the style by its
+    registration; an omniflow row's label says "recorded rig" when it has twins (on a
+    rig-error sweep: registered by the true errors)."""
+    import matplotlib
+
+    bases = list(dict.fromkeys(n.partition("+registration=")[0] for n in names))
+    cycle = [c["color"] for c in matplotlib.rcParams["axes.prop_cycle"]]
+    twins = any("+registration=" in n for n in names)
+    out = {}
+    for n in names:
+        base, _, reg = n.partition("+registration=")
+        colour = cycle[bases.index(base) % len(cycle)]
+        recorded = twins and not reg and n.startswith("omniflow")
+        label = f"{n} (recorded rig: its true errors)" if recorded else n
+        out[n] = (label, colour, LINESTYLES.get(reg or "recorded", "-."))
+    return out
+
+
 def sweep_plot(sweep: Mapping[str, Any], path: Path) -> None:
     """Draw the sweep's metrics (validation.sweep.METRICS) against its values.
 
@@ -57,6 +81,7 @@ def sweep_plot(sweep: Mapping[str, Any], path: Path) -> None:
 
     key, labels = sweep["parameter"], list(sweep["values"])
     names = list(dict.fromkeys(r["method"] for r in sweep["rows"]))
+    styles = _styles(names)
     fig, axes = plt.subplots(2, 4, figsize=(18, 7.5), sharex=True, layout="constrained")
     for ax, (metric, label) in zip(axes.flat, METRICS.items(), strict=True):
         for name in names:
@@ -64,7 +89,9 @@ def sweep_plot(sweep: Mapping[str, Any], path: Path) -> None:
                         if r["method"] == name}  # fmt: skip
             xs = [i for i in range(len(labels)) if not math.isnan(by_value.get(i, math.nan))]
             scale = 100.0 if metric not in ("epe", "radial_gain") else 1.0
-            ax.plot(xs, [scale * by_value[i] for i in xs], marker="o", label=name)
+            key_label, colour, style = styles[name]
+            ax.plot(xs, [scale * by_value[i] for i in xs], marker="o", label=key_label,
+                    color=colour, linestyle=style)  # fmt: skip
         unit = {"epe": " (px)", "radial_gain": ""}.get(metric, " (%)")
         ax.set_title(label, fontsize=10)
         ax.set_ylabel(f"{metric}{unit}")
@@ -76,7 +103,8 @@ def sweep_plot(sweep: Mapping[str, Any], path: Path) -> None:
     for ax in axes[1]:
         ax.set_xticks(range(len(labels)), labels, rotation=30 if len(labels) > 5 else 0)
         ax.set_xlabel(key + _unit(key))
-    axes[0, 0].legend(fontsize=8, loc="best")
+    handles, keys = axes[0, 0].get_legend_handles_labels()
+    fig.legend(handles, keys, loc="outside lower center", ncol=min(len(keys), 3), fontsize=9)
     fig.suptitle(f"Accuracy against {key}: {Path(sweep['scene']).name}, one render per value, "
                  f"{sweep['resolution']} px, {sweep['frames']} frames")  # fmt: skip
     save(fig, path)

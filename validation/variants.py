@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -14,13 +15,17 @@ from numpy.typing import NDArray
 from .inputs import InputError
 
 __all__ = [
+    "REGISTRATIONS",
     "VARIANT_CHOICES",
+    "Registered",
     "TrueMatches",
     "config_dict",
     "is_paper_config",
     "omniflow_variants",
+    "told_rig",
     "true_matches",
     "variant_name",
+    "with_registration",
 ]
 
 
@@ -52,6 +57,82 @@ class TrueMatches:
         if name == "config":
             raise AttributeError(name)
         return getattr(self.config, name)
+
+
+#: What omniflow is told about the rig (docs/validation.md, "Registration"): the
+#: dataset's recorded rig (with its true errors, an oracle registration), the ideal rig
+#: of eq. (1) (what an unregistered user gets), or a rig file (e.g. ``omniflow
+#: calibrate``'s rig.toml: a registration from a test card).
+REGISTRATIONS = ("recorded", "none", "card")
+
+
+@dataclass(frozen=True)
+class Registered:
+    """An omniflow row told another rig than the dataset's recorded one.
+
+    ``registration`` is ``"none"`` (every unit's errors dropped: eq. (1), no
+    rectification) or ``"card"`` (the rig of ``rig_file``, loaded into ``rig``). The
+    truth and the baselines still use the recorded rig; only omniflow's input changes.
+    The row is named ``omniflow:PRESET+registration=none`` (or ``=card``).
+    """
+
+    config: Any
+    registration: str
+    rig_file: str | None = None
+    rig: Any = dataclasses.field(default=None, compare=False, repr=False)
+
+    def __getattr__(self, name: str) -> Any:  # temporal, gradients, ... of the inner config
+        if name == "config":
+            raise AttributeError(name)
+        return getattr(self.config, name)
+
+
+def told_rig(cfg: Any, recorded: Any) -> Any:
+    """The rig omniflow is given for row ``cfg``: ``recorded`` unless ``cfg`` is
+    :class:`Registered` (the ideal rig of eq. 1, or the card's rig file)."""
+    if not isinstance(cfg, Registered):
+        return recorded
+    if cfg.registration == "card":
+        return cfg.rig
+    from omniflow.geometry.rig import Rig
+
+    units = (dataclasses.replace(u, errors=None) for u in (recorded.cam1, recorded.cam2))
+    return Rig(*units, s=recorded.s)
+
+
+def with_registration(rows: list[tuple[str, Any]], text: str | None) -> list[tuple[str, Any]]:
+    """The omniflow ``rows`` once per registration of ``text`` (``recorded``, ``none`` or
+    a rig file, comma-separated; None or ``recorded``: the rows unchanged). Rows on the
+    true matches and other methods' outputs skip matching, so they are kept once, as
+    recorded. InputError (one line) for an unknown value or an unreadable rig file."""
+    if text is None:
+        return rows
+    from omniflow.geometry.rig import RigError, load_rig
+    from omniflow.pipeline import OmniFlowConfig
+
+    items = [t.strip() for t in str(text).split(",") if t.strip()]
+    expected = "expected recorded, none or a rig file (e.g. omniflow calibrate's rig.toml)"
+    if not items:
+        raise InputError(f"--registration {text!r}: {expected}")
+    kinds = [t if t in ("recorded", "none") else "card" for t in items]
+    if len(set(kinds)) != len(kinds):
+        raise InputError(f"--registration {text!r}: each of recorded, none, card at most once")
+    out: list[tuple[str, Any]] = []
+    once = "recorded" not in kinds  # the one-off rows go with the first registration
+    for i, (item, kind) in enumerate(zip(items, kinds, strict=True)):
+        if kind == "card" and not Path(item).is_file():
+            raise InputError(f"--registration {item!r}: no such rig file; {expected}")
+        try:
+            rig = load_rig(item) if kind == "card" else None
+        except RigError as exc:
+            raise InputError(f"--registration {str(exc).splitlines()[0]}") from None
+        path = str(Path(item).resolve()) if kind == "card" else None
+        for name, cfg in rows:
+            if isinstance(cfg, OmniFlowConfig) and kind != "recorded":
+                out.append((f"{name}+registration={kind}", Registered(cfg, kind, path, rig)))
+            elif kind == "recorded" or (once and i == 0):
+                out.append((name, cfg))
+    return out
 
 
 def variant_name(config: Any) -> str:
@@ -183,18 +264,31 @@ def true_matches(
 
 
 def is_paper_config(cfg: Any) -> bool:
-    """Whether ``cfg`` is ``OmniFlowConfig.paper()`` (a stand-in config never is)."""
+    """Whether ``cfg`` is ``OmniFlowConfig.paper()`` (a stand-in config never is), told
+    whichever rig."""
     from omniflow.pipeline import OmniFlowConfig
+
+    cfg = cfg.config if isinstance(cfg, Registered) else cfg
 
     return bool(cfg == OmniFlowConfig.paper())
 
 
 def config_dict(cfg: Any) -> dict[str, Any]:
-    """Every knob of a row's config by its dotted name (the names of its row name)."""
+    """The row's settings for summary.json: every knob by its dotted name (the names of
+    its row name), and ``registration`` (:data:`REGISTRATIONS`; with ``registration_rig``,
+    the card's rig file)."""
+    if isinstance(cfg, Registered):
+        out = config_dict(cfg.config)
+        out["registration"] = cfg.registration
+        if cfg.rig_file is not None:
+            out["registration_rig"] = cfg.rig_file
+        return out
     if isinstance(cfg, TrueMatches):
         out = config_dict(cfg.config)
         out["match_method"] = "truth"
         out["true_matches_percentile"] = cfg.percentile
         return out
-    return {k: v if isinstance(v, int | float | str | bool) or v is None else repr(v)
-            for k, v in _settings(cfg).items()}  # fmt: skip
+    out = {k: v if isinstance(v, int | float | str | bool) or v is None else repr(v)
+           for k, v in _settings(cfg).items()}  # fmt: skip
+    out["registration"] = "recorded"
+    return out

@@ -182,6 +182,11 @@ def test_omnivalidate_suite_bad_input_is_one_line(tmp_path, capsys):
     assert omnivalidate(["suite", str(good), "--split", "test", "--out", str(tmp_path / "o"),
                          "--methods", "nope"]) == 2  # fmt: skip
     assert "--methods: unknown method 'nope'" in capsys.readouterr().err
+    assert omnivalidate(["suite", str(good), "--split", "test", "--out", str(tmp_path / "o"),
+                         "--registration", "none,none"]) == 2  # fmt: skip
+    err = capsys.readouterr().err.strip()
+    assert "--registration 'none,none': each of recorded, none, card at most once" in err
+    assert "\n" not in err
     assert omnivalidate(["suite", str(good), "--split", "train", "--out", str(tmp_path / "o")]) == 2
     assert "no scene in split 'train'" in capsys.readouterr().err
 
@@ -205,3 +210,18 @@ def test_omnivalidate_suite_on_a_full_disk_exits_1(tmp_path, capsys, monkeypatch
     err = capsys.readouterr().err
     assert err.startswith(f"omnivalidate suite: error: --out {out}: No space left on device")
     assert err.count("\n") == 1
+
+
+def test_registration_multiplies_the_omniflow_rows_and_keys_the_card(tmp_path):
+    from omniflow.cli.calibrate import rig_toml
+    from omniflow.geometry.rig import Rig
+    from validation.suite_run import resolve_methods
+
+    card = tmp_path / "rig.toml"
+    card.write_text(rig_toml(Rig.symmetric(d=0.1, R=0.05, s=0.3, size=64)))
+    m = resolve_methods(["omniflow:default", "DIS-medium"], registration=f"none,{card}")
+    assert m.key()["omniflow"] == ["omniflow:default+registration=none",
+                                   "omniflow:default+registration=card"]  # fmt: skip
+    assert m.baselines == ["DIS-medium"]
+    assert m.key()["registration_rig"] == {"omniflow:default+registration=card": str(card)}
+    assert "registration_rig" not in resolve_methods(["omniflow:default"]).key()

@@ -35,6 +35,8 @@ def test_values_are_toml_values_and_label_as_written():
       "--set camera.exposure: that is the swept --key"),
      (["--key", "camera.exposure", "--values", "1,2", "--methods", "nope"],
       "unknown method 'nope'"),
+     (["--key", "camera.exposure", "--values", "1,2", "--registration", "recorded,nope"],
+      "--registration 'nope': no such rig file"),
      (["--key", "camera.colour", "--values", "1,2"], "colour"),
      (["--key", "camera.exposure", "--values", "1,-2"], "exposure")],
 )  # fmt: skip
@@ -101,3 +103,39 @@ def test_a_run_from_before_markers_is_ours(tmp_path):
     assert _legacy_run(tmp_path)
     (tmp_path / "sweep.json").write_text('{"format": "mine"}')
     assert not _legacy_run(tmp_path)
+
+
+def test_registration_twins_share_a_colour_and_differ_in_style():
+    from validation.sweep_figure import _styles
+
+    st = _styles(["omniflow:default", "DIS-medium", "omniflow:default+registration=none",
+                  "omniflow:default+registration=card"])  # fmt: skip
+    (lab0, c0, s0), (_, c1, _), (_, c2, s2), (_, c3, s3) = (st[n] for n in st)
+    assert c0 == c2 == c3 != c1 and len({s0, s2, s3}) == 3
+    assert lab0 == "omniflow:default (recorded rig: its true errors)"
+    assert _styles(["omniflow:default"])["omniflow:default"][0] == "omniflow:default"
+
+
+def test_each_panel_is_titled_by_its_metric(monkeypatch, tmp_path):
+    import validation.sweep_figure as sf
+
+    seen = {}
+    monkeypatch.setattr(sf, "save", lambda fig, path: seen.update(fig=fig))
+    rows = [
+        {"index": i, "method": m, "epe": 0.1 * (i + 1), "1px": 0.01}
+        for i in (0, 1)
+        for m in ("DIS-medium", "omniflow:default+registration=none")
+    ]
+    sf.sweep_plot(
+        {
+            "parameter": "camera.exposure",
+            "values": ["1", "2"],
+            "rows": rows,
+            "scene": "s.toml",
+            "resolution": 64,
+            "frames": 2,
+        },
+        tmp_path / "p.png",
+    )
+    titles = [ax.get_title() for ax in seen["fig"].axes]
+    assert titles == list(sf.METRICS.values())
