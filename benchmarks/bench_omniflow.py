@@ -34,6 +34,7 @@ room, the robot turning and driving slowly), or rendered frames with
     python benchmarks/bench_omniflow.py --dataset runs/default/dataset --memory-sizes
     python benchmarks/bench_omniflow.py --set solver=pooled --set gradients=first
     python benchmarks/bench_omniflow.py --dataset runs/default/dataset --profile 20
+    python benchmarks/bench_omniflow.py --dataset runs/default/dataset --versus monocular_gap=24
 """
 
 from __future__ import annotations
@@ -294,6 +295,11 @@ def main(argv: list[str] | None = None) -> int:
         help="OmniFlowConfig field to change (repeatable), e.g. --set solver=pooled",
     )  # fmt: skip
     parser.add_argument(
+        "--versus", action="append", default=[], metavar="NAME=VALUE",
+        help="also time the pair with these fields changed (repeatable), interleaved with "
+        "the others: a candidate default against the current one in the same run",
+    )  # fmt: skip
+    parser.add_argument(
         "--memory-sizes", type=int, nargs="*", default=[512, 1024], metavar="PX",
         help="closed-form image sizes for the peak-memory probe (default 512 1024; none: skip)",
     )  # fmt: skip
@@ -358,6 +364,9 @@ def main(argv: list[str] | None = None) -> int:
     u8 = {cam: [to_uint8(f) for f in frames[:2]] for cam, frames in (("cam1", f1), ("cam2", f2))}
     fns: dict[str, Callable[[], object]] = {"omniflow pair": omni_pair,
                                             "omniflow stream": omni_stream}  # fmt: skip
+    if args.versus:
+        versus = config.replace(**parse_set(args.versus, OmniFlowConfig))
+        fns["omniflow pair versus"] = lambda: estimate(f1, f2, rig, versus, t=0)
     for name, flow in opencv_methods().items():
 
         def both(flow=flow):  # both camera pairs per call, as omni flow does
@@ -392,6 +401,8 @@ def main(argv: list[str] | None = None) -> int:
     points = {"omniflow pair": len(last["omniflow pair"]),
               "omniflow pair 1 thr": len(last["omniflow pair 1 thr"]),
               "omniflow stream": statistics.median(stream_points[args.warmup :])}  # fmt: skip
+    if args.versus:
+        points["omniflow pair versus"] = len(last["omniflow pair versus"])
     rows: list[dict] = []
     for name in fns:
         row = {"method": name, "median_s": statistics.median(wall[name]),
@@ -433,6 +444,7 @@ def main(argv: list[str] | None = None) -> int:
         "frames": source,
         "image_size": list(f1[0].shape),
         "config": {k: v for k, v in dataclasses.asdict(config).items()},
+        "versus": args.versus,
         "repeats": args.repeats,
         "warmup": args.warmup,
         "results": rows,
