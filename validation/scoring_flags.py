@@ -34,8 +34,8 @@ from .scoring_stereo import STEREO_TRUTH
 __all__ = ["BREAK_PX", "FLAG_SETS", "flag_counts", "flagged", "score_flags"]
 
 #: A point breaks eq. (14) where its true violation is at least this, px per frame: a
-#: tenth of a pixel, the size of the default's own endpoint errors on the library
-#: scenes, so a smaller violation is hidden in them.
+#: tenth of a pixel, several times the default's own endpoint error on the library
+#: scenes, so a smaller violation hides in it (docs/decisions/eq14_flag.md).
 BREAK_PX = 0.1
 #: The point sets :func:`score_flags` fills beside ``own``.
 FLAG_SETS = ("unflagged", "flagged")
