@@ -122,15 +122,16 @@ def opencv_methods() -> dict[str, Callable]:
     }
 
 
-def parse_set(items: list[str], cls) -> dict:
-    """``--set name=value`` pairs for OmniFlowConfig, converted by each field's default type."""
+def parse_set(items: list[str], cls, flag: str = "--set") -> dict:
+    """``--set name=value`` pairs for OmniFlowConfig, converted by each field's default type
+    (``flag``: the option named in the error)."""
     fields = {f.name: f for f in dataclasses.fields(cls)}
     out = {}
     for item in items:
         name, sep, text = item.partition("=")
         if not sep or name not in fields:
             raise SystemExit(
-                f"bench: --set {item!r}: expected NAME=VALUE, NAME one of {list(fields)}"
+                f"bench: {flag} {item!r}: expected NAME=VALUE, NAME one of {list(fields)}"
             )
         default = fields[name].default
         if text.lower() == "none" and "None" in str(fields[name].type):
@@ -365,7 +366,7 @@ def main(argv: list[str] | None = None) -> int:
     fns: dict[str, Callable[[], object]] = {"omniflow pair": omni_pair,
                                             "omniflow stream": omni_stream}  # fmt: skip
     if args.versus:
-        versus = config.replace(**parse_set(args.versus, OmniFlowConfig))
+        versus = config.replace(**parse_set(args.versus, OmniFlowConfig, "--versus"))
         fns["omniflow pair versus"] = lambda: estimate(f1, f2, rig, versus, t=0)
     for name, flow in opencv_methods().items():
 
