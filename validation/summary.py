@@ -18,6 +18,7 @@ from omniflow.io.jsonio import jsonable
 
 from .metrics import flow_summary, protocol_splits, stats, stereo_summary
 from .results import Results
+from .scoring_flags import FLAG_SETS, flag_counts
 
 __all__ = ["FORMAT", "flat_table", "headline", "summarize", "sweep_rows"]
 
@@ -123,8 +124,6 @@ def _flags_block(results: Results, method: str) -> dict[str, Any]:
     """A row's eq. (14) flag (:mod:`validation.scoring_flags`): the counts, the flag's
     precision and recall against the truth, and the flow and protocol of the flagged
     and the unflagged points apart."""
-    from .scoring_flags import FLAG_SETS, flag_counts
-
     out: dict[str, Any] = flag_counts(results.flags[method])
     out["flow"] = {label: _flow_block(results, method, label) for label in FLAG_SETS}
     out["protocol"] = {label: protocol_block(results, method, label) for label in FLAG_SETS}
