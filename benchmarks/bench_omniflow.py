@@ -34,6 +34,7 @@ room, the robot turning and driving slowly), or rendered frames with
     python benchmarks/bench_omniflow.py --dataset runs/default/dataset --memory-sizes
     python benchmarks/bench_omniflow.py --set solver=pooled --set fit.gradients=first
     python benchmarks/bench_omniflow.py --dataset runs/default/dataset --profile 20
+    python benchmarks/bench_omniflow.py --dataset runs/default/dataset --versus monocular_gap=24
 """
 
 from __future__ import annotations
@@ -120,16 +121,17 @@ def opencv_methods() -> dict[str, Callable]:
     }
 
 
-def parse_set(items: list[str]):
-    """The OmniFlowConfig of ``--set NAME=VALUE`` items (a group's knobs by dotted name,
+def parse_set(items: list[str], flag: str = "--set"):
+    """The OmniFlowConfig of ``NAME=VALUE`` items (a group's knobs by dotted name,
     ``pooling.pool_k=64``; ``dense`` or ``paper`` starts from that preset), checked as
-    omniflow's own ``--set`` is (omniflow.cli.common.config_from_settings)."""
+    omniflow's own ``--set`` is (omniflow.cli.common.config_from_settings); ``flag`` is the
+    option named in the error."""
     from omniflow.cli.common import CLIError, config_from_settings
 
     try:
         return config_from_settings(list(items))
     except CLIError as exc:
-        raise SystemExit(f"bench: --set {exc}") from None
+        raise SystemExit(f"bench: {flag} {exc}") from None
 
 
 def _rss_mb(field: str) -> float | None:
@@ -277,6 +279,11 @@ def main(argv: list[str] | None = None) -> int:
         help="OmniFlowConfig field to change (repeatable), e.g. --set solver=pooled",
     )  # fmt: skip
     parser.add_argument(
+        "--versus", action="append", default=[], metavar="NAME=VALUE",
+        help="also time the pair with these fields changed (repeatable), interleaved with "
+        "the others: a candidate default against the current one in the same run",
+    )  # fmt: skip
+    parser.add_argument(
         "--memory-sizes", type=int, nargs="*", default=[512, 1024], metavar="PX",
         help="closed-form image sizes for the peak-memory probe (default 512 1024; none: skip)",
     )  # fmt: skip
@@ -341,6 +348,9 @@ def main(argv: list[str] | None = None) -> int:
     u8 = {cam: [to_uint8(f) for f in frames[:2]] for cam, frames in (("cam1", f1), ("cam2", f2))}
     fns: dict[str, Callable[[], object]] = {"omniflow pair": omni_pair,
                                             "omniflow stream": omni_stream}  # fmt: skip
+    if args.versus:
+        versus = parse_set([*args.set, *args.versus], "--versus")
+        fns["omniflow pair versus"] = lambda: estimate(f1, f2, rig, versus, t=0)
     for name, flow in opencv_methods().items():
 
         def both(flow=flow):  # both camera pairs per call, as omni flow does
@@ -375,6 +385,8 @@ def main(argv: list[str] | None = None) -> int:
     points = {"omniflow pair": len(last["omniflow pair"]),
               "omniflow pair 1 thr": len(last["omniflow pair 1 thr"]),
               "omniflow stream": statistics.median(stream_points[args.warmup :])}  # fmt: skip
+    if args.versus:
+        points["omniflow pair versus"] = len(last["omniflow pair versus"])
     rows: list[dict] = []
     for name in fns:
         row = {"method": name, "median_s": statistics.median(wall[name]),
@@ -416,6 +428,7 @@ def main(argv: list[str] | None = None) -> int:
         "frames": source,
         "image_size": list(f1[0].shape),
         "config": config.to_dict(),
+        "versus": args.versus,
         "repeats": args.repeats,
         "warmup": args.warmup,
         "results": rows,

@@ -55,7 +55,8 @@ COLUMNS: dict[str, str] = {
     "f2_h": "grey/px, df2/dh_2 used in eq. (15)",
     "f2_theta": "grey/rad, df2/dtheta used in eq. (15)",
     "f2_t": "grey/frame, df2/dt used in eq. (15)",
-    "coupled": "1/0, eq. (14) ties dh2_dt to dh1_dt (0: decoupled, omniflow.solve.decoupled)",
+    "coupled": "1/0, eq. (14) ties dh2_dt to dh1_dt (0: flagged, the eq. 14 test failed: "
+    "decoupled, omniflow.solve.decoupled, not a confident answer)",
 }
 
 

@@ -37,11 +37,13 @@ OUTPUTS = ("leaderboard.md", "leaderboard.html", "leaderboard.csv", "leaderboard
 #: Columns of every row, in the CSV's order.
 COLUMNS = ("rank", "method", "scene", "split", "kind", "1px", "epe", "fl", "wauc", "coverage",
            "sparse_1px", "sparse_epe", "density", "stereo_outliers", "radial_gain",
-           "tangential_gain", "within2_flow", "within2_range", "time_s", "scenes",
+           "tangential_gain", "within2_flow", "within2_range", "flagged", "unflagged_epe",
+           "flagged_epe", "flag_precision", "flag_recall", "time_s", "scenes",
            "missing")  # fmt: skip
 #: Columns aggregated as the plain mean over the scenes that have them.
 _MEANS = ("coverage", "sparse_1px", "sparse_epe", "density", "stereo_outliers", "radial_gain",
-          "tangential_gain", "within2_flow", "within2_range", "time_s")  # fmt: skip
+          "tangential_gain", "within2_flow", "within2_range", "flagged", "unflagged_epe",
+          "flagged_epe", "flag_precision", "flag_recall", "time_s")  # fmt: skip
 #: What a scene with no dense value counts as (every pixel wrong).
 _FAILED = {"1px": 1.0, "fl": 1.0, "wauc": 0.0, "epe": math.nan}
 
@@ -81,6 +83,12 @@ def scene_rows(scene: str, split: str, summary: Mapping[str, Any]) -> list[dict[
         row["radial_gain"] = _num(_get(m, "flow", "cam1", "all", "radial", "gain"))
         row["tangential_gain"] = _num(_get(m, "flow", "cam1", "all", "tangential", "gain"))
         row["within2_flow"], row["within2_range"] = _within2(m.get("calibration"))
+        # the eq. (14) flag (validation.scoring_flags): share flagged, each part's sparse EPE
+        row["flagged"] = _num(_get(m, "flags", "share_flagged"))
+        for label in ("unflagged", "flagged"):
+            row[f"{label}_epe"] = _num(_get(m, "flags", "protocol", label, "all", "epe"))
+        row["flag_precision"] = _num(_get(m, "flags", "precision"))
+        row["flag_recall"] = _num(_get(m, "flags", "recall"))
         row["time_s"] = _num(_get(m, "time_per_frame", "median_s"))
         row["missing"] = int(not d_all.get("n"))
         rows.append(row)
@@ -168,7 +176,8 @@ def _aggregate(scene_lists: Sequence[list[dict[str, Any]]], split: str) -> list[
 def _table(doc: Doc, rows: Sequence[Mapping[str, Any]], aggregated: bool) -> None:
     header = ["rank", "method", "1px", "epe", "fl", "wauc", "coverage", "sparse 1px",
               "sparse epe", "density", "stereo out", "radial gain", "tang. gain",
-              "2σ flow", "2σ range", "time s"]  # fmt: skip
+              "2σ flow", "2σ range", "flagged", "unflagged epe", "flagged epe", "flag prec.",
+              "flag recall", "time s"]  # fmt: skip
     if aggregated:
         header += ["scenes", "missing"]
     body = []
@@ -177,6 +186,8 @@ def _table(doc: Doc, rows: Sequence[Mapping[str, Any]], aggregated: bool) -> Non
                 fmt(r["wauc"]), pct(r["coverage"]), pct(r["sparse_1px"]), fmt(r["sparse_epe"]),
                 pct(r["density"]), pct(r["stereo_outliers"]), fmt(r["radial_gain"]),
                 fmt(r["tangential_gain"]), pct(r["within2_flow"]), pct(r["within2_range"]),
+                pct(r["flagged"]), fmt(r["unflagged_epe"]), fmt(r["flagged_epe"]),
+                fmt(r["flag_precision"]), fmt(r["flag_recall"]),
                 fmt(r["time_s"])]  # fmt: skip
         if aggregated:
             line += [str(r["scenes"]), str(r["missing"])]

@@ -45,6 +45,7 @@ from .report_tables import (
     bias_table,
     calibration_table,
     derived_table,
+    flags_table,
     headline_table,
     method_table,
     movers_table,
@@ -54,6 +55,7 @@ from .report_tables import (
     speed_table,
 )
 from .results import Results
+from .scoring_flags import BREAK_PX
 from .summary import FORMAT, summarize
 
 __all__ = ["OUTPUTS", "check_out_dir", "report_lock", "write_report"]
@@ -132,6 +134,18 @@ def _document(summary: Mapping[str, Any], figures: Mapping[str, str], command: s
     doc.table(*bias_table(summary))
     doc.h(3, "Radial gain by true speed (cam1, non-occluded)")
     doc.table(*bias_speed_table(summary))
+    flags = flags_table(summary)
+    if flags[1]:
+        doc.h(3, "Points flagged by the eq. (14) test")
+        doc.p(
+            "omniflow flags a point (`coupled` = 0) where its two-model test rejects eq. (14): "
+            "its flow and range are not confident answers. flagged = share of the points; "
+            "precision / recall of the flag against the points whose true axial motion "
+            f"violates eq. (14) by at least {BREAK_PX:g} px per frame "
+            "(validation/scoring_flags.py). "
+            "The flow of the unflagged and the flagged points, apart."
+        )
+        doc.table(*flags)
     doc.h(2, "Objects: where each method answers (cam1)")
     doc.p(
         "Per object (`gt.object`, named from dataset.json): points scored over all frame "

@@ -14,6 +14,7 @@ __all__ = [
     "bias_speed_table",
     "bias_table",
     "derived_table",
+    "flags_table",
     "headline_table",
     "method_table",
     "movers_table",
@@ -218,6 +219,31 @@ def bias_speed_table(summary: Mapping[str, Any]) -> tuple[list[str], list[list[s
             r = f["speed"].get(lab, {}).get("radial", {})
             cells.append(f"{fmt(r.get('gain'), 2)} ({fmt(r.get('mean_signed'))})")
         rows.append([m["name"], m["points"], *cells])
+    return header, rows
+
+
+def flags_table(summary: Mapping[str, Any]) -> tuple[list[str], list[list[str]]]:
+    """The eq. (14) flag of every omniflow row (validation.scoring_flags): its share,
+    precision and recall, and each camera's flagged and unflagged points apart."""
+    header = ["method", "flagged", "precision", "recall", "camera", "points", "n",
+              "EPE mean (px)", "EPE median (px)", ">1px", "radial gain",
+              "tangential gain"]  # fmt: skip
+    rows = []
+    for m in summary["methods"]:
+        fl = m.get("flags")
+        if not fl:
+            continue
+        head = [m["name"], pct(fl["share_flagged"]), fmt(fl["precision"], 2),
+                fmt(fl["recall"], 2)]  # fmt: skip
+        for cam in ("cam1", "cam2"):
+            for label in ("unflagged", "flagged"):
+                a = (fl["flow"].get(label) or {}).get(cam, {}).get("all")
+                if not a:
+                    continue
+                rows.append([*head, cam, label, fmt(a["n"]), fmt(a["epe"]["mean"]),
+                             fmt(a["epe"]["median"]), pct(a["out1"]),
+                             fmt(a["radial"]["gain"], 2),
+                             fmt(a["tangential"]["gain"], 2)])  # fmt: skip
     return header, rows
 
 

@@ -59,6 +59,8 @@ class Results:
     )
     #: method -> list of per-frame derived-quantity records
     derived: dict[str, list[dict[str, Any]]] = field(default_factory=lambda: defaultdict(list))
+    #: method -> list of per-frame records of its eq. (14) flag (validation.scoring_flags)
+    flags: dict[str, list[dict[str, Any]]] = field(default_factory=lambda: defaultdict(list))
     #: method -> seconds per frame pair (both cameras)
     times: dict[str, list[float]] = field(default_factory=lambda: defaultdict(list))
     #: method -> per-stage seconds (omniflow), summed over pairs

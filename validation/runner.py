@@ -39,6 +39,7 @@ from .metrics import stats
 from .results import FramePair, MethodInfo, Results
 from .sampling import sample_truth
 from .scoring_derived import meta_poses, moving_objects, score_derived, ttc_scores
+from .scoring_flags import score_flags
 from .scoring_flow import FLOW_TRUTH, flow_row, omniflow_points, score_dense, score_flow
 from .scoring_stereo import score_stereo
 from .variants import (
@@ -403,8 +404,10 @@ def _score_pair(run: _Run, t: int) -> None:
             results.sigma[name].append(sigma_errors(cols, sigma, truth))
         srow = score_stereo(results, name, cols, res, truth["cam1"], t)
         drow = score_derived(results, name, cols, truth["cam1"], t, *run.poses)
+        frow = score_flags(results, name, cols, truth, t, run.rig, *run.poses)
         results.rows[-2].update(srow)
         results.rows[-2].update(drow)
+        results.rows[-2].update(frow)
         run.bar.update(1)
 
     # Baselines at the default variant's points: the like-for-like comparison.

@@ -19,6 +19,7 @@ from omniflow.io.jsonio import jsonable
 from .calibration_sigma import calibration
 from .metrics import flow_summary, protocol_splits, stats, stereo_summary
 from .results import Results
+from .scoring_flags import FLAG_SETS, flag_counts
 
 __all__ = ["FORMAT", "flat_table", "headline", "summarize", "sweep_rows"]
 
@@ -118,6 +119,16 @@ def _same_points(results: Results, points: str) -> dict[str, dict[str, Any]]:
             e = pooled_flow(results, meth, pts, cam)
             same.setdefault(meth, {})[cam] = flow_summary(e, e["noc"])["all"]["epe"]
     return same
+
+
+def _flags_block(results: Results, method: str) -> dict[str, Any]:
+    """A row's eq. (14) flag (:mod:`validation.scoring_flags`): the counts, the flag's
+    precision and recall against the truth, and the flow and protocol of the flagged
+    and the unflagged points apart."""
+    out: dict[str, Any] = flag_counts(results.flags[method])
+    out["flow"] = {label: _flow_block(results, method, label) for label in FLAG_SETS}
+    out["protocol"] = {label: protocol_block(results, method, label) for label in FLAG_SETS}
+    return out
 
 
 def _time_block(seconds: list[float]) -> dict[str, Any]:
@@ -226,6 +237,8 @@ def summarize(results: Results) -> dict[str, Any]:
             )
             if results.sigma.get(m.name):  # the method predicts its sigmas
                 methods[-1]["calibration"] = calibration(results.sigma[m.name])
+            if results.flags.get(m.name):  # eq. (14) flagged and unflagged points apart
+                methods[-1]["flags"] = _flags_block(results, m.name)
             mono = _flow_block(results, m.name, "monocular")
             if mono:  # cam1's flow alone where no stereo match is near (monocular_gap)
                 same_mono = _same_points(results, f"@{m.name}:monocular")
@@ -388,6 +401,7 @@ def headline(summary: Mapping[str, Any]) -> list[str]:
                     f"{_v(other[1])} px; radial gain {_v(_g(f, 'all.radial.gain'), 2)} vs "
                     f"{_v(_g(fb, 'all.radial.gain'), 2)}"
                 )
+        lines += _flag_lines(omni)
         for m in methods:  # every row with cam1-only flow (monocular_gap)
             lines += _monocular_lines(summary, m)
         st = omni.get("stereo") or {}
@@ -457,6 +471,36 @@ def _mover_lines(summary: Mapping[str, Any], who: str, f: Mapping[str, Any]) -> 
             f"{_v(_g(ob, 'all.tangential.mean_est'))} vs true "
             f"{_v(_g(ob, 'all.tangential.mean_true'))} px"
         )
+    return lines
+
+
+def _flag_lines(omni: Mapping[str, Any]) -> list[str]:
+    """The row's eq. (14) flag (``coupled`` = 0): its share, its precision and recall
+    against the truth, and each camera's EPE at the unflagged and the flagged points."""
+    fl = omni.get("flags")
+    if not fl:
+        return []
+    line = (
+        f"eq. (14) flag, {omni['name']}: {_v(100 * _num(fl['share_flagged']), 1)} % of "
+        f"{fl['n_points']} points flagged (not confident answers)"
+    )
+    if fl.get("n_breaks") is not None:
+        line += (
+            f"; precision {_v(fl['precision'], 2)}, recall {_v(fl['recall'], 2)} against the "
+            f"{fl['n_breaks']} points whose true axial motion breaks eq. (14) by >= "
+            f"{fl['break_px']:g} px/frame"
+        )
+    lines = [line]
+    for cam in ("cam1", "cam2"):
+        parts = []
+        for label in ("unflagged", "flagged"):
+            f = (fl["flow"].get(label) or {}).get(cam)
+            if f:
+                mean, median = _epe_pair(f)
+                parts.append(f"{label} {_g(f, 'all.n'):.0f} points, EPE mean {_v(mean)} px, "
+                             f"median {_v(median)} px, {_biased(f)}")  # fmt: skip
+        if parts:
+            lines.append(f"{cam}, {omni['name']}: " + "; ".join(parts))
     return lines
 
 
@@ -597,6 +641,8 @@ def flat_table(summary: Mapping[str, Any]) -> list[dict[str, Any]]:
         same = m.get("baselines_at_same_points") or {}
         if "DIS-medium" in same and "cam1" in same["DIS-medium"]:
             row["dis_same_points_cam1_epe_median"] = same["DIS-medium"]["cam1"]["median"]
+        if m.get("flags"):
+            row["flagged_share"] = m["flags"]["share_flagged"]
         row["time_ms"] = 1000 * _num(m["time_per_frame"]["median_s"])
         rows.append(row)
     return rows
