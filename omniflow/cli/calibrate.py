@@ -1,7 +1,8 @@
 """``omniflow calibrate``: register both units from an image of the test card.
 
 Fits each unit's mirror tilt, mirror offset (x, y) and cone angle to the card's edges
-(:mod:`omniflow.geometry.registration`), with the rim circle found in the image, and
+(:mod:`omniflow.geometry.registration`), checks the fitted model's rim against the rim
+found in the image about it (:func:`~omniflow.geometry.registration.check_rim`), and
 writes a rig file whose ``[rig.errors.camN]`` tables ``omniflow pair`` / ``stream`` use
 (:mod:`omniflow.registration`). Bad input is one line and exit status 2.
 """
@@ -231,8 +232,8 @@ def rig_toml(rig: Rig) -> str:
 
 
 def run(args) -> dict:
-    from omniflow.geometry.calibration import RimError, find_rim
-    from omniflow.geometry.registration import register_unit, rim_residual_rms
+    from omniflow.geometry.calibration import find_rim
+    from omniflow.geometry.registration import check_rim, register_unit, rim_residual_rms
     from omniflow.io.imageio import atomic_write_text
 
     if args.frame < 0:
@@ -245,15 +246,16 @@ def run(args) -> dict:
         unit = getattr(rig, cam)
         t0 = time.perf_counter()
         try:
-            c = find_rim(img, r_min=0.92 * unit.r_m, r_max=1.08 * unit.r_m)
-        except RimError as exc:
-            raise CLIError(f"{cam}: {one_line(exc)}") from exc
-        rim = (c.x_c, c.y_c, c.r_m)
-        try:
-            fit_rim = args.fit_rim or args.rim_only
-            reg = register_unit(img, unit, card, rim=rim if fit_rim else None,
-                                camera_tilt=args.camera_tilt)  # fmt: skip
-        except ValueError as exc:
+            if args.rim_only:  # no model yet: the rim searched over the image, near r_m
+                c = find_rim(img, r_min=0.92 * unit.r_m, r_max=1.08 * unit.r_m)
+                rim = (c.x_c, c.y_c, c.r_m)
+                reg = register_unit(img, unit, None, rim=rim)
+            else:  # the card first; the rim searched about the fitted model's rim
+                reg = register_unit(img, unit, card, camera_tilt=args.camera_tilt)
+                rim, _ = check_rim(img, unit, reg.errors)
+                if args.fit_rim:
+                    reg = register_unit(img, unit, card, rim=rim, camera_tilt=args.camera_tilt)
+        except ValueError as exc:  # RimError included
             raise CLIError(f"{cam}: {one_line(exc)}") from exc
         units[cam] = replace(unit, errors=reg.errors)
         report["units"][cam] = {

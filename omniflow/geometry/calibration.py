@@ -29,6 +29,12 @@ differentiated along the radius. Steps:
    rays where the rim has no contrast, then a least-squares circle on the
    inliers; steps 2-3 run again about the refined centre.
 
+Where the rim is known to a few pixels (``near``: a traced model's predicted
+rim, :func:`omniflow.geometry.registration.check_rim`), step 1 is skipped. It is
+the step that can pick a wrong circle: on a test card whose rim nearly touches
+the image border, the coarsest level scores the rim no higher than circles
+made of the card's own edges (docs/decisions/registration.md, "The rim check").
+
 Coordinates follow :mod:`omniflow.conventions` (pixel centre at j + 0.5,
 i + 0.5); OpenCV and scipy index pixel centres at j, i, converted here.
 """
@@ -238,6 +244,7 @@ def find_rim(
     residual_threshold: float = 0.2,
     min_inliers: float = 0.5,
     candidates: int = 3,
+    near: tuple[float, float, float] | None = None,
     seed: int = 0,
 ) -> RimCircle:
     """Locate the mirror's rim circle to sub-pixel accuracy.
@@ -266,6 +273,10 @@ def find_rim(
         the circle.
     candidates : int
         Distinct centres of the coarsest level followed to full resolution.
+    near : (x_c, y_c, r_m), optional
+        A circle the rim lies within ``search`` px of (pixels): the coarse
+        search (step 1) is skipped, and a circle fitted more than ``search``
+        px from it is refused. ``r_min``, ``r_max`` are then not used.
     seed : int
         RANSAC seed (the result is deterministic).
 
@@ -280,12 +291,19 @@ def find_rim(
     """
     img = _grey(image).astype(np.float32)
     size = min(img.shape)
-    r_min = 0.25 * size if r_min is None else float(r_min)
-    r_max = 0.55 * size if r_max is None else float(r_max)
-    if not (0 < r_min < r_max):
-        raise RimError(f"r_min = {r_min}, r_max = {r_max}: expected 0 < r_min < r_max")
-    x_c, y_c, r_m = _coarse_circle(img, r_min, r_max, candidates)
-    if not (r_min - 1 <= r_m <= r_max + 1):
+    if near is not None:
+        x_c, y_c, r_m = (float(v) for v in near)
+        if not (np.isfinite([x_c, y_c, r_m]).all() and r_m > search):
+            raise RimError(f"near = {near}: expected a finite circle of radius > {search} px")
+        r_min, r_max = r_m - search, r_m + search
+        start = (x_c, y_c, r_m)
+    else:
+        r_min = 0.25 * size if r_min is None else float(r_min)
+        r_max = 0.55 * size if r_max is None else float(r_max)
+        if not (0 < r_min < r_max):
+            raise RimError(f"r_min = {r_min}, r_max = {r_max}: expected 0 < r_min < r_max")
+        x_c, y_c, r_m = _coarse_circle(img, r_min, r_max, candidates)
+    if near is None and not (r_min - 1 <= r_m <= r_max + 1):
         raise RimError(
             f"no rim circle with a radius in [{r_min:.1f}, {r_max:.1f}] px found "
             f"(the strongest circular edge has {r_m:.1f} px): is the mirror's rim in the image?"
@@ -317,7 +335,13 @@ def find_rim(
             raise RimError("circle fit to the rim's edge points failed")
         x_c, y_c, r_m = _circle_params(fit)
     res = np.hypot(pts[inl, 0] - x_c, pts[inl, 1] - y_c) - r_m
-    if not (r_min <= r_m <= r_max):
+    if near is not None and np.hypot(x_c - start[0], y_c - start[1]) + abs(r_m - start[2]) > search:
+        raise RimError(
+            f"the rim circle found (centre ({x_c:.1f}, {y_c:.1f}), radius {r_m:.1f} px) lies "
+            f"more than {search} px from the expected ({start[0]:.1f}, {start[1]:.1f}), "
+            f"{start[2]:.1f} px"
+        )
+    if near is None and not (r_min <= r_m <= r_max):
         raise RimError(
             f"no rim circle with a radius in [{r_min:.1f}, {r_max:.1f}] px found "
             f"(the circle fitted has {r_m:.1f} px): is the mirror's rim in the image?"

@@ -52,7 +52,9 @@ __all__ = [
     "CardFeatures",
     "Registration",
     "card_features",
+    "check_rim",
     "errors_of_params",
+    "predicted_rim",
     "register_unit",
     "rim_points",
     "rim_residual_rms",
@@ -70,6 +72,9 @@ PARAMS = (
 CAMERA_TILT = (("camera_tilt[0]", "deg"), ("camera_tilt[1]", "deg"))
 #: Smallest image radius of a feature, px: the sectors are 2 pi h_i / sectors wide.
 MIN_FEATURE_H_PX = 25.0
+#: Half-width (px) of the band about the fitted model's rim searched for the image's rim
+#: (:func:`check_rim`): find_rim's default; the fitted rim lies 0.02-0.06 px from it.
+RIM_SEARCH_PX = 3.0
 #: Profile sampling step along a search line, px.
 PROFILE_STEP = 0.05
 #: Gaussian derivative scale of the profile, px.
@@ -265,6 +270,34 @@ def rim_points(unit, errors: UnitErrors, n: int = 90) -> tuple[NDArray, NDArray]
                                                  + np.sin(phi)[:, None] * e2)  # fmt: skip
     dc = (p - g.C) @ g.Rc  # camera frame: Rc^T (p - C)
     return g.x_c + g.v * dc[:, 0] / dc[:, 2], g.y_c + g.v * dc[:, 1] / dc[:, 2]
+
+
+def predicted_rim(unit, errors: UnitErrors) -> tuple[float, float, float]:
+    """The circle (x_c, y_c, r_m, px) through the traced model's rim (:func:`rim_points`).
+
+    A least-squares (algebraic) circle: a tilted or offset mirror's rim still images as a
+    circle, off the nominal centre (0.0005 px from one at a 0.5 deg tilt, 256 px).
+    """
+    x, y = rim_points(unit, errors, n=360)
+    a = np.column_stack([x, y, np.ones_like(x)])
+    (cx2, cy2, c), *_ = np.linalg.lstsq(a, x**2 + y**2, rcond=None)
+    xc, yc = cx2 / 2, cy2 / 2
+    return float(xc), float(yc), float(np.sqrt(c + xc**2 + yc**2))
+
+
+def check_rim(image: NDArray, unit, errors: UnitErrors, *, search: float = RIM_SEARCH_PX):
+    """The rim found in ``image`` within ``search`` px of the model's (:func:`predicted_rim`).
+
+    Returns (x_c, y_c, r_m) of the circle found and the rms distance (px) of the model's
+    rim from it. The rim is searched about the fitted model's prediction, not over the
+    image: there the card's own ring edges can outscore it (docs/decisions/registration.md,
+    "The rim check"). Raises :class:`~omniflow.geometry.calibration.RimError`.
+    """
+    from omniflow.geometry.calibration import find_rim
+
+    c = find_rim(image, near=predicted_rim(unit, errors), search=search)
+    rim = (c.x_c, c.y_c, c.r_m)
+    return rim, rim_residual_rms(unit, errors, rim)
 
 
 def _rim_residuals(unit, errors, rim) -> NDArray:
