@@ -137,6 +137,8 @@ class OmniFlowResult:
         the same length as the columns; empty where not predicted. Made when first
         read (:meth:`defer_sigma`; its seconds then in ``timings["sigma"]``, not in
         ``total``), so a caller that never reads it does not pay for it.
+    confident : ndarray of bool
+        (property) The confident answers, :func:`confident` of the columns and sigmas.
     """
 
     columns: dict[str, NDArray]
