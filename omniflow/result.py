@@ -23,6 +23,7 @@ __all__ = [
     "SIGMA_COLUMNS",
     "NoMatchesWarning",
     "OmniFlowResult",
+    "confident",
     "no_points",
 ]
 
@@ -62,11 +63,33 @@ COLUMNS: dict[str, str] = {
 
 #: The predicted standard deviations (:attr:`OmniFlowResult.sigma`,
 #: :mod:`omniflow.solve.sigma`) and their units, in CSV order after the columns.
+#: Where ``coupled`` = 0 (the eq. 14 test failed) ``sigma_flow2`` and ``sigma_r`` are inf:
+#: no confident answer (:func:`confident`).
 SIGMA_COLUMNS: dict[str, str] = {
     "sigma_flow1": "px/frame, predicted RMS endpoint error of cam1's (dx, dy)",
-    "sigma_flow2": "px/frame, predicted RMS endpoint error of cam2's (dx2, dy2)",
-    "sigma_r": "m, predicted standard deviation of r",
+    "sigma_flow2": "px/frame, predicted RMS endpoint error of cam2's (dx2, dy2); "
+    "inf where coupled = 0 (not a confident answer)",
+    "sigma_r": "m, predicted standard deviation of r; inf where coupled = 0 "
+    "(not a confident answer)",
 }
+
+
+def confident(columns: Mapping[str, NDArray], sigma: Mapping[str, NDArray]) -> NDArray:
+    """The confident answers, one bool per point: eq. (14) kept (``coupled`` = 1) and
+    every sigma of :data:`SIGMA_COLUMNS` finite.
+
+    A flagged point (``coupled`` = 0) is never one: its ``sigma_flow2`` and ``sigma_r``
+    are inf (:mod:`omniflow.solve.sigma`, docs/decisions/confidence.md). No sigma
+    predicted: no point is confident.
+    """
+    if not sigma or any(k not in sigma for k in SIGMA_COLUMNS):
+        return np.zeros(np.size(next(iter(columns.values()), ())), bool)
+    ok = np.ones(np.size(sigma["sigma_flow1"]), bool)
+    if "coupled" in columns:
+        ok &= np.asarray(columns["coupled"], np.float64) > 0.5
+    for k in SIGMA_COLUMNS:
+        ok &= np.isfinite(np.asarray(sigma[k], np.float64))
+    return ok
 
 
 #: Columns of :attr:`OmniFlowResult.monocular` and their units.
@@ -114,6 +137,8 @@ class OmniFlowResult:
         the same length as the columns; empty where not predicted. Made when first
         read (:meth:`defer_sigma`; its seconds then in ``timings["sigma"]``, not in
         ``total``), so a caller that never reads it does not pay for it.
+    confident : ndarray of bool
+        (property) The confident answers, :func:`confident` of the columns and sigmas.
     """
 
     columns: dict[str, NDArray]
@@ -137,6 +162,11 @@ class OmniFlowResult:
     @sigma.setter
     def sigma(self, value: dict[str, NDArray]) -> None:
         self._sigma = value
+
+    @property
+    def confident(self) -> NDArray:
+        """:func:`confident` of the columns and :attr:`sigma` (reads the sigmas)."""
+        return confident(self.columns, self.sigma)
 
     def defer_sigma(self, make: Callable[[], dict[str, NDArray]]) -> None:
         """Make :attr:`sigma` with ``make()`` when it is first read."""

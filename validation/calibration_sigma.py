@@ -14,6 +14,8 @@ scored on three quantities, each at the points that have truth:
 sigma (equal-count bins), each bin's median sigma against its observed 68.3 % and
 95.4 % quantiles of the error (for a calibrated Gaussian error in one dimension, 1 and
 2 sigma; the targets are the within-k shares, the curve shows where they fail).
+Only finite sigmas are scored: a point whose sigma is inf (omniflow's eq. 14-flagged
+points, :func:`omniflow.result.confident`) is counted in ``excluded`` instead.
 """
 
 from __future__ import annotations
@@ -57,7 +59,8 @@ def has_sigma(sigma: Mapping[str, Any] | None) -> bool:
 def sigma_errors(
     cols: Mapping[str, NDArray], sigma: Mapping[str, NDArray], truth: Mapping[str, Mapping]
 ) -> dict[str, dict[str, NDArray]]:
-    """Per quantity: ``err`` and ``sigma`` at the points with truth and a finite sigma.
+    """Per quantity: ``err`` and ``sigma`` at the points with truth and a finite sigma,
+    and ``excluded``, how many points with truth had none (not a confident answer).
 
     ``cols``: the method's per-point columns (x, y, dx, dy, x2, y2, dx2, dy2, r);
     ``truth``: each camera's ground-truth frame (``Dataset.read_frame``).
@@ -79,10 +82,14 @@ def sigma_errors(
     return out
 
 
-def _kept(ok: NDArray, err: NDArray, sigma: ArrayLike) -> dict[str, NDArray]:
+def _kept(ok: NDArray, err: NDArray, sigma: ArrayLike) -> dict[str, Any]:
+    """The points with truth and a finite sigma; ``excluded``: those with truth whose
+    sigma is not finite (omniflow's flagged points, sigma inf: no confident answer)."""
     s = np.asarray(sigma, np.float64)
-    keep = ok & np.isfinite(err) & np.isfinite(s) & (s >= 0)
-    return {"err": err[keep], "sigma": s[keep]}
+    scored = ok & np.isfinite(err)
+    finite = np.isfinite(s) & (s >= 0)
+    keep = scored & finite
+    return {"err": err[keep], "sigma": s[keep], "excluded": int(np.sum(scored & ~finite))}
 
 
 def within(err: NDArray, sigma: NDArray, k: float) -> float:
@@ -94,7 +101,8 @@ def within(err: NDArray, sigma: NDArray, k: float) -> float:
 def calibration_block(records: Sequence[Mapping[str, NDArray]], *, bins: int = 8) -> dict[str, Any]:
     """Coverage and reliability of one quantity over frames' :func:`sigma_errors` records.
 
-    Returns ``n``, ``within1``, ``within2``, ``sigma_median`` and ``reliability`` (per
+    Returns ``n``, ``excluded`` (points with truth left out for a sigma that is not
+    finite), ``within1``, ``within2``, ``sigma_median`` and ``reliability`` (per
     equal-count bin of predicted sigma: ``n``, ``sigma`` (its median), ``q68``,
     ``q95`` (observed error quantiles 68.3 % and 95.4 %), ``within2``).
     """
@@ -102,6 +110,7 @@ def calibration_block(records: Sequence[Mapping[str, NDArray]], *, bins: int = 8
     sig = np.concatenate([np.asarray(r["sigma"], np.float64) for r in records] or [np.zeros(0)])
     out: dict[str, Any] = {
         "n": int(err.size),
+        "excluded": int(sum(int(r.get("excluded", 0)) for r in records)),
         "within1": within(err, sig, 1.0),
         "within2": within(err, sig, 2.0),
         "sigma_median": float(np.median(sig)) if sig.size else math.nan,

@@ -303,12 +303,15 @@ def movers_table(summary: Mapping[str, Any]) -> tuple[list[str], list[list[str]]
 
 
 def calibration_table(summary: Mapping[str, Any]) -> tuple[list[str], list[list[str]]]:
-    """Per method that predicts sigmas and per quantity: points, shares within 1 and 2
-    predicted sigma, median sigma (validation.calibration_sigma)."""
-    header = ["method", "quantity", "n", "within 1 sigma", "within 2 sigma", "median sigma"]
+    """Per method that predicts sigmas and per quantity: points, points excluded for an
+    infinite sigma, shares within 1 and 2 predicted sigma, median sigma
+    (validation.calibration_sigma)."""
+    header = ["method", "quantity", "n", "excluded (sigma inf)", "within 1 sigma",
+              "within 2 sigma", "median sigma"]  # fmt: skip
     rows = []
     for m in summary["methods"]:
         for q, b in (m.get("calibration") or {}).items():
-            rows.append([m["name"], q, str(b["n"]), pct(b["within1"]), pct(b["within2"]),
+            rows.append([m["name"], q, str(b["n"]), str(b.get("excluded", 0)),
+                         pct(b["within1"]), pct(b["within2"]),
                          f"{fmt(b['sigma_median'], 4)} {b['unit']}"])  # fmt: skip
     return header, rows

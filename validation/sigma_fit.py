@@ -35,7 +35,7 @@ from omniflow.io.dataset import open_dataset
 from omniflow.pipeline import estimate
 from omniflow.solve import sigma as sigma_mod
 
-from .calibration_sigma import sigma_errors, within
+from .calibration_sigma import QUANTITIES, sigma_errors, within
 from .inputs import CAMERAS, Inputs, camera_model
 from .suite import load_suite
 
@@ -69,9 +69,12 @@ def collect(dataset: Path, preset: str, pairs: int | None = None) -> dict[str, n
         errs = sigma_errors(cols, {k: np.ones(len(res)) for k in res.sigma}, truth)
         raw = _raw_terms(cols, res.sigma, rig)
         for q, keep in _masks(cols, truth).items():  # the raw terms at the same points
+            # only finite sigmas, as the harness scores (the eq. 14-flagged points' cam2
+            # and range sigmas are inf: omniflow.result.confident)
+            ok = np.isfinite(res.sigma[QUANTITIES[q][0]][keep])
             for name, v in raw.items():
-                parts.setdefault(f"{q}.{name}", []).append(v[keep])
-            parts.setdefault(f"{q}.err", []).append(errs[q]["err"])
+                parts.setdefault(f"{q}.{name}", []).append(v[keep][ok])
+            parts.setdefault(f"{q}.err", []).append(errs[q]["err"][ok])
     return {k: np.concatenate(v) for k, v in parts.items()}
 
 
@@ -105,8 +108,7 @@ def flow_raw(d: dict, cam: str, share: float, floor: float) -> np.ndarray:
     s1 = np.sqrt(d[q + "ls1"] + (share * d[q + "speed1"]) ** 2 + floor**2)
     if cam == "cam1":
         return s1
-    own = np.sqrt(d[q + "ls2"] + (share * d[q + "speed2"]) ** 2 + floor**2)
-    return np.where(d[q + "coupled"] > 0.5, d[q + "k"] * s1, own)
+    return np.where(d[q + "coupled"] > 0.5, d[q + "k"] * s1, np.inf)  # flagged: inf
 
 
 def range_raw(d: dict, score_term: float, floor: float) -> np.ndarray:

@@ -107,7 +107,8 @@ EPILOG = textwrap.dedent(
                        0: each camera's radial flow solved on its own),
                        time_to_contact (frames), and the predicted standard deviations
                        sigma_flow1, sigma_flow2 (RMS endpoint error of each camera's
-                       flow, px/frame) and sigma_r (m)
+                       flow, px/frame) and sigma_r (m); sigma_flow2 and sigma_r
+                       are inf where coupled is 0 (not a confident answer)
       flow.json        units of every column, the config, the rig, the inputs and timings
       regions.csv      with --region / --auto-regions: per region its point count,
                        mean flow, dr/dt, time to contact and steering headings (with
@@ -635,7 +636,8 @@ def run(args: argparse.Namespace, config_fields: list[str], argv: list[str]) -> 
             "rig": rig.to_dict(),
             "config": jsonable(config.to_dict()),
             "points": n,
-            "columns": {c: units.get(c, "") for c in cols},
+            # flow.csv's columns in its order, the sigmas last (OmniFlowResult.to_csv)
+            "columns": {c: units.get(c, "") for c in (*cols, *result.sigma)},
             "timings_s": {
                 "read": t_read,
                 "estimate": t_estimate,

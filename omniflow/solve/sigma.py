@@ -13,7 +13,7 @@ themselves and the measured image noise when the result's sigma is first read
   the fitted frame difference (2 rho sigma^2, rho the share of white noise the flow
   series keeps) plus the gradient noise times the flow (g (a^2 + (h1 b)^2)).
   cam1's prediction is sqrt(trace Cov u); cam2's is h2/h1 times it (eq. 14) where
-  eq. (14) is kept (``coupled``), else its own from trace(diag(k^2, k^2) Cov u).
+  eq. (14) is kept (``coupled``), else inf (below).
   What noise does not explain (the series' truncation, the linearisation, a wrong
   match) enters as a share of the flow and a floor, and a scale calibrates the whole:
   sigma^2 = scale^2 (sigma_ls^2 + (share |v|)^2 + floor^2).
@@ -21,6 +21,15 @@ themselves and the measured image noise when the result's sigma is first read
   localisation, sigma_n^2 / f_h^2 summed over both units and divided by the patch
   length), from its score ((1 - score) times a squared-pixel constant) and a floor,
   through |dr/dh2| = (d + r)^2 / (s v2) (eq. 5).
+
+Where the eq. (14) test failed (``coupled`` = 0) ``sigma_flow2`` and ``sigma_r`` are inf,
+no confident answer (:func:`omniflow.result.confident`): for a static point whose two
+images are the same scene point eq. (14) holds exactly (eq. 3 and 4 differentiated with
+dh = 0), so a failed test means either motion along the axis or a match pairing two
+scene points, which the test cannot tell apart. Both columns rest on the match: r is
+eq. (5) of its disparity, cam2's flow is read at the matched (x2, y2), and the covariance
+above is that of the coupled model the test rejected. cam1's flow is eq. (9) on cam1's
+own pixels (the decoupled solve gives it its own radial flow), so ``sigma_flow1`` stays.
 
 The constants are :class:`SigmaModel`'s, chosen on the benchmark suite's train split
 (docs/decisions/confidence.md, which also gives the test split's coverage).
@@ -234,11 +243,7 @@ def sigmas(
     f1 = model.flow_scale * np.sqrt(ls2 + (model.flow_share * speed1) ** 2 + model.flow_floor**2)
     k = h2 / h1  # eq. (14): cam2's polar flow is h2/h1 times cam1's
     coupled = np.asarray(cols.get("coupled", np.ones(h1.size)), np.float64) > 0.5
-    speed2 = np.hypot(np.asarray(cols["dx2"], np.float64), np.asarray(cols["dy2"], np.float64))
-    own2 = model.flow_scale * np.sqrt(
-        k * k * ls2 + (model.flow_share * speed2) ** 2 + model.flow_floor**2
-    )
-    f2 = np.where(coupled, k * f1, own2)
+    f2 = np.where(coupled, k * f1, np.inf)  # flagged: no confident answer (docstring)
     # the disparity's localisation: each unit's edge placed to sigma_n / |f_h| per sample
     with np.errstate(divide="ignore", invalid="ignore"):
         loc2 = (
@@ -250,5 +255,5 @@ def sigmas(
         loc2 + model.range_score * (1.0 - score) + model.range_floor**2
     )
     r = np.asarray(cols["r"], np.float64)
-    sr = (d + r) ** 2 / (s * v2) * disp  # |dr/dh2|, eq. (5)
+    sr = np.where(coupled, (d + r) ** 2 / (s * v2) * disp, np.inf)  # |dr/dh2|, eq. (5)
     return {"sigma_flow1": f1, "sigma_flow2": f2, "sigma_r": sr}

@@ -203,6 +203,9 @@ def test_outputs_sidecar_and_pictures(case, tmp_path):
     for name in REQUIRED:
         assert meta["columns"][name], name  # units documented
     assert meta["columns"]["dx"].startswith("px/frame")
+    # the sigma columns too, with where they are inf (omniflow.result.confident)
+    assert list(meta["columns"]) == list(read_csv(out / "flow.csv"))
+    assert "inf where coupled = 0" in meta["columns"]["sigma_r"]
     assert meta["timings_s"]["estimate"] > 0 and "match" in meta["timings_s"]["pipeline_stages"]
     # Odometry from the flow (dtheta/dt and dr/dt of all points, the default
     # --odometry-radial-weight 1): the robot turns by W and does not translate. Measured:

@@ -64,6 +64,36 @@ def test_sigma_errors_drops_points_without_truth_or_sigma():
     assert cal["cam1"]["unit"] == "px" and cal["range"]["sigma"] == "sigma_r"
 
 
+def test_infinite_sigmas_are_excluded_and_counted():
+    """Flagged points carry sigma inf (omniflow.result.confident): scored nowhere, counted
+    in ``excluded``. Three points with truth, the second flagged (cam2 and range inf); a
+    fourth point without truth (outside the image) is neither scored nor excluded."""
+    h = w = 8
+    ones = np.ones((h, w), np.float32)
+    truth = {
+        cam: {"gt.valid": ones, "gt.object": ones, "gt.stereo.valid": ones,
+              "gt.flow.dx": ones * 0.5, "gt.flow.dy": ones * 0.0, "gt.r": ones * 2.0}
+        for cam in ("cam1", "cam2")
+    }  # fmt: skip
+    x = np.array([3.5, 4.5, 5.5, 50.0])
+    cols = {"x": x, "y": np.full(4, 3.5), "dx": np.array([0.5, 1.5, 0.5, 0.5]),
+            "dy": np.zeros(4), "x2": x, "y2": np.full(4, 3.5), "dx2": np.full(4, 0.5),
+            "dy2": np.array([0.3, 0.4, 0.0, 0.0]), "r": np.array([2.0, 2.5, 1.0, 2.0])}  # fmt: skip
+    inf = np.inf
+    sig = {"sigma_flow1": np.ones(4), "sigma_flow2": np.array([1.0, inf, 1.0, inf]),
+           "sigma_r": np.array([0.1, inf, 0.1, inf])}  # fmt: skip
+    e = sigma_errors(cols, sig, truth)
+    assert [e[q]["excluded"] for q in ("cam1", "cam2", "range")] == [0, 1, 1]
+    np.testing.assert_allclose(e["cam2"]["err"], [0.3, 0.0], atol=1e-12)
+    np.testing.assert_allclose(e["range"]["err"], [0.0, 1.0])
+    cal = calibration([e, e])  # two frames: the counts add
+    assert (cal["cam1"]["n"], cal["cam1"]["excluded"]) == (6, 0)
+    assert (cal["cam2"]["n"], cal["cam2"]["excluded"]) == (4, 2)
+    assert (cal["range"]["n"], cal["range"]["excluded"]) == (4, 2)
+    assert cal["range"]["within2"] == 2 / 4  # 0 <= 0.2; 1.0 > 0.2; per frame
+    assert cal["cam2"]["within2"] == 1.0  # 0.3 and 0 within 2; the inf one not scored
+
+
 def test_leaderboard_within2_pools_cameras():
     cal = {"cam1": {"n": 30, "within2": 0.9}, "cam2": {"n": 10, "within2": 0.5},
            "range": {"n": 5, "within2": 0.8}}  # fmt: skip
