@@ -388,6 +388,33 @@ GROUPS: dict[str, type[_Options]] = {
     )
 }
 
+#: The knobs read only while another is on: (knob, the knob it needs, what "on" is, the
+#: test of on). Each pair was checked in the code that reads the knob (the module named).
+#: Set away from its default while the knob it needs is off, the knob would be silently
+#: ignored: :meth:`OmniFlowConfig._check_combinations` makes that an error naming both.
+DEPENDENCIES: tuple[tuple[str, str, str, Any], ...] = (
+    # omniflow/solve/pooled.py, _zero_where_still: only inside the static test
+    ("pooling.static_max_px", "pooling.static_test", "not None", lambda v: v is not None),
+    # omniflow/solve/at_matches.py, _refine; omniflow/solve/refine.py: no step at 0
+    ("refinement.iterate_min_px", "iterations", "above 0", lambda v: v > 0),
+    # omniflow/matching/radial.py, _finish: the vote's support
+    ("matching.consistency_support", "matching.consistency", "not None", lambda v: v is not None),
+    # omniflow/matching/radial.py, the periodic-alias test's arguments
+    ("matching.alias_image2", "matching.alias_score", "not None", lambda v: v is not None),
+    ("matching.alias_period", "matching.alias_score", "not None", lambda v: v is not None),
+    # omniflow/matching/radial.py, _finish: no flagged matches without the test
+    ("matching.edge_smooth_floor", "matching.edge_smooth", "not None", lambda v: v is not None),
+    # omniflow/solve/decoupled.py: the linear-gain test runs within eq. (14)'s test
+    ("brightness.decouple_gain_tol", "decouple_tol", "not None", lambda v: v is not None),
+    # omniflow/pipeline.py: the flattened frames' use
+    ("brightness.flow_shading_where", "brightness.flow_shading", "not None",
+     lambda v: v is not None),
+    # omniflow/solve/at_matches.py: the pools' gain fit
+    ("brightness.brightness_model", "brightness_gate", "not None", lambda v: v is not None),
+    # omniflow/fit/series.py: the 3-D series' window
+    ("fit.temporal_frames", "fit.temporal", "'dct3d'", lambda v: v == "dct3d"),
+)  # fmt: skip
+
 #: The knobs :meth:`OmniFlowConfig.dense` changes from the defaults. Grid pools fit one
 #: gain per pool (``brightness_model="gain"``; the linear gain needs the k-d tree's pools).
 DENSE = {
@@ -415,7 +442,6 @@ PAPER = {
     },
     "pooling": {"eiv": "none"},
     "brightness": {"decouple_gain_tol": None},
-    "refinement": {"iterate_min_px": 0.0},
 }
 
 #: The presets of :meth:`OmniFlowConfig.preset`: each one's knobs changed from the
@@ -537,6 +563,16 @@ class OmniFlowConfig:
     brightness: BrightnessOptions = field(default_factory=BrightnessOptions)
     refinement: RefinementOptions = field(default_factory=RefinementOptions)
 
+    def __new__(cls, *args: Any, **knobs: Any) -> OmniFlowConfig:
+        """An unknown keyword names the knob, with where a group's field is
+        (``pool_k=3``: ``it is pooling.pool_k``), as :meth:`replace` does; the generated
+        ``__init__`` would say only "unexpected keyword"."""
+        names = {f.name for f in fields(cls)}
+        unknown = [k for k in knobs if k not in names]
+        if unknown:
+            raise TypeError(f"OmniFlowConfig.{unknown[0]}: no such knob{_group_hint(unknown[0])}")
+        return super().__new__(cls)
+
     def __post_init__(self) -> None:
         for name, cls in GROUPS.items():  # a mapping changes the defaults' group
             value = getattr(self, name)
@@ -556,7 +592,17 @@ class OmniFlowConfig:
         self._check_combinations()
 
     def _check_combinations(self) -> None:
-        """Raise naming both knobs where one would silently cancel the other."""
+        """Raise naming both knobs where one would silently cancel the other: a knob of
+        :data:`DEPENDENCIES` set while the knob it needs is off, or grid pools with the
+        linear gain."""
+        for name, needs, on, is_on in DEPENDENCIES:
+            value, other = self.knob(name), self.knob(needs)
+            if value != _default(name) and not is_on(other):
+                raise ValueError(
+                    f"OmniFlowConfig.{name} = {value!r} with {needs} = {other!r}: {name} is "
+                    f"read only when {needs} is {on}; set {needs} or leave {name} at "
+                    f"{_default(name)!r}"
+                )
         if self.pooling.pool_grid is None:
             return
         if self.brightness_gate is not None and self.brightness.brightness_model != "gain":
@@ -620,6 +666,11 @@ class OmniFlowConfig:
         """
         return cls.preset("dense", **overrides)
 
+    def knob(self, name: str) -> Any:
+        """A knob's value by its dotted name (``"pooling.pool_k"``, ``"band"``)."""
+        group, dot, rest = name.partition(".")
+        return getattr(getattr(self, group), rest) if dot else getattr(self, name)
+
     @property
     def grid_pools(self) -> bool:
         """Whether the pools are grid filters (``pooling.pool_grid``, omniflow.solve.gridpool)."""
@@ -659,6 +710,12 @@ def _group_hint(name: str) -> str:
         if name in {f.name for f in fields(cls)}:
             return f"; it is {group}.{name} ({group}={{{name!r}: ...}})"
     return ""
+
+
+def _default(name: str) -> Any:
+    """A knob's default by its dotted name (its field's, before any preset)."""
+    f = knob_fields()[name]
+    return f.default
 
 
 def knob_fields() -> dict[str, Field]:

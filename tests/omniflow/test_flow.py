@@ -393,7 +393,8 @@ def test_iterations_reduce_the_error_of_a_large_motion():
                 solver=solver,
                 iterations=it,
                 flow_band=0.5,
-                refinement={"iterate_min_px": 0.0},
+                # every point refined (iterate_min_px 0); read only with iterations
+                refinement={"iterate_min_px": 0.0} if it else {},
                 pooling={"pool_min_conditioning": 0.0},
             )
             c = estimate(f1, f2, rig, config, matches=m)
